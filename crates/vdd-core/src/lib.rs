@@ -1,0 +1,28 @@
+//! # vdd-core
+//!
+//! The vocabulary of Variational Diffusion Distillation (Zhou et al., NeurIPS 2024):
+//!
+//! * [`ScoreModel`]: a teacher policy seen through its score `∇_a log π_σ(a|s)`;
+//! * [`Expert`]: a Gaussian expert family (raw network outputs ↔ mean and scale);
+//! * [`Policy`]: anything that acts, from demonstrators to the distilled mixture;
+//! * shared helpers: [`Seeds`] (independent ChaCha streams per purpose), Gaussian kernels in
+//!   [`gaussian`], shape and finiteness checks, and [`CoreError`].
+//!
+//! Batches are `faer` matrices with one row per sample (`n x dim`), `f32` throughout.
+#![warn(missing_docs)]
+
+mod error;
+mod expert;
+pub mod gaussian;
+mod policy;
+mod score;
+mod seed;
+
+pub use error::{check_finite, check_finite_slice, check_len, check_shape, CoreError, Result};
+pub use expert::{sigmoid, softplus, Expert, ScaleActivation};
+pub use policy::{check_act_args, Policy};
+pub use score::{check_score_args, NoiseConvention, NoiseSchedule, ScoreModel};
+pub use seed::{fill_standard_normal, standard_normal, Rng, Seeds};
+
+/// Re-export of `faer` so downstream crates and users name the same version.
+pub use faer;

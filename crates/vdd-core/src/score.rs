@@ -1,0 +1,240 @@
+//! The teacher seen through its score: [`ScoreModel`], noise-level conventions and schedules.
+
+use faer::{MatMut, MatRef};
+use rand::{Rng as _, RngCore};
+use serde::{Deserialize, Serialize};
+
+use crate::error::{check_len, check_shape, CoreError, Result};
+
+/// How a teacher names its noise levels.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum NoiseConvention {
+    /// Variance-exploding (VE / EDM / BESO): the level is the noise standard deviation `σ`.
+    Sigma,
+    /// Variance-preserving (VP / DDPM): the level is the diffusion time `t` (an index into the
+    /// discrete schedule, stored as `f32`).
+    Time,
+}
+
+/// How the expert step picks the teacher's noise level for each sample.
+///
+/// Levels are in the teacher's own [`NoiseConvention`].
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(tag = "kind", rename_all = "snake_case")]
+pub enum NoiseSchedule {
+    /// Always the same level.
+    Fixed {
+        /// The level.
+        level: f32,
+    },
+    /// Uniform in `[min, max]`, drawn independently per sample.
+    Uniform {
+        /// Lower end.
+        min: f32,
+        /// Upper end.
+        max: f32,
+    },
+    /// Annealed from `start` (at the beginning of training) to `end` (at its end),
+    /// geometrically when both are positive and linearly otherwise.
+    Annealed {
+        /// Level at progress 0.
+        start: f32,
+        /// Level at progress 1.
+        end: f32,
+    },
+}
+
+impl NoiseSchedule {
+    /// Checks that the levels are finite, non-negative and ordered.
+    pub fn validate(&self) -> Result<()> {
+        let ok = match *self {
+            NoiseSchedule::Fixed { level } => level.is_finite() && level >= 0.0,
+            NoiseSchedule::Uniform { min, max } => {
+                min.is_finite() && max.is_finite() && min >= 0.0 && min <= max
+            }
+            NoiseSchedule::Annealed { start, end } => {
+                start.is_finite() && end.is_finite() && start >= 0.0 && end >= 0.0
+            }
+        };
+        if ok {
+            Ok(())
+        } else {
+            Err(CoreError::Config(format!("invalid noise schedule {self:?}")))
+        }
+    }
+
+    /// Draws one level at training progress `progress ∈ [0, 1]`.
+    ///
+    /// ```
+    /// use vdd_core::{NoiseSchedule, Seeds};
+    /// let mut rng = Seeds::new(0).stream("noise");
+    /// let s = NoiseSchedule::Annealed { start: 1.0, end: 0.01 };
+    /// assert!((s.draw(0.5, &mut rng) - 0.1).abs() < 1e-5);
+    /// ```
+    pub fn draw(&self, progress: f32, rng: &mut dyn RngCore) -> f32 {
+        match *self {
+            NoiseSchedule::Fixed { level } => level,
+            NoiseSchedule::Uniform { min, max } => {
+                if max > min {
+                    rng.random_range(min..=max)
+                } else {
+                    min
+                }
+            }
+            NoiseSchedule::Annealed { start, end } => {
+                let p = progress.clamp(0.0, 1.0);
+                if start > 0.0 && end > 0.0 {
+                    (start.ln() + p * (end.ln() - start.ln())).exp()
+                } else {
+                    start + p * (end - start)
+                }
+            }
+        }
+    }
+}
+
+/// A teacher policy `π(a|s)` seen only through its score `∇_a log π_σ(a|s)`, where `π_σ` is
+/// `π` convolved with Gaussian noise of level `σ` (or diffusion time `t`).
+///
+/// This is all VDD needs from a teacher. Implement it for your own model in a few lines; the
+/// example is an analytic state-independent Gaussian `N(m, s² I)`, whose smoothed density is
+/// `N(m, (s² + σ²) I)`:
+///
+/// ```
+/// use faer::{MatMut, MatRef, reborrow::Reborrow};
+/// use vdd_core::{check_score_args, CoreError, ScoreModel};
+///
+/// struct IsoGaussian { mean: Vec<f32>, std: f32 }
+///
+/// impl ScoreModel for IsoGaussian {
+///     fn action_dim(&self) -> usize { self.mean.len() }
+///     fn state_dim(&self) -> usize { 1 }
+///     fn score(&mut self, a: MatRef<'_, f32>, s: MatRef<'_, f32>, sigma: &[f32],
+///              mut out: MatMut<'_, f32>) -> Result<(), CoreError> {
+///         check_score_args(self, a, s, sigma, out.rb())?;
+///         for i in 0..a.nrows() {
+///             let var = self.std * self.std + sigma[i] * sigma[i];
+///             for j in 0..a.ncols() {
+///                 out[(i, j)] = -(a[(i, j)] - self.mean[j]) / var;
+///             }
+///         }
+///         Ok(())
+///     }
+/// }
+///
+/// let mut teacher = IsoGaussian { mean: vec![1.0, -1.0], std: 0.5 };
+/// let a = faer::mat![[1.5f32, -1.0]];
+/// let s = faer::Mat::<f32>::zeros(1, 1);
+/// let mut out = faer::Mat::<f32>::zeros(1, 2);
+/// teacher.score(a.as_ref(), s.as_ref(), &[0.0], out.as_mut()).unwrap();
+/// assert!((out[(0, 0)] + 2.0).abs() < 1e-6);
+/// ```
+pub trait ScoreModel {
+    /// Dimension of one (flattened) action.
+    fn action_dim(&self) -> usize;
+
+    /// Dimension of one (flattened) state / observation.
+    fn state_dim(&self) -> usize;
+
+    /// Whether noise levels are VE `σ` or VP `t`. Defaults to [`NoiseConvention::Sigma`].
+    fn noise_convention(&self) -> NoiseConvention {
+        NoiseConvention::Sigma
+    }
+
+    /// Writes `∇_a log π_level(a|s)` for each row into `out`.
+    ///
+    /// `actions` is `n x action_dim`, `states` is `n x state_dim`, `noise_levels` has length
+    /// `n` and `out` is `n x action_dim`.
+    fn score(
+        &mut self,
+        actions: MatRef<'_, f32>,
+        states: MatRef<'_, f32>,
+        noise_levels: &[f32],
+        out: MatMut<'_, f32>,
+    ) -> Result<()>;
+
+    /// Fills `out` with noise levels drawn from `schedule` at training progress `progress`.
+    ///
+    /// The default draws each level independently with [`NoiseSchedule::draw`]; teachers with
+    /// discrete levels (DDPM) override it to round onto their grid.
+    fn draw_noise_levels(
+        &self,
+        schedule: &NoiseSchedule,
+        progress: f32,
+        rng: &mut dyn RngCore,
+        out: &mut [f32],
+    ) {
+        for x in out {
+            *x = schedule.draw(progress, rng);
+        }
+    }
+}
+
+impl<T: ScoreModel + ?Sized> ScoreModel for &mut T {
+    fn action_dim(&self) -> usize {
+        (**self).action_dim()
+    }
+    fn state_dim(&self) -> usize {
+        (**self).state_dim()
+    }
+    fn noise_convention(&self) -> NoiseConvention {
+        (**self).noise_convention()
+    }
+    fn score(
+        &mut self,
+        actions: MatRef<'_, f32>,
+        states: MatRef<'_, f32>,
+        noise_levels: &[f32],
+        out: MatMut<'_, f32>,
+    ) -> Result<()> {
+        (**self).score(actions, states, noise_levels, out)
+    }
+    fn draw_noise_levels(
+        &self,
+        schedule: &NoiseSchedule,
+        progress: f32,
+        rng: &mut dyn RngCore,
+        out: &mut [f32],
+    ) {
+        (**self).draw_noise_levels(schedule, progress, rng, out)
+    }
+}
+
+/// Validates the arguments of [`ScoreModel::score`]: shapes agree with the model's dimensions.
+pub fn check_score_args<S: ScoreModel + ?Sized>(
+    model: &S,
+    actions: MatRef<'_, f32>,
+    states: MatRef<'_, f32>,
+    noise_levels: &[f32],
+    out: MatRef<'_, f32>,
+) -> Result<()> {
+    let n = actions.nrows();
+    check_shape("actions", actions, n, model.action_dim())?;
+    check_shape("states", states, n, model.state_dim())?;
+    check_len("noise_levels", noise_levels.len(), n)?;
+    check_shape("score output", out, n, model.action_dim())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::Seeds;
+
+    #[test]
+    fn uniform_schedule_stays_in_range() {
+        let mut rng = Seeds::new(1).stream("n");
+        let s = NoiseSchedule::Uniform { min: 0.1, max: 0.5 };
+        let draws: Vec<f32> = (0..1000).map(|_| s.draw(0.0, &mut rng)).collect();
+        assert!(draws.iter().all(|&x| (0.1..=0.5).contains(&x)));
+        let mean = draws.iter().sum::<f32>() / 1000.0;
+        assert!((mean - 0.3).abs() < 0.02);
+    }
+
+    #[test]
+    fn invalid_schedules_are_rejected() {
+        assert!(NoiseSchedule::Uniform { min: 0.5, max: 0.1 }.validate().is_err());
+        assert!(NoiseSchedule::Fixed { level: f32::NAN }.validate().is_err());
+        assert!(NoiseSchedule::Fixed { level: 0.1 }.validate().is_ok());
+    }
+}
