@@ -1,0 +1,4 @@
+//! # vdd-baselines
+//!
+//! Baselines: EM and IMC mixtures, consistency distillation, consistency trajectory models.
+#![warn(missing_docs)]

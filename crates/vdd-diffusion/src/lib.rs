@@ -1,0 +1,4 @@
+//! # vdd-diffusion
+//!
+//! Diffusion teachers (DDPM, BESO/EDM) and an exact Gaussian-mixture teacher, as ScoreModels.
+#![warn(missing_docs)]

@@ -1,0 +1,4 @@
+//! # vdd
+//!
+//! Variational Diffusion Distillation trainer: distils any ScoreModel into a mixture of experts.
+#![warn(missing_docs)]
