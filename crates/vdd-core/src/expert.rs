@@ -22,8 +22,7 @@ pub struct ScaleActivation {
 impl ScaleActivation {
     /// Builds the activation for a given initial and minimal standard deviation.
     pub fn new(init_std: f32, min_std: f32) -> Result<Self> {
-        if !(min_std.is_finite() && init_std.is_finite() && min_std >= 0.0 && init_std > min_std)
-        {
+        if !(min_std.is_finite() && init_std.is_finite() && min_std >= 0.0 && init_std > min_std) {
             return Err(CoreError::Config(format!(
                 "need 0 <= min_std < init_std, got min_std {min_std}, init_std {init_std}"
             )));
@@ -31,7 +30,10 @@ impl ScaleActivation {
         let target = (init_std - min_std) as f64;
         // softplus⁻¹(y) = log(exp(y) − 1), written stably for large y.
         let shift = target + (-(-target).exp_m1()).ln();
-        Ok(Self { shift: shift as f32, min_std })
+        Ok(Self {
+            shift: shift as f32,
+            min_std,
+        })
     }
 
     /// The smallest standard deviation this activation can produce.

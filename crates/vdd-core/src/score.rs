@@ -60,7 +60,9 @@ impl NoiseSchedule {
         if ok {
             Ok(())
         } else {
-            Err(CoreError::Config(format!("invalid noise schedule {self:?}")))
+            Err(CoreError::Config(format!(
+                "invalid noise schedule {self:?}"
+            )))
         }
     }
 
@@ -233,7 +235,9 @@ mod tests {
 
     #[test]
     fn invalid_schedules_are_rejected() {
-        assert!(NoiseSchedule::Uniform { min: 0.5, max: 0.1 }.validate().is_err());
+        assert!(NoiseSchedule::Uniform { min: 0.5, max: 0.1 }
+            .validate()
+            .is_err());
         assert!(NoiseSchedule::Fixed { level: f32::NAN }.validate().is_err());
         assert!(NoiseSchedule::Fixed { level: 0.1 }.validate().is_ok());
     }

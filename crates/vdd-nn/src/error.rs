@@ -1,0 +1,46 @@
+//! The nn crate's error type.
+
+use std::path::PathBuf;
+
+/// Errors from building, saving and loading networks.
+#[derive(Debug, thiserror::Error)]
+pub enum NnError {
+    /// A configuration value is invalid (zero width, unknown activation, ...).
+    #[error("invalid network configuration: {0}")]
+    Config(String),
+    /// Reading or writing a file failed.
+    #[error("i/o error on {path}: {source}")]
+    Io {
+        /// The file.
+        path: PathBuf,
+        /// The underlying error.
+        #[source]
+        source: std::io::Error,
+    },
+    /// A file is not valid safetensors (truncated, corrupt, wrong dtype).
+    #[error("malformed weights file {path}: {reason}")]
+    Format {
+        /// The file.
+        path: PathBuf,
+        /// What is wrong.
+        reason: String,
+    },
+    /// A tensor the model needs is absent from the file.
+    #[error("tensor `{name}` is missing from {path}")]
+    MissingTensor {
+        /// The tensor name.
+        name: String,
+        /// The file.
+        path: PathBuf,
+    },
+    /// A tensor in the file has a different shape than the model's.
+    #[error("tensor `{name}` has shape {got:?} in the file but {expected:?} in the model")]
+    ShapeMismatch {
+        /// The tensor name.
+        name: String,
+        /// The model's shape.
+        expected: Vec<usize>,
+        /// The file's shape.
+        got: Vec<usize>,
+    },
+}

@@ -1,0 +1,40 @@
+//! The [`Module`] trait: a differentiable map on batches with explicit forward and backward.
+
+use faer::MatRef;
+
+use crate::param::Parameters;
+
+/// A layer or network mapping a batch `n x in_dim` to `n x out_dim`.
+///
+/// `forward` keeps what `backward` needs (inputs or activations) in buffers owned by the
+/// module and reused across calls of the same batch size, so a training loop does not
+/// allocate. `backward` takes the gradient of a scalar loss with respect to the last forward's
+/// output, **accumulates** parameter gradients (call [`Parameters::zero_grad`] between steps)
+/// and returns the gradient with respect to the input. Both return views into the module's own
+/// buffers, valid until its next call.
+pub trait Module: Parameters {
+    /// Input features.
+    fn in_dim(&self) -> usize;
+
+    /// Output features.
+    fn out_dim(&self) -> usize;
+
+    /// Forward pass over a batch (`n x in_dim`); returns `n x out_dim`.
+    ///
+    /// # Panics
+    /// If `x.ncols() != self.in_dim()`: callers validate user data before it reaches a network.
+    fn forward(&mut self, x: MatRef<'_, f32>) -> MatRef<'_, f32>;
+
+    /// Backward pass for the last forward; `grad_out` is `n x out_dim`, returns `n x in_dim`.
+    ///
+    /// # Panics
+    /// If `grad_out` does not match the last forward's output shape.
+    fn backward(&mut self, grad_out: MatRef<'_, f32>) -> MatRef<'_, f32>;
+}
+
+/// Resizes an owned buffer to `rows x cols` if needed (no allocation when it already fits).
+pub(crate) fn ensure_shape(m: &mut faer::Mat<f32>, rows: usize, cols: usize) {
+    if m.nrows() != rows || m.ncols() != cols {
+        *m = faer::Mat::zeros(rows, cols);
+    }
+}

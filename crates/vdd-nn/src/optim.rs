@@ -1,0 +1,124 @@
+//! Optimisers over any [`Parameters`]: Adam and AdamW.
+
+use serde::{Deserialize, Serialize};
+
+use crate::param::Parameters;
+
+/// Hyper-parameters of [`Adam`].
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct AdamConfig {
+    /// Base learning rate (multiplied by the schedule's factor at each step).
+    pub lr: f32,
+    /// First-moment decay.
+    pub beta1: f32,
+    /// Second-moment decay.
+    pub beta2: f32,
+    /// Denominator epsilon.
+    pub eps: f32,
+    /// Weight decay: L2 added to the gradient (Adam) or decoupled (AdamW).
+    pub weight_decay: f32,
+    /// `true` for AdamW's decoupled weight decay.
+    pub decoupled: bool,
+}
+
+impl Default for AdamConfig {
+    fn default() -> Self {
+        Self {
+            lr: 1e-3,
+            beta1: 0.9,
+            beta2: 0.999,
+            eps: 1e-8,
+            weight_decay: 0.0,
+            decoupled: false,
+        }
+    }
+}
+
+/// Adam / AdamW (Kingma & Ba 2015; Loshchilov & Hutter 2019) with PyTorch's update rule.
+///
+/// State is kept per parameter in visiting order, so one optimiser must always be stepped on
+/// the same model.
+///
+/// ```
+/// use vdd_nn::{Adam, AdamConfig, Param, Parameters};
+/// struct Scalar(Param);
+/// impl Parameters for Scalar {
+///     fn visit_params(&self, p: &str, f: &mut dyn FnMut(&str, &Param)) { f(p, &self.0) }
+///     fn visit_params_mut(&mut self, p: &str, f: &mut dyn FnMut(&str, &mut Param)) { f(p, &mut self.0) }
+/// }
+/// let mut x = Scalar(Param::new(&[1], vec![3.0]));
+/// let mut opt = Adam::new(AdamConfig { lr: 0.1, ..Default::default() });
+/// for _ in 0..200 {
+///     x.zero_grad();
+///     x.0.grad[0] = 2.0 * x.0.value[0]; // d/dx x²
+///     opt.step(&mut x, 1.0);
+/// }
+/// assert!(x.0.value[0].abs() < 0.05);
+/// ```
+#[derive(Debug, Clone, Serialize, Deserialize)]
+pub struct Adam {
+    config: AdamConfig,
+    step: u64,
+    m: Vec<Vec<f32>>,
+    v: Vec<Vec<f32>>,
+}
+
+impl Adam {
+    /// A fresh optimiser.
+    pub fn new(config: AdamConfig) -> Self {
+        Self {
+            config,
+            step: 0,
+            m: Vec::new(),
+            v: Vec::new(),
+        }
+    }
+
+    /// The hyper-parameters.
+    pub fn config(&self) -> &AdamConfig {
+        &self.config
+    }
+
+    /// Number of steps taken.
+    pub fn steps(&self) -> u64 {
+        self.step
+    }
+
+    /// One update with learning rate `config.lr * lr_factor` using the accumulated gradients.
+    pub fn step(&mut self, params: &mut dyn Parameters, lr_factor: f32) {
+        self.step += 1;
+        let c = self.config;
+        let lr = c.lr * lr_factor;
+        let bc1 = 1.0 - c.beta1.powi(self.step.min(i32::MAX as u64) as i32);
+        let bc2 = 1.0 - c.beta2.powi(self.step.min(i32::MAX as u64) as i32);
+        let step_size = lr / bc1;
+        let bc2_sqrt = bc2.sqrt();
+        let (ms, vs) = (&mut self.m, &mut self.v);
+        let mut k = 0;
+        params.visit_params_mut("", &mut |_, p| {
+            if ms.len() <= k {
+                ms.push(vec![0.0; p.len()]);
+                vs.push(vec![0.0; p.len()]);
+            }
+            let (m, v) = (&mut ms[k], &mut vs[k]);
+            assert_eq!(m.len(), p.len(), "Adam stepped on a different model");
+            if p.grad.len() != p.value.len() {
+                p.zero_grad();
+            }
+            for i in 0..p.value.len() {
+                let mut g = p.grad[i];
+                if c.weight_decay != 0.0 {
+                    if c.decoupled {
+                        p.value[i] *= 1.0 - lr * c.weight_decay;
+                    } else {
+                        g += c.weight_decay * p.value[i];
+                    }
+                }
+                m[i] = c.beta1 * m[i] + (1.0 - c.beta1) * g;
+                v[i] = c.beta2 * v[i] + (1.0 - c.beta2) * g * g;
+                p.value[i] -= step_size * m[i] / (v[i].sqrt() / bc2_sqrt + c.eps);
+            }
+            k += 1;
+        });
+    }
+}
