@@ -14,12 +14,14 @@
 mod error;
 mod expert;
 pub mod gaussian;
+mod normalize;
 mod policy;
 mod score;
 mod seed;
 
 pub use error::{check_finite, check_finite_slice, check_len, check_shape, CoreError, Result};
 pub use expert::{sigmoid, softplus, Expert, ScaleActivation};
+pub use normalize::Affine;
 pub use policy::{check_act_args, Policy};
 pub use score::{check_score_args, NoiseConvention, NoiseSchedule, ScoreModel};
 pub use seed::{fill_standard_normal, standard_normal, Rng, Seeds};

@@ -156,6 +156,20 @@ pub trait ScoreModel {
         out: MatMut<'_, f32>,
     ) -> Result<()>;
 
+    /// Draws one action per state from the teacher's (clean) distribution into `out`
+    /// (`n x action_dim`), for teachers that can sample.
+    ///
+    /// VDD's gating step uses it when no dataset actions are given. The default returns
+    /// [`CoreError::Unsupported`].
+    fn sample_actions(
+        &mut self,
+        _states: MatRef<'_, f32>,
+        _rng: &mut dyn RngCore,
+        _out: MatMut<'_, f32>,
+    ) -> Result<()> {
+        Err(CoreError::Unsupported("sampling actions from this teacher"))
+    }
+
     /// Fills `out` with noise levels drawn from `schedule` at training progress `progress`.
     ///
     /// The default draws each level independently with [`NoiseSchedule::draw`]; teachers with
@@ -200,6 +214,14 @@ impl<T: ScoreModel + ?Sized> ScoreModel for &mut T {
         out: &mut [f32],
     ) {
         (**self).draw_noise_levels(schedule, progress, rng, out)
+    }
+    fn sample_actions(
+        &mut self,
+        states: MatRef<'_, f32>,
+        rng: &mut dyn RngCore,
+        out: MatMut<'_, f32>,
+    ) -> Result<()> {
+        (**self).sample_actions(states, rng, out)
     }
 }
 
