@@ -154,11 +154,7 @@ impl Module for ActivationLayer {
 
     fn backward(&mut self, grad_out: MatRef<'_, f32>) -> MatRef<'_, f32> {
         let (n, d) = (self.input.nrows(), self.dim);
-        assert_eq!(
-            (grad_out.nrows(), grad_out.ncols()),
-            (n, d),
-            "activation: grad shape"
-        );
+        assert_eq!((grad_out.nrows(), grad_out.ncols()), (n, d), "activation: grad shape");
         ensure_shape(&mut self.grad_input, n, d);
         let act = self.activation;
         for j in 0..d {

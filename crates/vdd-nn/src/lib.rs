@@ -12,16 +12,19 @@
 mod activation;
 mod error;
 pub mod gradcheck;
+pub mod io;
 mod linear;
 mod mlp;
 mod module;
 mod optim;
 mod param;
+mod schedule;
 
 pub use activation::{erf, Activation, ActivationLayer};
 pub use error::NnError;
 pub use linear::Linear;
 pub use mlp::{Mlp, MlpConfig, ResidualBlock, ResidualMlp, ResidualMlpConfig};
 pub use module::Module;
-pub use optim::{Adam, AdamConfig};
+pub use optim::{clip_grad_norm, Adam, AdamConfig};
 pub use param::{join_name, Param, Parameters};
+pub use schedule::LrSchedule;

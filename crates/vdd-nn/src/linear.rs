@@ -34,12 +34,8 @@ impl Linear {
     /// A layer with PyTorch's default initialisation: weight and bias `U(−1/√in, 1/√in)`.
     pub fn new(in_dim: usize, out_dim: usize, rng: &mut vdd_core::Rng) -> Self {
         let bound = 1.0 / (in_dim.max(1) as f32).sqrt();
-        let weight = (0..in_dim * out_dim)
-            .map(|_| rng.random_range(-bound..=bound))
-            .collect();
-        let bias = (0..out_dim)
-            .map(|_| rng.random_range(-bound..=bound))
-            .collect();
+        let weight = (0..in_dim * out_dim).map(|_| rng.random_range(-bound..=bound)).collect();
+        let bias = (0..out_dim).map(|_| rng.random_range(-bound..=bound)).collect();
         Self::from_params(
             in_dim,
             out_dim,
@@ -106,25 +102,14 @@ impl Module for Linear {
 
     fn backward(&mut self, grad_out: MatRef<'_, f32>) -> MatRef<'_, f32> {
         let n = self.input.nrows();
-        assert_eq!(
-            (grad_out.nrows(), grad_out.ncols()),
-            (n, self.out_dim),
-            "Linear: grad shape"
-        );
+        assert_eq!((grad_out.nrows(), grad_out.ncols()), (n, self.out_dim), "Linear: grad shape");
         // dWᵀ (in x out) += xᵀ · gy
         let dwt = faer::MatMut::from_column_major_slice_mut(
             &mut self.weight.grad,
             self.in_dim,
             self.out_dim,
         );
-        matmul(
-            dwt,
-            Accum::Add,
-            self.input.transpose(),
-            grad_out,
-            1.0,
-            Par::Seq,
-        );
+        matmul(dwt, Accum::Add, self.input.transpose(), grad_out, 1.0, Par::Seq);
         for (j, db) in self.bias.grad.iter_mut().enumerate() {
             let col = grad_out.col(j);
             let mut s = 0.0;
@@ -135,14 +120,7 @@ impl Module for Linear {
         }
         ensure_shape(&mut self.grad_input, n, self.in_dim);
         let wt = MatRef::from_column_major_slice(&self.weight.value, self.in_dim, self.out_dim);
-        matmul(
-            self.grad_input.as_mut(),
-            Accum::Replace,
-            grad_out,
-            wt.transpose(),
-            1.0,
-            Par::Seq,
-        );
+        matmul(self.grad_input.as_mut(), Accum::Replace, grad_out, wt.transpose(), 1.0, Par::Seq);
         self.grad_input.as_ref()
     }
 }

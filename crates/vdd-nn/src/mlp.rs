@@ -56,20 +56,10 @@ impl Mlp {
         widths.extend(&config.hidden);
         widths.push(config.out_dim);
         check_widths("Mlp", &widths)?;
-        let linears = widths
-            .windows(2)
-            .map(|w| Linear::new(w[0], w[1], rng))
-            .collect();
-        let activations = config
-            .hidden
-            .iter()
-            .map(|&h| ActivationLayer::new(config.activation, h))
-            .collect();
-        Ok(Self {
-            config: config.clone(),
-            linears,
-            activations,
-        })
+        let linears = widths.windows(2).map(|w| Linear::new(w[0], w[1], rng)).collect();
+        let activations =
+            config.hidden.iter().map(|&h| ActivationLayer::new(config.activation, h)).collect();
+        Ok(Self { config: config.clone(), linears, activations })
     }
 
     /// The configuration it was built from.
@@ -138,6 +128,10 @@ pub struct ResidualMlpConfig {
     pub out_dim: usize,
     /// Nonlinearity inside the blocks.
     pub activation: Activation,
+    /// Layer normalisation before each block's activations (`norm1`, `norm2`), as in the
+    /// official VDD/BESO residual blocks with `use_norm=True`.
+    #[serde(default)]
+    pub layer_norm: bool,
 }
 
 /// One pre-activation residual block: `x + l2(act(l1(act(x))))`, named `l1`, `l2` as in BESO's
@@ -219,7 +213,7 @@ impl Module for ResidualBlock {
 /// ```
 /// use vdd_nn::{Activation, Module, ResidualMlp, ResidualMlpConfig};
 /// let cfg = ResidualMlpConfig { in_dim: 3, hidden_dim: 32, num_blocks: 2, out_dim: 4,
-///                               activation: Activation::Mish };
+///                               activation: Activation::Mish, layer_norm: false };
 /// let mut net = ResidualMlp::new(&cfg, &mut vdd_core::Seeds::new(0).stream("init")).unwrap();
 /// assert_eq!(net.forward(faer::Mat::<f32>::zeros(8, 3).as_ref()).ncols(), 4);
 /// ```
@@ -234,21 +228,18 @@ pub struct ResidualMlp {
 impl ResidualMlp {
     /// Builds the network with PyTorch's default initialisation.
     pub fn new(config: &ResidualMlpConfig, rng: &mut vdd_core::Rng) -> Result<Self, NnError> {
-        check_widths(
-            "ResidualMlp",
-            &[config.in_dim, config.hidden_dim, config.out_dim],
-        )?;
+        check_widths("ResidualMlp", &[config.in_dim, config.hidden_dim, config.out_dim])?;
+        if config.layer_norm {
+            return Err(NnError::Config(
+                "layer_norm residual blocks are not implemented yet".into(),
+            ));
+        }
         let input = Linear::new(config.in_dim, config.hidden_dim, rng);
         let blocks = (0..config.num_blocks)
             .map(|_| ResidualBlock::new(config.hidden_dim, config.activation, rng))
             .collect();
         let output = Linear::new(config.hidden_dim, config.out_dim, rng);
-        Ok(Self {
-            config: config.clone(),
-            input,
-            blocks,
-            output,
-        })
+        Ok(Self { config: config.clone(), input, blocks, output })
     }
 
     /// The configuration it was built from.
@@ -282,8 +273,7 @@ impl Parameters for ResidualMlp {
         self.output.visit_params(&join_name(prefix, &last), f);
     }
     fn visit_params_mut(&mut self, prefix: &str, f: &mut dyn FnMut(&str, &mut Param)) {
-        self.input
-            .visit_params_mut(&join_name(prefix, "layers.0"), f);
+        self.input.visit_params_mut(&join_name(prefix, "layers.0"), f);
         for (i, b) in self.blocks.iter_mut().enumerate() {
             b.visit_params_mut(&join_name(prefix, &format!("layers.{}", i + 1)), f);
         }
@@ -329,37 +319,26 @@ mod tests {
     #[test]
     fn residual_mlp_gradients_match_finite_differences() {
         let mut rng = vdd_core::Seeds::new(1).stream("t");
-        for act in [
-            Activation::Mish,
-            Activation::Tanh,
-            Activation::Silu,
-            Activation::Gelu,
-        ] {
+        for act in [Activation::Mish, Activation::Tanh, Activation::Silu, Activation::Gelu] {
             let cfg = ResidualMlpConfig {
                 in_dim: 3,
                 hidden_dim: 8,
                 num_blocks: 2,
                 out_dim: 2,
                 activation: act,
+                layer_norm: false,
             };
             let mut net = ResidualMlp::new(&cfg, &mut rng).unwrap();
             let r = check_module(&mut net, input(5, 3).as_ref(), 1e-2, 1e-2, &mut rng);
-            assert!(
-                r.input_error < 5e-3 && r.param_error < 5e-3,
-                "{act:?}: {r:?}"
-            );
+            assert!(r.input_error < 5e-3 && r.param_error < 5e-3, "{act:?}: {r:?}");
         }
     }
 
     #[test]
     fn mlp_gradients_match_finite_differences() {
         let mut rng = vdd_core::Seeds::new(2).stream("t");
-        let cfg = MlpConfig {
-            in_dim: 4,
-            hidden: vec![6, 5],
-            out_dim: 3,
-            activation: Activation::Tanh,
-        };
+        let cfg =
+            MlpConfig { in_dim: 4, hidden: vec![6, 5], out_dim: 3, activation: Activation::Tanh };
         let mut net = Mlp::new(&cfg, &mut rng).unwrap();
         let r = check_module(&mut net, input(6, 4).as_ref(), 1e-2, 1e-2, &mut rng);
         assert!(r.input_error < 5e-3 && r.param_error < 5e-3, "{r:?}");

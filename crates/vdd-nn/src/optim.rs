@@ -23,14 +23,7 @@ pub struct AdamConfig {
 
 impl Default for AdamConfig {
     fn default() -> Self {
-        Self {
-            lr: 1e-3,
-            beta1: 0.9,
-            beta2: 0.999,
-            eps: 1e-8,
-            weight_decay: 0.0,
-            decoupled: false,
-        }
+        Self { lr: 1e-3, beta1: 0.9, beta2: 0.999, eps: 1e-8, weight_decay: 0.0, decoupled: false }
     }
 }
 
@@ -66,12 +59,7 @@ pub struct Adam {
 impl Adam {
     /// A fresh optimiser.
     pub fn new(config: AdamConfig) -> Self {
-        Self {
-            config,
-            step: 0,
-            m: Vec::new(),
-            v: Vec::new(),
-        }
+        Self { config, step: 0, m: Vec::new(), v: Vec::new() }
     }
 
     /// The hyper-parameters.
@@ -121,4 +109,33 @@ impl Adam {
             k += 1;
         });
     }
+}
+
+/// Scales all gradients of `model` so their global L2 norm is at most `max_norm` (PyTorch's
+/// `clip_grad_norm_`). Returns the norm before clipping; a non-finite norm leaves the
+/// gradients untouched (the caller should treat it as divergence).
+///
+/// ```
+/// use vdd_nn::{clip_grad_norm, Param, Parameters};
+/// struct Two(Param);
+/// impl Parameters for Two {
+///     fn visit_params(&self, p: &str, f: &mut dyn FnMut(&str, &Param)) { f(p, &self.0) }
+///     fn visit_params_mut(&mut self, p: &str, f: &mut dyn FnMut(&str, &mut Param)) { f(p, &mut self.0) }
+/// }
+/// let mut m = Two(Param::zeros(&[2]));
+/// m.0.grad = vec![3.0, 4.0];
+/// assert_eq!(clip_grad_norm(&mut m, 1.0), 5.0);
+/// assert!((m.0.grad[0] - 0.6).abs() < 1e-6 && (m.0.grad[1] - 0.8).abs() < 1e-6);
+/// ```
+pub fn clip_grad_norm(model: &mut dyn Parameters, max_norm: f32) -> f32 {
+    let mut sq = 0.0f64;
+    model.visit_params("", &mut |_, p| {
+        sq += p.grad.iter().map(|&g| (g as f64) * (g as f64)).sum::<f64>();
+    });
+    let norm = sq.sqrt() as f32;
+    if norm.is_finite() && norm > max_norm && norm > 0.0 {
+        let s = max_norm / (norm + 1e-6);
+        model.visit_params_mut("", &mut |_, p| p.grad.iter_mut().for_each(|g| *g *= s));
+    }
+    norm
 }

@@ -20,11 +20,7 @@ impl Param {
     pub fn new(shape: &[usize], value: Vec<f32>) -> Self {
         let n: usize = shape.iter().product();
         assert_eq!(n, value.len(), "parameter size does not match its shape");
-        Self {
-            grad: vec![0.0; n],
-            value,
-            shape: shape.to_vec(),
-        }
+        Self { grad: vec![0.0; n], value, shape: shape.to_vec() }
     }
 
     /// A zero-initialised parameter.

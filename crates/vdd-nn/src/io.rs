@@ -1,0 +1,290 @@
+//! Checkpoints: tensors in `safetensors` with PyTorch names and layouts, string metadata beside
+//! them, and atomic writes (temporary file, fsync, rename) so a crash never leaves a
+//! half-written file behind.
+//!
+//! ```
+//! use std::collections::BTreeMap;
+//! use vdd_nn::{io, Linear, Parameters};
+//! let mut rng = vdd_core::Seeds::new(0).stream("init");
+//! let layer = Linear::new(3, 2, &mut rng);
+//! let dir = std::env::temp_dir().join(format!("vdd-nn-io-doc-{}", std::process::id()));
+//! std::fs::create_dir_all(&dir).unwrap();
+//! let path = dir.join("layer.safetensors");
+//! let meta = BTreeMap::from([("config".to_owned(), "{}".to_owned())]);
+//! io::save_safetensors(&path, &layer, &meta).unwrap();
+//! let mut copy = Linear::new(3, 2, &mut rng);
+//! let read = io::load_safetensors(&path, &mut copy).unwrap();
+//! assert_eq!(read, meta);
+//! assert_eq!(copy.weight.value, layer.weight.value);
+//! # std::fs::remove_dir_all(&dir).unwrap();
+//! ```
+
+use std::collections::{BTreeMap, HashMap};
+use std::io::Write;
+use std::path::{Path, PathBuf};
+
+use safetensors::{tensor::TensorView, Dtype, SafeTensors};
+
+use crate::{NnError, Param, Parameters};
+
+fn io_err(path: &Path) -> impl FnOnce(std::io::Error) -> NnError + '_ {
+    move |source| NnError::Io { path: path.to_owned(), source }
+}
+
+fn format_err(path: &Path, reason: impl ToString) -> NnError {
+    NnError::Format { path: path.to_owned(), reason: reason.to_string() }
+}
+
+/// Writes `bytes` to `path` atomically: a temporary sibling file is written and fsynced, then
+/// renamed over `path`. Readers see either the old file or the complete new one.
+pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<(), NnError> {
+    let file_name = path
+        .file_name()
+        .ok_or_else(|| format_err(path, "path has no file name"))?
+        .to_string_lossy()
+        .into_owned();
+    let tmp: PathBuf = path.with_file_name(format!(".{file_name}.tmp-{}", std::process::id()));
+    let result = (|| {
+        let mut f = std::fs::File::create(&tmp).map_err(io_err(&tmp))?;
+        f.write_all(bytes).map_err(io_err(&tmp))?;
+        f.sync_all().map_err(io_err(&tmp))?;
+        drop(f);
+        std::fs::rename(&tmp, path).map_err(io_err(path))?;
+        if let Some(dir) = path.parent().filter(|d| !d.as_os_str().is_empty()) {
+            // Persist the rename itself; not every platform can open a directory, so a failure
+            // here is not an error.
+            if let Ok(d) = std::fs::File::open(dir) {
+                let _ = d.sync_all();
+            }
+        }
+        Ok(())
+    })();
+    if result.is_err() {
+        let _ = std::fs::remove_file(&tmp);
+    }
+    result
+}
+
+/// Serialises every parameter of `model` (f32, PyTorch names and shapes) plus `metadata` to
+/// `safetensors` bytes.
+pub fn to_safetensors_bytes(
+    model: &dyn Parameters,
+    metadata: &BTreeMap<String, String>,
+) -> Result<Vec<u8>, NnError> {
+    let mut tensors: Vec<(String, Vec<usize>, Vec<u8>)> = Vec::new();
+    model.visit_params("", &mut |name, p| {
+        let bytes = p.value.iter().flat_map(|v| v.to_le_bytes()).collect();
+        tensors.push((name.to_owned(), p.shape.clone(), bytes));
+    });
+    let mut views = Vec::with_capacity(tensors.len());
+    for (name, shape, bytes) in &tensors {
+        let view = TensorView::new(Dtype::F32, shape.clone(), bytes)
+            .map_err(|e| NnError::Config(format!("tensor `{name}`: {e}")))?;
+        views.push((name.clone(), view));
+    }
+    let meta: HashMap<String, String> =
+        metadata.iter().map(|(k, v)| (k.clone(), v.clone())).collect();
+    safetensors::serialize(views, Some(meta)).map_err(|e| NnError::Config(e.to_string()))
+}
+
+/// Saves `model`'s parameters and `metadata` to `path` atomically.
+pub fn save_safetensors(
+    path: &Path,
+    model: &dyn Parameters,
+    metadata: &BTreeMap<String, String>,
+) -> Result<(), NnError> {
+    write_atomic(path, &to_safetensors_bytes(model, metadata)?)
+}
+
+/// Reads only the string metadata of a `safetensors` file (for example a model's config, to
+/// build the model before loading its weights).
+pub fn read_metadata(path: &Path) -> Result<BTreeMap<String, String>, NnError> {
+    let bytes = std::fs::read(path).map_err(io_err(path))?;
+    let (_, meta) = SafeTensors::read_metadata(&bytes).map_err(|e| format_err(path, e))?;
+    Ok(meta.metadata().clone().unwrap_or_default().into_iter().collect())
+}
+
+/// Loads every parameter of `model` from `path` by name and returns the file's metadata.
+///
+/// All tensors are checked (present, f32 or f64, same shape, finite) before any parameter is
+/// changed, so on error the model is untouched. Extra tensors in the file are ignored, as
+/// PyTorch's `load_state_dict(strict=False)` would; missing ones are an error.
+pub fn load_safetensors(
+    path: &Path,
+    model: &mut dyn Parameters,
+) -> Result<BTreeMap<String, String>, NnError> {
+    let bytes = std::fs::read(path).map_err(io_err(path))?;
+    load_safetensors_bytes(path, &bytes, model)
+}
+
+/// [`load_safetensors`] from bytes in memory; `path` only names the source in errors.
+pub fn load_safetensors_bytes(
+    path: &Path,
+    bytes: &[u8],
+    model: &mut dyn Parameters,
+) -> Result<BTreeMap<String, String>, NnError> {
+    let file = SafeTensors::deserialize(bytes).map_err(|e| format_err(path, e))?;
+    let (_, meta) = SafeTensors::read_metadata(bytes).map_err(|e| format_err(path, e))?;
+    let mut staged: Vec<Vec<f32>> = Vec::new();
+    let mut first_error: Option<NnError> = None;
+    model.visit_params("", &mut |name, p: &Param| {
+        if first_error.is_some() {
+            return;
+        }
+        match read_tensor(path, &file, name, &p.shape) {
+            Ok(v) => staged.push(v),
+            Err(e) => first_error = Some(e),
+        }
+    });
+    if let Some(e) = first_error {
+        return Err(e);
+    }
+    let mut values = staged.into_iter();
+    model.visit_params_mut("", &mut |_, p| {
+        if let Some(v) = values.next() {
+            p.value = v;
+            p.zero_grad();
+        }
+    });
+    Ok(meta.metadata().clone().unwrap_or_default().into_iter().collect())
+}
+
+fn read_tensor(
+    path: &Path,
+    file: &SafeTensors<'_>,
+    name: &str,
+    shape: &[usize],
+) -> Result<Vec<f32>, NnError> {
+    let view = file
+        .tensor(name)
+        .map_err(|_| NnError::MissingTensor { name: name.to_owned(), path: path.to_owned() })?;
+    if view.shape() != shape {
+        return Err(NnError::ShapeMismatch {
+            name: name.to_owned(),
+            expected: shape.to_vec(),
+            got: view.shape().to_vec(),
+        });
+    }
+    let data = view.data();
+    let values: Vec<f32> = match view.dtype() {
+        Dtype::F32 => {
+            data.chunks_exact(4).map(|c| f32::from_le_bytes([c[0], c[1], c[2], c[3]])).collect()
+        }
+        Dtype::F64 => data
+            .chunks_exact(8)
+            .map(|c| f64::from_le_bytes([c[0], c[1], c[2], c[3], c[4], c[5], c[6], c[7]]) as f32)
+            .collect(),
+        other => {
+            return Err(format_err(
+                path,
+                format!("tensor `{name}` has dtype {other:?}, expected F32"),
+            ))
+        }
+    };
+    if let Some(i) = values.iter().position(|v| !v.is_finite()) {
+        return Err(format_err(path, format!("tensor `{name}` has a non-finite value at {i}")));
+    }
+    Ok(values)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::{Activation, Module, ResidualMlp, ResidualMlpConfig};
+
+    fn net(seed: u64) -> ResidualMlp {
+        let cfg = ResidualMlpConfig {
+            in_dim: 3,
+            hidden_dim: 8,
+            num_blocks: 2,
+            out_dim: 2,
+            activation: Activation::Mish,
+            layer_norm: false,
+        };
+        ResidualMlp::new(&cfg, &mut vdd_core::Seeds::new(seed).stream("init")).unwrap()
+    }
+
+    fn tmp(name: &str) -> PathBuf {
+        let dir = std::env::temp_dir().join(format!("vdd-nn-io-{}-{name}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        dir.join("m.safetensors")
+    }
+
+    #[test]
+    fn round_trip_is_bit_exact() {
+        let path = tmp("rt");
+        let a = net(1);
+        let meta = BTreeMap::from([("k".to_owned(), "v".to_owned())]);
+        save_safetensors(&path, &a, &meta).unwrap();
+        let mut b = net(2);
+        assert_eq!(load_safetensors(&path, &mut b).unwrap(), meta);
+        assert_eq!(read_metadata(&path).unwrap(), meta);
+        let (mut va, mut vb) = (Vec::new(), Vec::new());
+        a.visit_params("", &mut |n, p| va.push((n.to_owned(), p.value.clone())));
+        b.visit_params("", &mut |n, p| vb.push((n.to_owned(), p.value.clone())));
+        assert_eq!(va, vb);
+        let x = faer::Mat::<f32>::from_fn(4, 3, |i, j| (i + j) as f32 * 0.1);
+        let mut a = a;
+        let out_a = a.forward(x.as_ref()).to_owned();
+        let out_b = b.forward(x.as_ref()).to_owned();
+        assert_eq!(out_a, out_b);
+    }
+
+    #[test]
+    fn truncated_and_mismatched_files_are_clear_errors() {
+        let path = tmp("bad");
+        save_safetensors(&path, &net(1), &BTreeMap::new()).unwrap();
+        let bytes = std::fs::read(&path).unwrap();
+        let mut m = net(3);
+        let before = m.output_layer_mut().weight.value.clone();
+        let err = load_safetensors_bytes(&path, &bytes[..bytes.len() - 7], &mut m).unwrap_err();
+        assert!(matches!(err, NnError::Format { .. }), "{err}");
+        assert_eq!(m.output_layer_mut().weight.value, before, "model changed on error");
+
+        let mut wider = ResidualMlp::new(
+            &ResidualMlpConfig {
+                in_dim: 3,
+                hidden_dim: 9,
+                num_blocks: 2,
+                out_dim: 2,
+                activation: Activation::Mish,
+                layer_norm: false,
+            },
+            &mut vdd_core::Seeds::new(0).stream("init"),
+        )
+        .unwrap();
+        let err = load_safetensors(&path, &mut wider).unwrap_err();
+        assert!(matches!(err, NnError::ShapeMismatch { .. }), "{err}");
+
+        let mut deeper = ResidualMlp::new(
+            &ResidualMlpConfig {
+                in_dim: 3,
+                hidden_dim: 8,
+                num_blocks: 3,
+                out_dim: 2,
+                activation: Activation::Mish,
+                layer_norm: false,
+            },
+            &mut vdd_core::Seeds::new(0).stream("init"),
+        )
+        .unwrap();
+        let err = load_safetensors(&path, &mut deeper).unwrap_err();
+        assert!(matches!(err, NnError::MissingTensor { .. }), "{err}");
+
+        let missing = path.with_file_name("absent.safetensors");
+        assert!(matches!(load_safetensors(&missing, &mut m), Err(NnError::Io { .. })));
+    }
+
+    #[test]
+    fn atomic_write_replaces_whole_file_and_leaves_no_temporaries() {
+        let path = tmp("atomic").with_file_name("f.bin");
+        write_atomic(&path, b"first version").unwrap();
+        write_atomic(&path, b"2").unwrap();
+        assert_eq!(std::fs::read(&path).unwrap(), b"2");
+        let leftovers = std::fs::read_dir(path.parent().unwrap())
+            .unwrap()
+            .filter(|e| e.as_ref().unwrap().file_name().to_string_lossy().contains(".tmp-"))
+            .count();
+        assert_eq!(leftovers, 0);
+    }
+}
