@@ -1,4 +1,19 @@
 //! # vdd-moe
 //!
-//! Mixture of Gaussian experts with a gating network: a fast Policy with exact likelihood.
+//! A mixture of Gaussian experts with a gating distribution,
+//! `q(a|s) = Σ_z q(z|s) N(a; μ_z(s), Σ_z(s))`: the student that VDD distils a diffusion
+//! policy into. It acts with one network evaluation ([`Moe`] implements
+//! [`vdd_core::Policy`]), has an exact log-likelihood, and exposes the per-state means,
+//! scales, gating and responsibilities that trainers need.
+//!
+//! Expert families: [`DiagonalExpert`], [`FullExpert`] (full Cholesky), or [`ExpertFamily`] to
+//! choose either by one config value ([`ExpertKind`]); any [`vdd_core::Expert`] works.
 #![warn(missing_docs)]
+
+mod error;
+mod experts;
+mod moe;
+
+pub use error::MoeError;
+pub use experts::{DiagonalExpert, ExpertFamily, ExpertKind, FullExpert};
+pub use moe::{ActMode, ExpertNetworks, GatingKind, Moe, MoeConfig, MoeOutput, NetworkConfig};
