@@ -1,0 +1,117 @@
+//! Configuration of a VDD run.
+
+use serde::{Deserialize, Serialize};
+use vdd_core::{CoreError, NoiseSchedule};
+use vdd_nn::{AdamConfig, LrSchedule};
+
+/// How the per-expert objectives are weighted in the experts' loss
+/// `L = −mean_s Σ_z w_z(s) J_z(s)`.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, Default)]
+#[serde(rename_all = "snake_case")]
+pub enum ExpertWeighting {
+    /// `w_z(s) = q(z|s)`, detached (the official code's choice).
+    #[default]
+    Gating,
+    /// `w_z(s) = 1/Z`.
+    Uniform,
+}
+
+/// Hyper-parameters of [`crate::Vdd`]. [`VddConfig::toy`] gives the paper's toy defaults.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct VddConfig {
+    /// Number of EM iterations.
+    pub iterations: usize,
+    /// States per expert step.
+    pub batch_size: usize,
+    /// Reparameterised samples per (state, expert), `V`.
+    pub vi_samples: usize,
+    /// Teacher noise levels used in the expert step (in the teacher's convention).
+    pub noise: NoiseSchedule,
+    /// Weighting of the experts' objectives.
+    pub expert_weighting: ExpertWeighting,
+    /// Expert updates per iteration (all against the same E-step snapshot).
+    pub expert_steps_per_iter: usize,
+    /// Gating updates per iteration (ignored for uniform gating).
+    pub gating_steps_per_iter: usize,
+    /// (state, action) pairs per gating step.
+    pub gating_batch_size: usize,
+    /// Stop updating the gating from this iteration on.
+    pub freeze_gating_after: Option<usize>,
+    /// Adam for the experts.
+    pub expert_optimizer: AdamConfig,
+    /// Learning-rate schedule for the experts (over expert steps).
+    pub expert_lr_schedule: LrSchedule,
+    /// Adam for the gating.
+    pub gating_optimizer: AdamConfig,
+    /// Learning-rate schedule for the gating (over gating steps).
+    pub gating_lr_schedule: LrSchedule,
+    /// Clip each network's gradient to this global norm.
+    pub max_grad_norm: Option<f32>,
+    /// Root seed of every random draw of the run.
+    pub seed: u64,
+}
+
+impl VddConfig {
+    /// The paper's toy defaults: 600 iterations, 32 states, 64 samples per expert, Adam
+    /// `5e-4` decaying linearly to 0, exact score (`σ = 0`), gating-weighted objectives.
+    pub fn toy() -> Self {
+        let iterations = 600;
+        Self {
+            iterations,
+            batch_size: 32,
+            vi_samples: 64,
+            noise: NoiseSchedule::Fixed { level: 0.0 },
+            expert_weighting: ExpertWeighting::Gating,
+            expert_steps_per_iter: 1,
+            gating_steps_per_iter: 1,
+            gating_batch_size: 256,
+            freeze_gating_after: None,
+            expert_optimizer: AdamConfig { lr: 5e-4, ..AdamConfig::default() },
+            expert_lr_schedule: LrSchedule::LinearDecay {
+                total_steps: iterations as u64,
+                final_factor: 0.0,
+            },
+            gating_optimizer: AdamConfig { lr: 5e-4, ..AdamConfig::default() },
+            gating_lr_schedule: LrSchedule::LinearDecay {
+                total_steps: iterations as u64,
+                final_factor: 0.0,
+            },
+            max_grad_norm: None,
+            seed: 0,
+        }
+    }
+
+    /// Checks ranges.
+    pub fn validate(&self) -> Result<(), CoreError> {
+        let positive = [
+            ("iterations", self.iterations),
+            ("batch_size", self.batch_size),
+            ("vi_samples", self.vi_samples),
+            ("expert_steps_per_iter", self.expert_steps_per_iter),
+            ("gating_batch_size", self.gating_batch_size),
+        ];
+        for (name, v) in positive {
+            if v == 0 {
+                return Err(CoreError::Config(format!("{name} must be positive")));
+            }
+        }
+        for (name, opt) in [("expert", &self.expert_optimizer), ("gating", &self.gating_optimizer)]
+        {
+            if !(opt.lr.is_finite() && opt.lr >= 0.0) {
+                return Err(CoreError::Config(format!("{name} learning rate must be >= 0")));
+            }
+        }
+        if let Some(m) = self.max_grad_norm {
+            if !(m.is_finite() && m > 0.0) {
+                return Err(CoreError::Config("max_grad_norm must be positive".into()));
+            }
+        }
+        self.noise.validate()
+    }
+}
+
+impl Default for VddConfig {
+    fn default() -> Self {
+        Self::toy()
+    }
+}

@@ -1,0 +1,32 @@
+//! The VDD trainer's error type.
+
+/// Errors from setting up, running, checkpointing and resuming VDD training.
+#[derive(Debug, thiserror::Error)]
+pub enum VddError {
+    /// Invalid configuration or data (shapes, empty data, non-finite inputs).
+    #[error(transparent)]
+    Core(#[from] vdd_core::CoreError),
+    /// The student failed (bad shapes, I/O).
+    #[error(transparent)]
+    Moe(#[from] vdd_moe::MoeError),
+    /// Network checkpoint I/O failed.
+    #[error(transparent)]
+    Nn(#[from] vdd_nn::NnError),
+    /// The teacher's score, a gradient or a loss became NaN or infinite; the update of that
+    /// iteration was not applied.
+    #[error("non-finite {quantity} at iteration {iteration}; the update was not applied")]
+    NonFinite {
+        /// Iteration (0-based) at which it happened.
+        iteration: usize,
+        /// Which quantity.
+        quantity: &'static str,
+    },
+    /// Checkpoint files could not be written or read.
+    #[error("checkpoint {path}: {reason}")]
+    Checkpoint {
+        /// The checkpoint directory.
+        path: std::path::PathBuf,
+        /// What went wrong.
+        reason: String,
+    },
+}
