@@ -30,10 +30,7 @@ impl ScaleActivation {
         let target = (init_std - min_std) as f64;
         // softplus⁻¹(y) = log(exp(y) − 1), written stably for large y.
         let shift = target + (-(-target).exp_m1()).ln();
-        Ok(Self {
-            shift: shift as f32,
-            min_std,
-        })
+        Ok(Self { shift: shift as f32, min_std })
     }
 
     /// The smallest standard deviation this activation can produce.

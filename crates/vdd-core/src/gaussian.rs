@@ -172,11 +172,7 @@ mod tests {
         let lp = log_density(&[1.0], &[0.0], &l, &mut w);
         let expect = -0.5 * (1.0f32 / 0.25) - 0.5f32.ln() - 0.5 * LN_2PI;
         assert_relative_eq!(lp, expect, epsilon = 1e-6);
-        assert_relative_eq!(
-            entropy(&l, 1),
-            0.5 * (1.0 + LN_2PI) + 0.5f32.ln(),
-            epsilon = 1e-6
-        );
+        assert_relative_eq!(entropy(&l, 1), 0.5 * (1.0 + LN_2PI) + 0.5f32.ln(), epsilon = 1e-6);
     }
 
     #[test]

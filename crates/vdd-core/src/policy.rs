@@ -125,9 +125,7 @@ pub fn check_act_args<P: Policy + ?Sized>(policy: &P, obs: &[f32], action: &[f32
     check_len("observation", obs.len(), policy.obs_dim())?;
     check_len("action", action.len(), policy.action_dim())?;
     if obs.iter().any(|x| !x.is_finite()) {
-        return Err(CoreError::NonFinite {
-            what: "observation",
-        });
+        return Err(CoreError::NonFinite { what: "observation" });
     }
     Ok(())
 }

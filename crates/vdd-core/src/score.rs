@@ -60,9 +60,7 @@ impl NoiseSchedule {
         if ok {
             Ok(())
         } else {
-            Err(CoreError::Config(format!(
-                "invalid noise schedule {self:?}"
-            )))
+            Err(CoreError::Config(format!("invalid noise schedule {self:?}")))
         }
     }
 
@@ -257,9 +255,7 @@ mod tests {
 
     #[test]
     fn invalid_schedules_are_rejected() {
-        assert!(NoiseSchedule::Uniform { min: 0.5, max: 0.1 }
-            .validate()
-            .is_err());
+        assert!(NoiseSchedule::Uniform { min: 0.5, max: 0.1 }.validate().is_err());
         assert!(NoiseSchedule::Fixed { level: f32::NAN }.validate().is_err());
         assert!(NoiseSchedule::Fixed { level: 0.1 }.validate().is_ok());
     }
