@@ -76,6 +76,43 @@ pub fn log_density_and_grad(a: &[f32], mean: &[f32], l: &[f32], grad: &mut [f32]
     -0.5 * maha - half_log_det(l, d) - 0.5 * d as f32 * LN_2PI
 }
 
+/// Cholesky factorisation in place: on success `a` (row-major `d x d`, symmetric) holds the
+/// lower-triangular `L` with `L Lᵀ = A` and zeros above the diagonal. Returns `false` (and leaves
+/// `a` partly overwritten) when `A` is not positive definite or not finite.
+///
+/// ```
+/// let mut a = [4.0f32, 2.0, 2.0, 5.0];
+/// assert!(vdd_core::gaussian::cholesky_in_place(&mut a, 2));
+/// assert_eq!(a, [2.0, 0.0, 1.0, 2.0]);
+/// ```
+pub fn cholesky_in_place(a: &mut [f32], d: usize) -> bool {
+    if a.len() != d * d {
+        return false;
+    }
+    for j in 0..d {
+        let mut diag = a[j * d + j] as f64;
+        for k in 0..j {
+            diag -= (a[j * d + k] as f64).powi(2);
+        }
+        if !(diag > 0.0 && diag.is_finite()) {
+            return false;
+        }
+        let ljj = diag.sqrt();
+        a[j * d + j] = ljj as f32;
+        for i in j + 1..d {
+            let mut s = a[i * d + j] as f64;
+            for k in 0..j {
+                s -= a[i * d + k] as f64 * a[j * d + k] as f64;
+            }
+            a[i * d + j] = (s / ljj) as f32;
+        }
+        for k in j + 1..d {
+            a[j * d + k] = 0.0;
+        }
+    }
+    true
+}
+
 /// Reparameterised sample `a = μ + L ε`.
 #[inline]
 pub fn sample_into(mean: &[f32], l: &[f32], eps: &[f32], a: &mut [f32]) {

@@ -1,0 +1,679 @@
+//! The exact Gaussian-mixture teacher: `π(a|s) = Σ_k w_k N(a; μ_k, Σ_k)`, whose noise-smoothed
+//! density `π_σ = Σ_k w_k N(μ_k, Σ_k + σ² I)` — and therefore whose score — is known in closed
+//! form at every noise level `σ`. Tests and the toy tasks distil it; learned teachers are
+//! compared against it.
+//!
+//! ```
+//! use faer::Mat;
+//! use vdd_core::ScoreModel;
+//! use vdd_diffusion::GmmTeacher;
+//!
+//! let mut teacher = GmmTeacher::circle_toy(); // 8 modes on a circle of radius 2, std 0.5
+//! let a = Mat::from_fn(1, 2, |_, j| if j == 0 { 2.0 } else { 0.0 }); // on mode 0
+//! let s = Mat::<f32>::zeros(1, 1);
+//! let mut score = Mat::<f32>::zeros(1, 2);
+//! teacher.score(a.as_ref(), s.as_ref(), &[0.1], score.as_mut()).unwrap();
+//! assert!(score[(0, 0)].abs() < 0.1); // a mode is (nearly) a stationary point
+//! ```
+
+use std::sync::Arc;
+
+use faer::{Mat, MatMut, MatRef};
+use rand::{Rng as _, RngCore};
+use vdd_core::gaussian::{self, LN_2PI};
+use vdd_core::{check_finite, check_score_args, check_shape, CoreError, Result, ScoreModel};
+
+/// A Gaussian mixture in `dim` dimensions at one state.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Gmm {
+    dim: usize,
+    log_weights: Vec<f32>,
+    means: Vec<f32>,
+    /// `K` covariances, row-major `d x d` each.
+    covariances: Vec<f32>,
+    /// Per-component variance when every covariance is `v_k I` (fast path).
+    isotropic: Option<Vec<f32>>,
+    /// Cholesky factors of the (unsmoothed) covariances, for sampling.
+    chols: Vec<f32>,
+}
+
+impl Gmm {
+    /// A mixture with full covariances (`covariances[k]` row-major `d x d`, symmetric positive
+    /// definite). Weights must be positive; they are normalised.
+    pub fn new(weights: &[f32], means: &[Vec<f32>], covariances: &[Vec<f32>]) -> Result<Self> {
+        let k = weights.len();
+        if k == 0 || means.len() != k || covariances.len() != k {
+            return Err(CoreError::Config(format!(
+                "a GMM needs K >= 1 weights, means and covariances, got {k}, {}, {}",
+                means.len(),
+                covariances.len()
+            )));
+        }
+        let d = means[0].len();
+        if d == 0 {
+            return Err(CoreError::Config("a GMM needs dimension >= 1".into()));
+        }
+        let total: f32 = weights.iter().sum();
+        if weights.iter().any(|w| !(w.is_finite() && *w > 0.0)) || !total.is_finite() {
+            return Err(CoreError::Config(format!(
+                "GMM weights must be positive, got {weights:?}"
+            )));
+        }
+        let mut flat_means = Vec::with_capacity(k * d);
+        let mut flat_covs = Vec::with_capacity(k * d * d);
+        let mut chols = Vec::with_capacity(k * d * d);
+        for (i, (m, c)) in means.iter().zip(covariances).enumerate() {
+            if m.len() != d || c.len() != d * d {
+                return Err(CoreError::Config(format!(
+                    "component {i}: mean has {} entries and covariance {}, expected {d} and {}",
+                    m.len(),
+                    c.len(),
+                    d * d
+                )));
+            }
+            vdd_core::check_finite_slice("GMM mean", m)?;
+            let symmetric = (0..d).all(|r| (0..d).all(|s| c[r * d + s] == c[s * d + r]));
+            let mut l = c.clone();
+            if !symmetric || !gaussian::cholesky_in_place(&mut l, d) {
+                return Err(CoreError::Config(format!(
+                    "component {i}: covariance is not symmetric positive definite"
+                )));
+            }
+            flat_means.extend_from_slice(m);
+            flat_covs.extend_from_slice(c);
+            chols.extend_from_slice(&l);
+        }
+        let iso: Option<Vec<f32>> = (0..k)
+            .map(|i| {
+                let c = &flat_covs[i * d * d..(i + 1) * d * d];
+                let v = c[0];
+                let is_iso =
+                    (0..d).all(|r| (0..d).all(|s| c[r * d + s] == if r == s { v } else { 0.0 }));
+                is_iso.then_some(v)
+            })
+            .collect();
+        Ok(Self {
+            dim: d,
+            log_weights: weights.iter().map(|w| (w / total).ln()).collect(),
+            means: flat_means,
+            covariances: flat_covs,
+            isotropic: iso,
+            chols,
+        })
+    }
+
+    /// A mixture whose components all have covariance `std² I`.
+    pub fn isotropic(weights: &[f32], means: &[Vec<f32>], std: f32) -> Result<Self> {
+        if !(std.is_finite() && std > 0.0) {
+            return Err(CoreError::Config(format!("GMM std must be positive, got {std}")));
+        }
+        let d = means.first().map_or(0, Vec::len);
+        let cov: Vec<f32> =
+            (0..d * d).map(|i| if i % (d + 1) == 0 { std * std } else { 0.0 }).collect();
+        Self::new(weights, means, &vec![cov; means.len()])
+    }
+
+    /// `k` equally weighted 2-D modes on a circle of `radius`, mode `i` at angle
+    /// `offset + 2πi/k`, each with covariance `std² I`.
+    pub fn circle(k: usize, radius: f32, std: f32, offset: f32) -> Result<Self> {
+        let means: Vec<Vec<f32>> = (0..k)
+            .map(|i| {
+                let t = offset + std::f32::consts::TAU * i as f32 / k as f32;
+                vec![radius * t.cos(), radius * t.sin()]
+            })
+            .collect();
+        Self::isotropic(&vec![1.0; k], &means, std)
+    }
+
+    /// Dimension of the actions.
+    pub fn dim(&self) -> usize {
+        self.dim
+    }
+
+    /// Number of components `K`.
+    pub fn num_components(&self) -> usize {
+        self.log_weights.len()
+    }
+
+    /// Mean of component `k`.
+    pub fn mean(&self, k: usize) -> &[f32] {
+        &self.means[k * self.dim..(k + 1) * self.dim]
+    }
+
+    /// Normalised weight of component `k`.
+    pub fn weight(&self, k: usize) -> f32 {
+        self.log_weights[k].exp()
+    }
+
+    /// Covariance of component `k` (row-major `d x d`).
+    pub fn covariance(&self, k: usize) -> &[f32] {
+        let dd = self.dim * self.dim;
+        &self.covariances[k * dd..(k + 1) * dd]
+    }
+
+    /// `log π_σ(a)`, the log-density of the mixture smoothed by `N(0, σ² I)`.
+    pub fn log_density(&self, action: &[f32], sigma: f32) -> Result<f32> {
+        vdd_core::check_len("action", action.len(), self.dim)?;
+        let mut ws = Workspace::default();
+        ws.prepare(self, sigma)?;
+        Ok(ws.eval(self, action, None))
+    }
+
+    /// Draws one sample into `out`.
+    pub fn sample_into(&self, rng: &mut dyn RngCore, out: &mut [f32]) {
+        let u: f32 = rng.random();
+        let mut acc = 0.0;
+        let mut k = self.num_components() - 1;
+        for (i, lw) in self.log_weights.iter().enumerate() {
+            acc += lw.exp();
+            if u < acc {
+                k = i;
+                break;
+            }
+        }
+        let d = self.dim;
+        let mut eps = [0.0f32; 16];
+        let mut big;
+        let eps: &mut [f32] = if d <= 16 {
+            &mut eps[..d]
+        } else {
+            big = vec![0.0; d];
+            &mut big
+        };
+        vdd_core::fill_standard_normal(rng, eps);
+        gaussian::sample_into(self.mean(k), &self.chols[k * d * d..(k + 1) * d * d], eps, out);
+    }
+}
+
+/// Per-noise-level caches: Cholesky factors of `Σ_k + σ² I` (or the smoothed variances on the
+/// isotropic fast path) and scratch, reused across rows that share the noise level.
+#[derive(Debug, Clone, Default)]
+struct Workspace {
+    sigma: f32,
+    valid: bool,
+    /// Smoothed variances (isotropic) or Cholesky factors (full).
+    smoothed_var: Vec<f32>,
+    chols: Vec<f32>,
+    /// `log w_k − ½ log det(Σ_k + σ² I) − d/2 log 2π`.
+    log_norm: Vec<f32>,
+    log_post: Vec<f32>,
+    grads: Vec<f32>,
+}
+
+impl Workspace {
+    fn prepare(&mut self, gmm: &Gmm, sigma: f32) -> Result<()> {
+        if self.valid && self.sigma == sigma {
+            return Ok(());
+        }
+        if !(sigma.is_finite() && sigma >= 0.0) {
+            return Err(CoreError::NonFinite { what: "noise level (σ must be finite and >= 0)" });
+        }
+        let (k, d) = (gmm.num_components(), gmm.dim);
+        let s2 = sigma * sigma;
+        self.log_norm.resize(k, 0.0);
+        self.log_post.resize(k, 0.0);
+        self.grads.resize(k * d, 0.0);
+        if let Some(iso) = &gmm.isotropic {
+            self.smoothed_var.clear();
+            self.smoothed_var.extend(iso.iter().map(|v| v + s2));
+            for i in 0..k {
+                let v = self.smoothed_var[i];
+                self.log_norm[i] = gmm.log_weights[i] - 0.5 * d as f32 * (v.ln() + LN_2PI);
+            }
+        } else {
+            self.chols.clear();
+            self.chols.extend_from_slice(&gmm.covariances);
+            for i in 0..k {
+                let l = &mut self.chols[i * d * d..(i + 1) * d * d];
+                for j in 0..d {
+                    l[j * d + j] += s2;
+                }
+                if !gaussian::cholesky_in_place(l, d) {
+                    return Err(CoreError::Config(
+                        "smoothed covariance is not positive definite".into(),
+                    ));
+                }
+                self.log_norm[i] =
+                    gmm.log_weights[i] - gaussian::half_log_det(l, d) - 0.5 * d as f32 * LN_2PI;
+            }
+        }
+        self.sigma = sigma;
+        self.valid = true;
+        Ok(())
+    }
+
+    /// `log π_σ(a)`; with `score`, also writes `∇_a log π_σ(a)`.
+    fn eval(&mut self, gmm: &Gmm, a: &[f32], score: Option<&mut [f32]>) -> f32 {
+        let (k, d) = (gmm.num_components(), gmm.dim);
+        if let Some(iso) = &gmm.isotropic {
+            let _ = iso;
+            for i in 0..k {
+                let m = gmm.mean(i);
+                let inv_v = 1.0 / self.smoothed_var[i];
+                let mut maha = 0.0;
+                for j in 0..d {
+                    let diff = a[j] - m[j];
+                    maha += diff * diff;
+                    self.grads[i * d + j] = -diff * inv_v;
+                }
+                self.log_post[i] = self.log_norm[i] - 0.5 * maha * inv_v;
+            }
+        } else {
+            for i in 0..k {
+                let l = &self.chols[i * d * d..(i + 1) * d * d];
+                let g = &mut self.grads[i * d..(i + 1) * d];
+                let lp = gaussian::log_density_and_grad(a, gmm.mean(i), l, g);
+                // `log_density_and_grad` includes the normaliser; keep only the weight here.
+                self.log_post[i] = gmm.log_weights[i] + lp;
+            }
+        }
+        let lse = gaussian::softmax_in_place(&mut self.log_post);
+        if let Some(out) = score {
+            out.fill(0.0);
+            for i in 0..k {
+                let r = self.log_post[i];
+                for j in 0..d {
+                    out[j] += r * self.grads[i * d + j];
+                }
+            }
+        }
+        lse
+    }
+}
+
+type StateMixture = dyn Fn(&[f32]) -> Result<Gmm> + Send + Sync;
+
+#[derive(Clone)]
+enum Source {
+    Fixed(Gmm),
+    Conditional { state_dim: usize, action_dim: usize, mixture: Arc<StateMixture> },
+}
+
+/// A state-conditioned Gaussian-mixture teacher with an exact score at every noise level
+/// (a VE teacher: noise levels are `σ`).
+///
+/// Build it from one fixed [`Gmm`] (the state is ignored), from a closure `s ↦ Gmm`, or as one
+/// of the paper's toys ([`GmmTeacher::circle_toy`], [`GmmTeacher::rotating_toy`]).
+#[derive(Clone)]
+pub struct GmmTeacher {
+    source: Source,
+    state_dim: usize,
+    /// Mixture at `cached_state` (conditional teachers only).
+    cached: Option<Gmm>,
+    cached_state: Vec<f32>,
+    ws: Workspace,
+}
+
+impl std::fmt::Debug for GmmTeacher {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("GmmTeacher")
+            .field("state_dim", &self.state_dim)
+            .field("action_dim", &self.action_dim())
+            .field("conditional", &matches!(self.source, Source::Conditional { .. }))
+            .finish()
+    }
+}
+
+impl GmmTeacher {
+    /// A teacher whose mixture does not depend on the state (`state_dim` columns are ignored).
+    pub fn fixed(gmm: Gmm, state_dim: usize) -> Self {
+        Self {
+            source: Source::Fixed(gmm),
+            state_dim,
+            cached: None,
+            cached_state: Vec::new(),
+            ws: Workspace::default(),
+        }
+    }
+
+    /// A teacher whose mixture at state `s` is `mixture(s)`; the closure must return mixtures of
+    /// dimension `action_dim`. Consecutive rows with the same state reuse one evaluation.
+    pub fn conditional(
+        state_dim: usize,
+        action_dim: usize,
+        mixture: impl Fn(&[f32]) -> Result<Gmm> + Send + Sync + 'static,
+    ) -> Self {
+        Self {
+            source: Source::Conditional { state_dim, action_dim, mixture: Arc::new(mixture) },
+            state_dim,
+            cached: None,
+            cached_state: Vec::new(),
+            ws: Workspace::default(),
+        }
+    }
+
+    /// Equally weighted isotropic modes (`std` each), state of dimension 1 ignored.
+    pub fn isotropic(weights: &[f32], means: &[Vec<f32>], std: f32) -> Result<Self> {
+        Ok(Self::fixed(Gmm::isotropic(weights, means, std)?, 1))
+    }
+
+    /// The paper's toy: 8 modes on a circle of radius 2, std 0.5, one (ignored) 1-D state.
+    pub fn circle_toy() -> Self {
+        Self::fixed(Gmm::circle(8, 2.0, 0.5, 0.0).expect("valid constants"), 1)
+    }
+
+    /// The rotating-modes toy: `k` modes on a circle of `radius` with std `std`, mode `i` at
+    /// angle `s + 2πi/k` for the scalar state `s`.
+    pub fn rotating_toy(k: usize, radius: f32, std: f32) -> Result<Self> {
+        Gmm::circle(k, radius, std, 0.0)?;
+        Ok(Self::conditional(1, 2, move |s| Gmm::circle(k, radius, std, s[0])))
+    }
+
+    /// The mixture at `state`.
+    pub fn mixture_at(&self, state: &[f32]) -> Result<Gmm> {
+        vdd_core::check_len("state", state.len(), self.state_dim)?;
+        match &self.source {
+            Source::Fixed(g) => Ok(g.clone()),
+            Source::Conditional { mixture, action_dim, .. } => {
+                let g = mixture(state)?;
+                vdd_core::check_len("mixture dimension", g.dim, *action_dim)?;
+                Ok(g)
+            }
+        }
+    }
+
+    /// Makes the mixture for `state` current (cached for conditional teachers); returns whether
+    /// it changed.
+    fn select(&mut self, state: &[f32]) -> Result<()> {
+        if let Source::Conditional { mixture, action_dim, .. } = &self.source {
+            if self.cached.is_none() || self.cached_state != state {
+                let g = mixture(state)?;
+                vdd_core::check_len("mixture dimension", g.dim, *action_dim)?;
+                self.cached = Some(g);
+                self.cached_state.clear();
+                self.cached_state.extend_from_slice(state);
+                self.ws.valid = false;
+            }
+        }
+        Ok(())
+    }
+
+    fn current(&self) -> &Gmm {
+        match &self.source {
+            Source::Fixed(g) => g,
+            Source::Conditional { .. } => self.cached.as_ref().expect("select() ran first"),
+        }
+    }
+
+    /// `log π_σ(a|s)` for each row, written into `out` (length `n`).
+    pub fn log_density_batch(
+        &mut self,
+        actions: MatRef<'_, f32>,
+        states: MatRef<'_, f32>,
+        sigma: f32,
+        out: &mut [f32],
+    ) -> Result<()> {
+        let n = actions.nrows();
+        check_shape("actions", actions, n, self.action_dim())?;
+        check_shape("states", states, n, self.state_dim)?;
+        vdd_core::check_len("log-density output", out.len(), n)?;
+        let d = self.action_dim();
+        let mut a = vec![0.0f32; d];
+        let mut s = vec![0.0f32; self.state_dim];
+        for i in 0..n {
+            row_into(states, i, &mut s);
+            row_into(actions, i, &mut a);
+            self.select(&s)?;
+            let gmm = match &self.source {
+                Source::Fixed(g) => g,
+                Source::Conditional { .. } => self.cached.as_ref().expect("selected"),
+            };
+            self.ws.prepare(gmm, sigma)?;
+            out[i] = self.ws.eval(gmm, &a, None);
+        }
+        Ok(())
+    }
+
+    /// `log π_σ(a|s)` for one state-action pair.
+    pub fn log_density(&self, state: &[f32], action: &[f32], sigma: f32) -> Result<f32> {
+        self.mixture_at(state)?.log_density(action, sigma)
+    }
+
+    /// One clean action per state row (`n x action_dim`).
+    pub fn sample(&mut self, states: MatRef<'_, f32>, rng: &mut dyn RngCore) -> Result<Mat<f32>> {
+        let mut out = Mat::zeros(states.nrows(), self.action_dim());
+        self.sample_actions(states, rng, out.as_mut())?;
+        Ok(out)
+    }
+}
+
+fn row_into(m: MatRef<'_, f32>, i: usize, out: &mut [f32]) {
+    for (j, o) in out.iter_mut().enumerate() {
+        *o = m[(i, j)];
+    }
+}
+
+impl ScoreModel for GmmTeacher {
+    fn action_dim(&self) -> usize {
+        match &self.source {
+            Source::Fixed(g) => g.dim,
+            Source::Conditional { action_dim, .. } => *action_dim,
+        }
+    }
+
+    fn state_dim(&self) -> usize {
+        match &self.source {
+            Source::Fixed(_) => self.state_dim,
+            Source::Conditional { state_dim, .. } => *state_dim,
+        }
+    }
+
+    fn score(
+        &mut self,
+        actions: MatRef<'_, f32>,
+        states: MatRef<'_, f32>,
+        noise_levels: &[f32],
+        mut out: MatMut<'_, f32>,
+    ) -> Result<()> {
+        check_score_args(self, actions, states, noise_levels, out.as_ref())?;
+        check_finite("actions", actions)?;
+        let d = self.action_dim();
+        let mut a = [0.0f32; 16];
+        let mut g = [0.0f32; 16];
+        let mut big_a;
+        let mut big_g;
+        let (a, g): (&mut [f32], &mut [f32]) = if d <= 16 {
+            (&mut a[..d], &mut g[..d])
+        } else {
+            big_a = vec![0.0; d];
+            big_g = vec![0.0; d];
+            (&mut big_a, &mut big_g)
+        };
+        let mut s = vec![0.0f32; self.state_dim];
+        let conditional = matches!(self.source, Source::Conditional { .. });
+        for i in 0..actions.nrows() {
+            if conditional {
+                row_into(states, i, &mut s);
+                self.select(&s)?;
+            }
+            row_into(actions, i, a);
+            let gmm = match &self.source {
+                Source::Fixed(g) => g,
+                Source::Conditional { .. } => self.cached.as_ref().expect("selected"),
+            };
+            self.ws.prepare(gmm, noise_levels[i])?;
+            self.ws.eval(gmm, a, Some(g));
+            for j in 0..d {
+                out[(i, j)] = g[j];
+            }
+        }
+        Ok(())
+    }
+
+    fn sample_actions(
+        &mut self,
+        states: MatRef<'_, f32>,
+        rng: &mut dyn RngCore,
+        mut out: MatMut<'_, f32>,
+    ) -> Result<()> {
+        let n = states.nrows();
+        check_shape("states", states, n, self.state_dim())?;
+        check_shape("sampled actions", out.as_ref(), n, self.action_dim())?;
+        let d = self.action_dim();
+        let mut a = vec![0.0f32; d];
+        let mut s = vec![0.0f32; self.state_dim];
+        for i in 0..n {
+            row_into(states, i, &mut s);
+            self.select(&s)?;
+            self.current().sample_into(rng, &mut a);
+            for j in 0..d {
+                out[(i, j)] = a[j];
+            }
+        }
+        Ok(())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use vdd_core::Seeds;
+
+    fn random_gmm(d: usize, k: usize, seed: u64) -> Gmm {
+        let mut rng = Seeds::new(seed).stream("gmm");
+        let weights: Vec<f32> = (0..k).map(|_| rng.random_range(0.2..1.0)).collect();
+        let means: Vec<Vec<f32>> =
+            (0..k).map(|_| (0..d).map(|_| rng.random_range(-2.0..2.0)).collect()).collect();
+        let covs: Vec<Vec<f32>> = (0..k)
+            .map(|_| {
+                // A Aᵀ + 0.2 I, symmetric by construction.
+                let a: Vec<f32> = (0..d * d).map(|_| rng.random_range(-0.7..0.7)).collect();
+                let mut c = vec![0.0f32; d * d];
+                for r in 0..d {
+                    for s in 0..=r {
+                        let v: f32 = (0..d).map(|t| a[r * d + t] * a[s * d + t]).sum::<f32>()
+                            + if r == s { 0.2 } else { 0.0 };
+                        c[r * d + s] = v;
+                        c[s * d + r] = v;
+                    }
+                }
+                c
+            })
+            .collect();
+        Gmm::new(&weights, &means, &covs).unwrap()
+    }
+
+    /// The exact score equals the finite-difference gradient of the smoothed log-density.
+    #[test]
+    fn score_matches_finite_differences_of_the_log_density_up_to_8_dims() {
+        for (d, k) in [(1, 3), (2, 8), (3, 2), (5, 4), (8, 3)] {
+            let gmm = random_gmm(d, k, d as u64);
+            let mut teacher = GmmTeacher::fixed(gmm.clone(), 2);
+            let mut rng = Seeds::new(7).stream("points");
+            for sigma in [0.0f32, 0.1, 1.0] {
+                let a = Mat::from_fn(4, d, |_, _| rng.random_range(-2.0f32..2.0));
+                let s = Mat::<f32>::zeros(4, 2);
+                let mut score = Mat::zeros(4, d);
+                teacher.score(a.as_ref(), s.as_ref(), &[sigma; 4], score.as_mut()).unwrap();
+                for i in 0..4 {
+                    let x: Vec<f64> = (0..d).map(|j| a[(i, j)] as f64).collect();
+                    for j in 0..d {
+                        let h = 1e-2f32;
+                        let mut p: Vec<f32> = x.iter().map(|&v| v as f32).collect();
+                        p[j] += h;
+                        let up = gmm.log_density(&p, sigma).unwrap() as f64;
+                        p[j] -= 2.0 * h;
+                        let dn = gmm.log_density(&p, sigma).unwrap() as f64;
+                        let fd = (up - dn) / (2.0 * h as f64);
+                        let an = score[(i, j)] as f64;
+                        assert!(
+                            (fd - an).abs() <= 2e-2 * (1.0 + an.abs()),
+                            "d={d} k={k} σ={sigma}: fd {fd} vs exact {an}"
+                        );
+                    }
+                }
+            }
+        }
+    }
+
+    #[test]
+    fn isotropic_fast_path_agrees_with_the_full_path() {
+        let iso = Gmm::circle(8, 2.0, 0.5, 0.3).unwrap();
+        let means: Vec<Vec<f32>> = (0..8).map(|k| iso.mean(k).to_vec()).collect();
+        // Same covariance but flagged full by a tiny symmetric off-diagonal.
+        let covs = vec![vec![0.25, 1e-12, 1e-12, 0.25]; 8];
+        let full = Gmm::new(&[1.0; 8], &means, &covs).unwrap();
+        assert!(iso.isotropic.is_some() && full.isotropic.is_none());
+        for a in [[0.1f32, 0.2], [2.0, -1.0], [-3.0, 0.5]] {
+            for sigma in [0.0, 0.3] {
+                let (x, y) =
+                    (iso.log_density(&a, sigma).unwrap(), full.log_density(&a, sigma).unwrap());
+                assert!((x - y).abs() < 1e-5, "{x} vs {y}");
+            }
+        }
+    }
+
+    #[test]
+    fn density_integrates_to_one_in_1d() {
+        let g = random_gmm(1, 3, 11);
+        let (lo, hi, n) = (-15.0f32, 15.0f32, 30_000);
+        let h = (hi - lo) / n as f32;
+        let mass: f32 = (0..n)
+            .map(|i| g.log_density(&[lo + (i as f32 + 0.5) * h], 0.2).unwrap().exp() * h)
+            .sum();
+        assert!((mass - 1.0).abs() < 1e-3, "mass {mass}");
+    }
+
+    #[test]
+    fn samples_have_the_mixture_moments() {
+        let g = random_gmm(2, 3, 5);
+        let mut teacher = GmmTeacher::fixed(g.clone(), 1);
+        let n = 40_000;
+        let s = Mat::<f32>::zeros(n, 1);
+        let x = teacher.sample(s.as_ref(), &mut Seeds::new(3).stream("sample")).unwrap();
+        for j in 0..2 {
+            let mean: f64 = (0..n).map(|i| x[(i, j)] as f64).sum::<f64>() / n as f64;
+            let exact: f64 = (0..3).map(|k| (g.weight(k) * g.mean(k)[j]) as f64).sum();
+            let var_exact: f64 = (0..3)
+                .map(|k| (g.weight(k) * (g.covariance(k)[j * 2 + j] + g.mean(k)[j].powi(2))) as f64)
+                .sum::<f64>()
+                - exact * exact;
+            let tol = 4.0 * (var_exact / n as f64).sqrt();
+            assert!((mean - exact).abs() < tol, "mean {mean} vs {exact}");
+        }
+    }
+
+    #[test]
+    fn rotating_toy_moves_its_modes_with_the_state() {
+        let mut t = GmmTeacher::rotating_toy(8, 2.0, 0.5).unwrap();
+        let s = std::f32::consts::FRAC_PI_2;
+        let g = t.mixture_at(&[s]).unwrap();
+        assert!(g.mean(0)[0].abs() < 1e-5 && (g.mean(0)[1] - 2.0).abs() < 1e-5);
+        // The score at the rotated mode 0 is ~0; at the unrotated position it is not.
+        let a = Mat::from_fn(2, 2, |i, j| match (i, j) {
+            (0, 0) => 0.0,
+            (0, 1) => 2.0,
+            (1, 0) => 2.0 * (std::f32::consts::PI / 8.0).cos(),
+            _ => 2.0 * (std::f32::consts::PI / 8.0).sin(),
+        });
+        let st = Mat::from_fn(2, 1, |_, _| s);
+        let mut out = Mat::zeros(2, 2);
+        t.score(a.as_ref(), st.as_ref(), &[0.1, 0.1], out.as_mut()).unwrap();
+        assert!(out[(0, 0)].abs() + out[(0, 1)].abs() < 0.05);
+        assert!(out[(1, 0)].abs() + out[(1, 1)].abs() > 0.5);
+    }
+
+    #[test]
+    fn bad_mixtures_and_inputs_are_errors() {
+        assert!(Gmm::new(&[], &[], &[]).is_err());
+        assert!(Gmm::new(&[1.0], &[vec![0.0, 0.0]], &[vec![1.0, 2.0, 2.0, 1.0]]).is_err());
+        assert!(Gmm::new(&[1.0], &[vec![0.0, 0.0]], &[vec![1.0, 0.5, 0.0, 1.0]]).is_err());
+        assert!(Gmm::new(&[-1.0], &[vec![0.0]], &[vec![1.0]]).is_err());
+        assert!(Gmm::isotropic(&[1.0], &[vec![f32::NAN]], 1.0).is_err());
+        let mut t = GmmTeacher::circle_toy();
+        let a = Mat::<f32>::zeros(2, 3);
+        let mut out = Mat::<f32>::zeros(2, 3);
+        assert!(t
+            .score(a.as_ref(), Mat::<f32>::zeros(2, 1).as_ref(), &[0.1; 2], out.as_mut())
+            .is_err());
+        let a = Mat::from_fn(1, 2, |_, _| f32::NAN);
+        let mut out = Mat::<f32>::zeros(1, 2);
+        assert!(t
+            .score(a.as_ref(), Mat::<f32>::zeros(1, 1).as_ref(), &[0.1], out.as_mut())
+            .is_err());
+        let a = Mat::<f32>::zeros(1, 2);
+        assert!(t
+            .score(a.as_ref(), Mat::<f32>::zeros(1, 1).as_ref(), &[-1.0], out.as_mut())
+            .is_err());
+    }
+}
