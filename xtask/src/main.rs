@@ -42,6 +42,23 @@ fn strings(s: &[&str]) -> Vec<String> {
     s.iter().map(|x| x.to_string()).collect()
 }
 
+/// Progress bars shared by the commands (stderr, hidden when not a terminal).
+pub mod progress {
+    use indicatif::{ProgressBar, ProgressStyle};
+
+    /// A bar of `len` steps labelled `what`.
+    pub fn bar(len: u64, what: &str) -> ProgressBar {
+        let bar = ProgressBar::new(len);
+        bar.set_style(
+            ProgressStyle::with_template("{prefix:>10} [{bar:30}] {pos}/{len} {elapsed} {msg}")
+                .expect("valid template")
+                .progress_chars("=> "),
+        );
+        bar.set_prefix(what.to_owned());
+        bar
+    }
+}
+
 /// Minimal `--key value` / `--flag` parser shared by the commands.
 pub mod cli {
     use std::collections::BTreeMap;

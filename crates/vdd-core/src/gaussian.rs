@@ -113,6 +113,29 @@ pub fn cholesky_in_place(a: &mut [f32], d: usize) -> bool {
     true
 }
 
+/// Writes `L⁻¹` (lower-triangular, row-major `d x d`) into `out`.
+///
+/// ```
+/// let (l, mut inv) = ([2.0f32, 0.0, 1.0, 4.0], [0.0f32; 4]);
+/// vdd_core::gaussian::invert_lower(&l, 2, &mut inv);
+/// assert_eq!(inv, [0.5, 0.0, -0.125, 0.25]);
+/// ```
+#[inline]
+pub fn invert_lower(l: &[f32], d: usize, out: &mut [f32]) {
+    for r in 0..d {
+        for c in 0..d {
+            out[r * d + c] = if c > r {
+                0.0
+            } else if c == r {
+                1.0 / l[r * d + r]
+            } else {
+                let s: f32 = (c..r).map(|k| l[r * d + k] * out[k * d + c]).sum();
+                -s / l[r * d + r]
+            };
+        }
+    }
+}
+
 /// Reparameterised sample `a = μ + L ε`.
 #[inline]
 pub fn sample_into(mean: &[f32], l: &[f32], eps: &[f32], a: &mut [f32]) {
@@ -141,6 +164,21 @@ pub fn log_sum_exp(xs: &[f32]) -> f32 {
         return m;
     }
     m + xs.iter().map(|x| (x - m).exp()).sum::<f32>().ln()
+}
+
+/// Like [`softmax_in_place`] without the log-sum-exp (one `ln` fewer per call).
+#[inline]
+pub fn softmax_probs_in_place(xs: &mut [f32]) {
+    let m = xs.iter().copied().fold(f32::NEG_INFINITY, f32::max);
+    let mut sum = 0.0f32;
+    for x in xs.iter_mut() {
+        *x = (*x - m).exp();
+        sum += *x;
+    }
+    let inv = 1.0 / sum;
+    for x in xs.iter_mut() {
+        *x *= inv;
+    }
 }
 
 /// Turns log-weights into a normalised probability vector in place; returns their log-sum-exp.

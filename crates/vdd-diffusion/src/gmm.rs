@@ -191,8 +191,9 @@ impl Gmm {
 struct Workspace {
     sigma: f32,
     valid: bool,
-    /// Smoothed variances (isotropic) or Cholesky factors (full).
-    smoothed_var: Vec<f32>,
+    /// Inverse smoothed variances `1 / (v_k + σ²)` (isotropic path).
+    inv_var: Vec<f32>,
+    /// Cholesky factors of `Σ_k + σ² I` (full path).
     chols: Vec<f32>,
     /// `log w_k − ½ log det(Σ_k + σ² I) − d/2 log 2π`.
     log_norm: Vec<f32>,
@@ -214,10 +215,10 @@ impl Workspace {
         self.log_post.resize(k, 0.0);
         self.grads.resize(k * d, 0.0);
         if let Some(iso) = &gmm.isotropic {
-            self.smoothed_var.clear();
-            self.smoothed_var.extend(iso.iter().map(|v| v + s2));
+            self.inv_var.clear();
+            self.inv_var.extend(iso.iter().map(|v| 1.0 / (v + s2)));
             for i in 0..k {
-                let v = self.smoothed_var[i];
+                let v = iso[i] + s2;
                 self.log_norm[i] = gmm.log_weights[i] - 0.5 * d as f32 * (v.ln() + LN_2PI);
             }
         } else {
@@ -245,18 +246,19 @@ impl Workspace {
     /// `log π_σ(a)`; with `score`, also writes `∇_a log π_σ(a)`.
     fn eval(&mut self, gmm: &Gmm, a: &[f32], score: Option<&mut [f32]>) -> f32 {
         let (k, d) = (gmm.num_components(), gmm.dim);
-        if let Some(iso) = &gmm.isotropic {
-            let _ = iso;
-            for i in 0..k {
-                let m = gmm.mean(i);
-                let inv_v = 1.0 / self.smoothed_var[i];
+        if gmm.isotropic.is_some() {
+            // Fast path: log N = c_k − ½|a − μ_k|² / v_k, ∇ = −(a − μ_k) / v_k.
+            let means = gmm.means.chunks_exact(d);
+            let grads = self.grads.chunks_exact_mut(d);
+            let it = means.zip(grads).zip(&self.inv_var).zip(&self.log_norm);
+            for ((((m, g), &inv_v), &c), lp) in it.zip(self.log_post.iter_mut()) {
                 let mut maha = 0.0;
-                for j in 0..d {
-                    let diff = a[j] - m[j];
+                for ((&aj, &mj), gj) in a.iter().zip(m).zip(g.iter_mut()) {
+                    let diff = aj - mj;
                     maha += diff * diff;
-                    self.grads[i * d + j] = -diff * inv_v;
+                    *gj = -diff * inv_v;
                 }
-                self.log_post[i] = self.log_norm[i] - 0.5 * maha * inv_v;
+                *lp = c - 0.5 * maha * inv_v;
             }
         } else {
             for i in 0..k {
@@ -267,17 +269,20 @@ impl Workspace {
                 self.log_post[i] = gmm.log_weights[i] + lp;
             }
         }
-        let lse = gaussian::softmax_in_place(&mut self.log_post);
-        if let Some(out) = score {
-            out.fill(0.0);
-            for i in 0..k {
-                let r = self.log_post[i];
-                for j in 0..d {
-                    out[j] += r * self.grads[i * d + j];
+        match score {
+            Some(out) => {
+                // The score needs only the posterior, not the log-normaliser.
+                gaussian::softmax_probs_in_place(&mut self.log_post);
+                out.fill(0.0);
+                for (r, g) in self.log_post.iter().zip(self.grads.chunks_exact(d)) {
+                    for (o, gj) in out.iter_mut().zip(g) {
+                        *o += r * gj;
+                    }
                 }
+                f32::NAN
             }
+            None => gaussian::log_sum_exp(&self.log_post),
         }
-        lse
     }
 }
 

@@ -41,6 +41,11 @@ pub struct ExpertStepBuffers {
     log_resp: Vec<f32>,
     grad_k: Vec<f32>,
     g: Vec<f32>,
+    /// Per snapshot expert at the current state: `L̃_k⁻¹` (`Z x d·d`) and
+    /// `log q̃(k|s) − log det L̃_k − d/2 log 2π` (`Z`).
+    snap_linv: Vec<f32>,
+    snap_log_norm: Vec<f32>,
+    diff: Vec<f32>,
 }
 
 /// Summary statistics of one expert step, for monitoring.
@@ -87,6 +92,9 @@ pub fn corrected_score_moments<S: ScoreModel + ?Sized>(
     buf.log_resp.resize(z_n, 0.0);
     buf.grad_k.resize(z_n * d, 0.0);
     buf.g.resize(d, 0.0);
+    buf.snap_linv.resize(z_n * d * d, 0.0);
+    buf.snap_log_norm.resize(z_n, 0.0);
+    buf.diff.resize(d, 0.0);
 
     // Reparameterised samples a = μ_z(s) + L_z(s) ε and their states.
     vdd_core::fill_standard_normal(rng, &mut buf.eps);
@@ -125,21 +133,43 @@ pub fn corrected_score_moments<S: ScoreModel + ?Sized>(
     buf.mean_g_eps.fill(0.0);
     let inv_v = 1.0 / v_n as f32;
     let (mut sum_log_resp, mut sum_g2) = (0.0f64, 0.0f64);
+    let half_d_ln_2pi = 0.5 * d as f32 * gaussian::LN_2PI;
     for b in 0..b_n {
+        // The frozen experts at this state, prepared once for all B·Z·V samples' densities:
+        // log N(a; μ̃_k, L̃_k L̃_kᵀ) = c_k − ½|L̃_k⁻¹(a − μ̃_k)|², ∇ = −L̃_k⁻ᵀ L̃_k⁻¹ (a − μ̃_k).
         let snap_lg = snapshot.log_gating_row(b);
+        for k in 0..z_n {
+            let l = snapshot.scale(b, k);
+            gaussian::invert_lower(l, d, &mut buf.snap_linv[k * d * d..(k + 1) * d * d]);
+            buf.snap_log_norm[k] = snap_lg[k] - gaussian::half_log_det(l, d) - half_d_ln_2pi;
+        }
         for z in 0..z_n {
             let bz = b * z_n + z;
             for v in 0..v_n {
                 let i = bz * v_n + v;
                 let a = &buf.actions[i * d..(i + 1) * d];
                 for k in 0..z_n {
-                    buf.log_resp[k] = snap_lg[k]
-                        + gaussian::log_density_and_grad(
-                            a,
-                            snapshot.mean(b, k),
-                            snapshot.scale(b, k),
-                            &mut buf.grad_k[k * d..(k + 1) * d],
-                        );
+                    let mu = snapshot.mean(b, k);
+                    let linv = &buf.snap_linv[k * d * d..(k + 1) * d * d];
+                    let grad = &mut buf.grad_k[k * d..(k + 1) * d];
+                    let mut maha = 0.0;
+                    // y = L⁻¹ (a − μ) into `diff`, then grad = −L⁻ᵀ y.
+                    for r in 0..d {
+                        let mut y = 0.0;
+                        for c in 0..=r {
+                            y += linv[r * d + c] * (a[c] - mu[c]);
+                        }
+                        buf.diff[r] = y;
+                        maha += y * y;
+                    }
+                    for c in 0..d {
+                        let mut g = 0.0;
+                        for r in c..d {
+                            g += linv[r * d + c] * buf.diff[r];
+                        }
+                        grad[c] = -g;
+                    }
+                    buf.log_resp[k] = buf.snap_log_norm[k] - 0.5 * maha;
                 }
                 let joint_z = buf.log_resp[z];
                 let lse = gaussian::softmax_in_place(&mut buf.log_resp);
