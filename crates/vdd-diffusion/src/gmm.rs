@@ -35,6 +35,8 @@ pub struct Gmm {
     isotropic: Option<Vec<f32>>,
     /// Cholesky factors of the (unsmoothed) covariances, for sampling.
     chols: Vec<f32>,
+    /// The means transposed, `[j][k]` (`d x K`), for the vectorised isotropic path.
+    means_t: Vec<f32>,
 }
 
 impl Gmm {
@@ -95,10 +97,11 @@ impl Gmm {
         Ok(Self {
             dim: d,
             log_weights: weights.iter().map(|w| (w / total).ln()).collect(),
-            means: flat_means,
             covariances: flat_covs,
             isotropic: iso,
             chols,
+            means_t: (0..d * k).map(|jk| flat_means[(jk % k) * d + jk / k]).collect(),
+            means: flat_means,
         })
     }
 
@@ -243,22 +246,27 @@ impl Workspace {
         Ok(())
     }
 
-    /// `log π_σ(a)`; with `score`, also writes `∇_a log π_σ(a)`.
+    /// `log π_σ(a)`, or, with `score`, writes `∇_a log π_σ(a)` there (and returns NaN).
+    #[inline(always)]
     fn eval(&mut self, gmm: &Gmm, a: &[f32], score: Option<&mut [f32]>) -> f32 {
         let (k, d) = (gmm.num_components(), gmm.dim);
+        let post = &mut self.log_post[..k];
         if gmm.isotropic.is_some() {
-            // Fast path: log N = c_k − ½|a − μ_k|² / v_k, ∇ = −(a − μ_k) / v_k.
-            let means = gmm.means.chunks_exact(d);
-            let grads = self.grads.chunks_exact_mut(d);
-            let it = means.zip(grads).zip(&self.inv_var).zip(&self.log_norm);
-            for ((((m, g), &inv_v), &c), lp) in it.zip(self.log_post.iter_mut()) {
-                let mut maha = 0.0;
-                for ((&aj, &mj), gj) in a.iter().zip(m).zip(g.iter_mut()) {
-                    let diff = aj - mj;
-                    maha += diff * diff;
-                    *gj = -diff * inv_v;
+            // Fast path, vectorised over components (k innermost):
+            // log w_k N = c_k − ½|a − μ_k|² / v_k.
+            let inv_var = &self.inv_var[..k];
+            let maha = &mut self.grads[..k];
+            maha.fill(0.0);
+            for j in 0..d {
+                let m = &gmm.means_t[j * k..(j + 1) * k];
+                let aj = a[j];
+                for c in 0..k {
+                    let diff = aj - m[c];
+                    maha[c] += diff * diff;
                 }
-                *lp = c - 0.5 * maha * inv_v;
+            }
+            for c in 0..k {
+                post[c] = self.log_norm[c] - 0.5 * maha[c] * inv_var[c];
             }
         } else {
             for i in 0..k {
@@ -266,23 +274,42 @@ impl Workspace {
                 let g = &mut self.grads[i * d..(i + 1) * d];
                 let lp = gaussian::log_density_and_grad(a, gmm.mean(i), l, g);
                 // `log_density_and_grad` includes the normaliser; keep only the weight here.
-                self.log_post[i] = gmm.log_weights[i] + lp;
+                post[i] = gmm.log_weights[i] + lp;
             }
         }
-        match score {
-            Some(out) => {
-                // The score needs only the posterior, not the log-normaliser.
-                gaussian::softmax_probs_in_place(&mut self.log_post);
-                out.fill(0.0);
-                for (r, g) in self.log_post.iter().zip(self.grads.chunks_exact(d)) {
-                    for (o, gj) in out.iter_mut().zip(g) {
-                        *o += r * gj;
-                    }
+        let max = post.iter().copied().fold(f32::NEG_INFINITY, f32::max);
+        for p in post.iter_mut() {
+            *p = gaussian::exp_nonpositive(*p - max);
+        }
+        let total: f32 = post.iter().sum();
+        let Some(out) = score else {
+            return max + total.ln();
+        };
+        let inv_total = 1.0 / total;
+        if gmm.isotropic.is_some() {
+            // ∇ = −Σ_k p_k (a − μ_k) / v_k = −(a Σ_k w_k − Σ_k w_k μ_k), w_k = p_k / v_k.
+            let w = &mut self.grads[..k];
+            let mut sum_w = 0.0;
+            for c in 0..k {
+                w[c] = post[c] * inv_total * self.inv_var[c];
+                sum_w += w[c];
+            }
+            for j in 0..d {
+                let m = &gmm.means_t[j * k..(j + 1) * k];
+                let wm: f32 = m.iter().zip(w.iter()).map(|(m, w)| m * w).sum();
+                out[j] = wm - a[j] * sum_w;
+            }
+        } else {
+            out.fill(0.0);
+            for (p, g) in post.iter().zip(self.grads.chunks_exact(d)) {
+                let r = p * inv_total;
+                for (o, gj) in out.iter_mut().zip(g) {
+                    *o += r * gj;
                 }
-                f32::NAN
             }
-            None => gaussian::log_sum_exp(&self.log_post),
         }
+        // The log-density is not needed alongside the score; skip its `ln`.
+        f32::NAN
     }
 }
 
@@ -448,6 +475,47 @@ fn row_into(m: MatRef<'_, f32>, i: usize, out: &mut [f32]) {
     }
 }
 
+impl GmmTeacher {
+    #[inline(always)]
+    fn score_rows(
+        &mut self,
+        d: usize,
+        actions: MatRef<'_, f32>,
+        states: MatRef<'_, f32>,
+        noise_levels: &[f32],
+        mut out: MatMut<'_, f32>,
+    ) -> Result<()> {
+        let (mut a_small, mut g_small) = ([0.0f32; 16], [0.0f32; 16]);
+        let (mut a_big, mut g_big) = (Vec::new(), Vec::new());
+        let (a, g): (&mut [f32], &mut [f32]) = if d <= 16 {
+            (&mut a_small[..d], &mut g_small[..d])
+        } else {
+            a_big.resize(d, 0.0);
+            g_big.resize(d, 0.0);
+            (&mut a_big, &mut g_big)
+        };
+        let mut s = vec![0.0f32; self.state_dim];
+        let conditional = matches!(self.source, Source::Conditional { .. });
+        for i in 0..actions.nrows() {
+            if conditional {
+                row_into(states, i, &mut s);
+                self.select(&s)?;
+            }
+            row_into(actions, i, a);
+            let gmm = match &self.source {
+                Source::Fixed(g) => g,
+                Source::Conditional { .. } => self.cached.as_ref().expect("selected"),
+            };
+            self.ws.prepare(gmm, noise_levels[i])?;
+            self.ws.eval(gmm, a, Some(g));
+            for j in 0..d {
+                out[(i, j)] = g[j];
+            }
+        }
+        Ok(())
+    }
+}
+
 impl ScoreModel for GmmTeacher {
     fn action_dim(&self) -> usize {
         match &self.source {
@@ -472,37 +540,14 @@ impl ScoreModel for GmmTeacher {
     ) -> Result<()> {
         check_score_args(self, actions, states, noise_levels, out.as_ref())?;
         check_finite("actions", actions)?;
-        let d = self.action_dim();
-        let mut a = [0.0f32; 16];
-        let mut g = [0.0f32; 16];
-        let mut big_a;
-        let mut big_g;
-        let (a, g): (&mut [f32], &mut [f32]) = if d <= 16 {
-            (&mut a[..d], &mut g[..d])
-        } else {
-            big_a = vec![0.0; d];
-            big_g = vec![0.0; d];
-            (&mut big_a, &mut big_g)
-        };
-        let mut s = vec![0.0f32; self.state_dim];
-        let conditional = matches!(self.source, Source::Conditional { .. });
-        for i in 0..actions.nrows() {
-            if conditional {
-                row_into(states, i, &mut s);
-                self.select(&s)?;
-            }
-            row_into(actions, i, a);
-            let gmm = match &self.source {
-                Source::Fixed(g) => g,
-                Source::Conditional { .. } => self.cached.as_ref().expect("selected"),
-            };
-            self.ws.prepare(gmm, noise_levels[i])?;
-            self.ws.eval(gmm, a, Some(g));
-            for j in 0..d {
-                out[(i, j)] = g[j];
-            }
+        // Constant-`d` copies of the row loop for small dimensions (unrolled, no bounds checks).
+        match self.action_dim() {
+            1 => self.score_rows(1, actions, states, noise_levels, out),
+            2 => self.score_rows(2, actions, states, noise_levels, out),
+            3 => self.score_rows(3, actions, states, noise_levels, out),
+            4 => self.score_rows(4, actions, states, noise_levels, out),
+            d => self.score_rows(d, actions, states, noise_levels, out),
         }
-        Ok(())
     }
 
     fn sample_actions(

@@ -45,7 +45,140 @@ pub struct ExpertStepBuffers {
     /// `log q̃(k|s) − log det L̃_k − d/2 log 2π` (`Z`).
     snap_linv: Vec<f32>,
     snap_log_norm: Vec<f32>,
+    snap_means: Vec<f32>,
     diff: Vec<f32>,
+    diff_dd: Vec<f32>,
+}
+
+/// Inputs of the corrected-score kernel for one state: its `Z·V` samples (row-major, sample
+/// `(z, v)` at `z·V + v`) and the frozen experts prepared for that state.
+struct StateBlock<'a> {
+    z_n: usize,
+    v_n: usize,
+    actions: &'a [f32],
+    eps: &'a [f32],
+    score: &'a [f32],
+    /// `μ̃` as `[j][k]` (`d x Z`).
+    snap_means: &'a [f32],
+    /// `L̃⁻¹` as `[r·d + c][k]` (`d·d x Z`).
+    snap_linv: &'a [f32],
+    /// `log q̃(k|s) − log det L̃_k − d/2 log 2π`.
+    snap_log_norm: &'a [f32],
+}
+
+/// Outputs (the state's `E[g]`, `E[g εᵀ]`) and scratch of the kernel.
+struct StateBlockOut<'a> {
+    mean_g: &'a mut [f32],
+    mean_g_eps: &'a mut [f32],
+    log_resp: &'a mut [f32],
+    grad_k: &'a mut [f32],
+    g: &'a mut [f32],
+    diff: &'a mut [f32],
+}
+
+impl StateBlock<'_> {
+    /// Accumulates `E_ε[g]` and `E_ε[g εᵀ]` for every expert at this state; returns the sums
+    /// of `log q̃(z|a)` and of `|g|²` over the samples (monitoring).
+    #[inline(always)]
+    fn run(&self, d: usize, out: StateBlockOut<'_>) -> (f64, f64) {
+        let (z_n, v_n) = (self.z_n, self.v_n);
+        let inv_v = 1.0 / v_n as f32;
+        let (mut sum_log_resp, mut sum_g2) = (0.0f64, 0.0f64);
+        let mut total_product = 1.0f64;
+        // Scratch, all `[row][k]` with the expert index k innermost.
+        let resp = &mut out.log_resp[..z_n];
+        let grad = &mut out.grad_k[..d * z_n];
+        let y = &mut out.diff[..d * z_n];
+        let g = &mut out.g[..d];
+        let log_norm = &self.snap_log_norm[..z_n];
+        for z in 0..z_n {
+            let mg = &mut out.mean_g[z * d..(z + 1) * d];
+            let mge = &mut out.mean_g_eps[z * d * d..(z + 1) * d * d];
+            for v in 0..v_n {
+                let i = z * v_n + v;
+                let a = &self.actions[i * d..(i + 1) * d];
+                // y_k = L̃_k⁻¹ (a − μ̃_k) for every frozen expert k at once.
+                for r in 0..d {
+                    let yr = &mut y[r * z_n..(r + 1) * z_n];
+                    for c in 0..=r {
+                        let l = &self.snap_linv[(r * d + c) * z_n..(r * d + c + 1) * z_n];
+                        let m = &self.snap_means[c * z_n..(c + 1) * z_n];
+                        let ac = a[c];
+                        if c == 0 {
+                            for k in 0..z_n {
+                                yr[k] = l[k] * (ac - m[k]);
+                            }
+                        } else {
+                            for k in 0..z_n {
+                                yr[k] += l[k] * (ac - m[k]);
+                            }
+                        }
+                    }
+                }
+                // log q̃(k) N(a; μ̃_k, Σ̃_k) and ∇_a log N = −L̃_k⁻ᵀ y_k.
+                resp.copy_from_slice(log_norm);
+                for r in 0..d {
+                    let yr = &y[r * z_n..(r + 1) * z_n];
+                    for k in 0..z_n {
+                        resp[k] -= 0.5 * yr[k] * yr[k];
+                    }
+                }
+                for c in 0..d {
+                    let gc = &mut grad[c * z_n..(c + 1) * z_n];
+                    for r in c..d {
+                        let l = &self.snap_linv[(r * d + c) * z_n..(r * d + c + 1) * z_n];
+                        let yr = &y[r * z_n..(r + 1) * z_n];
+                        if r == c {
+                            for k in 0..z_n {
+                                gc[k] = -l[k] * yr[k];
+                            }
+                        } else {
+                            for k in 0..z_n {
+                                gc[k] -= l[k] * yr[k];
+                            }
+                        }
+                    }
+                }
+                // Responsibilities q̃(k|a) by a softmax over k.
+                let joint_z = resp[z];
+                let max = resp.iter().copied().fold(f32::NEG_INFINITY, f32::max);
+                for r in resp.iter_mut() {
+                    *r = gaussian::exp_nonpositive(*r - max);
+                }
+                let total: f32 = resp.iter().sum();
+                let inv_total = 1.0 / total;
+                for r in resp.iter_mut() {
+                    *r *= inv_total;
+                }
+                // log q̃(z|a) = joint_z − max − ln(total); the logs of the totals are taken
+                // once per batch of samples (total ∈ [1, Z], so the product stays finite).
+                sum_log_resp += f64::from(joint_z - max);
+                total_product *= f64::from(total);
+                if total_product > 1e200 {
+                    sum_log_resp -= total_product.ln();
+                    total_product = 1.0;
+                }
+                // g = score + ∇ log N(a; μ̃_z, Σ̃_z) − Σ_k q̃(k|a) ∇ log N(a; μ̃_k, Σ̃_k).
+                let score = &self.score[i * d..(i + 1) * d];
+                for j in 0..d {
+                    let gj_row = &grad[j * z_n..(j + 1) * z_n];
+                    let mix: f32 = gj_row.iter().zip(resp.iter()).map(|(a, b)| a * b).sum();
+                    let gj = score[j] + gj_row[z] - mix;
+                    g[j] = gj;
+                    sum_g2 += f64::from(gj * gj);
+                }
+                let eps = &self.eps[i * d..(i + 1) * d];
+                for r in 0..d {
+                    let gr = g[r] * inv_v;
+                    mg[r] += gr;
+                    for c in 0..d {
+                        mge[r * d + c] += gr * eps[c];
+                    }
+                }
+            }
+        }
+        (sum_log_resp - total_product.ln(), sum_g2)
+    }
 }
 
 /// Summary statistics of one expert step, for monitoring.
@@ -94,7 +227,8 @@ pub fn corrected_score_moments<S: ScoreModel + ?Sized>(
     buf.g.resize(d, 0.0);
     buf.snap_linv.resize(z_n * d * d, 0.0);
     buf.snap_log_norm.resize(z_n, 0.0);
-    buf.diff.resize(d, 0.0);
+    buf.diff.resize(d * z_n, 0.0);
+    buf.diff_dd.resize(d * d, 0.0);
 
     // Reparameterised samples a = μ_z(s) + L_z(s) ε and their states.
     vdd_core::fill_standard_normal(rng, &mut buf.eps);
@@ -131,72 +265,58 @@ pub fn corrected_score_moments<S: ScoreModel + ?Sized>(
     // Corrected score g = score + ∇ log q̃(z|a,s) and its moments.
     buf.mean_g.fill(0.0);
     buf.mean_g_eps.fill(0.0);
-    let inv_v = 1.0 / v_n as f32;
     let (mut sum_log_resp, mut sum_g2) = (0.0f64, 0.0f64);
     let half_d_ln_2pi = 0.5 * d as f32 * gaussian::LN_2PI;
+    buf.snap_means.resize(z_n * d, 0.0);
     for b in 0..b_n {
-        // The frozen experts at this state, prepared once for all B·Z·V samples' densities:
+        // The frozen experts at this state, prepared once for all Z·V samples' densities:
         // log N(a; μ̃_k, L̃_k L̃_kᵀ) = c_k − ½|L̃_k⁻¹(a − μ̃_k)|², ∇ = −L̃_k⁻ᵀ L̃_k⁻¹ (a − μ̃_k).
         let snap_lg = snapshot.log_gating_row(b);
+        // Structure-of-arrays layout (expert index innermost) so the per-sample loops over the
+        // Z frozen experts vectorise.
         for k in 0..z_n {
             let l = snapshot.scale(b, k);
-            gaussian::invert_lower(l, d, &mut buf.snap_linv[k * d * d..(k + 1) * d * d]);
+            gaussian::invert_lower(l, d, &mut buf.diff_dd);
+            for rc in 0..d * d {
+                buf.snap_linv[rc * z_n + k] = buf.diff_dd[rc];
+            }
             buf.snap_log_norm[k] = snap_lg[k] - gaussian::half_log_det(l, d) - half_d_ln_2pi;
-        }
-        for z in 0..z_n {
-            let bz = b * z_n + z;
-            for v in 0..v_n {
-                let i = bz * v_n + v;
-                let a = &buf.actions[i * d..(i + 1) * d];
-                for k in 0..z_n {
-                    let mu = snapshot.mean(b, k);
-                    let linv = &buf.snap_linv[k * d * d..(k + 1) * d * d];
-                    let grad = &mut buf.grad_k[k * d..(k + 1) * d];
-                    let mut maha = 0.0;
-                    // y = L⁻¹ (a − μ) into `diff`, then grad = −L⁻ᵀ y.
-                    for r in 0..d {
-                        let mut y = 0.0;
-                        for c in 0..=r {
-                            y += linv[r * d + c] * (a[c] - mu[c]);
-                        }
-                        buf.diff[r] = y;
-                        maha += y * y;
-                    }
-                    for c in 0..d {
-                        let mut g = 0.0;
-                        for r in c..d {
-                            g += linv[r * d + c] * buf.diff[r];
-                        }
-                        grad[c] = -g;
-                    }
-                    buf.log_resp[k] = buf.snap_log_norm[k] - 0.5 * maha;
-                }
-                let joint_z = buf.log_resp[z];
-                let lse = gaussian::softmax_in_place(&mut buf.log_resp);
-                sum_log_resp += f64::from(joint_z - lse);
-                let eps = &buf.eps[i * d..(i + 1) * d];
-                for j in 0..d {
-                    let mut mix = 0.0;
-                    for k in 0..z_n {
-                        mix += buf.log_resp[k] * buf.grad_k[k * d + j];
-                    }
-                    let g = buf.score[i * d + j] + buf.grad_k[z * d + j] - mix;
-                    buf.g[j] = g;
-                    sum_g2 += f64::from(g * g);
-                }
-                let mg = &mut buf.mean_g[bz * d..(bz + 1) * d];
-                for j in 0..d {
-                    mg[j] += buf.g[j] * inv_v;
-                }
-                let mge = &mut buf.mean_g_eps[bz * d * d..(bz + 1) * d * d];
-                for r in 0..d {
-                    let gr = buf.g[r] * inv_v;
-                    for c in 0..d {
-                        mge[r * d + c] += gr * eps[c];
-                    }
-                }
+            for (j, m) in snapshot.mean(b, k).iter().enumerate() {
+                buf.snap_means[j * z_n + k] = *m;
             }
         }
+        let rows = b * z_n * v_n..(b + 1) * z_n * v_n;
+        let block = StateBlock {
+            z_n,
+            v_n,
+            actions: &buf.actions[rows.start * d..rows.end * d],
+            eps: &buf.eps[rows.start * d..rows.end * d],
+            score: &buf.score[rows.start * d..rows.end * d],
+            snap_means: &buf.snap_means,
+            snap_linv: &buf.snap_linv,
+            snap_log_norm: &buf.snap_log_norm,
+        };
+        let out = StateBlockOut {
+            mean_g: &mut buf.mean_g[b * z_n * d..(b + 1) * z_n * d],
+            mean_g_eps: &mut buf.mean_g_eps[b * z_n * d * d..(b + 1) * z_n * d * d],
+            log_resp: &mut buf.log_resp,
+            grad_k: &mut buf.grad_k,
+            g: &mut buf.g,
+            diff: &mut buf.diff,
+        };
+        // Dispatch small dimensions to constant-`d` copies of the kernel (unrolled loops, no
+        // bounds checks); larger ones run the same code with a run-time `d`.
+        let (lr, g2) = match d {
+            1 => block.run(1, out),
+            2 => block.run(2, out),
+            3 => block.run(3, out),
+            4 => block.run(4, out),
+            6 => block.run(6, out),
+            8 => block.run(8, out),
+            _ => block.run(d, out),
+        };
+        sum_log_resp += lr;
+        sum_g2 += g2;
     }
     let entropy: f32 =
         (0..b_n * z_n).map(|k| gaussian::entropy(current.scale(k / z_n, k % z_n), d)).sum::<f32>()
