@@ -99,6 +99,23 @@ impl CircleGmm {
         Self { n_modes: 4, radius: 2.0, std: 0.5, rotating: true }
     }
 
+    /// The task's exact teacher: the mixture itself as a [`vdd_diffusion::GmmTeacher`], whose
+    /// noise-smoothed score is exact at every noise level (1-D state, 2-D actions).
+    ///
+    /// ```
+    /// use vdd_core::ScoreModel;
+    /// let teacher = vdd_tasks::toy::CircleGmm::toy_gmm().teacher().unwrap();
+    /// assert_eq!((teacher.state_dim(), teacher.action_dim()), (1, 2));
+    /// ```
+    pub fn teacher(&self) -> Result<vdd_diffusion::GmmTeacher> {
+        Ok(if self.rotating {
+            vdd_diffusion::GmmTeacher::rotating_toy(self.n_modes, self.radius, self.std)?
+        } else {
+            let gmm = vdd_diffusion::Gmm::circle(self.n_modes, self.radius, self.std, 0.0)?;
+            vdd_diffusion::GmmTeacher::fixed(gmm, 1)
+        })
+    }
+
     /// Number of modes `K`.
     pub fn n_modes(&self) -> usize {
         self.n_modes
@@ -248,6 +265,23 @@ impl TryFrom<CircleGmmFields> for CircleGmm {
 mod tests {
     use super::*;
     use approx::assert_relative_eq;
+
+    #[test]
+    fn the_exact_teacher_is_the_task_mixture() {
+        for task in [CircleGmm::toy_gmm(), CircleGmm::toy_conditional()] {
+            let teacher = task.teacher().unwrap();
+            for s in [0.0f32, 1.3, 4.0] {
+                let mix = task.mixture_at(&[s]).unwrap();
+                let g = teacher.mixture_at(&[s]).unwrap();
+                assert_eq!(g.num_components(), mix.means.len());
+                for (k, m) in mix.means.iter().enumerate() {
+                    assert!(
+                        (g.mean(k)[0] - m[0]).abs() < 1e-5 && (g.mean(k)[1] - m[1]).abs() < 1e-5
+                    );
+                }
+            }
+        }
+    }
 
     #[test]
     fn toy_gmm_means_lie_on_the_circle_and_weights_sum_to_one() {
