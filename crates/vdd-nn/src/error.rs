@@ -33,6 +33,10 @@ pub enum NnError {
         /// The file.
         path: PathBuf,
     },
+    /// A model does not match the state it is combined with (an EMA or optimiser built for
+    /// another architecture).
+    #[error("model mismatch: {0}")]
+    ModelMismatch(String),
     /// A tensor in the file has a different shape than the model's.
     #[error("tensor `{name}` has shape {got:?} in the file but {expected:?} in the model")]
     ShapeMismatch {

@@ -231,6 +231,48 @@ mod tests {
     }
 
     #[test]
+    fn round_trip_with_layer_norm_and_buffers_is_bit_exact() {
+        let cfg = ResidualMlpConfig {
+            in_dim: 3,
+            hidden_dim: 8,
+            num_blocks: 2,
+            out_dim: 2,
+            activation: Activation::Mish,
+            layer_norm: true,
+        };
+        let mut a = ResidualMlp::new(&cfg, &mut vdd_core::Seeds::new(1).stream("init")).unwrap();
+        a.visit_params_mut("", &mut |name, p| {
+            if name.contains("normalizer") {
+                p.value.iter_mut().enumerate().for_each(|(k, v)| *v += 0.01 * k as f32);
+            }
+        });
+        let path = tmp("ln");
+        save_safetensors(&path, &a, &BTreeMap::new()).unwrap();
+        let mut b = ResidualMlp::new(&cfg, &mut vdd_core::Seeds::new(2).stream("init")).unwrap();
+        load_safetensors(&path, &mut b).unwrap();
+        let x = faer::Mat::<f32>::from_fn(4, 3, |i, j| (i + 2 * j) as f32 * 0.3 - 1.0);
+        assert_eq!(a.forward(x.as_ref()).to_owned(), b.forward(x.as_ref()).to_owned());
+        // A layer-norm file lacks nothing a plain model needs, but a plain file cannot fill a
+        // layer-norm model.
+        let mut plain = net(3);
+        load_safetensors(&path, &mut plain).unwrap();
+        save_safetensors(&path, &plain, &BTreeMap::new()).unwrap();
+        let err = load_safetensors(&path, &mut b).unwrap_err();
+        assert!(
+            matches!(err, NnError::MissingTensor { ref name, .. } if name.contains("normalizer"))
+        );
+
+        // Fixed buffers (Fourier frequencies) are saved and restored too.
+        let ff =
+            crate::FourierFeatures::new(6, 30.0, &mut vdd_core::Seeds::new(1).stream("f")).unwrap();
+        save_safetensors(&path, &ff, &BTreeMap::new()).unwrap();
+        let mut ff2 =
+            crate::FourierFeatures::new(6, 30.0, &mut vdd_core::Seeds::new(2).stream("f")).unwrap();
+        load_safetensors(&path, &mut ff2).unwrap();
+        assert_eq!(ff.w, ff2.w);
+    }
+
+    #[test]
     fn truncated_and_mismatched_files_are_clear_errors() {
         let path = tmp("bad");
         save_safetensors(&path, &net(1), &BTreeMap::new()).unwrap();

@@ -1,8 +1,10 @@
 //! # vdd-nn
 //!
 //! Neural-network building blocks on `faer`, with explicit forward and backward passes (no
-//! autodiff framework): [`Linear`], activations, [`Mlp`], the pre-activation [`ResidualMlp`]
-//! used by VDD and BESO, optimisers and PyTorch-compatible `safetensors` checkpoints.
+//! autodiff framework): [`Linear`], activations, [`LayerNorm`], [`Mlp`], the pre-activation
+//! [`ResidualMlp`] used by VDD and BESO, noise-level embeddings ([`SinusoidalEmbedding`],
+//! [`FourierFeatures`]) and column concatenation, initialisers ([`init`]), Adam/AdamW with
+//! LR schedules, parameter [`Ema`], and PyTorch-compatible `safetensors` checkpoints ([`io`]).
 //!
 //! Every network implements [`Module`] (batched `forward`/`backward` on `n x features`
 //! matrices, parameter gradients accumulated) and [`Parameters`] (named tensors in PyTorch's
@@ -10,21 +12,30 @@
 #![warn(missing_docs)]
 
 mod activation;
+mod ema;
+mod embedding;
 mod error;
 pub mod gradcheck;
+pub mod init;
 pub mod io;
 mod linear;
 mod mlp;
 mod module;
+mod norm;
 mod optim;
 mod param;
 mod schedule;
 
-pub use activation::{erf, Activation, ActivationLayer};
+pub use activation::{erf, exp_fast, Activation, ActivationLayer};
+pub use ema::Ema;
+pub use embedding::{
+    concat_cols, concat_cols_into, split_cols, FourierFeatures, SinusoidalEmbedding,
+};
 pub use error::NnError;
 pub use linear::Linear;
 pub use mlp::{Mlp, MlpConfig, ResidualBlock, ResidualMlp, ResidualMlpConfig};
 pub use module::Module;
+pub use norm::{LayerNorm, LAYER_NORM_EPS};
 pub use optim::{clip_grad_norm, Adam, AdamConfig};
 pub use param::{join_name, Param, Parameters};
 pub use schedule::LrSchedule;

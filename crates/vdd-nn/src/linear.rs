@@ -4,6 +4,8 @@ use faer::linalg::matmul::matmul;
 use faer::{Accum, Mat, MatRef, Par};
 use rand::Rng as _;
 
+use crate::error::NnError;
+use crate::init::{BiasInit, Init};
 use crate::module::{ensure_shape, Module};
 use crate::param::{join_name, Param, Parameters};
 
@@ -59,6 +61,18 @@ impl Linear {
         }
     }
 
+    /// Re-initialises the weight with `init` (see [`Init`]); on error the layer is unchanged.
+    pub fn init_weight(&mut self, init: Init, rng: &mut vdd_core::Rng) -> Result<(), NnError> {
+        self.weight.value = init.sample(self.out_dim, self.in_dim, rng)?;
+        Ok(())
+    }
+
+    /// Re-initialises the bias with `init` (see [`BiasInit`]); on error the layer is unchanged.
+    pub fn init_bias(&mut self, init: BiasInit, rng: &mut vdd_core::Rng) -> Result<(), NnError> {
+        self.bias.value = init.sample(self.out_dim, self.in_dim, rng)?;
+        Ok(())
+    }
+
     /// `Wᵀ` as an `in x out` view (the row-major `[out, in]` buffer read column-major).
     pub fn weight_t(&self) -> MatRef<'_, f32> {
         MatRef::from_column_major_slice(&self.weight.value, self.in_dim, self.out_dim)
@@ -90,19 +104,22 @@ impl Module for Linear {
         ensure_shape(&mut self.input, n, self.in_dim);
         self.input.copy_from(x);
         ensure_shape(&mut self.output, n, self.out_dim);
-        let wt = MatRef::from_column_major_slice(&self.weight.value, self.in_dim, self.out_dim);
-        matmul(self.output.as_mut(), Accum::Replace, x, wt, 1.0, Par::Seq);
-        for (j, b) in self.bias.value.iter().enumerate() {
-            for y in self.output.col_as_slice_mut(j) {
-                *y += b;
-            }
+        // y = b (broadcast), then y += x Wᵀ: one pass over the output for the bias.
+        for (j, &b) in self.bias.value.iter().enumerate() {
+            self.output.col_as_slice_mut(j).fill(b);
         }
+        let wt = MatRef::from_column_major_slice(&self.weight.value, self.in_dim, self.out_dim);
+        matmul(self.output.as_mut(), Accum::Add, x, wt, 1.0, Par::Seq);
         self.output.as_ref()
     }
 
     fn backward(&mut self, grad_out: MatRef<'_, f32>) -> MatRef<'_, f32> {
         let n = self.input.nrows();
         assert_eq!((grad_out.nrows(), grad_out.ncols()), (n, self.out_dim), "Linear: grad shape");
+        if self.weight.grad.len() != self.weight.len() || self.bias.grad.len() != self.bias.len() {
+            self.weight.zero_grad();
+            self.bias.zero_grad();
+        }
         // dWᵀ (in x out) += xᵀ · gy
         let dwt = faer::MatMut::from_column_major_slice_mut(
             &mut self.weight.grad,
@@ -112,11 +129,10 @@ impl Module for Linear {
         matmul(dwt, Accum::Add, self.input.transpose(), grad_out, 1.0, Par::Seq);
         for (j, db) in self.bias.grad.iter_mut().enumerate() {
             let col = grad_out.col(j);
-            let mut s = 0.0;
-            for i in 0..n {
-                s += col[i];
-            }
-            *db += s;
+            *db += match col.try_as_col_major() {
+                Some(c) => c.as_slice().iter().sum::<f32>(),
+                None => col.iter().sum::<f32>(),
+            };
         }
         ensure_shape(&mut self.grad_input, n, self.in_dim);
         let wt = MatRef::from_column_major_slice(&self.weight.value, self.in_dim, self.out_dim);

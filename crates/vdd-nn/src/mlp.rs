@@ -6,8 +6,10 @@ use serde::{Deserialize, Serialize};
 
 use crate::activation::{Activation, ActivationLayer};
 use crate::error::NnError;
+use crate::init::{BiasInit, Init};
 use crate::linear::Linear;
 use crate::module::{ensure_shape, Module};
+use crate::norm::LayerNorm;
 use crate::param::{join_name, Param, Parameters};
 
 /// Configuration of an [`Mlp`].
@@ -71,6 +73,18 @@ impl Mlp {
     pub fn linears_mut(&mut self) -> &mut [Linear] {
         &mut self.linears
     }
+
+    /// Re-initialises every linear weight with `init`, input layer first.
+    pub fn init_weights(&mut self, init: Init, rng: &mut vdd_core::Rng) -> Result<(), NnError> {
+        init.validate()?;
+        self.linears.iter_mut().try_for_each(|l| l.init_weight(init, rng))
+    }
+
+    /// Re-initialises every linear bias with `init`, input layer first.
+    pub fn init_biases(&mut self, init: BiasInit, rng: &mut vdd_core::Rng) -> Result<(), NnError> {
+        init.validate()?;
+        self.linears.iter_mut().try_for_each(|l| l.init_bias(init, rng))
+    }
 }
 
 impl Parameters for Mlp {
@@ -128,18 +142,27 @@ pub struct ResidualMlpConfig {
     pub out_dim: usize,
     /// Nonlinearity inside the blocks.
     pub activation: Activation,
-    /// Layer normalisation before each block's activations (`norm1`, `norm2`), as in the
-    /// official VDD/BESO residual blocks with `use_norm=True`.
+    /// Layer normalisation before each of a block's two activations (`normalizer1`,
+    /// `normalizer2`, PyTorch's `nn.LayerNorm(hidden_dim)` with `ε = 1e-5`, see
+    /// [`ResidualMlp::set_layer_norm_eps`]), as BESO's residual blocks with `use_norm=True`.
     #[serde(default)]
     pub layer_norm: bool,
 }
 
-/// One pre-activation residual block: `x + l2(act(l1(act(x))))`, named `l1`, `l2` as in BESO's
-/// `TwoLayerPreActivationResNetLinear`.
+/// One pre-activation residual block, BESO's `TwoLayerPreActivationResNetLinear`:
+///
+/// ```text
+/// h = x;  h = normalizer1(h)?;  h = l1(act(h));  h = normalizer2(h)?;  h = l2(act(h));  x + h
+/// ```
+///
+/// with the layer norms only when enabled. Parameters `l1.*`, `l2.*` and, with layer norm,
+/// `normalizer1.*`, `normalizer2.*`.
 #[derive(Debug, Clone)]
 pub struct ResidualBlock {
+    norm1: Option<LayerNorm>,
     act1: ActivationLayer,
     l1: Linear,
+    norm2: Option<LayerNorm>,
     act2: ActivationLayer,
     l2: Linear,
     output: Mat<f32>,
@@ -147,13 +170,28 @@ pub struct ResidualBlock {
 }
 
 impl ResidualBlock {
-    /// A block of width `dim`.
+    /// A block of width `dim` without layer norm.
     pub fn new(dim: usize, activation: Activation, rng: &mut vdd_core::Rng) -> Self {
+        Self::with_layer_norm(dim, activation, false, rng)
+    }
+
+    /// A block of width `dim`, with layer norms before the activations if `layer_norm`. The
+    /// linear layers draw the same numbers from `rng` either way.
+    pub fn with_layer_norm(
+        dim: usize,
+        activation: Activation,
+        layer_norm: bool,
+        rng: &mut vdd_core::Rng,
+    ) -> Self {
+        let l1 = Linear::new(dim, dim, rng);
+        let l2 = Linear::new(dim, dim, rng);
         Self {
+            norm1: layer_norm.then(|| LayerNorm::new(dim)),
             act1: ActivationLayer::new(activation, dim),
-            l1: Linear::new(dim, dim, rng),
+            l1,
+            norm2: layer_norm.then(|| LayerNorm::new(dim)),
             act2: ActivationLayer::new(activation, dim),
-            l2: Linear::new(dim, dim, rng),
+            l2,
             output: Mat::zeros(0, 0),
             grad_input: Mat::zeros(0, 0),
         }
@@ -163,16 +201,36 @@ impl ResidualBlock {
     pub fn linears_mut(&mut self) -> [&mut Linear; 2] {
         [&mut self.l1, &mut self.l2]
     }
+
+    /// The two layer norms, if the block has them.
+    pub fn layer_norms_mut(&mut self) -> Option<[&mut LayerNorm; 2]> {
+        match (&mut self.norm1, &mut self.norm2) {
+            (Some(a), Some(b)) => Some([a, b]),
+            _ => None,
+        }
+    }
 }
 
 impl Parameters for ResidualBlock {
     fn visit_params(&self, prefix: &str, f: &mut dyn FnMut(&str, &Param)) {
         self.l1.visit_params(&join_name(prefix, "l1"), f);
         self.l2.visit_params(&join_name(prefix, "l2"), f);
+        if let Some(n) = &self.norm1 {
+            n.visit_params(&join_name(prefix, "normalizer1"), f);
+        }
+        if let Some(n) = &self.norm2 {
+            n.visit_params(&join_name(prefix, "normalizer2"), f);
+        }
     }
     fn visit_params_mut(&mut self, prefix: &str, f: &mut dyn FnMut(&str, &mut Param)) {
         self.l1.visit_params_mut(&join_name(prefix, "l1"), f);
         self.l2.visit_params_mut(&join_name(prefix, "l2"), f);
+        if let Some(n) = &mut self.norm1 {
+            n.visit_params_mut(&join_name(prefix, "normalizer1"), f);
+        }
+        if let Some(n) = &mut self.norm2 {
+            n.visit_params_mut(&join_name(prefix, "normalizer2"), f);
+        }
     }
 }
 
@@ -185,30 +243,68 @@ impl Module for ResidualBlock {
     }
 
     fn forward(&mut self, x: MatRef<'_, f32>) -> MatRef<'_, f32> {
-        let h = self.act1.forward(x);
+        let h = match &mut self.norm1 {
+            Some(n) => n.forward(x),
+            None => x,
+        };
+        let h = self.act1.forward(h);
         let h = self.l1.forward(h);
+        let h = match &mut self.norm2 {
+            Some(n) => n.forward(h),
+            None => h,
+        };
         let h = self.act2.forward(h);
         let h = self.l2.forward(h);
         ensure_shape(&mut self.output, x.nrows(), x.ncols());
-        self.output.copy_from(h);
-        self.output += x;
+        add_into(&mut self.output, h, x);
         self.output.as_ref()
     }
 
     fn backward(&mut self, grad_out: MatRef<'_, f32>) -> MatRef<'_, f32> {
         let g = self.l2.backward(grad_out);
         let g = self.act2.backward(g);
+        let g = match &mut self.norm2 {
+            Some(n) => n.backward(g),
+            None => g,
+        };
         let g = self.l1.backward(g);
         let g = self.act1.backward(g);
+        let g = match &mut self.norm1 {
+            Some(n) => n.backward(g),
+            None => g,
+        };
         ensure_shape(&mut self.grad_input, g.nrows(), g.ncols());
-        self.grad_input.copy_from(g);
-        self.grad_input += grad_out;
+        add_into(&mut self.grad_input, g, grad_out);
         self.grad_input.as_ref()
     }
 }
 
+/// `dst = a + b` (same shapes; `dst` already sized).
+fn add_into(dst: &mut Mat<f32>, a: MatRef<'_, f32>, b: MatRef<'_, f32>) {
+    for j in 0..dst.ncols() {
+        let d = dst.col_as_slice_mut(j);
+        match (a.col(j).try_as_col_major(), b.col(j).try_as_col_major()) {
+            (Some(a), Some(b)) => {
+                let (a, b) = (a.as_slice(), b.as_slice());
+                for i in 0..d.len() {
+                    d[i] = a[i] + b[i];
+                }
+            }
+            _ => {
+                for i in 0..d.len() {
+                    d[i] = a[(i, j)] + b[(i, j)];
+                }
+            }
+        }
+    }
+}
+
 /// `Linear(in, hidden) → blocks → Linear(hidden, out)`, named like BESO's
-/// `ResidualMLPNetwork`: `layers.0`, `layers.1` … `layers.{B}` for the blocks, `layers.{B+1}`.
+/// `ResidualMLPNetwork`: `layers.0`, `layers.1` … `layers.{B}` for the blocks (each with
+/// `l1`, `l2` and, with `layer_norm`, `normalizer1`, `normalizer2`; see [`ResidualBlock`]),
+/// `layers.{B+1}`. A PyTorch `state_dict` of that architecture loads with
+/// [`crate::io::load_safetensors`] and gives the same outputs (checked against a fixture
+/// written by Python in `tests/pytorch_fixture.rs`).
 ///
 /// ```
 /// use vdd_nn::{Activation, Module, ResidualMlp, ResidualMlpConfig};
@@ -229,14 +325,16 @@ impl ResidualMlp {
     /// Builds the network with PyTorch's default initialisation.
     pub fn new(config: &ResidualMlpConfig, rng: &mut vdd_core::Rng) -> Result<Self, NnError> {
         check_widths("ResidualMlp", &[config.in_dim, config.hidden_dim, config.out_dim])?;
-        if config.layer_norm {
-            return Err(NnError::Config(
-                "layer_norm residual blocks are not implemented yet".into(),
-            ));
-        }
         let input = Linear::new(config.in_dim, config.hidden_dim, rng);
         let blocks = (0..config.num_blocks)
-            .map(|_| ResidualBlock::new(config.hidden_dim, config.activation, rng))
+            .map(|_| {
+                ResidualBlock::with_layer_norm(
+                    config.hidden_dim,
+                    config.activation,
+                    config.layer_norm,
+                    rng,
+                )
+            })
             .collect();
         let output = Linear::new(config.hidden_dim, config.out_dim, rng);
         Ok(Self { config: config.clone(), input, blocks, output })
@@ -260,6 +358,36 @@ impl ResidualMlp {
     /// The output layer (e.g. to initialise its bias in a range).
     pub fn output_layer_mut(&mut self) -> &mut Linear {
         &mut self.output
+    }
+
+    /// The residual blocks.
+    pub fn blocks_mut(&mut self) -> &mut [ResidualBlock] {
+        &mut self.blocks
+    }
+
+    /// Re-initialises every linear weight with `init`, input layer first.
+    pub fn init_weights(&mut self, init: Init, rng: &mut vdd_core::Rng) -> Result<(), NnError> {
+        init.validate()?;
+        self.linears_mut().into_iter().try_for_each(|l| l.init_weight(init, rng))
+    }
+
+    /// Re-initialises every linear bias with `init`, input layer first.
+    pub fn init_biases(&mut self, init: BiasInit, rng: &mut vdd_core::Rng) -> Result<(), NnError> {
+        init.validate()?;
+        self.linears_mut().into_iter().try_for_each(|l| l.init_bias(init, rng))
+    }
+
+    /// Sets the layer norms' `ε` (PyTorch's default `1e-5`; BESO's blocks use `1e-6`). An error
+    /// if `eps` is not finite and positive; no effect without layer norm.
+    pub fn set_layer_norm_eps(&mut self, eps: f32) -> Result<(), NnError> {
+        for b in &mut self.blocks {
+            if let Some(norms) = b.layer_norms_mut() {
+                for n in norms {
+                    n.set_eps(eps)?;
+                }
+            }
+        }
+        Ok(())
     }
 }
 
@@ -332,6 +460,184 @@ mod tests {
             let r = check_module(&mut net, input(5, 3).as_ref(), 1e-2, 1e-2, &mut rng);
             assert!(r.input_error < 5e-3 && r.param_error < 5e-3, "{act:?}: {r:?}");
         }
+    }
+
+    #[test]
+    fn residual_mlp_with_layer_norm_gradients_match_finite_differences() {
+        let mut rng = vdd_core::Seeds::new(8).stream("t");
+        for act in [Activation::Mish, Activation::Tanh] {
+            let cfg = ResidualMlpConfig {
+                in_dim: 3,
+                hidden_dim: 6,
+                num_blocks: 2,
+                out_dim: 2,
+                activation: act,
+                layer_norm: true,
+            };
+            let mut net = ResidualMlp::new(&cfg, &mut rng).unwrap();
+            // Non-trivial affine parameters so that their gradients are exercised.
+            net.visit_params_mut("", &mut |name, p| {
+                if name.contains("normalizer") {
+                    let base = if name.ends_with("weight") { 1.0 } else { 0.0 };
+                    p.value.iter_mut().enumerate().for_each(|(k, v)| *v = base + 0.1 * k as f32);
+                }
+            });
+            // Layer norm makes the f32 network curved enough that the finite differences need
+            // a larger step (with Richardson extrapolation its truncation error is O(h⁴)).
+            let r = check_module(&mut net, input(5, 3).as_ref(), 3e-2, 1e-2, &mut rng);
+            assert!(r.input_error < 3e-3 && r.param_error < 3e-3, "{act:?}: {r:?}");
+        }
+    }
+
+    fn names(net: &dyn Parameters) -> Vec<String> {
+        let mut v = Vec::new();
+        net.visit_params("", &mut |n, _| v.push(n.to_owned()));
+        v
+    }
+
+    fn cfg(layer_norm: bool) -> ResidualMlpConfig {
+        ResidualMlpConfig {
+            in_dim: 3,
+            hidden_dim: 5,
+            num_blocks: 1,
+            out_dim: 2,
+            activation: Activation::Mish,
+            layer_norm,
+        }
+    }
+
+    #[test]
+    fn parameter_names_follow_beso() {
+        let seeds = vdd_core::Seeds::new(9);
+        let plain = ResidualMlp::new(&cfg(false), &mut seeds.stream("i")).unwrap();
+        let lin = |p: &str| [format!("{p}.weight"), format!("{p}.bias")];
+        let mut want: Vec<String> = ["layers.0", "layers.1.l1", "layers.1.l2", "layers.2"]
+            .iter()
+            .flat_map(|p| lin(p))
+            .collect();
+        assert_eq!(names(&plain), want);
+        let normed = ResidualMlp::new(&cfg(true), &mut seeds.stream("i")).unwrap();
+        want.splice(
+            6..6,
+            ["layers.1.normalizer1", "layers.1.normalizer2"].iter().flat_map(|p| lin(p)),
+        );
+        assert_eq!(names(&normed), want);
+        // The linear layers draw the same numbers with and without layer norm.
+        let mut a = plain.clone();
+        let mut b = normed.clone();
+        let wa: Vec<_> = a.linears_mut().iter().map(|l| l.weight.value.clone()).collect();
+        let wb: Vec<_> = b.linears_mut().iter().map(|l| l.weight.value.clone()).collect();
+        assert_eq!(wa, wb);
+    }
+
+    /// The residual MLP in f64 from its parameters: `layers.0`, then per block
+    /// `x + l2(act(n2(l1(act(n1(x))))))`, then the output layer.
+    fn reference_forward(net: &mut ResidualMlp, x: &Mat<f32>) -> Vec<Vec<f64>> {
+        let act = net.config().activation;
+        let ln = net.config().layer_norm;
+        let lin = |l: &Linear, h: &[f64]| -> Vec<f64> {
+            (0..l.out_dim())
+                .map(|o| {
+                    f64::from(l.bias.value[o])
+                        + (0..l.in_dim())
+                            .map(|i| f64::from(l.weight.value[o * l.in_dim() + i]) * h[i])
+                            .sum::<f64>()
+                })
+                .collect()
+        };
+        let norm = |n: &LayerNorm, h: &[f64]| -> Vec<f64> {
+            let d = h.len() as f64;
+            let m = h.iter().sum::<f64>() / d;
+            let v = h.iter().map(|a| (a - m).powi(2)).sum::<f64>() / d;
+            h.iter()
+                .enumerate()
+                .map(|(k, a)| {
+                    (a - m) / (v + f64::from(n.eps())).sqrt() * f64::from(n.weight.value[k])
+                        + f64::from(n.bias.value[k])
+                })
+                .collect()
+        };
+        let a = |h: Vec<f64>| -> Vec<f64> {
+            h.into_iter().map(|v| f64::from(act.apply(v as f32))).collect()
+        };
+        (0..x.nrows())
+            .map(|i| {
+                let row: Vec<f64> = (0..x.ncols()).map(|j| f64::from(x[(i, j)])).collect();
+                let mut h = lin(&net.input, &row);
+                for b in &net.blocks {
+                    let mut t = h.clone();
+                    if ln {
+                        t = norm(b.norm1.as_ref().unwrap(), &t);
+                    }
+                    t = lin(&b.l1, &a(t));
+                    if ln {
+                        t = norm(b.norm2.as_ref().unwrap(), &t);
+                    }
+                    t = lin(&b.l2, &a(t));
+                    h = h.iter().zip(&t).map(|(u, v)| u + v).collect();
+                }
+                lin(&net.output, &h)
+            })
+            .collect()
+    }
+
+    #[test]
+    fn forward_matches_the_reference_composition() {
+        let seeds = vdd_core::Seeds::new(10);
+        let x = input(7, 3);
+        for ln in [false, true] {
+            let mut net = ResidualMlp::new(&cfg(ln), &mut seeds.stream("i")).unwrap();
+            net.visit_params_mut("", &mut |name, p| {
+                if name.contains("normalizer") {
+                    p.value.iter_mut().enumerate().for_each(|(k, v)| *v += 0.2 * k as f32);
+                }
+            });
+            let want = reference_forward(&mut net, &x);
+            let got = net.forward(x.as_ref()).to_owned();
+            for (i, row) in want.iter().enumerate() {
+                for (j, w) in row.iter().enumerate() {
+                    assert!((f64::from(got[(i, j)]) - w).abs() < 1e-5, "ln={ln} ({i},{j})");
+                }
+            }
+        }
+        // Layer norm changes the function (it is not silently skipped).
+        let mut a = ResidualMlp::new(&cfg(false), &mut seeds.stream("i")).unwrap();
+        let mut b = ResidualMlp::new(&cfg(true), &mut seeds.stream("i")).unwrap();
+        assert_ne!(a.forward(x.as_ref()).to_owned(), b.forward(x.as_ref()).to_owned());
+        assert!(b.set_layer_norm_eps(-1.0).is_err());
+        b.set_layer_norm_eps(1e-6).unwrap();
+        assert_eq!(b.blocks_mut()[0].layer_norms_mut().unwrap()[1].eps(), 1e-6);
+    }
+
+    #[test]
+    fn init_weights_reaches_every_linear() {
+        let mut rng = vdd_core::Seeds::new(11).stream("i");
+        let mut net = ResidualMlp::new(&cfg(true), &mut rng).unwrap();
+        net.init_weights(crate::init::Init::Orthogonal { gain: 2.0 }, &mut rng).unwrap();
+        net.init_biases(crate::init::BiasInit::Zero, &mut rng).unwrap();
+        for l in net.linears_mut() {
+            let (o, i) = (l.out_dim(), l.in_dim());
+            let w = Mat::from_fn(o, i, |r, c| l.weight.value[r * i + c]);
+            // The smaller Gram matrix is gain² I = 4 I.
+            let g = if o <= i { &w * w.transpose() } else { w.transpose() * &w };
+            for a in 0..g.nrows() {
+                for b in 0..g.ncols() {
+                    assert!((g[(a, b)] - if a == b { 4.0 } else { 0.0 }).abs() < 1e-4);
+                }
+            }
+            assert!(l.bias.value.iter().all(|&v| v == 0.0));
+        }
+        let mut mlp = Mlp::new(
+            &MlpConfig { in_dim: 2, hidden: vec![4], out_dim: 1, activation: Activation::Relu },
+            &mut rng,
+        )
+        .unwrap();
+        mlp.init_biases(crate::init::BiasInit::Uniform { low: 1.0, high: 1.0 }, &mut rng).unwrap();
+        assert!(mlp.linears_mut().iter().all(|l| l.bias.value.iter().all(|&b| b == 1.0)));
+        let before = mlp.linears_mut()[0].weight.value.clone();
+        let bad = crate::init::Init::Uniform { low: 1.0, high: 0.0 };
+        assert!(mlp.init_weights(bad, &mut rng).is_err());
+        assert_eq!(mlp.linears_mut()[0].weight.value, before, "unchanged on error");
     }
 
     #[test]

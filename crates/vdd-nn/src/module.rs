@@ -32,6 +32,29 @@ pub trait Module: Parameters {
     fn backward(&mut self, grad_out: MatRef<'_, f32>) -> MatRef<'_, f32>;
 }
 
+/// `x` itself when its columns are contiguous, otherwise a contiguous copy in `scratch`.
+pub(crate) fn contiguous<'a>(
+    x: MatRef<'a, f32>,
+    scratch: &'a mut faer::Mat<f32>,
+) -> MatRef<'a, f32> {
+    if x.row_stride() == 1 {
+        x
+    } else {
+        ensure_shape(scratch, x.nrows(), x.ncols());
+        scratch.copy_from(x);
+        scratch.as_ref()
+    }
+}
+
+/// Column `j` of a matrix with contiguous columns (see [`contiguous`]) as a slice.
+#[inline]
+pub(crate) fn col_slice(m: MatRef<'_, f32>, j: usize) -> &[f32] {
+    match m.col(j).try_as_col_major() {
+        Some(c) => c.as_slice(),
+        None => panic!("column {j} is not contiguous"),
+    }
+}
+
 /// Resizes an owned buffer to `rows x cols` if needed (no allocation when it already fits).
 pub(crate) fn ensure_shape(m: &mut faer::Mat<f32>, rows: usize, cols: usize) {
     if m.nrows() != rows || m.ncols() != cols {

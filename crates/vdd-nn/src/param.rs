@@ -1,8 +1,13 @@
 //! Parameters: flat `f32` tensors with their gradients, and the [`Parameters`] visitor that
 //! optimisers, EMA and serialisation walk.
 
-/// One trainable tensor, stored flat in PyTorch's row-major layout (a `Linear` weight is
-/// `[out, in]`, exactly as `torch.nn.Linear.weight`), with a gradient buffer of the same size.
+/// One tensor, stored flat in PyTorch's row-major layout (a `Linear` weight is `[out, in]`,
+/// exactly as `torch.nn.Linear.weight`), with a gradient buffer of the same size.
+///
+/// Most parameters are trainable; a *buffer* ([`Param::buffer`], `trainable == false`) is a
+/// fixed tensor that belongs to the model's state (saved and loaded with it, like PyTorch's
+/// registered buffers or `requires_grad=False` parameters) but that optimisers, gradient
+/// clipping and gradient checks leave alone.
 #[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
 pub struct Param {
     /// The values, row-major in `shape`.
@@ -12,6 +17,13 @@ pub struct Param {
     pub grad: Vec<f32>,
     /// The tensor's shape, PyTorch convention.
     pub shape: Vec<usize>,
+    /// Whether optimisers update it (`false` for fixed buffers).
+    #[serde(default = "yes")]
+    pub trainable: bool,
+}
+
+fn yes() -> bool {
+    true
 }
 
 impl Param {
@@ -20,7 +32,13 @@ impl Param {
     pub fn new(shape: &[usize], value: Vec<f32>) -> Self {
         let n: usize = shape.iter().product();
         assert_eq!(n, value.len(), "parameter size does not match its shape");
-        Self { grad: vec![0.0; n], value, shape: shape.to_vec() }
+        Self { grad: vec![0.0; n], value, shape: shape.to_vec(), trainable: true }
+    }
+
+    /// A fixed, non-trainable tensor (see the type's documentation); panics if `value.len()`
+    /// does not match `shape`.
+    pub fn buffer(shape: &[usize], value: Vec<f32>) -> Self {
+        Self { trainable: false, ..Self::new(shape, value) }
     }
 
     /// A zero-initialised parameter.
@@ -74,7 +92,7 @@ pub trait Parameters {
         self.visit_params_mut("", &mut |_, p| p.zero_grad());
     }
 
-    /// Total number of scalars.
+    /// Total number of scalars (buffers included, as PyTorch's `numel` over `state_dict`).
     fn num_params(&self) -> usize {
         let mut n = 0;
         self.visit_params("", &mut |_, p| n += p.len());
