@@ -279,7 +279,7 @@ impl Workspace {
         }
         let max = post.iter().copied().fold(f32::NEG_INFINITY, f32::max);
         for p in post.iter_mut() {
-            *p = gaussian::exp_nonpositive(*p - max);
+            *p = gaussian::exp_fast(*p - max);
         }
         let total: f32 = post.iter().sum();
         let Some(out) = score else {
@@ -536,7 +536,7 @@ impl ScoreModel for GmmTeacher {
         actions: MatRef<'_, f32>,
         states: MatRef<'_, f32>,
         noise_levels: &[f32],
-        mut out: MatMut<'_, f32>,
+        out: MatMut<'_, f32>,
     ) -> Result<()> {
         check_score_args(self, actions, states, noise_levels, out.as_ref())?;
         check_finite("actions", actions)?;

@@ -30,29 +30,7 @@ pub enum Activation {
 const FRAC_1_SQRT_2: f32 = std::f32::consts::FRAC_1_SQRT_2;
 const FRAC_1_SQRT_2PI: f32 = 0.398_942_3;
 
-/// `eˣ` in `f32`, branch-free so loops over it vectorise (Cephes' `expf`: range reduction to
-/// `[−ln2/2, ln2/2]` and a degree-6 polynomial). Relative error below `3e-7` on `[−87, 88]`;
-/// the argument is clamped to that range, `NaN` propagates.
-#[inline(always)]
-pub fn exp_fast(x: f32) -> f32 {
-    const MAGIC: f32 = 12_582_912.0; // 1.5 · 2²³: adding it rounds to an integer
-    const LN2_HI: f32 = 0.693_359_4;
-    const LN2_LO: f32 = -2.121_944_4e-4;
-    let x = x.clamp(-87.3, 88.3);
-    let t = x * std::f32::consts::LOG2_E + MAGIC;
-    let n = t - MAGIC;
-    let r = (x - n * LN2_HI) - n * LN2_LO;
-    let mut p = 1.987_569_1e-4;
-    p = p * r + 1.398_199_9e-3;
-    p = p * r + 8.333_452e-3;
-    p = p * r + 4.166_579_6e-2;
-    p = p * r + 1.666_666_5e-1;
-    p = p * r + 0.5;
-    let er = p * r * r + r + 1.0;
-    // 2ⁿ from the integer n sitting in the low mantissa bits of t.
-    let k = (t.to_bits() as i32).wrapping_sub(0x4B40_0000);
-    er * f32::from_bits((k.wrapping_add(127) << 23) as u32)
-}
+pub use vdd_core::gaussian::exp_fast;
 
 /// Mish and its derivative with one exponential: with `e = eˣ`, `n = e(e + 2)`,
 /// `tanh(softplus(x)) = n / (n + 2)` and `mish'(x) = t + 4x·e(e + 1) / (n + 2)²`.
@@ -298,21 +276,6 @@ mod tests {
             s += pdf(a + k as f64 * h) * if k % 2 == 1 { 4.0 } else { 2.0 };
         }
         s * h / 3.0
-    }
-
-    #[test]
-    fn exp_fast_is_accurate_over_the_whole_range() {
-        let mut worst = 0.0f64;
-        let mut x = -87.0f32;
-        while x < 88.0 {
-            let exact = f64::from(x).exp();
-            worst = worst.max((f64::from(exp_fast(x)) - exact).abs() / exact);
-            x += 0.001_3;
-        }
-        assert!(worst < 3e-7, "max relative error {worst}");
-        assert_eq!(exp_fast(0.0), 1.0);
-        assert!(exp_fast(f32::NAN).is_nan());
-        assert!(exp_fast(-1000.0) < 1e-37 && exp_fast(1000.0) > 1e38);
     }
 
     #[test]

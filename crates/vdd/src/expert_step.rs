@@ -143,7 +143,7 @@ impl StateBlock<'_> {
                 let joint_z = resp[z];
                 let max = resp.iter().copied().fold(f32::NEG_INFINITY, f32::max);
                 for r in resp.iter_mut() {
-                    *r = gaussian::exp_nonpositive(*r - max);
+                    *r = gaussian::exp_fast(*r - max);
                 }
                 let total: f32 = resp.iter().sum();
                 let inv_total = 1.0 / total;

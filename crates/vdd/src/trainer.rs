@@ -75,30 +75,43 @@ struct TrainerState {
 
 /// Variational Diffusion Distillation of a teacher `S` into a mixture of experts of family `E`.
 ///
+/// The teacher is anything that implements [`ScoreModel`]; the trainer never needs more than
+/// its score. Here a user-defined teacher, the score of `N((1, 1), 0.5² I)`, is distilled into
+/// two experts; switching to full-covariance experts is the one config value `expert_kind`.
+///
 /// ```
-/// use faer::Mat;
+/// use faer::{Mat, MatMut, MatRef};
 /// use vdd::{DistillData, Vdd, VddConfig};
-/// use vdd_moe::{Moe, MoeConfig};
-/// # use faer::{MatMut, MatRef};
-/// # use vdd_core::{check_score_args, CoreError, ScoreModel};
-/// # struct Iso;
-/// # impl ScoreModel for Iso {
-/// #     fn action_dim(&self) -> usize { 2 }
-/// #     fn state_dim(&self) -> usize { 1 }
-/// #     fn score(&mut self, a: MatRef<'_, f32>, s: MatRef<'_, f32>, l: &[f32], mut out: MatMut<'_, f32>)
-/// #         -> Result<(), CoreError> {
-/// #         for i in 0..a.nrows() { for j in 0..2 { out[(i, j)] = -(a[(i, j)] - 1.0) / 0.25; } }
-/// #         Ok(())
-/// #     }
-/// # }
-/// // `Iso` is any ScoreModel: here the score of N((1, 1), 0.5² I).
-/// let student = Moe::from_config(MoeConfig::toy(1, 2, 2), 0).unwrap();
-/// let data = DistillData::from_states(Mat::zeros(16, 1)).unwrap();
-/// let config = VddConfig { iterations: 300, ..VddConfig::toy() };
-/// let mut vdd = Vdd::new(config, Iso, student, data).unwrap();
-/// vdd.train(|_| {}).unwrap();
-/// let student = vdd.into_student();
-/// assert!((student.output().mean(0, 0)[0] - 1.0).abs() < 0.3);
+/// use vdd_core::{check_score_args, CoreError, ScoreModel};
+/// use vdd_moe::{ExpertKind, Moe, MoeConfig};
+///
+/// struct MyTeacher;
+/// impl ScoreModel for MyTeacher {
+///     fn action_dim(&self) -> usize { 2 }
+///     fn state_dim(&self) -> usize { 1 }
+///     fn score(&mut self, a: MatRef<'_, f32>, s: MatRef<'_, f32>, sigma: &[f32],
+///              mut out: MatMut<'_, f32>) -> Result<(), CoreError> {
+///         check_score_args(self, a, s, sigma, out.as_ref())?;
+///         for i in 0..a.nrows() {
+///             let var = 0.25 + sigma[i] * sigma[i]; // N(μ, 0.5²) smoothed by N(0, σ²)
+///             for j in 0..2 {
+///                 out[(i, j)] = -(a[(i, j)] - 1.0) / var;
+///             }
+///         }
+///         Ok(())
+///     }
+/// }
+///
+/// for kind in [ExpertKind::Diagonal, ExpertKind::Full] {
+///     let student = Moe::from_config(MoeConfig { expert_kind: kind, ..MoeConfig::toy(1, 2, 2) }, 0)?;
+///     let data = DistillData::from_states(Mat::zeros(16, 1))?;
+///     let config = VddConfig { iterations: 300, ..VddConfig::toy() };
+///     let mut vdd = Vdd::new(config, MyTeacher, student, data)?;
+///     vdd.train(|_metrics| {})?;
+///     let student = vdd.into_student();
+///     assert!((student.output().mean(0, 0)[0] - 1.0).abs() < 0.3);
+/// }
+/// # Ok::<(), Box<dyn std::error::Error>>(())
 /// ```
 pub struct Vdd<S: ScoreModel, E: Expert = ExpertFamily> {
     config: VddConfig,
