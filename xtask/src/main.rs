@@ -16,6 +16,7 @@ pub type XResult<T = ()> = Result<T, Box<dyn std::error::Error>>;
 
 const USAGE: &str = "usage:
   cargo xtask experiment toy-gmm [--teacher exact|ddpm|beso] [--seed N] [--out DIR]
+  cargo xtask experiment toy-conditional [--seed N] [--out DIR] [--iterations N]
   cargo xtask bench nn|teachers
   cargo xtask demos avoiding [--n N] [--seed S] [--out DIR]";
 
@@ -23,6 +24,7 @@ fn main() {
     let args: Vec<String> = std::env::args().skip(1).collect();
     let result = match args.iter().map(String::as_str).collect::<Vec<_>>().as_slice() {
         ["experiment", "toy-gmm", rest @ ..] => toy::run(&strings(rest)),
+        ["experiment", "toy-conditional", rest @ ..] => toy::run_conditional(&strings(rest)),
         ["bench", "nn", rest @ ..] => bench_nn::run(&strings(rest)),
         ["bench", "teachers", rest @ ..] => bench_teachers::run(&strings(rest)),
         ["demos", rest @ ..] => demos::run(&strings(rest)),
