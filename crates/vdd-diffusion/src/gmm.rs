@@ -249,7 +249,20 @@ impl Workspace {
     /// `log π_σ(a)`, or, with `score`, writes `∇_a log π_σ(a)` there (and returns NaN).
     #[inline(always)]
     fn eval(&mut self, gmm: &Gmm, a: &[f32], score: Option<&mut [f32]>) -> f32 {
-        let (k, d) = (gmm.num_components(), gmm.dim);
+        self.eval_sized(gmm.num_components(), gmm.dim, gmm, a, score)
+    }
+
+    /// [`Workspace::eval`] with the sizes passed in, so callers can make them constants.
+    #[inline(always)]
+    fn eval_sized(
+        &mut self,
+        k: usize,
+        d: usize,
+        gmm: &Gmm,
+        a: &[f32],
+        score: Option<&mut [f32]>,
+    ) -> f32 {
+        debug_assert_eq!((k, d), (gmm.num_components(), gmm.dim));
         let post = &mut self.log_post[..k];
         if gmm.isotropic.is_some() {
             // Fast path, vectorised over components (k innermost):
@@ -477,9 +490,11 @@ fn row_into(m: MatRef<'_, f32>, i: usize, out: &mut [f32]) {
 
 impl GmmTeacher {
     #[inline(always)]
+    /// The score row by row; `k` is the component count, or 0 to read it from the mixture.
     fn score_rows(
         &mut self,
         d: usize,
+        k: usize,
         actions: MatRef<'_, f32>,
         states: MatRef<'_, f32>,
         noise_levels: &[f32],
@@ -507,7 +522,8 @@ impl GmmTeacher {
                 Source::Conditional { .. } => self.cached.as_ref().expect("selected"),
             };
             self.ws.prepare(gmm, noise_levels[i])?;
-            self.ws.eval(gmm, a, Some(g));
+            let k = if k == 0 { gmm.num_components() } else { k };
+            self.ws.eval_sized(k, d, gmm, a, Some(g));
             for j in 0..d {
                 out[(i, j)] = g[j];
             }
@@ -540,13 +556,20 @@ impl ScoreModel for GmmTeacher {
     ) -> Result<()> {
         check_score_args(self, actions, states, noise_levels, out.as_ref())?;
         check_finite("actions", actions)?;
-        // Constant-`d` copies of the row loop for small dimensions (unrolled, no bounds checks).
-        match self.action_dim() {
-            1 => self.score_rows(1, actions, states, noise_levels, out),
-            2 => self.score_rows(2, actions, states, noise_levels, out),
-            3 => self.score_rows(3, actions, states, noise_levels, out),
-            4 => self.score_rows(4, actions, states, noise_levels, out),
-            d => self.score_rows(d, actions, states, noise_levels, out),
+        // Constant copies of the row loop for small dimensions and component counts (unrolled,
+        // no bounds checks); a conditional teacher's count is only known per state.
+        let k = match &self.source {
+            Source::Fixed(g) => g.num_components(),
+            Source::Conditional { .. } => 0,
+        };
+        match (self.action_dim(), k) {
+            (2, 4) => self.score_rows(2, 4, actions, states, noise_levels, out),
+            (2, 8) => self.score_rows(2, 8, actions, states, noise_levels, out),
+            (1, _) => self.score_rows(1, 0, actions, states, noise_levels, out),
+            (2, _) => self.score_rows(2, 0, actions, states, noise_levels, out),
+            (3, _) => self.score_rows(3, 0, actions, states, noise_levels, out),
+            (4, _) => self.score_rows(4, 0, actions, states, noise_levels, out),
+            (d, _) => self.score_rows(d, 0, actions, states, noise_levels, out),
         }
     }
 

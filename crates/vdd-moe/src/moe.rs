@@ -516,7 +516,9 @@ impl<E: Expert> Moe<E> {
     /// Back-propagates `∂loss/∂logits` (`n x Z`, for the last [`Moe::forward_gating`]) into the
     /// gating network's gradients. A no-op for uniform gating.
     pub fn backward_gating(&mut self, grad_logits: MatRef<'_, f32>) -> Result<(), MoeError> {
-        check_shape("gating gradient", grad_logits, self.out.n, self.config.num_experts)?;
+        // Rows of the last gating forward (which may differ from the experts' batch).
+        let rows = self.out.log_gating.len() / self.config.num_experts;
+        check_shape("gating gradient", grad_logits, rows, self.config.num_experts)?;
         if let Some(net) = &mut self.gating {
             net.backward(grad_logits);
         }

@@ -80,8 +80,9 @@ impl StateBlock<'_> {
     /// Accumulates `E_ε[g]` and `E_ε[g εᵀ]` for every expert at this state; returns the sums
     /// of `log q̃(z|a)` and of `|g|²` over the samples (monitoring).
     #[inline(always)]
-    fn run(&self, d: usize, out: StateBlockOut<'_>) -> (f64, f64) {
-        let (z_n, v_n) = (self.z_n, self.v_n);
+    fn run(&self, d: usize, z_n: usize, out: StateBlockOut<'_>) -> (f64, f64) {
+        debug_assert_eq!(z_n, self.z_n);
+        let v_n = self.v_n;
         let inv_v = 1.0 / v_n as f32;
         let (mut sum_log_resp, mut sum_g2) = (0.0f64, 0.0f64);
         let mut total_product = 1.0f64;
@@ -304,16 +305,20 @@ pub fn corrected_score_moments<S: ScoreModel + ?Sized>(
             g: &mut buf.g,
             diff: &mut buf.diff,
         };
-        // Dispatch small dimensions to constant-`d` copies of the kernel (unrolled loops, no
-        // bounds checks); larger ones run the same code with a run-time `d`.
-        let (lr, g2) = match d {
-            1 => block.run(1, out),
-            2 => block.run(2, out),
-            3 => block.run(3, out),
-            4 => block.run(4, out),
-            6 => block.run(6, out),
-            8 => block.run(8, out),
-            _ => block.run(d, out),
+        // Dispatch small dimensions and expert counts to constant copies of the kernel
+        // (unrolled loops, no bounds checks); others run the same code with run-time sizes.
+        let (lr, g2) = match (d, z_n) {
+            (1, 4) => block.run(1, 4, out),
+            (1, 8) => block.run(1, 8, out),
+            (2, 4) => block.run(2, 4, out),
+            (2, 8) => block.run(2, 8, out),
+            (1, _) => block.run(1, z_n, out),
+            (2, _) => block.run(2, z_n, out),
+            (3, _) => block.run(3, z_n, out),
+            (4, _) => block.run(4, z_n, out),
+            (6, _) => block.run(6, z_n, out),
+            (8, _) => block.run(8, z_n, out),
+            _ => block.run(d, z_n, out),
         };
         sum_log_resp += lr;
         sum_g2 += g2;

@@ -1,0 +1,870 @@
+//! **IMC, Information Maximizing Curriculum** (Blessing, Celik, Jia, Reuss, Li, Lioutikov,
+//! Neumann, NeurIPS 2023, arXiv 2303.15349): a mixture of experts in which every expert keeps a
+//! *curriculum*, a distribution over the `N` data points, and fits only the points it can
+//! represent, while a joint-entropy term makes the curricula cover the whole dataset.
+//!
+//! ## Objective
+//!
+//! Data points are `o = (s_o, a_o)`, `o = 1..N`. Write `ℓ_z(o) = log N(a_o; μ_z(s_o), Σ_z(s_o))`
+//! for expert `z`'s log-likelihood of point `o`. The curricula form a joint distribution
+//! `p(o, z) = p(z) p(o|z)` over (point, expert) pairs, with data marginal
+//! `p(o) = Σ_z p(o, z)` and posterior `p(z|o) = p(o, z) / p(o)`. IMC maximises
+//!
+//! `J(p, θ) = Σ_z p(z) E_{p(o|z)}[ℓ_z(o)] + η H(o)`,
+//!
+//! where `H(o) = −Σ_o p(o) log p(o)` is the entropy of the data marginal (the *joint* entropy
+//! term: a point that no curriculum takes lowers it) and `η > 0` trades likelihood against
+//! coverage. Because `H(o) = H(o, z) − H(z|o)` and `−H(z|o) ≥ E_{p(o,z)}[log q̃(z|o)]` for any
+//! `q̃`, `J` has the lower bound
+//!
+//! `L(p, θ, q̃) = Σ_{o,z} p(o, z) [ℓ_z(o) + η log q̃(z|o)] + η H(o, z)`,
+//!
+//! tight at `q̃(z|o) = p(z|o)`.
+//!
+//! ## Closed-form curriculum update (what [`Curricula::update`] does)
+//!
+//! Maximising `L` over the joint `p(o, z)` with `q̃` fixed is an entropy-regularised linear
+//! problem whose solution is a softmax over all `N·Z` pairs:
+//!
+//! `p_new(o, z) = exp(ℓ_z(o)/η + log q̃(z|o)) / Ξ`, `Ξ = Σ_{o,z} exp(ℓ_z(o)/η + log q̃(z|o))`,
+//!
+//! and the maximum is `L* = η log Ξ` (reported as [`ImcMetrics::lower_bound`]). With the tight
+//! choice `q̃(z|o) = p_old(z|o) = p_old(o, z) / p_old(o)` this reads
+//!
+//! `log p_new(o, z) = log p_old(o, z) + (ℓ_z(o) − η log p_old(o)) / η − log Ξ`,
+//!
+//! i.e. per expert `p_new(o|z) = softmax_o(ℓ_z(o)/η + log p_old(z|o))` and the expert weights
+//! `p_new(z) ∝ Σ_o exp(ℓ_z(o)/η) p_old(z|o)`. With one expert it is the single-expert curriculum
+//! `p(o) ∝ N(a_o; μ(s_o), Σ(s_o))^{1/η}`. Curricula start uniform, `p_0(o, z) = 1/(N·Z)`.
+//!
+//! ## One iteration
+//!
+//! 1. `ℓ_z(o)` for every point and expert with the current (frozen) experts; report
+//!    `J(p_k, θ_k)` ([`ImcMetrics::objective`]).
+//! 2. Curriculum update (above): `p_{k+1}`.
+//! 3. Experts: `expert_steps_per_iter` Adam steps of weighted maximum likelihood,
+//!    `max_θ Σ_{o,z} p_{k+1}(o, z) ℓ_z(o)`, on minibatches `o_b ~ p_{k+1}(o)` with weights
+//!    `p_{k+1}(z|o_b) / B` (unbiased), or on the whole dataset with weights `p_{k+1}(o, z)`.
+//! 4. Gating: `gating_steps_per_iter` Adam steps of the soft cross-entropy
+//!    `−(1/B) Σ_b Σ_z p_{k+1}(z|o_b) log q(z|s_b)`, i.e. the gating is fitted to the curricula's
+//!    posterior over experts `p(z|o) ∝ p(o|z) p(z)`, with `o_b` uniform over the data
+//!    ([`GatingData::Uniform`], default) or `o_b ~ p(o)` ([`GatingData::Curriculum`]).
+//!
+//! Steps 1–3 are coordinate ascent: `J(θ_k, p_k) = L(θ_k, p_k, p_k(z|o)) ≤ L(θ_k, p_{k+1}, ·)
+//! ≤ J(θ_k, p_{k+1}) ≤ J(θ_{k+1}, p_{k+1})` as long as the gradient steps increase the weighted
+//! likelihood, so `J` never decreases (a test checks it on a full batch).
+//!
+//! At inference the result is a plain [`Moe`]: `z ~ q(z|s)`, action `μ_z(s)`.
+//!
+//! ## The temperature `η`
+//!
+//! For a Gaussian expert on a Gaussian cluster `N(m, S)` that it owns, the curriculum weights
+//! the cluster by `N(a; μ, Σ)^{1/η}`; the weighted maximum-likelihood fit then has covariance
+//! `(S⁻¹ + Σ⁻¹/η)⁻¹`, whose fixed point is `Σ* = (1 − 1/η) S` (a test checks it). So with
+//! learned scales `η ≤ 1` makes every expert shrink onto a few points (down to `min_std`; the
+//! objective is unbounded on a finite dataset), and a larger `η` keeps more of each mode at the
+//! cost of a weaker ability to ignore points: the curriculum only becomes mode-seeking (an
+//! expert between two modes drifts onto one of them instead of widening over both) when the
+//! tempering `N^{1/η}` is strong.
+//!
+//! The default `η = 2` is the smallest round value with a non-degenerate fixed point: a point
+//! 2σ from its expert's mean gets `e^{−1}` of the weight of the centre, and each expert keeps
+//! half of its mode's variance (std ×0.71). That shrinkage costs ≈0.19 nats of reverse KL and
+//! ≈0.31 nats of forward KL on a Gaussian mode — the price of IMC's mode seeking with learned
+//! scales; acting with the expert means (the paper's evaluation) is unaffected by it. On the
+//! 8-mode toy, `η = 4` and `η = 8` give lower KL but cover fewer modes (they behave more like
+//! EM). Implementations that hold the experts' scales fixed can use `η = 1`.
+
+use faer::Mat;
+use serde::{Deserialize, Serialize};
+use vdd_core::{check_len, CoreError, Expert, Seeds};
+use vdd_moe::{ExpertFamily, Moe};
+use vdd_nn::{Adam, AdamConfig, LrSchedule};
+
+use crate::dataset::Dataset;
+use crate::error::BaselineError;
+use crate::fit::{self, FitBuffers, RowSampler};
+
+/// Which data points the gating is fitted on.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, Default)]
+#[serde(rename_all = "snake_case")]
+pub enum GatingData {
+    /// Uniformly over the dataset: `q(z|s)` matches the share of points each expert owns.
+    #[default]
+    Uniform,
+    /// From the curricula's data marginal `p(o)` (points no curriculum takes are ignored).
+    Curriculum,
+}
+
+/// Hyper-parameters of [`Imc`]. [`ImcConfig::toy`] is the one default used on every task.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct ImcConfig {
+    /// Temperature `η > 0` of the joint-entropy term (see the module docs).
+    pub eta: f64,
+    /// Number of iterations (curriculum update + expert and gating steps).
+    pub iterations: usize,
+    /// Expert gradient steps per iteration, all against the same curricula.
+    pub expert_steps_per_iter: usize,
+    /// Gating gradient steps per iteration.
+    pub gating_steps_per_iter: usize,
+    /// Pairs per expert step; `None` (or at least the dataset size) uses the whole dataset.
+    pub batch_size: Option<usize>,
+    /// Pairs per gating step; `None` (or at least the dataset size) uses the whole dataset.
+    pub gating_batch_size: Option<usize>,
+    /// Which points the gating is fitted on.
+    pub gating_data: GatingData,
+    /// Adam for the experts.
+    pub expert_optimizer: AdamConfig,
+    /// Learning-rate schedule of the experts, over expert steps.
+    pub expert_lr_schedule: LrSchedule,
+    /// Adam for the gating.
+    pub gating_optimizer: AdamConfig,
+    /// Learning-rate schedule of the gating, over gating steps.
+    pub gating_lr_schedule: LrSchedule,
+    /// Clip each network's gradient to this global norm.
+    pub max_grad_norm: Option<f32>,
+    /// Root seed of every random draw of the run.
+    pub seed: u64,
+}
+
+impl ImcConfig {
+    /// Defaults: `η = 2` and the same optimisation budget as [`crate::EmConfig::toy`] (100
+    /// iterations of 30 expert and 30 gating steps on minibatches of 256, Adam `1e-3` decaying
+    /// linearly to 0), gating fitted uniformly over the data.
+    pub fn toy() -> Self {
+        let (iterations, steps) = (100, 30);
+        let total = (iterations * steps) as u64;
+        let schedule = LrSchedule::LinearDecay { total_steps: total, final_factor: 0.0 };
+        Self {
+            eta: 2.0,
+            iterations,
+            expert_steps_per_iter: steps,
+            gating_steps_per_iter: steps,
+            batch_size: Some(256),
+            gating_batch_size: Some(256),
+            gating_data: GatingData::Uniform,
+            expert_optimizer: AdamConfig { lr: 1e-3, ..AdamConfig::default() },
+            expert_lr_schedule: schedule.clone(),
+            gating_optimizer: AdamConfig { lr: 1e-3, ..AdamConfig::default() },
+            gating_lr_schedule: schedule,
+            max_grad_norm: None,
+            seed: 0,
+        }
+    }
+
+    /// Checks ranges.
+    pub fn validate(&self) -> Result<(), CoreError> {
+        if !(self.eta.is_finite() && self.eta > 0.0) {
+            return Err(CoreError::Config(format!("eta must be positive, got {}", self.eta)));
+        }
+        fit::validate_loop(&fit::LoopSettings {
+            iterations: self.iterations,
+            expert_steps_per_iter: self.expert_steps_per_iter,
+            batch_size: self.batch_size,
+            gating_batch_size: self.gating_batch_size,
+            optimizers: [&self.expert_optimizer, &self.gating_optimizer],
+            schedules: [&self.expert_lr_schedule, &self.gating_lr_schedule],
+            max_grad_norm: self.max_grad_norm,
+        })
+    }
+}
+
+impl Default for ImcConfig {
+    fn default() -> Self {
+        Self::toy()
+    }
+}
+
+/// The joint curriculum `p(o, z)` over `N` data points and `Z` experts, stored as normalised
+/// log-probabilities (`f64`, row-major `N·Z`).
+///
+/// ```
+/// use vdd_baselines::imc::Curricula;
+/// let mut c = Curricula::uniform(3, 1).unwrap();
+/// // One expert: p(o) ∝ exp(ℓ(o)/η).
+/// c.update(&[0.0, -1.0, -2.0], 1.0).unwrap();
+/// let p = c.data_marginal();
+/// assert!((p[0] / p[1] - 1f64.exp()).abs() < 1e-9);
+/// assert!((c.curriculum(0).iter().sum::<f64>() - 1.0).abs() < 1e-12);
+/// ```
+#[derive(Debug, Clone, PartialEq)]
+pub struct Curricula {
+    n: usize,
+    num_experts: usize,
+    log_joint: Vec<f64>,
+}
+
+impl Curricula {
+    /// Uniform curricula `p(o, z) = 1/(N·Z)`.
+    pub fn uniform(num_points: usize, num_experts: usize) -> Result<Self, CoreError> {
+        if num_points == 0 || num_experts == 0 {
+            return Err(CoreError::Config("curricula need points and experts".into()));
+        }
+        let v = -((num_points * num_experts) as f64).ln();
+        Ok(Self { n: num_points, num_experts, log_joint: vec![v; num_points * num_experts] })
+    }
+
+    /// Number of data points `N`.
+    pub fn num_points(&self) -> usize {
+        self.n
+    }
+
+    /// Number of experts `Z`.
+    pub fn num_experts(&self) -> usize {
+        self.num_experts
+    }
+
+    /// `log p(o, z)`, row-major `N·Z`.
+    pub fn log_joint(&self) -> &[f64] {
+        &self.log_joint
+    }
+
+    /// `log p(o)` of point `o`.
+    fn log_marginal(&self, o: usize) -> f64 {
+        log_sum_exp(&self.log_joint[o * self.num_experts..(o + 1) * self.num_experts])
+    }
+
+    /// The data marginal `p(o) = Σ_z p(o, z)` (length `N`).
+    pub fn data_marginal(&self) -> Vec<f64> {
+        (0..self.n).map(|o| self.log_marginal(o).exp()).collect()
+    }
+
+    /// The expert weights `p(z) = Σ_o p(o, z)` (length `Z`).
+    pub fn expert_weights(&self) -> Vec<f64> {
+        let z_n = self.num_experts;
+        let mut w = vec![0.0; z_n];
+        for (i, l) in self.log_joint.iter().enumerate() {
+            w[i % z_n] += l.exp();
+        }
+        w
+    }
+
+    /// Expert `z`'s curriculum `p(o|z)` over the data points (length `N`, sums to 1).
+    pub fn curriculum(&self, z: usize) -> Vec<f64> {
+        let z_n = self.num_experts;
+        let col: Vec<f64> = (0..self.n).map(|o| self.log_joint[o * z_n + z]).collect();
+        let lse = log_sum_exp(&col);
+        col.iter().map(|l| (l - lse).exp()).collect()
+    }
+
+    /// The posterior over experts `p(z|o)` of point `o`, written into `out` (length `Z`).
+    pub fn posterior_into(&self, o: usize, out: &mut [f64]) {
+        let z_n = self.num_experts;
+        let row = &self.log_joint[o * z_n..(o + 1) * z_n];
+        let lse = log_sum_exp(row);
+        for (p, l) in out.iter_mut().zip(row) {
+            *p = (l - lse).exp();
+        }
+    }
+
+    /// Entropy `H(o)` of the data marginal, in nats.
+    pub fn data_entropy(&self) -> f64 {
+        -(0..self.n)
+            .map(|o| {
+                let l = self.log_marginal(o);
+                l.exp() * l
+            })
+            .filter(|x| x.is_finite())
+            .sum::<f64>()
+    }
+
+    /// The IMC objective `J = Σ_{o,z} p(o, z) ℓ_z(o) + η H(o)` for the experts'
+    /// log-likelihoods `log_lik` (`N·Z`, row-major).
+    pub fn objective(&self, log_lik: &[f32], eta: f64) -> Result<f64, CoreError> {
+        check_len("expert log-likelihoods", log_lik.len(), self.log_joint.len())?;
+        Ok(self.weighted_log_likelihood(log_lik) + eta * self.data_entropy())
+    }
+
+    /// `Σ_{o,z} p(o, z) ℓ_z(o)`.
+    fn weighted_log_likelihood(&self, log_lik: &[f32]) -> f64 {
+        self.log_joint.iter().zip(log_lik).map(|(l, ll)| l.exp() * f64::from(*ll)).sum()
+    }
+
+    /// The closed-form curriculum update (module docs):
+    /// `log p(o, z) ← log p(o, z) + (ℓ_z(o) − η log p(o)) / η − log Ξ`, normalised over all
+    /// pairs. Returns the maximised lower bound `η log Ξ`.
+    pub fn update(&mut self, log_lik: &[f32], eta: f64) -> Result<f64, CoreError> {
+        check_len("expert log-likelihoods", log_lik.len(), self.log_joint.len())?;
+        if !(eta.is_finite() && eta > 0.0) {
+            return Err(CoreError::Config(format!("eta must be positive, got {eta}")));
+        }
+        vdd_core::check_finite_slice("expert log-likelihoods", log_lik)?;
+        let z_n = self.num_experts;
+        for o in 0..self.n {
+            let row = &mut self.log_joint[o * z_n..(o + 1) * z_n];
+            let log_p_o = log_sum_exp(row);
+            for (l, ll) in row.iter_mut().zip(&log_lik[o * z_n..(o + 1) * z_n]) {
+                *l += f64::from(*ll) / eta - log_p_o;
+            }
+        }
+        let log_xi = log_sum_exp(&self.log_joint);
+        self.log_joint.iter_mut().for_each(|l| *l -= log_xi);
+        Ok(eta * log_xi)
+    }
+}
+
+fn log_sum_exp(xs: &[f64]) -> f64 {
+    let m = xs.iter().copied().fold(f64::NEG_INFINITY, f64::max);
+    if !m.is_finite() {
+        return m;
+    }
+    m + xs.iter().map(|x| (x - m).exp()).sum::<f64>().ln()
+}
+
+/// What one IMC iteration did; passed to the training callback.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct ImcMetrics {
+    /// 0-based iteration index.
+    pub iteration: usize,
+    /// `J(p_k, θ_k)`: the objective with this iteration's starting curricula and experts.
+    pub objective: f64,
+    /// `η log Ξ`: the lower bound maximised by the curriculum update.
+    pub lower_bound: f64,
+    /// `Σ_{o,z} p_{k+1}(o, z) ℓ_z(o)`: the experts' likelihood of their updated curricula.
+    pub curriculum_log_likelihood: f64,
+    /// `exp(H(o)) / N` after the update: the share of the data the curricula effectively
+    /// cover (1 for a uniform marginal).
+    pub effective_data_fraction: f64,
+    /// Experts whose weight `p(z)` is at least `0.1/Z` after the update.
+    pub active_experts: usize,
+    /// Mean dataset log-likelihood of the mixture (with its gating) at the start of the
+    /// iteration, in nats.
+    pub log_likelihood: f64,
+    /// Weighted NLL of the last expert step (before that step).
+    pub expert_loss: f64,
+    /// Soft cross-entropy of the last gating step.
+    pub gating_loss: Option<f64>,
+    /// Experts' learning rate at the last expert step.
+    pub expert_lr: f32,
+    /// Gating learning rate at the last gating step.
+    pub gating_lr: f32,
+}
+
+/// Information Maximizing Curriculum for a mixture of experts of family `E` on a [`Dataset`].
+/// The mixture must have a learned gating.
+///
+/// ```
+/// use faer::Mat;
+/// use vdd_baselines::{Dataset, Imc, ImcConfig};
+/// use vdd_moe::{GatingKind, Moe, MoeConfig};
+/// let actions = Mat::from_fn(64, 1, |i, _| if i % 2 == 0 { 2.0 } else { -2.0 } + 0.05 * (i % 5) as f32);
+/// let data = Dataset::new(Mat::zeros(64, 1), actions).unwrap();
+/// let mut mc = MoeConfig::toy(1, 1, 2);
+/// mc.gating = GatingKind::Learned;
+/// mc.experts_network.hidden_dim = 16;
+/// mc.gating_network.hidden_dim = 16;
+/// let config = ImcConfig { iterations: 40, batch_size: None, gating_batch_size: None,
+///                          expert_optimizer: vdd_nn::AdamConfig { lr: 1e-2, ..Default::default() },
+///                          ..ImcConfig::toy() };
+/// let mut imc = Imc::new(config, Moe::from_config(mc, 0).unwrap(), data).unwrap();
+/// imc.train(|_| {}).unwrap();
+/// let c = imc.curricula();
+/// assert!((c.curriculum(0).iter().sum::<f64>() - 1.0).abs() < 1e-9);
+/// let student = imc.into_student(); // a vdd_core::Policy with exact likelihood
+/// ```
+pub struct Imc<E: Expert = ExpertFamily> {
+    config: ImcConfig,
+    student: Moe<E>,
+    data: Dataset,
+    curricula: Curricula,
+    expert_optimizer: Adam,
+    gating_optimizer: Adam,
+    iteration: usize,
+    seeds: Seeds,
+    uniform: RowSampler,
+    log_lik: Vec<f32>,
+    posterior: Vec<f32>,
+    marginal: Vec<f64>,
+    idx: Vec<usize>,
+    batch_states: Mat<f32>,
+    batch_actions: Mat<f32>,
+    weights: Vec<f32>,
+    row_weights: Vec<f32>,
+    grad_logits: Mat<f32>,
+    buf: FitBuffers,
+}
+
+impl<E: Expert> Imc<E> {
+    /// Sets up a run with uniform curricula; checks the configuration, that the data fit the
+    /// mixture's dimensions and that the mixture has a learned gating.
+    pub fn new(config: ImcConfig, student: Moe<E>, data: Dataset) -> Result<Self, BaselineError> {
+        config.validate()?;
+        let mc = student.config();
+        data.check_dims(mc.state_dim, mc.action_dim)?;
+        if !student.has_learned_gating() {
+            return Err(CoreError::Config(
+                "IMC fits the gating to the curricula: the mixture needs a learned gating".into(),
+            )
+            .into());
+        }
+        let (n, z_n) = (data.len(), mc.num_experts);
+        Ok(Self {
+            curricula: Curricula::uniform(n, z_n)?,
+            expert_optimizer: Adam::new(config.expert_optimizer),
+            gating_optimizer: Adam::new(config.gating_optimizer),
+            iteration: 0,
+            seeds: Seeds::new(config.seed),
+            uniform: RowSampler::uniform(n)?,
+            log_lik: vec![0.0; n * z_n],
+            posterior: vec![0.0; n * z_n],
+            marginal: vec![0.0; n],
+            idx: Vec::new(),
+            batch_states: Mat::zeros(0, 0),
+            batch_actions: Mat::zeros(0, 0),
+            weights: Vec::new(),
+            row_weights: Vec::new(),
+            grad_logits: Mat::zeros(0, 0),
+            buf: FitBuffers::default(),
+            config,
+            student,
+            data,
+        })
+    }
+
+    /// Trains a fresh run to the end and returns the fitted mixture.
+    pub fn fit(config: ImcConfig, student: Moe<E>, data: Dataset) -> Result<Moe<E>, BaselineError> {
+        let mut imc = Self::new(config, student, data)?;
+        imc.train(|_| {})?;
+        Ok(imc.into_student())
+    }
+
+    /// The configuration.
+    pub fn config(&self) -> &ImcConfig {
+        &self.config
+    }
+
+    /// Iterations done so far.
+    pub fn iteration(&self) -> usize {
+        self.iteration
+    }
+
+    /// The data being fitted.
+    pub fn data(&self) -> &Dataset {
+        &self.data
+    }
+
+    /// The current curricula.
+    pub fn curricula(&self) -> &Curricula {
+        &self.curricula
+    }
+
+    /// The mixture being trained.
+    pub fn student(&self) -> &Moe<E> {
+        &self.student
+    }
+
+    /// The mixture, mutably (e.g. to evaluate it between iterations).
+    pub fn student_mut(&mut self) -> &mut Moe<E> {
+        &mut self.student
+    }
+
+    /// Ends training and returns the mixture.
+    pub fn into_student(self) -> Moe<E> {
+        self.student
+    }
+
+    /// Mean dataset log-likelihood `(1/N) Σ_o log q(a_o|s_o)` of the current mixture.
+    pub fn log_likelihood(&mut self) -> Result<f64, BaselineError> {
+        fit::evaluate_dataset(&mut self.student, &self.data, None, None)
+    }
+
+    /// The IMC objective `J` of the current curricula and experts.
+    pub fn objective(&mut self) -> Result<f64, BaselineError> {
+        fit::evaluate_dataset(&mut self.student, &self.data, Some(&mut self.log_lik), None)?;
+        Ok(self.curricula.objective(&self.log_lik, self.config.eta)?)
+    }
+
+    /// Runs the remaining iterations, calling `callback` after each.
+    pub fn train(&mut self, mut callback: impl FnMut(&ImcMetrics)) -> Result<(), BaselineError> {
+        while self.iteration < self.config.iterations {
+            let m = self.step()?;
+            callback(&m);
+        }
+        Ok(())
+    }
+
+    /// One IMC iteration. On error the steps already taken stay applied and the iteration
+    /// counter does not advance (a failed curriculum update leaves the curricula unchanged).
+    pub fn step(&mut self) -> Result<ImcMetrics, BaselineError> {
+        let it = self.iteration;
+        let (n, z_n) = (self.data.len(), self.student.num_experts());
+        let eta = self.config.eta;
+
+        // 1. Every expert's log-likelihood of every point, with the experts frozen.
+        let log_likelihood =
+            fit::evaluate_dataset(&mut self.student, &self.data, Some(&mut self.log_lik), None)?;
+        if !log_likelihood.is_finite() || self.log_lik.iter().any(|x| !x.is_finite()) {
+            return Err(BaselineError::NonFinite { iteration: it, quantity: "log-likelihood" });
+        }
+        let objective = self.curricula.objective(&self.log_lik, eta)?;
+
+        // 2. Closed-form curriculum update.
+        let lower_bound = self.curricula.update(&self.log_lik, eta)?;
+        let mut post = vec![0.0f64; z_n];
+        for o in 0..n {
+            self.curricula.posterior_into(o, &mut post);
+            for z in 0..z_n {
+                self.posterior[o * z_n + z] = post[z] as f32;
+            }
+        }
+        self.marginal.clone_from(&self.curricula.data_marginal());
+        let curriculum_sampler = RowSampler::weighted(&self.marginal)?;
+        let curriculum_log_likelihood = self.curricula.weighted_log_likelihood(&self.log_lik);
+        let effective_data_fraction = self.curricula.data_entropy().exp() / n as f64;
+        let active_experts =
+            self.curricula.expert_weights().iter().filter(|&&w| w >= 0.1 / z_n as f64).count();
+
+        // 3. Experts: weighted maximum likelihood of their curricula.
+        let mut expert_loss = 0.0;
+        let mut expert_lr = 0.0;
+        for k in 0..self.config.expert_steps_per_iter {
+            let stream = (it * self.config.expert_steps_per_iter + k) as u64;
+            let full = self.draw_batch(
+                self.config.batch_size,
+                &curriculum_sampler,
+                "expert-batch",
+                stream,
+            );
+            let b_n = self.idx.len();
+            self.weights.resize(b_n * z_n, 0.0);
+            for (b, &o) in self.idx.iter().enumerate() {
+                // Full batch: p(o, z); minibatch o ~ p(o): p(z|o) / B.
+                let scale = if full { self.marginal[o] as f32 } else { 1.0 / b_n as f32 };
+                for z in 0..z_n {
+                    self.weights[b * z_n + z] = self.posterior[o * z_n + z] * scale;
+                }
+            }
+            let factor = self.config.expert_lr_schedule.factor(self.expert_optimizer.steps());
+            expert_lr = self.config.expert_optimizer.lr * factor;
+            let (states, actions) = if full {
+                (self.data.states(), self.data.actions())
+            } else {
+                (self.batch_states.as_ref(), self.batch_actions.as_ref())
+            };
+            expert_loss = fit::expert_step(
+                &mut self.student,
+                states,
+                actions,
+                &self.weights,
+                &mut self.expert_optimizer,
+                factor,
+                self.config.max_grad_norm,
+                it,
+                &mut self.buf,
+            )?;
+        }
+
+        // 4. Gating: soft cross-entropy towards the curricula's posterior p(z|o).
+        let mut gating_loss = None;
+        let mut gating_lr = 0.0;
+        let use_curriculum = self.config.gating_data == GatingData::Curriculum;
+        let uniform = self.uniform.clone();
+        for k in 0..self.config.gating_steps_per_iter {
+            let stream = (it * self.config.gating_steps_per_iter + k) as u64;
+            let sampler = if use_curriculum { &curriculum_sampler } else { &uniform };
+            let full =
+                self.draw_batch(self.config.gating_batch_size, sampler, "gating-batch", stream);
+            let b_n = self.idx.len();
+            self.weights.resize(b_n * z_n, 0.0);
+            self.row_weights.resize(b_n, 0.0);
+            for (b, &o) in self.idx.iter().enumerate() {
+                self.weights[b * z_n..(b + 1) * z_n]
+                    .copy_from_slice(&self.posterior[o * z_n..(o + 1) * z_n]);
+                self.row_weights[b] = match (full, use_curriculum) {
+                    (true, true) => self.marginal[o] as f32,
+                    _ => 1.0 / b_n as f32,
+                };
+            }
+            let factor = self.config.gating_lr_schedule.factor(self.gating_optimizer.steps());
+            gating_lr = self.config.gating_optimizer.lr * factor;
+            let states = if full { self.data.states() } else { self.batch_states.as_ref() };
+            gating_loss = fit::gating_step(
+                &mut self.student,
+                states,
+                &self.weights,
+                &self.row_weights,
+                &mut self.gating_optimizer,
+                factor,
+                self.config.max_grad_norm,
+                it,
+                &mut self.grad_logits,
+            )?;
+        }
+
+        self.iteration += 1;
+        Ok(ImcMetrics {
+            iteration: it,
+            objective,
+            lower_bound,
+            curriculum_log_likelihood,
+            effective_data_fraction,
+            active_experts,
+            log_likelihood,
+            expert_loss,
+            gating_loss,
+            expert_lr,
+            gating_lr,
+        })
+    }
+
+    /// Fills `self.idx` with a minibatch drawn by `sampler` and gathers its states and actions,
+    /// or selects the whole dataset (`idx = 0..N`, nothing gathered) and returns `true`.
+    fn draw_batch(
+        &mut self,
+        size: Option<usize>,
+        sampler: &RowSampler,
+        purpose: &str,
+        stream: u64,
+    ) -> bool {
+        let n = self.data.len();
+        match size {
+            Some(b) if b < n => {
+                let mut rng = self.seeds.stream_indexed(purpose, stream);
+                sampler.draw(&mut rng, b, &mut self.idx);
+                fit::gather_rows(self.data.states(), &self.idx, &mut self.batch_states);
+                fit::gather_rows(self.data.actions(), &self.idx, &mut self.batch_actions);
+                false
+            }
+            _ => {
+                self.idx.clear();
+                self.idx.extend(0..n);
+                true
+            }
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::test_support::{clusters, small_moe};
+    use vdd_moe::{ExpertKind, MoeConfig};
+    use vdd_nn::Parameters;
+
+    #[test]
+    fn curriculum_update_matches_the_closed_form() {
+        // N = 3 points, Z = 2 experts, from a non-uniform joint.
+        let mut c = Curricula::uniform(3, 2).unwrap();
+        let p0 = [0.1f64, 0.2, 0.3, 0.1, 0.05, 0.25];
+        c.log_joint = p0.iter().map(|p| p.ln()).collect();
+        let ll = [-1.0f32, -3.0, -0.5, -0.2, -4.0, -1.5];
+        let eta = 2.0;
+        let bound = c.update(&ll, eta).unwrap();
+        // By hand: p_new(o, z) ∝ exp(ℓ/η) p_old(z|o).
+        let mut unnorm = [0.0f64; 6];
+        for o in 0..3 {
+            let p_o = p0[2 * o] + p0[2 * o + 1];
+            for z in 0..2 {
+                unnorm[2 * o + z] = (f64::from(ll[2 * o + z]) / eta).exp() * p0[2 * o + z] / p_o;
+            }
+        }
+        let xi: f64 = unnorm.iter().sum();
+        for i in 0..6 {
+            assert!((c.log_joint[i].exp() - unnorm[i] / xi).abs() < 1e-12, "pair {i}");
+        }
+        assert!((bound - eta * xi.ln()).abs() < 1e-12);
+        // The bound is the maximum of L over p; J at the new p is at least the bound, and the
+        // bound is at least J at the old p (tightness).
+        let mut old = Curricula::uniform(3, 2).unwrap();
+        old.log_joint = p0.iter().map(|p| p.ln()).collect();
+        let j_old = old.objective(&ll, eta).unwrap();
+        let j_new = c.objective(&ll, eta).unwrap();
+        assert!(j_old <= bound + 1e-12 && bound <= j_new + 1e-12, "{j_old} {bound} {j_new}");
+        // Normalisation of the joint, the curricula and the posteriors.
+        assert!((c.log_joint.iter().map(|l| l.exp()).sum::<f64>() - 1.0).abs() < 1e-12);
+        for z in 0..2 {
+            assert!((c.curriculum(z).iter().sum::<f64>() - 1.0).abs() < 1e-12);
+        }
+        let mut post = [0.0; 2];
+        c.posterior_into(1, &mut post);
+        assert!((post[0] + post[1] - 1.0).abs() < 1e-12);
+        let w = c.expert_weights();
+        assert!((w[0] + w[1] - 1.0).abs() < 1e-12);
+        assert!(c.update(&ll, 0.0).is_err());
+        assert!(c.update(&ll[..5], 1.0).is_err());
+        assert!(c.update(&[f32::NAN; 6], 1.0).is_err());
+    }
+
+    fn full_batch_config(iterations: usize, steps: usize, lr: f32) -> ImcConfig {
+        // Decaying steps, so that Adam's jitter near the M-step optimum cannot undo an ascent.
+        let total = (iterations * steps) as u64;
+        let schedule = LrSchedule::Cosine { total_steps: total, final_factor: 0.05 };
+        ImcConfig {
+            iterations,
+            expert_steps_per_iter: steps,
+            gating_steps_per_iter: steps,
+            batch_size: None,
+            gating_batch_size: None,
+            expert_optimizer: AdamConfig { lr, ..AdamConfig::default() },
+            expert_lr_schedule: schedule.clone(),
+            gating_optimizer: AdamConfig { lr, ..AdamConfig::default() },
+            gating_lr_schedule: schedule,
+            ..ImcConfig::toy()
+        }
+    }
+
+    #[test]
+    fn objective_never_decreases_on_a_full_batch() {
+        let (data, _) = clusters([40, 40, 40], 0.35, 1);
+        let mut imc =
+            Imc::new(full_batch_config(25, 30, 3e-3), small_moe(ExpertKind::Full, 3, 5), data)
+                .unwrap();
+        let mut js = Vec::new();
+        imc.train(|m| {
+            assert!(m.objective <= m.lower_bound + 1e-6, "bound below J at the old curricula");
+            js.push(m.objective);
+        })
+        .unwrap();
+        js.push(imc.objective().unwrap());
+        for w in js.windows(2) {
+            assert!(w[1] >= w[0] - 1e-4, "objective decreased: {js:?}");
+        }
+        assert!(js[js.len() - 1] > js[0] + 1.0, "IMC did not improve: {js:?}");
+    }
+
+    #[test]
+    fn each_curriculum_concentrates_on_one_cluster() {
+        let sizes = [40, 60, 80];
+        let (data, labels) = clusters(sizes, 0.3, 2);
+        let n = data.len();
+        let config = ImcConfig {
+            iterations: 60,
+            expert_steps_per_iter: 10,
+            gating_steps_per_iter: 10,
+            batch_size: Some(128),
+            gating_batch_size: Some(128),
+            expert_optimizer: AdamConfig { lr: 1e-2, ..AdamConfig::default() },
+            gating_optimizer: AdamConfig { lr: 1e-2, ..AdamConfig::default() },
+            expert_lr_schedule: LrSchedule::LinearDecay { total_steps: 600, final_factor: 0.05 },
+            gating_lr_schedule: LrSchedule::LinearDecay { total_steps: 600, final_factor: 0.05 },
+            // A milder temperature than the default: at η = 2 the curricula can settle with a small
+            // far cluster that no expert owns (a local optimum of IMC's objective; 2 of 8 seeds).
+            eta: 4.0,
+            ..ImcConfig::toy()
+        };
+        let mut imc = Imc::new(config, small_moe(ExpertKind::Diagonal, 3, 0), data).unwrap();
+        imc.train(|_| {}).unwrap();
+        let c = imc.curricula();
+        let mut owner = [usize::MAX; 3];
+        for z in 0..3 {
+            let p = c.curriculum(z);
+            assert!((p.iter().sum::<f64>() - 1.0).abs() < 1e-9);
+            let mut mass = [0.0f64; 3];
+            for o in 0..n {
+                mass[labels[o]] += p[o];
+            }
+            let (best, m) = mass
+                .iter()
+                .enumerate()
+                .max_by(|a, b| a.1.total_cmp(b.1))
+                .map(|(i, m)| (i, *m))
+                .unwrap();
+            assert!(m > 0.99, "expert {z}'s curriculum spreads over clusters: {mass:?}");
+            assert_eq!(owner[best], usize::MAX, "two experts took cluster {best}");
+            owner[best] = z;
+        }
+        // The joint covers the data: no cluster is dropped from the data marginal.
+        let p_o = c.data_marginal();
+        for k in 0..3 {
+            let m: f64 = (0..n).filter(|&o| labels[o] == k).map(|o| p_o[o]).sum();
+            assert!(m > 0.2, "cluster {k} has marginal mass {m}");
+        }
+        // The gating follows the curricula's posterior, fitted uniformly over the data: each
+        // expert's weight is its cluster's share of the points.
+        let mut student = imc.into_student();
+        student.forward(Mat::zeros(1, 1).as_ref()).unwrap();
+        for (k, &z) in owner.iter().enumerate() {
+            let w = student.output().log_gating_row(0)[z].exp();
+            let expect = sizes[k] as f32 / n as f32;
+            assert!((w - expect).abs() < 0.04, "gating weight of expert {z}: {w} vs {expect}");
+        }
+    }
+
+    /// One expert on 1-D Gaussian data: the curriculum weights the data by `N(a; μ, σ²)^{1/η}`,
+    /// so the weighted maximum-likelihood fit settles at `σ*² = (1 − 1/η) s²` (module docs), in
+    /// both the full-batch (weights `p(o, z)`) and the minibatch (`o ~ p(o)`) form.
+    #[test]
+    fn single_expert_reaches_the_tempered_fixed_point() {
+        let n = 400;
+        let mut noise = vec![0.0f32; n];
+        vdd_core::fill_standard_normal(&mut Seeds::new(4).stream("data"), &mut noise);
+        let mean = noise.iter().sum::<f32>() / n as f32;
+        let var = noise.iter().map(|x| (x - mean).powi(2)).sum::<f32>() / n as f32;
+        let data = Dataset::new(Mat::zeros(n, 1), Mat::from_fn(n, 1, |i, _| noise[i])).unwrap();
+        let eta = 2.0;
+        let expect = ((1.0 - 1.0 / eta as f32) * var).sqrt();
+        for batch in [None, Some(128)] {
+            let mut mc = MoeConfig::toy(1, 1, 1);
+            mc.gating = vdd_moe::GatingKind::Learned;
+            mc.experts_network.hidden_dim = 8;
+            mc.gating_network.hidden_dim = 8;
+            let config = ImcConfig {
+                eta,
+                iterations: 40,
+                expert_steps_per_iter: 30,
+                gating_steps_per_iter: 1,
+                batch_size: batch,
+                expert_optimizer: AdamConfig { lr: 1e-2, ..AdamConfig::default() },
+                expert_lr_schedule: LrSchedule::LinearDecay {
+                    total_steps: 1200,
+                    final_factor: 0.05,
+                },
+                ..ImcConfig::toy()
+            };
+            let mut student =
+                Imc::fit(config, Moe::from_config(mc, 0).unwrap(), data.clone()).unwrap();
+            student.forward(Mat::zeros(1, 1).as_ref()).unwrap();
+            let (mu, std) = (student.output().mean(0, 0)[0], student.output().scale(0, 0)[0]);
+            assert!((mu - mean).abs() < 0.05, "{batch:?}: mean {mu} vs data mean {mean}");
+            assert!((std - expect).abs() < 0.04, "{batch:?}: std {std} vs fixed point {expect}");
+        }
+    }
+
+    #[test]
+    fn same_seed_same_run_and_other_seed_other_run() {
+        let run = |seed: u64| {
+            let config = ImcConfig {
+                iterations: 3,
+                batch_size: Some(16),
+                gating_batch_size: Some(16),
+                gating_data: GatingData::Curriculum,
+                seed,
+                ..ImcConfig::toy()
+            };
+            let mut imc = Imc::new(
+                config,
+                small_moe(ExpertKind::Full, 3, 1),
+                clusters([10, 10, 10], 0.3, 3).0,
+            )
+            .unwrap();
+            let mut metrics = Vec::new();
+            imc.train(|m| metrics.push(*m)).unwrap();
+            let mut params = Vec::new();
+            imc.student().visit_params("", &mut |_, p| params.push(p.value.clone()));
+            (metrics, params, imc.curricula().clone())
+        };
+        let (a, b, c) = (run(7), run(7), run(8));
+        assert_eq!(a, b);
+        assert_ne!(a.1, c.1);
+    }
+
+    #[test]
+    fn bad_inputs_are_rejected() {
+        let (data, _) = clusters([4, 3, 3], 0.3, 0);
+        let student = small_moe(ExpertKind::Diagonal, 2, 0);
+        for config in [
+            ImcConfig { eta: 0.0, ..ImcConfig::toy() },
+            ImcConfig { eta: f64::INFINITY, ..ImcConfig::toy() },
+            ImcConfig { gating_batch_size: Some(0), ..ImcConfig::toy() },
+            ImcConfig { iterations: 0, ..ImcConfig::toy() },
+        ] {
+            assert!(Imc::new(config, student.clone(), data.clone()).is_err());
+        }
+        let uniform_gating = Moe::from_config(MoeConfig::toy(1, 2, 2), 0).unwrap();
+        assert!(Imc::new(ImcConfig::toy(), uniform_gating, data.clone()).is_err());
+        let wrong_dims = small_moe(ExpertKind::Diagonal, 2, 0);
+        let data3 = Dataset::new(Mat::zeros(4, 1), Mat::zeros(4, 3)).unwrap();
+        assert!(Imc::new(ImcConfig::toy(), wrong_dims, data3).is_err());
+        assert!(Curricula::uniform(0, 2).is_err());
+    }
+}

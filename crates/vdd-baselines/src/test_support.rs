@@ -1,0 +1,40 @@
+//! Small data sets and mixtures for the unit tests.
+
+use faer::Mat;
+use rand::Rng as _;
+use vdd_core::Seeds;
+use vdd_moe::{ExpertKind, GatingKind, Moe, MoeConfig};
+
+use crate::Dataset;
+
+/// Three well-separated 2-D cluster centres (radius 3, 120° apart, at 15°, 135° and 255°, so
+/// no two share a coordinate).
+pub const CLUSTER_MEANS: [[f32; 2]; 3] = [[2.898, 0.776], [-2.121, 2.121], [-0.776, -2.898]];
+
+/// `sizes[k]` points around cluster `k` of [`CLUSTER_MEANS`] with isotropic `std`, shuffled
+/// together; returns the data (state a constant 0, 1-D) and each point's cluster.
+pub fn clusters(sizes: [usize; 3], std: f32, seed: u64) -> (Dataset, Vec<usize>) {
+    let n: usize = sizes.iter().sum();
+    let mut rng = Seeds::new(seed).stream("clusters");
+    let mut labels: Vec<usize> = (0..3).flat_map(|k| std::iter::repeat_n(k, sizes[k])).collect();
+    for i in (1..n).rev() {
+        labels.swap(i, rng.random_range(0..=i));
+    }
+    let mut noise = vec![0.0f32; 2 * n];
+    vdd_core::fill_standard_normal(&mut rng, &mut noise);
+    let actions = Mat::from_fn(n, 2, |i, j| CLUSTER_MEANS[labels[i]][j] + std * noise[2 * i + j]);
+    (Dataset::new(Mat::zeros(n, 1), actions).expect("valid data"), labels)
+}
+
+/// A small `1 → 2` mixture of `num_experts` experts with a learned gating, whose experts start
+/// broad (std 3, covering all of [`clusters`]), which keeps EM out of the local optimum where
+/// one expert spans two clusters and another starves.
+pub fn small_moe(kind: ExpertKind, num_experts: usize, seed: u64) -> Moe {
+    let mut mc = MoeConfig::toy(1, 2, num_experts);
+    mc.expert_kind = kind;
+    mc.gating = GatingKind::Learned;
+    mc.init_std = 3.0;
+    mc.experts_network.hidden_dim = 16;
+    mc.gating_network.hidden_dim = 16;
+    Moe::from_config(mc, seed).expect("valid mixture")
+}
