@@ -119,7 +119,14 @@ pub trait Expert: Clone + std::fmt::Debug + Send + Sync {
         grad_raw: &mut [f32],
     ) {
         let d = self.action_dim();
-        let mut d_l = vec![0.0f32; d * d];
+        let mut small = [0.0f32; 64];
+        let mut large = Vec::new();
+        let d_l: &mut [f32] = if d * d <= small.len() {
+            &mut small[..d * d]
+        } else {
+            large.resize(d * d, 0.0);
+            &mut large
+        };
         for i in 0..d {
             let lo = if self.is_diagonal() { i } else { 0 };
             for j in lo..=i {
@@ -127,7 +134,30 @@ pub trait Expert: Clone + std::fmt::Debug + Send + Sync {
             }
             d_l[i * d + i] += 1.0 / scale_tril[i * d + i];
         }
-        self.backward(raw, mean_g, &d_l, grad_raw);
+        self.backward(raw, mean_g, d_l, grad_raw);
+    }
+
+    /// `log N(a; μ, L Lᵀ)` of one decoded expert (`work`: scratch of length `d`).
+    fn log_density(&self, mean: &[f32], scale_tril: &[f32], a: &[f32], work: &mut [f32]) -> f32 {
+        crate::gaussian::log_density(a, mean, scale_tril, work)
+    }
+
+    /// Reparameterised sample `a = μ + L ε`: draws `ε ~ N(0, I)` into `eps` and writes `a`.
+    fn sample(
+        &self,
+        mean: &[f32],
+        scale_tril: &[f32],
+        rng: &mut dyn rand::RngCore,
+        eps: &mut [f32],
+        a: &mut [f32],
+    ) {
+        crate::seed::fill_standard_normal(rng, eps);
+        crate::gaussian::sample_into(mean, scale_tril, eps, a);
+    }
+
+    /// Differential entropy `H[N(μ, L Lᵀ)]` in nats.
+    fn entropy(&self, scale_tril: &[f32]) -> f32 {
+        crate::gaussian::entropy(scale_tril, self.action_dim())
     }
 }
 

@@ -179,6 +179,28 @@ mod tests {
     use super::*;
     use approx::assert_relative_eq;
 
+    #[test]
+    fn sampling_returns_its_noise_and_densities_match_moments() {
+        let e = FullExpert::new(2, 1.0, 1e-4).unwrap();
+        let raw = [0.3f32, -0.2, 0.1, 0.4, -0.3];
+        let (mut mu, mut l) = ([0.0f32; 2], [0.0f32; 4]);
+        e.decode(&raw, &mut mu, &mut l);
+        let mut rng = vdd_core::Seeds::new(4).stream("t");
+        let (mut eps, mut a, mut work) = ([0.0f32; 2], [0.0f32; 2], [0.0f32; 2]);
+        let n = 20_000;
+        let (mut mean_lp, mut m0) = (0.0f64, 0.0f64);
+        for _ in 0..n {
+            e.sample(&mu, &l, &mut rng, &mut eps, &mut a);
+            assert_relative_eq!(a[0], mu[0] + l[0] * eps[0], epsilon = 1e-6);
+            assert_relative_eq!(a[1], mu[1] + l[2] * eps[0] + l[3] * eps[1], epsilon = 1e-6);
+            mean_lp += f64::from(e.log_density(&mu, &l, &a, &mut work)) / n as f64;
+            m0 += f64::from(a[0]) / n as f64;
+        }
+        // E[log N(a)] = −H for samples of the same Gaussian.
+        assert!((mean_lp + f64::from(e.entropy(&l))).abs() < 0.03, "{mean_lp}");
+        assert!((m0 - f64::from(mu[0])).abs() < 0.03);
+    }
+
     /// f(raw) = Σ c_μ·μ + Σ c_L·L; its raw gradient from `backward` must match differences.
     fn check_backward<E: Expert>(e: &E) {
         let d = e.action_dim();
