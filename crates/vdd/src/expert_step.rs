@@ -87,10 +87,21 @@ impl StateBlock<'_> {
         let (mut sum_log_resp, mut sum_g2) = (0.0f64, 0.0f64);
         let mut total_product = 1.0f64;
         // Scratch, all `[row][k]` with the expert index k innermost.
-        let resp = &mut out.log_resp[..z_n];
-        let grad = &mut out.grad_k[..d * z_n];
-        let y = &mut out.diff[..d * z_n];
-        let g = &mut out.g[..d];
+        // Small problems use stack scratch: the compiler then knows it aliases nothing and
+        // vectorises the loops over k (in the constant-size copies the choice folds away).
+        let (mut resp_s, mut grad_s, mut y_s, mut g_s) =
+            ([0.0f32; 16], [0.0f32; 64], [0.0f32; 64], [0.0f32; 8]);
+        let small = z_n <= 16 && d * z_n <= 64 && d <= 8;
+        let (resp, grad, y, g): (&mut [f32], &mut [f32], &mut [f32], &mut [f32]) = if small {
+            (&mut resp_s[..z_n], &mut grad_s[..d * z_n], &mut y_s[..d * z_n], &mut g_s[..d])
+        } else {
+            (
+                &mut out.log_resp[..z_n],
+                &mut out.grad_k[..d * z_n],
+                &mut out.diff[..d * z_n],
+                &mut out.g[..d],
+            )
+        };
         let log_norm = &self.snap_log_norm[..z_n];
         for z in 0..z_n {
             let mg = &mut out.mean_g[z * d..(z + 1) * d];
