@@ -1,0 +1,288 @@
+//! Denoising score matching: the seeded minibatch training loop shared by both teachers.
+
+use std::time::Instant;
+
+use faer::{Mat, MatRef};
+use rand::Rng as _;
+use serde::{Deserialize, Serialize};
+use vdd_core::{Affine, Seeds};
+use vdd_nn::{clip_grad_norm, Adam, AdamConfig, LrSchedule, Parameters};
+
+use crate::error::{DiffusionError, Result};
+use crate::net::{DenoiserNet, Ema};
+use crate::normalize::{fit_normalizer, NormalizerKind};
+
+/// Hyper-parameters of denoising-score-matching training.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct TrainConfig {
+    /// Optimisation steps.
+    pub steps: u64,
+    /// Minibatch size (clamped to the number of training pairs).
+    pub batch_size: usize,
+    /// Adam's hyper-parameters (`lr` is the peak learning rate).
+    pub adam: AdamConfig,
+    /// Linear learning-rate warm-up steps.
+    pub warmup_steps: u64,
+    /// After warm-up, the learning rate follows a cosine from 1 to this factor.
+    pub final_lr_factor: f32,
+    /// Decay of the exponential moving average of the weights used for sampling.
+    pub ema_decay: f32,
+    /// Global gradient-norm clipping threshold (`None`: no clipping).
+    pub grad_clip: Option<f32>,
+    /// Report progress every this many steps (and after the last step).
+    pub log_every: u64,
+}
+
+impl Default for TrainConfig {
+    fn default() -> Self {
+        Self {
+            steps: 10_000,
+            batch_size: 256,
+            adam: AdamConfig { lr: 1e-3, ..Default::default() },
+            warmup_steps: 100,
+            final_lr_factor: 0.05,
+            ema_decay: 0.999,
+            grad_clip: Some(1.0),
+            log_every: 500,
+        }
+    }
+}
+
+impl TrainConfig {
+    /// Checks the numbers.
+    pub fn validate(&self) -> Result<()> {
+        let c = &self.adam;
+        let ok = self.steps > 0
+            && self.batch_size > 0
+            && c.lr.is_finite()
+            && c.lr > 0.0
+            && (0.0..1.0).contains(&c.beta1)
+            && (0.0..1.0).contains(&c.beta2)
+            && c.eps > 0.0
+            && c.weight_decay.is_finite()
+            && c.weight_decay >= 0.0
+            && self.final_lr_factor.is_finite()
+            && self.final_lr_factor >= 0.0
+            && (0.0..1.0).contains(&self.ema_decay)
+            && self.grad_clip.is_none_or(|g| g.is_finite() && g > 0.0)
+            && self.log_every > 0;
+        if ok {
+            Ok(())
+        } else {
+            Err(DiffusionError::Config(format!("invalid training configuration {self:?}")))
+        }
+    }
+
+    fn lr_schedule(&self) -> LrSchedule {
+        let cosine = LrSchedule::Cosine {
+            total_steps: self.steps.saturating_sub(self.warmup_steps).max(1),
+            final_factor: self.final_lr_factor,
+        };
+        if self.warmup_steps > 0 {
+            LrSchedule::Warmup { warmup_steps: self.warmup_steps, then: Box::new(cosine) }
+        } else {
+            cosine
+        }
+    }
+}
+
+/// A progress report from training, passed to the caller's callback.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct TrainProgress {
+    /// Steps done so far.
+    pub step: u64,
+    /// Total steps.
+    pub total_steps: u64,
+    /// Mean denoising loss over the steps since the previous report.
+    pub loss: f32,
+    /// Learning rate of the last step.
+    pub lr: f32,
+    /// Wall-clock seconds since training started.
+    pub elapsed_secs: f64,
+}
+
+/// Training data after validation and normalisation.
+pub(crate) struct PreparedData {
+    pub state_norm: Affine,
+    pub action_norm: Affine,
+    pub states: Mat<f32>,
+    pub actions: Mat<f32>,
+}
+
+/// Validates `states` (`n x d_s`) and `actions` (`n x d_a`), fits the normalisers and returns
+/// normalised copies.
+pub(crate) fn prepare_data(
+    states: MatRef<'_, f32>,
+    actions: MatRef<'_, f32>,
+    state_kind: NormalizerKind,
+    action_kind: NormalizerKind,
+) -> Result<PreparedData> {
+    let n = actions.nrows();
+    if n == 0 {
+        return Err(DiffusionError::Data("no training pairs".into()));
+    }
+    if actions.ncols() == 0 {
+        return Err(DiffusionError::Data("actions have zero columns".into()));
+    }
+    if states.nrows() != n {
+        return Err(DiffusionError::Data(format!(
+            "{} state rows but {n} action rows",
+            states.nrows()
+        )));
+    }
+    vdd_core::check_finite("training states", states)?;
+    vdd_core::check_finite("training actions", actions)?;
+    let state_norm = fit_normalizer(states, state_kind);
+    let action_norm = fit_normalizer(actions, action_kind);
+    Ok(PreparedData {
+        states: normalized(states, &state_norm),
+        actions: normalized(actions, &action_norm),
+        state_norm,
+        action_norm,
+    })
+}
+
+/// `(m − offset) / scale` per column.
+pub(crate) fn normalized(m: MatRef<'_, f32>, norm: &Affine) -> Mat<f32> {
+    Mat::from_fn(m.nrows(), m.ncols(), |i, j| (m[(i, j)] - norm.offset[j]) / norm.scale[j])
+}
+
+/// One denoising-score-matching objective (DDPM's ε loss, EDM's preconditioned loss).
+pub(crate) trait DsmObjective {
+    /// Draws the noise levels and Gaussian noise for a batch of `n` rows of `d` dimensions.
+    fn draw(&mut self, n: usize, d: usize, rng: &mut vdd_core::Rng);
+
+    /// The loss on a batch with the drawn noise; with `backward`, accumulates its parameter
+    /// gradients into `net`.
+    fn loss(
+        &mut self,
+        net: &mut DenoiserNet,
+        actions: MatRef<'_, f32>,
+        states: MatRef<'_, f32>,
+        backward: bool,
+    ) -> f32;
+}
+
+fn gather_rows(src: &Mat<f32>, idx: &[usize], dst: &mut Mat<f32>) {
+    for j in 0..src.ncols() {
+        let s = src.col_as_slice(j);
+        let d = dst.col_as_slice_mut(j);
+        for (o, &i) in d.iter_mut().zip(idx) {
+            *o = s[i];
+        }
+    }
+}
+
+/// Trains `net` on the normalised data; returns the EMA network.
+pub(crate) fn train_dsm<O: DsmObjective>(
+    objective: &mut O,
+    mut net: DenoiserNet,
+    config: &TrainConfig,
+    data: &PreparedData,
+    seeds: &Seeds,
+    progress: &mut dyn FnMut(TrainProgress),
+) -> Result<DenoiserNet> {
+    config.validate()?;
+    let n = data.actions.nrows();
+    let (da, ds) = (data.actions.ncols(), data.states.ncols());
+    let b = config.batch_size.min(n);
+    let mut ema_net = net.clone();
+    let mut ema = Ema::new(config.ema_decay);
+    let mut adam = Adam::new(config.adam);
+    let schedule = config.lr_schedule();
+    let mut batch_rng = seeds.stream("minibatch");
+    let mut noise_rng = seeds.stream("dsm-noise");
+    let mut order: Vec<usize> = (0..n).collect();
+    let mut cursor = n; // forces a shuffle before the first batch
+    let mut idx = vec![0usize; b];
+    let mut a_batch = Mat::<f32>::zeros(b, da);
+    let mut s_batch = Mat::<f32>::zeros(b, ds);
+    let (mut loss_sum, mut loss_count) = (0.0f64, 0u64);
+    let start = Instant::now();
+    for step in 0..config.steps {
+        for slot in idx.iter_mut() {
+            if cursor == n {
+                // Fisher–Yates: one pass over the data per epoch, in a seeded order.
+                for i in (1..n).rev() {
+                    order.swap(i, batch_rng.random_range(0..=i));
+                }
+                cursor = 0;
+            }
+            *slot = order[cursor];
+            cursor += 1;
+        }
+        gather_rows(&data.actions, &idx, &mut a_batch);
+        gather_rows(&data.states, &idx, &mut s_batch);
+        net.zero_grad();
+        objective.draw(b, da, &mut noise_rng);
+        let loss = objective.loss(&mut net, a_batch.as_ref(), s_batch.as_ref(), true);
+        if !loss.is_finite() {
+            return Err(DiffusionError::Diverged { step: step + 1, loss });
+        }
+        if let Some(max) = config.grad_clip {
+            let norm = clip_grad_norm(&mut net, max);
+            if !norm.is_finite() {
+                return Err(DiffusionError::Diverged { step: step + 1, loss: norm });
+            }
+        }
+        let factor = schedule.factor(step);
+        adam.step(&mut net, factor);
+        ema.update(&mut ema_net, &net);
+        loss_sum += f64::from(loss);
+        loss_count += 1;
+        let done = step + 1;
+        if done % config.log_every == 0 || done == config.steps {
+            progress(TrainProgress {
+                step: done,
+                total_steps: config.steps,
+                loss: (loss_sum / loss_count as f64) as f32,
+                lr: config.adam.lr * factor,
+                elapsed_secs: start.elapsed().as_secs_f64(),
+            });
+            loss_sum = 0.0;
+            loss_count = 0;
+        }
+    }
+    Ok(ema_net)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn bad_data_is_a_clear_error() {
+        let s = Mat::<f32>::zeros(3, 1);
+        let a = Mat::<f32>::zeros(3, 2);
+        let k = NormalizerKind::Standard;
+        assert!(prepare_data(s.as_ref(), a.as_ref(), k, k).is_ok());
+        let e =
+            prepare_data(Mat::<f32>::zeros(0, 1).as_ref(), Mat::<f32>::zeros(0, 2).as_ref(), k, k);
+        assert!(matches!(e, Err(DiffusionError::Data(_))));
+        let e = prepare_data(Mat::<f32>::zeros(2, 1).as_ref(), a.as_ref(), k, k);
+        assert!(matches!(e, Err(DiffusionError::Data(_))));
+        let e = prepare_data(s.as_ref(), Mat::<f32>::zeros(3, 0).as_ref(), k, k);
+        assert!(matches!(e, Err(DiffusionError::Data(_))));
+        let mut bad = a.clone();
+        bad[(1, 1)] = f32::NAN;
+        let e = prepare_data(s.as_ref(), bad.as_ref(), k, k);
+        assert!(matches!(e, Err(DiffusionError::Core(vdd_core::CoreError::NonFinite { .. }))));
+    }
+
+    #[test]
+    fn invalid_configs_are_rejected() {
+        assert!(TrainConfig::default().validate().is_ok());
+        for c in [
+            TrainConfig { steps: 0, ..Default::default() },
+            TrainConfig { batch_size: 0, ..Default::default() },
+            TrainConfig { ema_decay: 1.0, ..Default::default() },
+            TrainConfig { grad_clip: Some(0.0), ..Default::default() },
+            TrainConfig {
+                adam: AdamConfig { lr: f32::NAN, ..Default::default() },
+                ..Default::default()
+            },
+        ] {
+            assert!(c.validate().is_err(), "{c:?}");
+        }
+    }
+}
