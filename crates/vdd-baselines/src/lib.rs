@@ -12,12 +12,26 @@
 //!   curricula's posterior over experts;
 //! * [`fit`]: the pieces both share — the weighted Gaussian NLL with closed-form gradients for
 //!   diagonal and full (Cholesky) experts, the gating's soft cross-entropy, dataset evaluation,
-//!   minibatch sampling and one optimiser step of experts or gating.
+//!   minibatch sampling and one optimiser step of experts or gating;
+//! * [`cd`]: **Consistency Distillation** (Song et al., ICML 2023) of a BESO / EDM teacher — a
+//!   consistency function with the exact boundary condition at `σ_min`, trained against Heun
+//!   steps of the teacher's probability-flow ODE with an EMA target network; one-step and
+//!   multistep sampling;
+//! * [`ctm`]: **Consistency Trajectory Model** distillation (Kim et al., ICLR 2024) — a network
+//!   `G(x, t, u)` jumping from any level to any lower one, trained with soft consistency
+//!   matching against the teacher ODE plus denoising score matching (no GAN term);
+//! * [`consistency`]: what both share — the teacher seen through its denoiser
+//!   ([`ConsistencyTeacher`], implemented for [`vdd_diffusion::Beso`] and closures), the
+//!   noise-conditioned student network, training settings and progress reports.
 //!
-//! Data come as plain matrices in a [`Dataset`] (states `n x d_s`, actions `n x d_a`, already
-//! normalised). Every random draw comes from `vdd_core::Seeds::new(config.seed)`.
+//! EM and IMC take plain matrices in a [`Dataset`] (states `n x d_s`, actions `n x d_a`,
+//! already normalised); CD and CTM take raw matrices and normalise them with the teacher's
+//! normalisers. Every random draw comes from `vdd_core::Seeds::new(seed)` of the config.
 #![warn(missing_docs)]
 
+pub mod cd;
+pub mod consistency;
+pub mod ctm;
 mod dataset;
 pub mod em;
 mod error;
@@ -25,8 +39,15 @@ pub mod fit;
 pub mod imc;
 
 #[cfg(test)]
+mod test_consistency;
+#[cfg(test)]
 mod test_support;
 
+pub use cd::{CdConfig, CdTrainer, ConsistencyModel};
+pub use consistency::{
+    ConsistencyProgress, ConsistencyTeacher, ConsistencyTrainConfig, DenoiserFn,
+};
+pub use ctm::{CtmConfig, CtmTrainer, TrajectoryModel};
 pub use dataset::Dataset;
 pub use em::{Em, EmConfig, EmMetrics};
 pub use error::BaselineError;
