@@ -18,10 +18,10 @@ use std::time::Instant;
 
 use vdd_core::Seeds;
 use vdd_data::Episodes;
-use vdd_tasks::avoiding::rollout::{evaluate, evaluate_cloned, EvalConfig, Evaluation, Stepping};
 use vdd_tasks::avoiding::N_MODES;
+use vdd_tasks::avoiding::rollout::{EvalConfig, Evaluation, Stepping, evaluate, evaluate_cloned};
 use vdd_tasks::{
-    generate_demonstrations, normalized_entropy, AvoidingDemonstrator, DemonstratorConfig,
+    AvoidingDemonstrator, DemonstratorConfig, generate_demonstrations, normalized_entropy,
 };
 
 use crate::cli::Opts;
@@ -102,7 +102,12 @@ fn avoiding(args: &[String]) -> crate::XResult {
     println!(
         "demonstrator over {n_eval} rollouts (seed {eval_seed}): success rate {:.4} ({} collisions, \
          {} timeouts), task entropy {:.4}, {} of {N_MODES} modes, mean length {:.1}",
-        m.success_rate, m.collisions, m.timeouts, m.task_entropy, m.modes_reached, m.mean_success_steps
+        m.success_rate,
+        m.collisions,
+        m.timeouts,
+        m.task_entropy,
+        m.modes_reached,
+        m.mean_success_steps
     );
     let mut throughput = vec![("per-episode, 1 thread".to_owned(), steps_per_sec(&eval, secs))];
     let lockstep = Stepping::Lockstep { batch_size: 64 };

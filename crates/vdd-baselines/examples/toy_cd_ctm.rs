@@ -35,8 +35,8 @@ use vdd_baselines::{CdConfig, CdTrainer, ConsistencyProgress, CtmConfig, CtmTrai
 use vdd_core::{Affine, Policy, Rng, Seeds};
 use vdd_diffusion::metrics::{mmd2_rbf, nearest_mode_counts};
 use vdd_diffusion::{
-    fit_normalizer, Beso, BesoConfig, KarrasSampler, NetConfig, NormalizerKind, SigmaDistribution,
-    TrainConfig,
+    Beso, BesoConfig, KarrasSampler, NetConfig, NormalizerKind, SigmaDistribution, TrainConfig,
+    fit_normalizer,
 };
 use vdd_nn::AdamConfig;
 
@@ -326,7 +326,9 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     );
     for (title, rows) in &tables {
         println!("\n{title}:");
-        println!("method           modes  entropy  nearest-mode dist   MMD²      µs/action  histogram (%)");
+        println!(
+            "method           modes  entropy  nearest-mode dist   MMD²      µs/action  histogram (%)"
+        );
         for r in std::iter::once(&true_row).chain(rows.iter()) {
             let hist: Vec<String> =
                 r.histogram.iter().map(|p| format!("{:.1}", 100.0 * p)).collect();

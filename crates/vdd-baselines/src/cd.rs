@@ -34,14 +34,14 @@ use faer::reborrow::{Reborrow, ReborrowMut};
 use faer::{Mat, MatMut, MatRef};
 use rand::{Rng as _, RngCore};
 use serde::{Deserialize, Serialize};
-use vdd_core::{check_act_args, Affine, CoreError, Policy, Seeds};
+use vdd_core::{Affine, CoreError, Policy, Seeds, check_act_args};
 use vdd_diffusion::{BesoConfig, NetConfig, SamplerBuffers};
 use vdd_nn::Parameters;
 
 use crate::consistency::{
-    self, check_model_batch, check_policy_batch, ensure, fill_normal, BoundaryPreconditioning,
-    Coefficients, ConditionedNet, ConsistencyProgress, ConsistencyTeacher, ConsistencyTrainConfig,
-    LossMeter, Minibatch, Optimisation, PolicyIo,
+    self, BoundaryPreconditioning, Coefficients, ConditionedNet, ConsistencyProgress,
+    ConsistencyTeacher, ConsistencyTrainConfig, LossMeter, Minibatch, Optimisation, PolicyIo,
+    check_model_batch, check_policy_batch, ensure, fill_normal,
 };
 use crate::dataset::Dataset;
 use crate::error::BaselineError;
@@ -661,7 +661,7 @@ impl Policy for ConsistencyModel {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::test_consistency::{four_mode_teacher, near_mode_fraction, FOUR_MODES};
+    use crate::test_consistency::{FOUR_MODES, four_mode_teacher, near_mode_fraction};
     use vdd_diffusion::Beso;
 
     fn tiny_config() -> CdConfig {
@@ -699,12 +699,12 @@ mod tests {
         model.consistency_fn(x.as_ref(), &[1.0; 7], states.as_ref(), out.as_mut()).unwrap();
         assert_ne!(out, x);
         // Bad inputs are errors.
-        assert!(model
-            .consistency_fn(x.as_ref(), &[0.0; 7], states.as_ref(), out.as_mut())
-            .is_err());
-        assert!(model
-            .consistency_fn(x.as_ref(), &[1.0; 6], states.as_ref(), out.as_mut())
-            .is_err());
+        assert!(
+            model.consistency_fn(x.as_ref(), &[0.0; 7], states.as_ref(), out.as_mut()).is_err()
+        );
+        assert!(
+            model.consistency_fn(x.as_ref(), &[1.0; 6], states.as_ref(), out.as_mut()).is_err()
+        );
     }
 
     /// The analytic gradient of the CD loss w.r.t. every parameter matches central finite

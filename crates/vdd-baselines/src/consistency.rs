@@ -17,7 +17,7 @@ use std::collections::HashMap;
 use faer::reborrow::Reborrow;
 use faer::{Mat, MatMut, MatRef};
 use serde::{Deserialize, Serialize};
-use vdd_core::{check_finite, check_len, check_shape, Affine, CoreError, Seeds};
+use vdd_core::{Affine, CoreError, Seeds, check_finite, check_len, check_shape};
 use vdd_diffusion::{Beso, DenoiserNet, NetConfig, SamplerBuffers};
 use vdd_nn::ResidualMlpConfig as MlpCfg;
 use vdd_nn::{Adam, AdamConfig, Ema, LrSchedule, Module, Param, Parameters, ResidualMlp};
@@ -359,11 +359,7 @@ impl ConditionedNet {
         let freqs =
             (0..h)
                 .map(|k| {
-                    if h == 1 {
-                        1.0
-                    } else {
-                        config.max_frequency.powf(k as f32 / (h - 1) as f32)
-                    }
+                    if h == 1 { 1.0 } else { config.max_frequency.powf(k as f32 / (h - 1) as f32) }
                 })
                 .collect();
         Ok(Self {

@@ -41,14 +41,14 @@ use faer::reborrow::{Reborrow, ReborrowMut};
 use faer::{Mat, MatMut, MatRef};
 use rand::{Rng as _, RngCore};
 use serde::{Deserialize, Serialize};
-use vdd_core::{check_act_args, Affine, CoreError, Policy, Seeds};
+use vdd_core::{Affine, CoreError, Policy, Seeds, check_act_args};
 use vdd_diffusion::{BesoConfig, NetConfig, Preconditioning, SamplerBuffers, SigmaDistribution};
 use vdd_nn::Parameters;
 
 use crate::consistency::{
-    self, check_model_batch, check_policy_batch, ensure, fill_normal, Coefficients, ConditionedNet,
-    ConsistencyProgress, ConsistencyTeacher, ConsistencyTrainConfig, LossMeter, Minibatch,
-    Optimisation, PolicyIo,
+    self, Coefficients, ConditionedNet, ConsistencyProgress, ConsistencyTeacher,
+    ConsistencyTrainConfig, LossMeter, Minibatch, Optimisation, PolicyIo, check_model_batch,
+    check_policy_batch, ensure, fill_normal,
 };
 use crate::dataset::Dataset;
 use crate::error::BaselineError;
@@ -821,7 +821,7 @@ impl Policy for TrajectoryModel {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::test_consistency::{four_mode_teacher, near_mode_fraction, FOUR_MODES};
+    use crate::test_consistency::{FOUR_MODES, four_mode_teacher, near_mode_fraction};
     use vdd_diffusion::Beso;
 
     fn tiny_config() -> CtmConfig {

@@ -1,7 +1,7 @@
 //! Demonstrations as plain matrices: the data EM and IMC fit by maximum likelihood.
 
 use faer::{Mat, MatRef};
-use vdd_core::{check_finite, check_len, CoreError};
+use vdd_core::{CoreError, check_finite, check_len};
 
 /// State–action pairs, one row each: `states` is `n x d_s`, `actions` is `n x d_a`, both
 /// already normalised (the networks of a [`vdd_moe::Moe`] see exactly these numbers).

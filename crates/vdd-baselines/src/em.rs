@@ -365,7 +365,7 @@ impl<E: Expert> Em<E> {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::test_support::{clusters, small_moe, CLUSTER_MEANS};
+    use crate::test_support::{CLUSTER_MEANS, clusters, small_moe};
     use vdd_core::Policy;
     use vdd_moe::{ExpertKind, MoeConfig};
     use vdd_nn::Parameters;

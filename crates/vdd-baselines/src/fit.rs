@@ -26,7 +26,7 @@
 use faer::{Mat, MatMut, MatRef};
 use rand::Rng as _;
 use vdd_core::gaussian::{self, solve_lower_in_place, solve_upper_t_in_place};
-use vdd_core::{check_finite_slice, check_len, check_shape, CoreError, Expert, Rng};
+use vdd_core::{CoreError, Expert, Rng, check_finite_slice, check_len, check_shape};
 use vdd_moe::{Moe, MoeOutput};
 use vdd_nn::{Adam, AdamConfig, LrSchedule, Parameters};
 

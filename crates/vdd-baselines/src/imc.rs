@@ -77,7 +77,7 @@
 
 use faer::Mat;
 use serde::{Deserialize, Serialize};
-use vdd_core::{check_len, CoreError, Expert, Seeds};
+use vdd_core::{CoreError, Expert, Seeds, check_len};
 use vdd_moe::{ExpertFamily, Moe};
 use vdd_nn::{Adam, AdamConfig, LrSchedule};
 

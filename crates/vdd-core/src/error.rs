@@ -77,9 +77,5 @@ pub fn check_finite(what: &'static str, m: MatRef<'_, f32>) -> Result<()> {
 
 /// Checks that every entry of a slice is finite.
 pub fn check_finite_slice(what: &'static str, xs: &[f32]) -> Result<()> {
-    if xs.iter().all(|x| x.is_finite()) {
-        Ok(())
-    } else {
-        Err(CoreError::NonFinite { what })
-    }
+    if xs.iter().all(|x| x.is_finite()) { Ok(()) } else { Err(CoreError::NonFinite { what }) }
 }

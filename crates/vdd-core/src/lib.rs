@@ -19,12 +19,12 @@ mod policy;
 mod score;
 mod seed;
 
-pub use error::{check_finite, check_finite_slice, check_len, check_shape, CoreError, Result};
-pub use expert::{sigmoid, softplus, Expert, ScaleActivation};
+pub use error::{CoreError, Result, check_finite, check_finite_slice, check_len, check_shape};
+pub use expert::{Expert, ScaleActivation, sigmoid, softplus};
 pub use normalize::Affine;
-pub use policy::{check_act_args, Policy};
-pub use score::{check_score_args, NoiseConvention, NoiseSchedule, ScoreModel};
-pub use seed::{fill_standard_normal, standard_normal, Rng, Seeds};
+pub use policy::{Policy, check_act_args};
+pub use score::{NoiseConvention, NoiseSchedule, ScoreModel, check_score_args};
+pub use seed::{Rng, Seeds, fill_standard_normal, standard_normal};
 
 /// Re-export of `faer` so downstream crates and users name the same version.
 pub use faer;

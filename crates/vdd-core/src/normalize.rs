@@ -4,7 +4,7 @@
 
 use serde::{Deserialize, Serialize};
 
-use crate::error::{check_len, CoreError, Result};
+use crate::error::{CoreError, Result, check_len};
 
 /// A per-dimension affine map `x' = (x − offset) / scale`.
 ///

@@ -4,7 +4,7 @@
 use faer::reborrow::Reborrow;
 use faer::{MatMut, MatRef};
 
-use crate::error::{check_len, check_shape, CoreError, Result};
+use crate::error::{CoreError, Result, check_len, check_shape};
 
 /// A control policy.
 ///

@@ -4,7 +4,7 @@ use faer::{MatMut, MatRef};
 use rand::{Rng as _, RngCore};
 use serde::{Deserialize, Serialize};
 
-use crate::error::{check_len, check_shape, CoreError, Result};
+use crate::error::{CoreError, Result, check_len, check_shape};
 
 /// How a teacher names its noise levels.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
@@ -57,11 +57,7 @@ impl NoiseSchedule {
                 start.is_finite() && end.is_finite() && start >= 0.0 && end >= 0.0
             }
         };
-        if ok {
-            Ok(())
-        } else {
-            Err(CoreError::Config(format!("invalid noise schedule {self:?}")))
-        }
+        if ok { Ok(()) } else { Err(CoreError::Config(format!("invalid noise schedule {self:?}"))) }
     }
 
     /// Draws one level at training progress `progress ∈ [0, 1]`.

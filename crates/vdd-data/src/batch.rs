@@ -250,11 +250,7 @@ impl<'a, S: BatchSource + ?Sized> Batcher<'a, S> {
     /// Batches per epoch: `ceil(n / batch_size)`, or `floor` with `drop_last`.
     pub fn batches_per_epoch(&self) -> usize {
         let n = self.order.len();
-        if self.drop_last {
-            n / self.batch_size
-        } else {
-            n.div_ceil(self.batch_size)
-        }
+        if self.drop_last { n / self.batch_size } else { n.div_ceil(self.batch_size) }
     }
 
     /// The configured batch size (the last batch of an epoch may be smaller).

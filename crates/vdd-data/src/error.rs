@@ -60,7 +60,9 @@ pub enum DataError {
         got: String,
     },
     /// A NaN or infinite value in the data (after conversion to `f32`).
-    #[error("non-finite value (NaN, infinite, or beyond the f32 range) in {what} of episode {episode} at step {step}")]
+    #[error(
+        "non-finite value (NaN, infinite, or beyond the f32 range) in {what} of episode {episode} at step {step}"
+    )]
     NonFinite {
         /// `"observations"` or `"actions"`.
         what: &'static str,

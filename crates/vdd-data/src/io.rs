@@ -26,8 +26,8 @@ use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicU64, Ordering};
 
 use crate::episodes::Episodes;
-use crate::error::{format_err, io_err, DataError, Result};
-use crate::npy::{encode_f32, NpyArray};
+use crate::error::{DataError, Result, format_err, io_err};
+use crate::npy::{NpyArray, encode_f32};
 
 /// Axis order of the stored arrays.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
@@ -174,7 +174,7 @@ impl Episodes {
                         path: dir.to_owned(),
                         key: key.clone(),
                         present: npy_files_in(dir).join(", "),
-                    })
+                    });
                 }
                 Err(e) => return Err(io_err(file)(e)),
             }
@@ -188,11 +188,7 @@ impl Episodes {
     /// Loads `path` with the default keys: a directory of `.npy` files if it is a directory,
     /// an `.npz` archive otherwise.
     pub fn load(path: &Path) -> Result<Self> {
-        if path.is_dir() {
-            Self::load_npy_dir(path)
-        } else {
-            Self::load_npz(path)
-        }
+        if path.is_dir() { Self::load_npy_dir(path) } else { Self::load_npz(path) }
     }
 
     /// Saves to an `.npz` archive (episode-major float32 `observations_seq`, `actions_seq`,

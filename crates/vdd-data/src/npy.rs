@@ -8,7 +8,7 @@
 
 use std::path::Path;
 
-use crate::error::{format_err, DataError, Result};
+use crate::error::{DataError, Result, format_err};
 
 /// A parsed `.npy` array borrowing its data bytes.
 #[derive(Debug)]
@@ -68,7 +68,7 @@ impl<'a> NpyArray<'a> {
                     array: array.to_owned(),
                     found: format!("{other:?}"),
                     expected: "a plain numeric dtype, not a structured one",
-                })
+                });
             }
         };
         let fortran_order = match get("fortran_order")? {
@@ -133,11 +133,7 @@ impl<'a> NpyArray<'a> {
                 .chunks_exact(4)
                 .map(|c| {
                     let b = [c[0], c[1], c[2], c[3]];
-                    if big_endian {
-                        f32::from_be_bytes(b)
-                    } else {
-                        f32::from_le_bytes(b)
-                    }
+                    if big_endian { f32::from_be_bytes(b) } else { f32::from_le_bytes(b) }
                 })
                 .collect(),
             8 => self
@@ -412,7 +408,7 @@ impl PyParser<'_> {
                             return Err(format!(
                                 "expected ',' or closing bracket at byte {}",
                                 self.pos
-                            ))
+                            ));
                         }
                     }
                 }

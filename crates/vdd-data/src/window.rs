@@ -56,11 +56,7 @@ impl WindowConfig {
 
     /// Valid steps one sample needs: `W + C - 1`, or `C` with start padding.
     pub const fn steps_needed(&self) -> usize {
-        if self.pad_start {
-            self.action_chunk
-        } else {
-            self.obs_window + self.action_chunk - 1
-        }
+        if self.pad_start { self.action_chunk } else { self.obs_window + self.action_chunk - 1 }
     }
 }
 

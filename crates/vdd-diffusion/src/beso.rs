@@ -8,16 +8,16 @@ use faer::{Mat, MatMut, MatRef};
 use rand::{Rng as _, RngCore};
 use serde::{Deserialize, Serialize};
 use vdd_core::{
-    check_act_args, check_len, check_score_args, check_shape, Affine, CoreError, NoiseConvention,
-    NoiseSchedule, Policy, ScoreModel, Seeds,
+    Affine, CoreError, NoiseConvention, NoiseSchedule, Policy, ScoreModel, Seeds, check_act_args,
+    check_len, check_score_args, check_shape,
 };
 
-use crate::common::{self, check_batch, PolicyIo, SavedShape};
+use crate::common::{self, PolicyIo, SavedShape, check_batch};
 use crate::error::{DiffusionError, Result};
 use crate::net::{DenoiserNet, NetConfig};
 use crate::normalize::NormalizerKind;
 use crate::sampling::{self, KarrasSampler, SamplerBuffers};
-use crate::schedule::{check_sigma_range, karras_sigmas_into, Preconditioning};
+use crate::schedule::{Preconditioning, check_sigma_range, karras_sigmas_into};
 use crate::train::{self, DsmObjective, TrainConfig, TrainProgress};
 
 /// The distribution of training noise levels `σ`, truncated to `[σ_min, σ_max]`.

@@ -5,8 +5,8 @@ use std::collections::BTreeMap;
 use std::path::Path;
 
 use faer::{Mat, MatMut, MatRef};
-use serde::{de::DeserializeOwned, Deserialize, Serialize};
-use vdd_core::{check_finite, check_shape, Affine, CoreError};
+use serde::{Deserialize, Serialize, de::DeserializeOwned};
+use vdd_core::{Affine, CoreError, check_finite, check_shape};
 
 use crate::error::{DiffusionError, Result};
 

@@ -21,7 +21,7 @@ use std::sync::Arc;
 use faer::{Mat, MatMut, MatRef};
 use rand::{Rng as _, RngCore};
 use vdd_core::gaussian::{self, LN_2PI};
-use vdd_core::{check_finite, check_score_args, check_shape, CoreError, Result, ScoreModel};
+use vdd_core::{CoreError, Result, ScoreModel, check_finite, check_score_args, check_shape};
 
 /// A Gaussian mixture in `dim` dimensions at one state.
 #[derive(Debug, Clone, PartialEq)]
@@ -736,17 +736,17 @@ mod tests {
         let mut t = GmmTeacher::circle_toy();
         let a = Mat::<f32>::zeros(2, 3);
         let mut out = Mat::<f32>::zeros(2, 3);
-        assert!(t
-            .score(a.as_ref(), Mat::<f32>::zeros(2, 1).as_ref(), &[0.1; 2], out.as_mut())
-            .is_err());
+        assert!(
+            t.score(a.as_ref(), Mat::<f32>::zeros(2, 1).as_ref(), &[0.1; 2], out.as_mut()).is_err()
+        );
         let a = Mat::from_fn(1, 2, |_, _| f32::NAN);
         let mut out = Mat::<f32>::zeros(1, 2);
-        assert!(t
-            .score(a.as_ref(), Mat::<f32>::zeros(1, 1).as_ref(), &[0.1], out.as_mut())
-            .is_err());
+        assert!(
+            t.score(a.as_ref(), Mat::<f32>::zeros(1, 1).as_ref(), &[0.1], out.as_mut()).is_err()
+        );
         let a = Mat::<f32>::zeros(1, 2);
-        assert!(t
-            .score(a.as_ref(), Mat::<f32>::zeros(1, 1).as_ref(), &[-1.0], out.as_mut())
-            .is_err());
+        assert!(
+            t.score(a.as_ref(), Mat::<f32>::zeros(1, 1).as_ref(), &[-1.0], out.as_mut()).is_err()
+        );
     }
 }

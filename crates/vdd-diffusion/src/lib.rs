@@ -69,12 +69,12 @@ mod tests;
 mod train;
 
 pub use beso::{Beso, BesoConfig, SigmaDistribution};
-pub use ddpm::{Ddpm, DdpmConfig, TimeSampling, MIN_TIME};
+pub use ddpm::{Ddpm, DdpmConfig, MIN_TIME, TimeSampling};
 pub use error::{DiffusionError, Result};
 pub use gmm::{Gmm, GmmTeacher};
 pub use net::{DenoiserNet, NetConfig};
-pub use normalize::{fit_normalizer, NormalizerKind};
-pub use sampling::{heun_step, sample_karras, sample_vp, KarrasSampler, SamplerBuffers, VpSampler};
-pub use schedule::{karras_sigmas, karras_sigmas_into, BetaSchedule, Preconditioning, VpSchedule};
+pub use normalize::{NormalizerKind, fit_normalizer};
+pub use sampling::{KarrasSampler, SamplerBuffers, VpSampler, heun_step, sample_karras, sample_vp};
+pub use schedule::{BetaSchedule, Preconditioning, VpSchedule, karras_sigmas, karras_sigmas_into};
 pub use teacher::{DiffusionTeacher, TeacherKind};
 pub use train::{TrainConfig, TrainProgress};

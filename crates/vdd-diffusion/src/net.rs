@@ -99,11 +99,7 @@ impl DenoiserNet {
         let freqs =
             (0..h)
                 .map(|k| {
-                    if h == 1 {
-                        1.0
-                    } else {
-                        config.max_frequency.powf(k as f32 / (h - 1) as f32)
-                    }
+                    if h == 1 { 1.0 } else { config.max_frequency.powf(k as f32 / (h - 1) as f32) }
                 })
                 .collect();
         Ok(Self {

@@ -417,7 +417,7 @@ impl VpStep {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::schedule::{karras_sigmas, BetaSchedule};
+    use crate::schedule::{BetaSchedule, karras_sigmas};
     use vdd_core::Seeds;
 
     const M: f32 = 1.0;
@@ -542,10 +542,14 @@ mod tests {
         assert!((out[(0, 0)] - (0.3 - 0.5 * 0.5 * (d1 + d2))).abs() < 1e-6);
         // Row 1 ends at σ = 0: an Euler step, i.e. the denoiser.
         assert!((out[(1, 0)] - dn(2.0, 2.0)).abs() < 1e-6);
-        assert!(heun_step(&mut f, x.as_ref(), &[1.0, 0.0], &[0.5, 0.0], out.as_mut(), &mut buf)
-            .is_err());
-        assert!(heun_step(&mut f, x.as_ref(), &[1.0, 1.0], &[2.0, 0.0], out.as_mut(), &mut buf)
-            .is_err());
+        assert!(
+            heun_step(&mut f, x.as_ref(), &[1.0, 0.0], &[0.5, 0.0], out.as_mut(), &mut buf)
+                .is_err()
+        );
+        assert!(
+            heun_step(&mut f, x.as_ref(), &[1.0, 1.0], &[2.0, 0.0], out.as_mut(), &mut buf)
+                .is_err()
+        );
         assert!(heun_step(&mut f, x.as_ref(), &[1.0], &[0.5], out.as_mut(), &mut buf).is_err());
     }
 
@@ -633,17 +637,10 @@ mod tests {
             .unwrap();
         let (m, s) = moments(&x);
         assert!((m - M).abs() < 0.04 && (s - S).abs() < 0.03, "ddim: mean {m}, std {s}");
-        assert!(sample_vp(
-            &mut f,
-            &long,
-            VpSampler::Ddim,
-            &[0.0],
-            None,
-            x.as_mut(),
-            &mut rng,
-            &mut buf
-        )
-        .is_err());
+        assert!(
+            sample_vp(&mut f, &long, VpSampler::Ddim, &[0.0], None, x.as_mut(), &mut rng, &mut buf)
+                .is_err()
+        );
     }
 
     #[test]

@@ -9,7 +9,7 @@ use serde::{Deserialize, Serialize};
 use vdd_core::{Affine, CoreError, NoiseConvention, NoiseSchedule, Policy, ScoreModel};
 
 use crate::beso::Beso;
-use crate::common::{format_err, KIND_KEY};
+use crate::common::{KIND_KEY, format_err};
 use crate::ddpm::Ddpm;
 use crate::error::Result;
 

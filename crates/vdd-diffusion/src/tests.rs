@@ -183,11 +183,7 @@ fn policies_act_in_raw_space_and_cover_both_modes() {
     let mut gmm = two_modes();
     let (s, a) = gmm_data(&mut gmm, 2000, 3);
     let raw = Mat::from_fn(2000, 2, |i, j| {
-        if j == 0 {
-            100.0 + 10.0 * a[(i, 0)]
-        } else {
-            -5.0 + 0.1 * a[(i, 1)]
-        }
+        if j == 0 { 100.0 + 10.0 * a[(i, 0)] } else { -5.0 + 0.1 * a[(i, 1)] }
     });
     let beso_cfg = BesoConfig { net: small_net(), ..Default::default() };
     let ddpm_cfg = DdpmConfig { net: small_net(), ..Default::default() };
@@ -499,36 +495,42 @@ fn bad_inputs_are_errors_not_panics() {
     assert!(beso.act(&[0.0, 1.0]).is_err());
     assert!(beso.act(&[f32::NAN]).is_err());
     assert!(beso.set_sampler(KarrasSampler::Heun, 0).is_err());
-    assert!(Beso::new(
-        &BesoConfig { sigma_min: 0.0, ..cfg.clone() },
-        Affine::identity(1),
-        Affine::identity(2),
-        0
-    )
-    .is_err());
+    assert!(
+        Beso::new(
+            &BesoConfig { sigma_min: 0.0, ..cfg.clone() },
+            Affine::identity(1),
+            Affine::identity(2),
+            0
+        )
+        .is_err()
+    );
 
     let dcfg = DdpmConfig { net: tiny_net(), ..Default::default() };
     let mut ddpm = Ddpm::new(&dcfg, Affine::identity(1), Affine::identity(2), 0).unwrap();
     assert!(ddpm.score(x.as_ref(), s.as_ref(), &[0.0, 1.0], out.as_mut()).is_err());
     assert!(ddpm.score(x.as_ref(), s.as_ref(), &[1.0, 16.5], out.as_mut()).is_err());
-    assert!(ddpm
-        .ddim_step(x.as_ref(), &[1.0, 2.0], &[2.0, 1.0], s.as_ref(), out.as_mut())
-        .is_err());
+    assert!(
+        ddpm.ddim_step(x.as_ref(), &[1.0, 2.0], &[2.0, 1.0], s.as_ref(), out.as_mut()).is_err()
+    );
     assert!(ddpm.set_sampler(VpSampler::Ancestral, 17).is_err());
-    assert!(Ddpm::new(
-        &DdpmConfig { num_steps: 0, ..dcfg.clone() },
-        Affine::identity(1),
-        Affine::identity(2),
-        0
-    )
-    .is_err());
-    assert!(Ddpm::new(
-        &DdpmConfig { clip_denoised: Some(-1.0), ..dcfg.clone() },
-        Affine::identity(1),
-        Affine::identity(2),
-        0
-    )
-    .is_err());
+    assert!(
+        Ddpm::new(
+            &DdpmConfig { num_steps: 0, ..dcfg.clone() },
+            Affine::identity(1),
+            Affine::identity(2),
+            0
+        )
+        .is_err()
+    );
+    assert!(
+        Ddpm::new(
+            &DdpmConfig { clip_denoised: Some(-1.0), ..dcfg.clone() },
+            Affine::identity(1),
+            Affine::identity(2),
+            0
+        )
+        .is_err()
+    );
 
     let train = TrainConfig { steps: 3, batch_size: 4, ..Default::default() };
     let a = Mat::<f32>::zeros(5, 2);

@@ -6,11 +6,11 @@ use faer::{Mat, MatRef};
 use rand::Rng as _;
 use serde::{Deserialize, Serialize};
 use vdd_core::{Affine, Seeds};
-use vdd_nn::{clip_grad_norm, Adam, AdamConfig, LrSchedule, Parameters};
+use vdd_nn::{Adam, AdamConfig, LrSchedule, Parameters, clip_grad_norm};
 
 use crate::error::{DiffusionError, Result};
 use crate::net::{DenoiserNet, Ema};
-use crate::normalize::{fit_normalizer, NormalizerKind};
+use crate::normalize::{NormalizerKind, fit_normalizer};
 
 /// Hyper-parameters of denoising-score-matching training.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]

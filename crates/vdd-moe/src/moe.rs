@@ -8,8 +8,8 @@ use rand::{Rng as _, SeedableRng};
 use serde::{Deserialize, Serialize};
 use vdd_core::gaussian::{self, log_sum_exp};
 use vdd_core::{
-    check_act_args, check_finite, check_len, check_shape, Affine, CoreError, Expert, Policy, Rng,
-    Seeds,
+    Affine, CoreError, Expert, Policy, Rng, Seeds, check_act_args, check_finite, check_len,
+    check_shape,
 };
 use vdd_nn::{Activation, Module, Param, Parameters, ResidualMlp, ResidualMlpConfig};
 

@@ -4,7 +4,7 @@ use faer::{Mat, MatRef};
 use serde::{Deserialize, Serialize};
 use vdd_core::{sigmoid, softplus};
 
-use crate::module::{col_slice, contiguous, ensure_shape, Module};
+use crate::module::{Module, col_slice, contiguous, ensure_shape};
 use crate::param::{Param, Parameters};
 
 /// An element-wise nonlinearity. Names match PyTorch's modules (`nn.Mish`, `nn.GELU`, ...).

@@ -25,7 +25,7 @@ use std::f32::consts::PI;
 use faer::{Mat, MatRef};
 
 use crate::error::NnError;
-use crate::module::{ensure_shape, Module};
+use crate::module::{Module, ensure_shape};
 use crate::param::{Param, Parameters};
 
 fn check_embedding_dim(what: &str, dim: usize) -> Result<(), NnError> {

@@ -23,7 +23,7 @@ use std::collections::{BTreeMap, HashMap};
 use std::io::Write;
 use std::path::{Path, PathBuf};
 
-use safetensors::{tensor::TensorView, Dtype, SafeTensors};
+use safetensors::{Dtype, SafeTensors, tensor::TensorView};
 
 use crate::{NnError, Param, Parameters};
 
@@ -178,7 +178,7 @@ fn read_tensor(
             return Err(format_err(
                 path,
                 format!("tensor `{name}` has dtype {other:?}, expected F32"),
-            ))
+            ));
         }
     };
     if let Some(i) = values.iter().position(|v| !v.is_finite()) {

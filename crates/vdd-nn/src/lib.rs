@@ -26,16 +26,16 @@ mod optim;
 mod param;
 mod schedule;
 
-pub use activation::{erf, exp_fast, Activation, ActivationLayer};
+pub use activation::{Activation, ActivationLayer, erf, exp_fast};
 pub use ema::Ema;
 pub use embedding::{
-    concat_cols, concat_cols_into, split_cols, FourierFeatures, SinusoidalEmbedding,
+    FourierFeatures, SinusoidalEmbedding, concat_cols, concat_cols_into, split_cols,
 };
 pub use error::NnError;
 pub use linear::Linear;
 pub use mlp::{Mlp, MlpConfig, ResidualBlock, ResidualMlp, ResidualMlpConfig};
 pub use module::Module;
-pub use norm::{LayerNorm, LAYER_NORM_EPS};
-pub use optim::{clip_grad_norm, Adam, AdamConfig};
-pub use param::{join_name, Param, Parameters};
+pub use norm::{LAYER_NORM_EPS, LayerNorm};
+pub use optim::{Adam, AdamConfig, clip_grad_norm};
+pub use param::{Param, Parameters, join_name};
 pub use schedule::LrSchedule;

@@ -6,8 +6,8 @@ use rand::Rng as _;
 
 use crate::error::NnError;
 use crate::init::{BiasInit, Init};
-use crate::module::{ensure_shape, Module};
-use crate::param::{join_name, Param, Parameters};
+use crate::module::{Module, ensure_shape};
+use crate::param::{Param, Parameters, join_name};
 
 /// A fully connected layer with PyTorch's layout: `weight` is `[out, in]`, `bias` is `[out]`.
 ///

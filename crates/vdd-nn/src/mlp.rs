@@ -8,9 +8,9 @@ use crate::activation::{Activation, ActivationLayer};
 use crate::error::NnError;
 use crate::init::{BiasInit, Init};
 use crate::linear::Linear;
-use crate::module::{ensure_shape, Module};
+use crate::module::{Module, ensure_shape};
 use crate::norm::LayerNorm;
-use crate::param::{join_name, Param, Parameters};
+use crate::param::{Param, Parameters, join_name};
 
 /// Configuration of an [`Mlp`].
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]

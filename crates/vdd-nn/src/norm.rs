@@ -3,8 +3,8 @@
 use faer::{Mat, MatRef};
 
 use crate::error::NnError;
-use crate::module::{col_slice, contiguous, ensure_shape, Module};
-use crate::param::{join_name, Param, Parameters};
+use crate::module::{Module, col_slice, contiguous, ensure_shape};
+use crate::param::{Param, Parameters, join_name};
 
 /// PyTorch's default `nn.LayerNorm` epsilon.
 pub const LAYER_NORM_EPS: f32 = 1e-5;

@@ -69,11 +69,7 @@ impl Param {
 
 /// Joins a parameter-name prefix and a local name PyTorch-style (`"layers.0" + "weight"`).
 pub fn join_name(prefix: &str, name: &str) -> String {
-    if prefix.is_empty() {
-        name.to_owned()
-    } else {
-        format!("{prefix}.{name}")
-    }
+    if prefix.is_empty() { name.to_owned() } else { format!("{prefix}.{name}") }
 }
 
 /// Anything that owns parameters: layers, networks, whole models made of several networks.

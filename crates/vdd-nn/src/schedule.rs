@@ -102,9 +102,9 @@ mod tests {
         let lin = LrSchedule::LinearDecay { total_steps: 4, final_factor: 0.0 };
         assert_eq!(lin.factor(2), 0.5);
         assert_eq!(LrSchedule::Constant.factor(7), 1.0);
-        assert!(LrSchedule::LinearDecay { total_steps: 1, final_factor: f32::NAN }
-            .validate()
-            .is_err());
+        assert!(
+            LrSchedule::LinearDecay { total_steps: 1, final_factor: f32::NAN }.validate().is_err()
+        );
     }
 
     #[test]

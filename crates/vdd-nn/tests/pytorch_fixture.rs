@@ -6,7 +6,7 @@ use std::path::PathBuf;
 
 use faer::Mat;
 use serde::Deserialize;
-use vdd_nn::{io, FourierFeatures, Module, ResidualMlp, ResidualMlpConfig, SinusoidalEmbedding};
+use vdd_nn::{FourierFeatures, Module, ResidualMlp, ResidualMlpConfig, SinusoidalEmbedding, io};
 
 #[derive(Deserialize)]
 struct Case {

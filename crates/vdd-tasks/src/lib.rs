@@ -34,10 +34,10 @@ mod error;
 pub mod toy;
 
 pub use avoiding::demonstrator::{
-    generate_demonstrations, AvoidingDemonstrator, DemonstratorConfig,
+    AvoidingDemonstrator, DemonstratorConfig, generate_demonstrations,
 };
 pub use avoiding::rollout::{
-    evaluate, evaluate_cloned, evaluate_parallel, EvalConfig, Metrics, Rollout, Stepping,
+    EvalConfig, Metrics, Rollout, Stepping, evaluate, evaluate_cloned, evaluate_parallel,
 };
 pub use avoiding::{AvoidingEnv, AvoidingMode, Status};
 pub use error::{Result, TaskError};

@@ -12,9 +12,9 @@
 use faer::{Mat, MatRef};
 use rand::Rng as _;
 use serde::{Deserialize, Serialize};
-use vdd_core::{check_finite, check_len, check_shape, CoreError, Seeds};
+use vdd_core::{CoreError, Seeds, check_finite, check_len, check_shape};
 
-use crate::{normalized_entropy, Result, TaskError};
+use crate::{Result, TaskError, normalized_entropy};
 
 /// How far (in standard deviations) an action may lie from its nearest mode's mean and still
 /// count as "on" that mode in [`CircleGmm::coverage`].
@@ -220,11 +220,7 @@ impl CircleGmm {
 
     fn angle(&self, s: f32, k: usize) -> f32 {
         let base = std::f32::consts::TAU * k as f32 / self.n_modes as f32;
-        if self.rotating {
-            base + s
-        } else {
-            base
-        }
+        if self.rotating { base + s } else { base }
     }
 
     fn mean(&self, s: f32, k: usize) -> [f32; 2] {

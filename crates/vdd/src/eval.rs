@@ -3,7 +3,7 @@
 
 use faer::{Mat, MatRef};
 use rand::Rng as _;
-use vdd_core::{check_shape, gaussian, Expert, Rng};
+use vdd_core::{Expert, Rng, check_shape, gaussian};
 use vdd_moe::{Moe, MoeError};
 
 /// Draws `n` samples `a ~ q(·|state)` from the student (networks' normalised space) into an

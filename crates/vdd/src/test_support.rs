@@ -1,7 +1,7 @@
 //! Small analytic teachers for the unit tests.
 
 use faer::{MatMut, MatRef};
-use vdd_core::{check_score_args, gaussian, CoreError, ScoreModel};
+use vdd_core::{CoreError, ScoreModel, check_score_args, gaussian};
 
 /// An isotropic Gaussian mixture in `d` dimensions (state ignored), exact at every σ.
 #[derive(Debug, Clone)]

@@ -5,14 +5,14 @@ use std::path::{Path, PathBuf};
 use faer::{Mat, MatRef};
 use rand::Rng as _;
 use serde::{Deserialize, Serialize};
-use vdd_core::{check_finite, check_len, CoreError, Expert, ScoreModel, Seeds};
+use vdd_core::{CoreError, Expert, ScoreModel, Seeds, check_finite, check_len};
 use vdd_moe::{ExpertFamily, Moe, MoeOutput};
 use vdd_nn::{Adam, Parameters};
 
 use crate::config::{ExpertWeighting, VddConfig};
 use crate::error::VddError;
 use crate::expert_step::{
-    corrected_score_moments, raw_gradients, ExpertStepBuffers, ExpertStepStats,
+    ExpertStepBuffers, ExpertStepStats, corrected_score_moments, raw_gradients,
 };
 
 /// The states to distil on, and optionally the dataset's actions for the gating step.

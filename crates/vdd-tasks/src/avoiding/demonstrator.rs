@@ -41,13 +41,13 @@ use faer::{Mat, MatMut, MatRef};
 use rand::Rng as _;
 use serde::{Deserialize, Serialize};
 use vdd_core::{
-    check_act_args, check_finite, check_shape, standard_normal, CoreError, Policy, Rng, Seeds,
+    CoreError, Policy, Rng, Seeds, check_act_args, check_finite, check_shape, standard_normal,
 };
 
-use super::rollout::{episode_seed, Worker};
+use super::rollout::{Worker, episode_seed};
 use super::{
-    gap_centre, segment_disc_distance, AvoidingMode, ACTION_DIM, ACTION_LIMIT, EE_RADIUS, LEVEL_Y,
-    N_LEVELS, N_MODES, OBSTACLES, OBS_DIM, START,
+    ACTION_DIM, ACTION_LIMIT, AvoidingMode, EE_RADIUS, LEVEL_Y, N_LEVELS, N_MODES, OBS_DIM,
+    OBSTACLES, START, gap_centre, segment_disc_distance,
 };
 use crate::{Result, TaskError};
 
@@ -474,7 +474,7 @@ pub fn generate_demonstrations(
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::avoiding::rollout::{evaluate, rollout, EvalConfig, Stepping};
+    use crate::avoiding::rollout::{EvalConfig, Stepping, evaluate, rollout};
     use crate::avoiding::{AvoidingEnv, FINISH_Y, MAX_STEPS, TRACKING_GAIN};
 
     fn demo() -> AvoidingDemonstrator {

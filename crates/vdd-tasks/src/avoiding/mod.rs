@@ -49,7 +49,7 @@
 //! ```
 
 use serde::{Deserialize, Serialize};
-use vdd_core::{check_len, CoreError};
+use vdd_core::{CoreError, check_len};
 
 use crate::{Result, TaskError};
 

@@ -50,16 +50,16 @@
 //! assert_eq!(eval.metrics.task_entropy, 0.0);
 //! ```
 
-use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
 use std::sync::Mutex;
+use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
 
 use faer::Mat;
 use rand::Rng as _;
 use serde::{Deserialize, Serialize};
 use vdd_core::{CoreError, Policy, Seeds};
 
-use super::{mode_of, AvoidingEnv, AvoidingMode, Status, ACTION_DIM, N_LEVELS, N_MODES, OBS_DIM};
-use crate::{normalized_entropy, Result, TaskError};
+use super::{ACTION_DIM, AvoidingEnv, AvoidingMode, N_LEVELS, N_MODES, OBS_DIM, Status, mode_of};
+use crate::{Result, TaskError, normalized_entropy};
 
 /// How the policy is driven.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
@@ -213,7 +213,7 @@ impl Metrics {
                 Status::Collision => collisions += 1,
                 Status::Timeout => timeouts += 1,
                 Status::Running => {
-                    return Err(TaskError::InvalidArgument("a rollout still running".into()))
+                    return Err(TaskError::InvalidArgument("a rollout still running".into()));
                 }
             }
         }
