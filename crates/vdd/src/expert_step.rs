@@ -38,16 +38,51 @@ pub struct ExpertStepBuffers {
     pub mean_g_eps: Vec<f32>,
     /// Gradient of the experts' loss w.r.t. raw outputs, `B·Z x raw_dim`.
     pub grad_raw: Vec<f32>,
-    log_resp: Vec<f32>,
-    grad_k: Vec<f32>,
-    g: Vec<f32>,
     /// Per snapshot expert at the current state: `L̃_k⁻¹` (`Z x d·d`) and
     /// `log q̃(k|s) − log det L̃_k − d/2 log 2π` (`Z`).
     snap_linv: Vec<f32>,
     snap_log_norm: Vec<f32>,
     snap_means: Vec<f32>,
-    diff: Vec<f32>,
     diff_dd: Vec<f32>,
+    lanes: LaneScratch,
+}
+
+/// Scratch of the corrected-score kernel for the `V` samples of one (state, expert), in
+/// structure-of-arrays layout: every per-sample quantity is a lane `[..][t]` with the sample
+/// index `t < V` innermost, so all arithmetic is element-wise over samples and vectorises (no
+/// horizontal reductions over experts per sample).
+#[derive(Debug, Default, Clone)]
+struct LaneScratch {
+    /// Actions, `ε` and teacher scores as `[j][t]` (`d x V` each).
+    actions: Vec<f32>,
+    eps: Vec<f32>,
+    score: Vec<f32>,
+    /// `y = L̃_k⁻¹ (a − μ̃_k)` for the current k, `[r][t]`.
+    y: Vec<f32>,
+    /// `log q̃(k) N(a; μ̃_k, Σ̃_k)`, then the unnormalised responsibilities, `[k][t]`.
+    joint: Vec<f32>,
+    /// `∇_a log N(a; μ̃_k, Σ̃_k)`, `[k][j][t]`.
+    grad: Vec<f32>,
+    /// The corrected score `g`, `[j][t]`.
+    g: Vec<f32>,
+    /// Per sample: max over k of the joints, sum of the unnormalised responsibilities, and
+    /// `log q̃(z|a) + ln(total)`.
+    max: Vec<f32>,
+    total: Vec<f32>,
+    log_resp: Vec<f32>,
+}
+
+impl LaneScratch {
+    fn resize(&mut self, d: usize, z_n: usize, v_n: usize) {
+        for v in [&mut self.actions, &mut self.eps, &mut self.score, &mut self.y, &mut self.g] {
+            v.resize(d * v_n, 0.0);
+        }
+        for v in [&mut self.max, &mut self.total, &mut self.log_resp] {
+            v.resize(v_n, 0.0);
+        }
+        self.joint.resize(z_n * v_n, 0.0);
+        self.grad.resize(z_n * d * v_n, 0.0);
+    }
 }
 
 /// Inputs of the corrected-score kernel for one state: its `Z·V` samples (row-major, sample
@@ -70,10 +105,7 @@ struct StateBlock<'a> {
 struct StateBlockOut<'a> {
     mean_g: &'a mut [f32],
     mean_g_eps: &'a mut [f32],
-    log_resp: &'a mut [f32],
-    grad_k: &'a mut [f32],
-    g: &'a mut [f32],
-    diff: &'a mut [f32],
+    lanes: &'a mut LaneScratch,
 }
 
 impl StateBlock<'_> {
@@ -82,114 +114,169 @@ impl StateBlock<'_> {
     #[inline(always)]
     fn run(&self, d: usize, z_n: usize, out: StateBlockOut<'_>) -> (f64, f64) {
         debug_assert_eq!(z_n, self.z_n);
-        let v_n = self.v_n;
-        let inv_v = 1.0 / v_n as f32;
+        let (v_n, inv_v) = (self.v_n, 1.0 / self.v_n as f32);
         let (mut sum_log_resp, mut sum_g2) = (0.0f64, 0.0f64);
-        let mut total_product = 1.0f64;
-        // Scratch, all `[row][k]` with the expert index k innermost.
-        // Small problems use stack scratch: the compiler then knows it aliases nothing and
-        // vectorises the loops over k (in the constant-size copies the choice folds away).
-        let (mut resp_s, mut grad_s, mut y_s, mut g_s) =
-            ([0.0f32; 16], [0.0f32; 64], [0.0f32; 64], [0.0f32; 8]);
-        let small = z_n <= 16 && d * z_n <= 64 && d <= 8;
-        let (resp, grad, y, g): (&mut [f32], &mut [f32], &mut [f32], &mut [f32]) = if small {
-            (&mut resp_s[..z_n], &mut grad_s[..d * z_n], &mut y_s[..d * z_n], &mut g_s[..d])
-        } else {
-            (
-                &mut out.log_resp[..z_n],
-                &mut out.grad_k[..d * z_n],
-                &mut out.diff[..d * z_n],
-                &mut out.g[..d],
-            )
-        };
-        let log_norm = &self.snap_log_norm[..z_n];
+        let c = out.lanes;
         for z in 0..z_n {
+            // Gather expert z's samples into `[j][t]`.
+            for t in 0..v_n {
+                let i = z * v_n + t;
+                for j in 0..d {
+                    c.actions[j * v_n + t] = self.actions[i * d + j];
+                    c.eps[j * v_n + t] = self.eps[i * d + j];
+                    c.score[j * v_n + t] = self.score[i * d + j];
+                }
+            }
+            let (lr, g2) = self.corrected_score(d, z_n, z, c);
+            sum_log_resp += lr;
+            sum_g2 += g2;
+            // E[g] and E[g εᵀ].
             let mg = &mut out.mean_g[z * d..(z + 1) * d];
             let mge = &mut out.mean_g_eps[z * d * d..(z + 1) * d * d];
-            for v in 0..v_n {
-                let i = z * v_n + v;
-                let a = &self.actions[i * d..(i + 1) * d];
-                // y_k = L̃_k⁻¹ (a − μ̃_k) for every frozen expert k at once.
-                for r in 0..d {
-                    let yr = &mut y[r * z_n..(r + 1) * z_n];
-                    for c in 0..=r {
-                        let l = &self.snap_linv[(r * d + c) * z_n..(r * d + c + 1) * z_n];
-                        let m = &self.snap_means[c * z_n..(c + 1) * z_n];
-                        let ac = a[c];
-                        if c == 0 {
-                            for k in 0..z_n {
-                                yr[k] = l[k] * (ac - m[k]);
-                            }
-                        } else {
-                            for k in 0..z_n {
-                                yr[k] += l[k] * (ac - m[k]);
-                            }
-                        }
-                    }
-                }
-                // log q̃(k) N(a; μ̃_k, Σ̃_k) and ∇_a log N = −L̃_k⁻ᵀ y_k.
-                resp.copy_from_slice(log_norm);
-                for r in 0..d {
-                    let yr = &y[r * z_n..(r + 1) * z_n];
-                    for k in 0..z_n {
-                        resp[k] -= 0.5 * yr[k] * yr[k];
-                    }
-                }
-                for c in 0..d {
-                    let gc = &mut grad[c * z_n..(c + 1) * z_n];
-                    for r in c..d {
-                        let l = &self.snap_linv[(r * d + c) * z_n..(r * d + c + 1) * z_n];
-                        let yr = &y[r * z_n..(r + 1) * z_n];
-                        if r == c {
-                            for k in 0..z_n {
-                                gc[k] = -l[k] * yr[k];
-                            }
-                        } else {
-                            for k in 0..z_n {
-                                gc[k] -= l[k] * yr[k];
-                            }
-                        }
-                    }
-                }
-                // Responsibilities q̃(k|a) by a softmax over k.
-                let joint_z = resp[z];
-                let max = resp.iter().copied().fold(f32::NEG_INFINITY, f32::max);
-                for r in resp.iter_mut() {
-                    *r = gaussian::exp_fast(*r - max);
-                }
-                let total: f32 = resp.iter().sum();
-                let inv_total = 1.0 / total;
-                for r in resp.iter_mut() {
-                    *r *= inv_total;
-                }
-                // log q̃(z|a) = joint_z − max − ln(total); the logs of the totals are taken
-                // once per batch of samples (total ∈ [1, Z], so the product stays finite).
-                sum_log_resp += f64::from(joint_z - max);
-                total_product *= f64::from(total);
-                if total_product > 1e200 {
-                    sum_log_resp -= total_product.ln();
-                    total_product = 1.0;
-                }
-                // g = score + ∇ log N(a; μ̃_z, Σ̃_z) − Σ_k q̃(k|a) ∇ log N(a; μ̃_k, Σ̃_k).
-                let score = &self.score[i * d..(i + 1) * d];
-                for j in 0..d {
-                    let gj_row = &grad[j * z_n..(j + 1) * z_n];
-                    let mix: f32 = gj_row.iter().zip(resp.iter()).map(|(a, b)| a * b).sum();
-                    let gj = score[j] + gj_row[z] - mix;
-                    g[j] = gj;
-                    sum_g2 += f64::from(gj * gj);
-                }
-                let eps = &self.eps[i * d..(i + 1) * d];
-                for r in 0..d {
-                    let gr = g[r] * inv_v;
-                    mg[r] += gr;
-                    for c in 0..d {
-                        mge[r * d + c] += gr * eps[c];
-                    }
+            for r in 0..d {
+                let gr = &c.g[r * v_n..(r + 1) * v_n];
+                mg[r] = gr.iter().sum::<f32>() * inv_v;
+                for col in 0..d {
+                    mge[r * d + col] = dot(gr, &c.eps[col * v_n..(col + 1) * v_n]) * inv_v;
                 }
             }
         }
-        (sum_log_resp - total_product.ln(), sum_g2)
+        (sum_log_resp, sum_g2)
+    }
+
+    /// The corrected score `g` of expert `z`'s samples (gathered in `c`) into `c.g`; returns
+    /// the sums over the samples of `log q̃(z|a)` and `|g|²`.
+    #[inline(always)]
+    fn corrected_score(&self, d: usize, z_n: usize, z: usize, c: &mut LaneScratch) -> (f64, f64) {
+        let n = self.v_n;
+        let lane = |i: usize| i * n..(i + 1) * n;
+        // Per frozen expert k: y = L̃_k⁻¹ (a − μ̃_k), log q̃(k) N(a; μ̃_k, Σ̃_k) = c_k − ½|y|²,
+        // ∇_a log N = −L̃_k⁻ᵀ y.
+        for k in 0..z_n {
+            let joint = &mut c.joint[lane(k)];
+            joint.fill(self.snap_log_norm[k]);
+            for r in 0..d {
+                let yr = &mut c.y[lane(r)];
+                yr.fill(0.0);
+                for col in 0..=r {
+                    let l = self.snap_linv[(r * d + col) * z_n + k];
+                    let m = self.snap_means[col * z_n + k];
+                    add_scaled_diff(yr, l, &c.actions[lane(col)], m);
+                }
+                sub_half_square(joint, yr);
+            }
+            for col in 0..d {
+                let gk = &mut c.grad[lane(k * d + col)];
+                gk.fill(0.0);
+                for r in col..d {
+                    let l = self.snap_linv[(r * d + col) * z_n + k];
+                    add_scaled(gk, -l, &c.y[lane(r)]);
+                }
+            }
+        }
+        // Responsibilities q̃(k|a) = joint_k / Σ_k joint_k, stabilised by the max over k.
+        c.max.fill(f32::NEG_INFINITY);
+        for k in 0..z_n {
+            max_into(&mut c.max, &c.joint[lane(k)]);
+        }
+        c.log_resp.copy_from_slice(&c.joint[lane(z)]);
+        add_scaled(&mut c.log_resp, -1.0, &c.max);
+        c.total.fill(0.0);
+        for k in 0..z_n {
+            exp_shifted(&mut c.joint[lane(k)], &c.max, &mut c.total);
+        }
+        // Σ log q̃(z|a) = Σ (joint_z − max) − ln Π total: the logs of the totals are taken
+        // once per many samples (each total is in [1, Z], so the f64 product stays finite).
+        let mut sum_log_resp = f64::from(c.log_resp.iter().sum::<f32>());
+        let mut product = 1.0f64;
+        for &t in &c.total {
+            product *= f64::from(t);
+            if product > 1e200 {
+                sum_log_resp -= product.ln();
+                product = 1.0;
+            }
+        }
+        sum_log_resp -= product.ln();
+        // g = score + ∇ log N(a; μ̃_z, Σ̃_z) − Σ_k q̃(k|a) ∇ log N(a; μ̃_k, Σ̃_k).
+        let mut g2 = 0.0f32;
+        for j in 0..d {
+            let g = &mut c.g[lane(j)];
+            g.fill(0.0);
+            for k in 0..z_n {
+                add_product(g, &c.joint[lane(k)], &c.grad[lane(k * d + j)]);
+            }
+            let (gz, score, total) = (&c.grad[lane(z * d + j)], &c.score[lane(j)], &c.total[..n]);
+            for t in 0..n {
+                g[t] = score[t] + gz[t] - g[t] / total[t];
+            }
+            g2 += dot(g, g);
+        }
+        (sum_log_resp, f64::from(g2))
+    }
+}
+
+// Element-wise kernels over lanes of samples (equal lengths; vectorised by the compiler).
+
+/// `Σ a b` (eight partial sums, so the reduction vectorises).
+#[inline(always)]
+fn dot(a: &[f32], b: &[f32]) -> f32 {
+    let mut acc = [0.0f32; 8];
+    let (ac, bc) = (a.chunks_exact(8), b.chunks_exact(8));
+    let tail: f32 = ac.remainder().iter().zip(bc.remainder()).map(|(a, b)| a * b).sum();
+    for (a, b) in ac.zip(bc) {
+        for i in 0..8 {
+            acc[i] += a[i] * b[i];
+        }
+    }
+    acc.iter().sum::<f32>() + tail
+}
+
+/// `y += l (a − m)`.
+#[inline(always)]
+fn add_scaled_diff(y: &mut [f32], l: f32, a: &[f32], m: f32) {
+    for (y, a) in y.iter_mut().zip(a) {
+        *y += l * (a - m);
+    }
+}
+
+/// `joint −= ½ y²`.
+#[inline(always)]
+fn sub_half_square(joint: &mut [f32], y: &[f32]) {
+    for (j, y) in joint.iter_mut().zip(y) {
+        *j -= 0.5 * y * y;
+    }
+}
+
+/// `x += s y`.
+#[inline(always)]
+fn add_scaled(x: &mut [f32], s: f32, y: &[f32]) {
+    for (x, y) in x.iter_mut().zip(y) {
+        *x += s * y;
+    }
+}
+
+/// `x += a b`.
+#[inline(always)]
+fn add_product(x: &mut [f32], a: &[f32], b: &[f32]) {
+    for ((x, a), b) in x.iter_mut().zip(a).zip(b) {
+        *x += a * b;
+    }
+}
+
+/// `max = max(max, x)`.
+#[inline(always)]
+fn max_into(max: &mut [f32], x: &[f32]) {
+    for (m, x) in max.iter_mut().zip(x) {
+        *m = m.max(*x);
+    }
+}
+
+/// `x = exp(x − max)`, `total += x`.
+#[inline(always)]
+fn exp_shifted(x: &mut [f32], max: &[f32], total: &mut [f32]) {
+    for ((x, m), t) in x.iter_mut().zip(max).zip(total.iter_mut()) {
+        *x = gaussian::exp_fast(*x - m);
+        *t += *x;
     }
 }
 
@@ -234,12 +321,9 @@ pub fn corrected_score_moments<S: ScoreModel + ?Sized>(
     buf.score.resize(n * d, 0.0);
     buf.mean_g.resize(b_n * z_n * d, 0.0);
     buf.mean_g_eps.resize(b_n * z_n * d * d, 0.0);
-    buf.log_resp.resize(z_n, 0.0);
-    buf.grad_k.resize(z_n * d, 0.0);
-    buf.g.resize(d, 0.0);
     buf.snap_linv.resize(z_n * d * d, 0.0);
     buf.snap_log_norm.resize(z_n, 0.0);
-    buf.diff.resize(d * z_n, 0.0);
+    buf.lanes.resize(d, z_n, v_n);
     buf.diff_dd.resize(d * d, 0.0);
 
     // Reparameterised samples a = μ_z(s) + L_z(s) ε and their states.
@@ -311,10 +395,7 @@ pub fn corrected_score_moments<S: ScoreModel + ?Sized>(
         let out = StateBlockOut {
             mean_g: &mut buf.mean_g[b * z_n * d..(b + 1) * z_n * d],
             mean_g_eps: &mut buf.mean_g_eps[b * z_n * d * d..(b + 1) * z_n * d * d],
-            log_resp: &mut buf.log_resp,
-            grad_k: &mut buf.grad_k,
-            g: &mut buf.g,
-            diff: &mut buf.diff,
+            lanes: &mut buf.lanes,
         };
         // Dispatch small dimensions and expert counts to constant copies of the kernel
         // (unrolled loops, no bounds checks); others run the same code with run-time sizes.
@@ -435,7 +516,7 @@ mod tests {
             raws.iter().map(|r| r.iter().map(|x| x * 0.8 + 0.05).collect()).collect();
         let snapshot = output(&expert, &snap_raws, [(0.4f32).ln(), (0.6f32).ln()]);
         let states = faer::Mat::<f32>::zeros(1, 1);
-        let v_n = 16;
+        let v_n = 21;
         let seeds = vdd_core::Seeds::new(5);
         let mut buf = ExpertStepBuffers::default();
         corrected_score_moments(
