@@ -23,7 +23,7 @@ fn distil(kind: ExpertKind, seed: u64, iterations: usize) -> Moe {
     let data = DistillData::from_states(Mat::zeros(32, 1)).unwrap();
     let mut vdd = Vdd::new(config, GmmTeacher::circle_toy(), student, data).unwrap();
     let mut last = None;
-    vdd.train(|m| last = Some(m.clone())).unwrap();
+    vdd.train(|m| last = Some(*m)).unwrap();
     let last = last.expect("metrics reported every iteration");
     assert_eq!(last.iteration + 1, iterations);
     vdd.into_student()
