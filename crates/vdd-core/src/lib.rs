@@ -6,7 +6,7 @@
 //! * [`Expert`]: a Gaussian expert family (raw network outputs ↔ mean and scale);
 //! * [`Policy`]: anything that acts, from demonstrators to the distilled mixture;
 //! * shared helpers: [`Seeds`] (independent ChaCha streams per purpose), Gaussian kernels in
-//!   [`gaussian`], shape and finiteness checks, and [`CoreError`].
+//!   [`gaussian`], element-wise [`lanes`] kernels for batched mixtures, shape and finiteness checks, and [`CoreError`].
 //!
 //! Batches are `faer` matrices with one row per sample (`n x dim`), `f32` throughout.
 #![warn(missing_docs)]
@@ -14,6 +14,7 @@
 mod error;
 mod expert;
 pub mod gaussian;
+pub mod lanes;
 mod normalize;
 mod policy;
 mod score;

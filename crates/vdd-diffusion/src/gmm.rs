@@ -21,6 +21,7 @@ use std::sync::Arc;
 use faer::{Mat, MatMut, MatRef};
 use rand::{Rng as _, RngCore};
 use vdd_core::gaussian::{self, LN_2PI};
+use vdd_core::lanes;
 use vdd_core::{CoreError, Result, ScoreModel, check_finite, check_score_args, check_shape};
 
 /// A Gaussian mixture in `dim` dimensions at one state.
@@ -347,6 +348,7 @@ pub struct GmmTeacher {
     cached: Option<Gmm>,
     cached_state: Vec<f32>,
     ws: Workspace,
+    lanes: IsotropicLanes,
 }
 
 impl std::fmt::Debug for GmmTeacher {
@@ -368,6 +370,7 @@ impl GmmTeacher {
             cached: None,
             cached_state: Vec::new(),
             ws: Workspace::default(),
+            lanes: IsotropicLanes::default(),
         }
     }
 
@@ -384,6 +387,7 @@ impl GmmTeacher {
             cached: None,
             cached_state: Vec::new(),
             ws: Workspace::default(),
+            lanes: IsotropicLanes::default(),
         }
     }
 
@@ -532,6 +536,107 @@ impl GmmTeacher {
     }
 }
 
+/// Rows per block of the vectorised isotropic score.
+const BLOCK: usize = 64;
+
+/// Lanes (`[component or dimension][row]`) of the blocked isotropic score.
+#[derive(Debug, Default, Clone)]
+struct IsotropicLanes {
+    actions: Vec<f32>,
+    diff: Vec<f32>,
+    joint: Vec<f32>,
+    max: Vec<f32>,
+    total: Vec<f32>,
+    weight_sum: Vec<f32>,
+    weighted_means: Vec<f32>,
+}
+
+impl GmmTeacher {
+    /// The score of a fixed isotropic mixture, in blocks of up to [`BLOCK`] consecutive rows
+    /// sharing a noise level: one lane per component, rows innermost, so every operation is
+    /// element-wise over rows and vectorises.
+    ///
+    /// `∇ log π_σ(a) = Σ_k w_k (μ_k − a) / Σ_k p_k` with `p_k = w_k N(a; μ_k, (v_k + σ²) I)`
+    /// unnormalised by the max over k and `w_k = p_k / (v_k + σ²)`.
+    fn score_isotropic_blocks(
+        &mut self,
+        actions: MatRef<'_, f32>,
+        noise_levels: &[f32],
+        mut out: MatMut<'_, f32>,
+    ) -> Result<()> {
+        let Source::Fixed(gmm) = &self.source else { unreachable!("fixed mixtures only") };
+        let (n, d, k) = (actions.nrows(), gmm.dim, gmm.num_components());
+        let b = &mut self.lanes;
+        b.actions.resize(d * BLOCK, 0.0);
+        b.diff.resize(BLOCK, 0.0);
+        b.joint.resize(k * BLOCK, 0.0);
+        b.weighted_means.resize(d * BLOCK, 0.0);
+        for v in [&mut b.max, &mut b.total, &mut b.weight_sum] {
+            v.resize(BLOCK, 0.0);
+        }
+        let mut i0 = 0;
+        while i0 < n {
+            let sigma = noise_levels[i0];
+            let len = noise_levels[i0..n.min(i0 + BLOCK)]
+                .iter()
+                .position(|&s| s != sigma)
+                .unwrap_or(n.min(i0 + BLOCK) - i0);
+            self.ws.prepare(gmm, sigma)?;
+            let lane = |i: usize| i * len..(i + 1) * len;
+            for j in 0..d {
+                let a = &mut b.actions[lane(j)];
+                for (t, a) in a.iter_mut().enumerate() {
+                    *a = actions[(i0 + t, j)];
+                }
+            }
+            // log w_k N(a; μ_k, (v_k + σ²) I) = c_k − ½ |a − μ_k|² / (v_k + σ²).
+            for c in 0..k {
+                let joint = &mut b.joint[lane(c)];
+                joint.fill(self.ws.log_norm[c]);
+                let root_inv_var = self.ws.inv_var[c].sqrt();
+                for j in 0..d {
+                    let diff = &mut b.diff[..len];
+                    diff.fill(0.0);
+                    lanes::add_scaled_diff(
+                        diff,
+                        root_inv_var,
+                        &b.actions[lane(j)],
+                        gmm.means_t[j * k + c],
+                    );
+                    lanes::sub_half_square(joint, diff);
+                }
+            }
+            let (max, total) = (&mut b.max[..len], &mut b.total[..len]);
+            max.fill(f32::NEG_INFINITY);
+            for c in 0..k {
+                lanes::max_into(max, &b.joint[lane(c)]);
+            }
+            total.fill(0.0);
+            let weight_sum = &mut b.weight_sum[..len];
+            weight_sum.fill(0.0);
+            b.weighted_means[..d * len].fill(0.0);
+            for c in 0..k {
+                let p = &mut b.joint[lane(c)];
+                lanes::exp_shifted(p, max, total);
+                let iv = self.ws.inv_var[c];
+                lanes::add_scaled(weight_sum, iv, p);
+                for j in 0..d {
+                    let m = gmm.means_t[j * k + c];
+                    lanes::add_scaled(&mut b.weighted_means[lane(j)], iv * m, p);
+                }
+            }
+            for j in 0..d {
+                let (wm, a) = (&b.weighted_means[lane(j)], &b.actions[lane(j)]);
+                for t in 0..len {
+                    out[(i0 + t, j)] = (wm[t] - a[t] * weight_sum[t]) / total[t];
+                }
+            }
+            i0 += len;
+        }
+        Ok(())
+    }
+}
+
 impl ScoreModel for GmmTeacher {
     fn action_dim(&self) -> usize {
         match &self.source {
@@ -559,6 +664,9 @@ impl ScoreModel for GmmTeacher {
         // Constant copies of the row loop for small dimensions and component counts (unrolled,
         // no bounds checks); a conditional teacher's count is only known per state.
         let k = match &self.source {
+            Source::Fixed(g) if g.isotropic.is_some() => {
+                return self.score_isotropic_blocks(actions, noise_levels, out);
+            }
             Source::Fixed(g) => g.num_components(),
             Source::Conditional { .. } => 0,
         };
@@ -624,6 +732,32 @@ mod tests {
             })
             .collect();
         Gmm::new(&weights, &means, &covs).unwrap()
+    }
+
+    /// The blocked isotropic score (fixed mixtures) equals the row-by-row one (used for
+    /// conditional mixtures), across block boundaries and changes of the noise level.
+    #[test]
+    fn blocked_isotropic_score_equals_the_row_by_row_score() {
+        let (d, k, n) = (3, 5, 150);
+        let mut rng = Seeds::new(3).stream("iso");
+        let means: Vec<Vec<f32>> =
+            (0..k).map(|_| (0..d).map(|_| rng.random_range(-2.0..2.0)).collect()).collect();
+        let weights: Vec<f32> = (0..k).map(|_| rng.random_range(0.2..1.0)).collect();
+        let gmm = Gmm::isotropic(&weights, &means, 0.4).unwrap();
+        let mut blocked = GmmTeacher::fixed(gmm.clone(), 1);
+        let mut rowwise = GmmTeacher::conditional(1, d, move |_| Ok(gmm.clone()));
+        let a = Mat::from_fn(n, d, |_, _| rng.random_range(-3.0f32..3.0));
+        let s = Mat::<f32>::zeros(n, 1);
+        // Runs of equal noise levels longer and shorter than a block, and single rows.
+        let sigma: Vec<f32> = (0..n).map(|i| [0.0, 0.3, 1.5][(i / 70 + i % 3 / 2) % 3]).collect();
+        let (mut x, mut y) = (Mat::zeros(n, d), Mat::zeros(n, d));
+        blocked.score(a.as_ref(), s.as_ref(), &sigma, x.as_mut()).unwrap();
+        rowwise.score(a.as_ref(), s.as_ref(), &sigma, y.as_mut()).unwrap();
+        for i in 0..n {
+            for j in 0..d {
+                assert!((x[(i, j)] - y[(i, j)]).abs() <= 1e-4 * (1.0 + y[(i, j)].abs()), "row {i}");
+            }
+        }
     }
 
     /// The exact score equals the finite-difference gradient of the smoothed log-density.

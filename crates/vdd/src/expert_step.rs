@@ -15,6 +15,9 @@
 use faer::{MatMut, MatRef};
 use rand::RngCore;
 use vdd_core::gaussian;
+use vdd_core::lanes::{
+    add_product, add_scaled, add_scaled_diff, dot, exp_shifted, max_into, sub_half_square,
+};
 use vdd_core::{CoreError, Expert, NoiseSchedule, ScoreModel};
 use vdd_moe::MoeOutput;
 
@@ -212,71 +215,6 @@ impl StateBlock<'_> {
             g2 += dot(g, g);
         }
         (sum_log_resp, f64::from(g2))
-    }
-}
-
-// Element-wise kernels over lanes of samples (equal lengths; vectorised by the compiler).
-
-/// `Σ a b` (eight partial sums, so the reduction vectorises).
-#[inline(always)]
-fn dot(a: &[f32], b: &[f32]) -> f32 {
-    let mut acc = [0.0f32; 8];
-    let (ac, bc) = (a.chunks_exact(8), b.chunks_exact(8));
-    let tail: f32 = ac.remainder().iter().zip(bc.remainder()).map(|(a, b)| a * b).sum();
-    for (a, b) in ac.zip(bc) {
-        for i in 0..8 {
-            acc[i] += a[i] * b[i];
-        }
-    }
-    acc.iter().sum::<f32>() + tail
-}
-
-/// `y += l (a − m)`.
-#[inline(always)]
-fn add_scaled_diff(y: &mut [f32], l: f32, a: &[f32], m: f32) {
-    for (y, a) in y.iter_mut().zip(a) {
-        *y += l * (a - m);
-    }
-}
-
-/// `joint −= ½ y²`.
-#[inline(always)]
-fn sub_half_square(joint: &mut [f32], y: &[f32]) {
-    for (j, y) in joint.iter_mut().zip(y) {
-        *j -= 0.5 * y * y;
-    }
-}
-
-/// `x += s y`.
-#[inline(always)]
-fn add_scaled(x: &mut [f32], s: f32, y: &[f32]) {
-    for (x, y) in x.iter_mut().zip(y) {
-        *x += s * y;
-    }
-}
-
-/// `x += a b`.
-#[inline(always)]
-fn add_product(x: &mut [f32], a: &[f32], b: &[f32]) {
-    for ((x, a), b) in x.iter_mut().zip(a).zip(b) {
-        *x += a * b;
-    }
-}
-
-/// `max = max(max, x)`.
-#[inline(always)]
-fn max_into(max: &mut [f32], x: &[f32]) {
-    for (m, x) in max.iter_mut().zip(x) {
-        *m = m.max(*x);
-    }
-}
-
-/// `x = exp(x − max)`, `total += x`.
-#[inline(always)]
-fn exp_shifted(x: &mut [f32], max: &[f32], total: &mut [f32]) {
-    for ((x, m), t) in x.iter_mut().zip(max).zip(total.iter_mut()) {
-        *x = gaussian::exp_fast(*x - m);
-        *t += *x;
     }
 }
 
