@@ -357,7 +357,8 @@ pub fn corrected_score_moments<S: ScoreModel + ?Sized>(
         (0..b_n * z_n).map(|k| gaussian::entropy(current.scale(k / z_n, k % z_n), d)).sum::<f32>()
             / (b_n * z_n) as f32;
     Ok(ExpertStepStats {
-        noise_level: buf.noise_levels.iter().sum::<f32>() / n as f32,
+        noise_level: (buf.noise_levels.iter().map(|&l| f64::from(l)).sum::<f64>() / n as f64)
+            as f32,
         log_responsibility: (sum_log_resp / n as f64) as f32,
         expert_entropy: entropy,
         corrected_score_rms: (sum_g2 / n as f64).sqrt() as f32,

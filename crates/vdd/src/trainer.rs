@@ -494,6 +494,7 @@ mod tests {
     use crate::eval::{modes_covered, reverse_kl};
     use crate::test_support::IsoGmm;
     use faer::MatMut;
+    use vdd_core::NoiseSchedule;
     use vdd_moe::{GatingKind, MoeConfig};
 
     fn small_run(iterations: usize) -> (VddConfig, IsoGmm, Moe, DistillData) {
@@ -612,6 +613,94 @@ mod tests {
         });
         assert!(changed, "three iterations should have trained");
         assert!(vdd.student().clone().act(&[0.0]).unwrap().iter().all(|x| x.is_finite()));
+    }
+
+    /// Gating weights of the student at state 0.
+    fn gating_at_zero(student: &mut Moe) -> Vec<f32> {
+        student.forward(Mat::<f32>::zeros(1, 1).as_ref()).unwrap();
+        student.output().log_gating_row(0).iter().map(|l| l.exp()).collect()
+    }
+
+    /// With a dataset, the gating step learns the responsibilities of the dataset's actions:
+    /// a teacher with equal modes but data that visits one mode 3x as often gives a gating
+    /// that follows the data, not the teacher.
+    #[test]
+    fn the_gating_follows_the_responsibilities_of_dataset_actions() {
+        let teacher =
+            IsoGmm { means: vec![vec![2.0, 0.0], vec![-2.0, 0.0]], std: 0.3, state_dim: 1 };
+        let mut mc = MoeConfig::toy(1, 2, 2);
+        mc.experts_network.hidden_dim = 16;
+        mc.gating = GatingKind::Learned;
+        mc.gating_network.hidden_dim = 16;
+        let student = Moe::from_config(mc, 1).unwrap();
+        let n = 400;
+        let actions = Mat::from_fn(n, 2, |i, j| match (i % 4, j) {
+            (3, 0) => -2.0,
+            (_, 0) => 2.0,
+            _ => 0.0,
+        });
+        let data = DistillData::new(Mat::zeros(n, 1), Some(actions)).unwrap();
+        let config = VddConfig {
+            iterations: 300,
+            batch_size: 4,
+            vi_samples: 16,
+            gating_batch_size: 64,
+            expert_optimizer: vdd_nn::AdamConfig { lr: 1e-2, ..Default::default() },
+            gating_optimizer: vdd_nn::AdamConfig { lr: 1e-2, ..Default::default() },
+            ..VddConfig::toy()
+        };
+        let mut vdd = Vdd::new(config, teacher, student, data).unwrap();
+        vdd.train(|_| {}).unwrap();
+        let mut student = vdd.into_student();
+        let w = gating_at_zero(&mut student);
+        let out = student.output();
+        // The expert at +2 carries 3/4 of the weight.
+        let right = if out.mean(0, 0)[0] > out.mean(0, 1)[0] { 0 } else { 1 };
+        assert!((out.mean(0, right)[0] - 2.0).abs() < 0.2, "means {:?}", out.means);
+        assert!((w[right] - 0.75).abs() < 0.05, "gating {w:?}");
+    }
+
+    /// `freeze_gating_after: Some(n)` stops gating updates from iteration n on.
+    #[test]
+    fn a_frozen_gating_stops_changing() {
+        let (mut config, teacher, student, data) = small_run(8);
+        config.freeze_gating_after = Some(4);
+        config.gating_optimizer.lr = 1e-2;
+        let mut vdd = Vdd::new(config, teacher, student, data).unwrap();
+        let mut gating = Vec::new();
+        let mut losses = Vec::new();
+        for _ in 0..8 {
+            losses.push(vdd.step().unwrap().gating_loss);
+            let mut student = vdd.student().clone();
+            gating.push(gating_at_zero(&mut student));
+        }
+        assert!(losses[..4].iter().all(Option::is_some));
+        assert!(losses[4..].iter().all(Option::is_none));
+        assert_ne!(gating[2], gating[3], "the gating trains before the freeze");
+        assert!(gating[3..].windows(2).all(|w| w[0] == w[1]), "{gating:?}");
+    }
+
+    /// The expert step queries the teacher at the configured noise levels: fixed, uniform in a
+    /// range, or annealed from start to end over the run.
+    #[test]
+    fn noise_levels_follow_the_configured_schedule() {
+        let levels = |noise: NoiseSchedule| {
+            let (mut config, teacher, student, data) = small_run(10);
+            config.noise = noise;
+            let mut vdd = Vdd::new(config, teacher, student, data).unwrap();
+            let mut out = Vec::new();
+            vdd.train(|m| out.push(m.expert.noise_level)).unwrap();
+            out
+        };
+        let fixed = levels(NoiseSchedule::Fixed { level: 0.3 });
+        assert!(fixed.iter().all(|&l| (l - 0.3).abs() < 1e-6), "{fixed:?}");
+        let uniform = levels(NoiseSchedule::Uniform { min: 0.2, max: 0.6 });
+        // Means over 8·4·16 draws: close to 0.4, never at the ends.
+        assert!(uniform.iter().all(|&l| (l - 0.4).abs() < 0.03), "{uniform:?}");
+        let annealed = levels(NoiseSchedule::Annealed { start: 1.0, end: 0.1 });
+        assert!((annealed[0] - 1.0).abs() < 1e-6, "{annealed:?}");
+        assert!(annealed.windows(2).all(|w| w[1] < w[0]), "{annealed:?}");
+        assert!(annealed[9] < 0.2 && annealed[9] > 0.1, "{annealed:?}");
     }
 
     #[test]
