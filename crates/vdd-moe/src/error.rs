@@ -12,4 +12,11 @@ pub enum MoeError {
     /// A saved model's configuration could not be read.
     #[error("invalid saved model configuration: {0}")]
     Config(String),
+    /// A saved model was written with a different expert family (kind, dimension or scale
+    /// activation) than the one it is being loaded with.
+    #[error("expert family mismatch: {0}")]
+    FamilyMismatch(String),
+    /// A backward pass was called before the forward pass whose outputs it differentiates.
+    #[error("{0} called before the matching forward pass")]
+    NoForward(&'static str),
 }
