@@ -18,43 +18,11 @@ use std::time::Instant;
 use faer::{Mat, MatRef};
 use rand::Rng as _;
 use vdd_baselines::{Dataset, Em, EmConfig, Imc, ImcConfig};
-use vdd_core::gaussian::{self, LN_2PI};
-use vdd_core::{Rng, Seeds};
+use vdd_core::{Seeds, gaussian};
 use vdd_moe::{GatingKind, Moe, MoeConfig};
 
-const MODES: usize = 8;
-const RADIUS: f32 = 2.0;
-const STD: f32 = 0.5;
-const DATA_POINTS: usize = 5000;
-
-fn mode(k: usize) -> [f32; 2] {
-    let t = 2.0 * std::f32::consts::PI * k as f32 / MODES as f32;
-    [RADIUS * t.cos(), RADIUS * t.sin()]
-}
-
-/// `log p(a) = log Σ_k (1/8) N(a; μ_k, 0.5² I)`, written out directly.
-fn log_p(a: &[f32]) -> f32 {
-    let var = STD * STD;
-    let terms: Vec<f32> = (0..MODES)
-        .map(|k| {
-            let m = mode(k);
-            let d2 = (a[0] - m[0]).powi(2) + (a[1] - m[1]).powi(2);
-            -(MODES as f32).ln() - 0.5 * d2 / var - var.ln() - LN_2PI
-        })
-        .collect();
-    gaussian::log_sum_exp(&terms)
-}
-
-fn sample_target(n: usize, rng: &mut Rng) -> Mat<f32> {
-    let mut out = Mat::zeros(n, 2);
-    for i in 0..n {
-        let m = mode(rng.random_range(0..MODES));
-        for j in 0..2 {
-            out[(i, j)] = m[j] + STD * vdd_core::standard_normal(rng);
-        }
-    }
-    out
-}
+mod toy_common;
+use toy_common::{DATA_POINTS, MODES, RADIUS, STD, arg, log_p, mode, sample_target};
 
 #[derive(Debug)]
 struct Report {
@@ -150,14 +118,6 @@ fn describe(student: &mut Moe) {
             nearest
         );
     }
-}
-
-fn arg<T: std::str::FromStr>(args: &[String], name: &str, default: T) -> T {
-    args.iter()
-        .position(|a| a == name)
-        .and_then(|i| args.get(i + 1))
-        .map(|v| v.parse().unwrap_or_else(|_| panic!("bad value for {name}")))
-        .unwrap_or(default)
 }
 
 fn main() -> Result<(), Box<dyn std::error::Error>> {

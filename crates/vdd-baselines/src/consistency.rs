@@ -1,11 +1,12 @@
 //! What Consistency Distillation ([`crate::cd`]) and the Consistency Trajectory Model
 //! ([`crate::ctm`]) share: the teacher seen through its denoiser ([`ConsistencyTeacher`]), the
-//! noise-conditioned student network ([`ConditionedNet`]), the training settings and progress
-//! reports, and the plumbing from raw matrices to normalised minibatches and back.
+//! boundary-conditioned preconditioning ([`BoundaryPreconditioning`]), the noise-conditioned
+//! student network ([`ConditionedNet`]), the settings ([`ConsistencyConfig`],
+//! [`ConsistencyTrainConfig`]) and progress reports ([`ConsistencyProgress`]).
 //!
-//! Both students work in the teacher's **normalised** action and state space and map raw
-//! observations in and raw actions out with the teacher's normalisers when used as a
-//! [`vdd_core::Policy`].
+//! Both students work in the teacher's **normalised** action and state space; trainers take
+//! the raw demonstrations the teacher was trained on and normalise them with the teacher's
+//! normalisers, and the returned policies map raw observations in and raw actions out.
 //!
 //! The probability-flow ODE of a variance-exploding (EDM / BESO) teacher with denoiser
 //! `D(x; σ, s)` is `dx/dσ = (x − D(x; σ, s)) / σ`; the teacher steps of both distillations
@@ -17,21 +18,24 @@ use std::collections::HashMap;
 use faer::reborrow::Reborrow;
 use faer::{Mat, MatMut, MatRef};
 use serde::{Deserialize, Serialize};
-use vdd_core::{Affine, CoreError, Seeds, check_finite, check_len, check_shape};
-use vdd_diffusion::{Beso, DenoiserNet, NetConfig, SamplerBuffers};
+use vdd_core::{Affine, CoreError, NoiseConvention, ScoreModel, Seeds, check_len, check_shape};
+use vdd_diffusion::{Beso, BesoConfig, DenoiserNet, DiffusionTeacher, NetConfig};
 use vdd_nn::ResidualMlpConfig as MlpCfg;
-use vdd_nn::{Adam, AdamConfig, Ema, LrSchedule, Module, Param, Parameters, ResidualMlp};
+use vdd_nn::{AdamConfig, Module, Param, Parameters, ResidualMlp};
 
-use crate::dataset::Dataset;
+use crate::distill::Coefficients;
+pub use crate::distill::{ConsistencyTrainer, DistilledPolicy};
 use crate::error::BaselineError;
-use crate::fit;
 
 /// A variance-exploding diffusion teacher seen through its denoiser `D(x; σ, s)` in its
 /// normalised space: what consistency distillation needs (the probability-flow ODE
 /// `dx/dσ = (x − D)/σ` is integrated with Heun steps of it).
 ///
-/// Implemented for the BESO teacher ([`vdd_diffusion::Beso`]) and for closures
-/// ([`DenoiserFn`], e.g. the exact denoiser of a Gaussian mixture).
+/// Implemented for the BESO teacher ([`vdd_diffusion::Beso`]), for a
+/// [`vdd_diffusion::DiffusionTeacher`] holding one (a DDPM one is rejected by
+/// [`ConsistencyTeacher::validate`]), for any variance-exploding [`ScoreModel`] through
+/// [`ScoreTeacher`] (e.g. the exact [`vdd_diffusion::GmmTeacher`]), for closures
+/// ([`DenoiserFn`]) and for `&mut` references to any of these.
 pub trait ConsistencyTeacher {
     /// Dimension of one (normalised) state.
     fn state_dim(&self) -> usize;
@@ -52,9 +56,21 @@ pub trait ConsistencyTeacher {
         out: MatMut<'_, f32>,
     ) -> Result<(), CoreError>;
 
+    /// Checks that the teacher can be distilled (trainers call it first). `Ok` by default.
+    fn validate(&self) -> Result<(), CoreError> {
+        Ok(())
+    }
+
     /// The teacher's preconditioned denoiser network, when it has one (students of the same
     /// architecture start from its weights). `None` by default.
     fn network(&self) -> Option<&DenoiserNet> {
+        None
+    }
+
+    /// The BESO configuration the teacher was built with, when it is one (its levels and
+    /// architecture are the students' defaults, see [`ConsistencyConfig::for_teacher`]).
+    /// `None` by default.
+    fn beso_config(&self) -> Option<&BesoConfig> {
         None
     }
 }
@@ -78,8 +94,14 @@ impl<T: ConsistencyTeacher + ?Sized> ConsistencyTeacher for &mut T {
     ) -> Result<(), CoreError> {
         (**self).denoise(x, sigma, states, out)
     }
+    fn validate(&self) -> Result<(), CoreError> {
+        (**self).validate()
+    }
     fn network(&self) -> Option<&DenoiserNet> {
         (**self).network()
+    }
+    fn beso_config(&self) -> Option<&BesoConfig> {
+        (**self).beso_config()
     }
 }
 
@@ -106,11 +128,64 @@ impl ConsistencyTeacher for Beso {
     fn network(&self) -> Option<&DenoiserNet> {
         Some(self.net())
     }
+    fn beso_config(&self) -> Option<&BesoConfig> {
+        Some(self.config())
+    }
+}
+
+/// A learned teacher of either kind: a BESO one is distilled as [`Beso`]; a DDPM one is
+/// rejected by [`ConsistencyTeacher::validate`] (consistency distillation here integrates the
+/// variance-exploding probability-flow ODE).
+impl ConsistencyTeacher for DiffusionTeacher {
+    fn state_dim(&self) -> usize {
+        DiffusionTeacher::state_dim(self)
+    }
+    fn action_dim(&self) -> usize {
+        DiffusionTeacher::action_dim(self)
+    }
+    fn normalizers(&self) -> (&Affine, &Affine) {
+        DiffusionTeacher::normalizers(self)
+    }
+    fn denoise(
+        &mut self,
+        x: MatRef<'_, f32>,
+        sigma: &[f32],
+        states: MatRef<'_, f32>,
+        out: MatMut<'_, f32>,
+    ) -> Result<(), CoreError> {
+        match self {
+            DiffusionTeacher::Beso(b) => Beso::denoise(b, x, sigma, states, out),
+            DiffusionTeacher::Ddpm(_) => Err(not_variance_exploding()),
+        }
+    }
+    fn validate(&self) -> Result<(), CoreError> {
+        match self {
+            DiffusionTeacher::Beso(_) => Ok(()),
+            DiffusionTeacher::Ddpm(_) => Err(not_variance_exploding()),
+        }
+    }
+    fn network(&self) -> Option<&DenoiserNet> {
+        match self {
+            DiffusionTeacher::Beso(b) => Some(b.net()),
+            DiffusionTeacher::Ddpm(_) => None,
+        }
+    }
+    fn beso_config(&self) -> Option<&BesoConfig> {
+        match self {
+            DiffusionTeacher::Beso(b) => Some(b.config()),
+            DiffusionTeacher::Ddpm(_) => None,
+        }
+    }
+}
+
+fn not_variance_exploding() -> CoreError {
+    CoreError::Config(
+        "consistency distillation needs a variance-exploding (BESO / EDM) teacher, got DDPM".into(),
+    )
 }
 
 /// A teacher given as a closure `denoise(x, σ, states, out)` in the normalised space of the
-/// given normalisers — for analytic teachers such as the exact denoiser of a Gaussian mixture,
-/// `D(x; σ) = E[a | a + σ z = x]`.
+/// given normalisers.
 ///
 /// ```
 /// use faer::{MatMut, MatRef};
@@ -160,6 +235,21 @@ where
     }
 }
 
+/// Checks a denoiser call: `x` `n x d_a`, `states` `n x d_s`, `n` levels, `out` `n x d_a`.
+fn check_denoise_args<T: ConsistencyTeacher + ?Sized>(
+    teacher: &T,
+    x: MatRef<'_, f32>,
+    sigma: &[f32],
+    states: MatRef<'_, f32>,
+    out: MatRef<'_, f32>,
+) -> Result<(), CoreError> {
+    let n = x.nrows();
+    check_shape("x", x, n, teacher.action_dim())?;
+    check_shape("states", states, n, teacher.state_dim())?;
+    check_len("sigma", sigma.len(), n)?;
+    check_shape("denoiser output", out, n, teacher.action_dim())
+}
+
 impl<F> ConsistencyTeacher for DenoiserFn<F>
 where
     F: FnMut(MatRef<'_, f32>, &[f32], MatRef<'_, f32>, MatMut<'_, f32>) -> Result<(), CoreError>,
@@ -180,31 +270,87 @@ where
         states: MatRef<'_, f32>,
         out: MatMut<'_, f32>,
     ) -> Result<(), CoreError> {
-        let n = x.nrows();
-        check_shape("x", x, n, self.action_dim())?;
-        check_shape("states", states, n, self.state_dim())?;
-        check_len("sigma", sigma.len(), n)?;
-        check_shape("denoiser output", out.rb(), n, self.action_dim())?;
+        check_denoise_args(self, x, sigma, states, out.rb())?;
         (self.f)(x, sigma, states, out)
     }
 }
 
-/// One Heun step of the teacher's probability-flow ODE from `sigma_from[i]` to `sigma_to[i]`
-/// per row (normalised space), written into `out`.
-pub(crate) fn teacher_heun_step<T: ConsistencyTeacher + ?Sized>(
-    teacher: &mut T,
-    x: MatRef<'_, f32>,
-    sigma_from: &[f32],
-    sigma_to: &[f32],
-    states: MatRef<'_, f32>,
-    out: MatMut<'_, f32>,
-    buf: &mut SamplerBuffers,
-) -> Result<(), BaselineError> {
-    let mut denoise = |x: MatRef<'_, f32>, s: &[f32], o: MatMut<'_, f32>| {
-        teacher.denoise(x, s, states, o).map_err(vdd_diffusion::DiffusionError::from)
-    };
-    vdd_diffusion::heun_step(&mut denoise, x, sigma_from, sigma_to, out, buf)
-        .map_err(|e| BaselineError::Core(CoreError::from(e)))
+/// A variance-exploding [`ScoreModel`] (noise levels are `σ`) seen as a denoiser through
+/// Tweedie's formula, `D(x; σ, s) = x + σ² ∇_x log π_σ(x|s)` — e.g. the exact
+/// [`vdd_diffusion::GmmTeacher`], whose smoothed score is known in closed form, so its
+/// probability-flow ODE is the exact one.
+///
+/// ```
+/// use faer::Mat;
+/// use vdd_baselines::consistency::{ConsistencyTeacher, ScoreTeacher};
+/// use vdd_diffusion::GmmTeacher;
+/// // One mode N((1, 0), 0.1² I): D(x; σ) = μ + 0.01 / (0.01 + σ²) (x − μ).
+/// let gmm = GmmTeacher::isotropic(&[1.0], &[vec![1.0, 0.0]], 0.1).unwrap();
+/// let mut teacher = ScoreTeacher::identity(gmm).unwrap();
+/// let mut out = Mat::zeros(1, 2);
+/// let x = faer::mat![[3.0f32, 0.0]];
+/// teacher.denoise(x.as_ref(), &[0.1], Mat::zeros(1, 1).as_ref(), out.as_mut()).unwrap();
+/// assert!((out[(0, 0)] - 2.0).abs() < 1e-5);
+/// ```
+#[derive(Debug, Clone)]
+pub struct ScoreTeacher<S> {
+    model: S,
+    state_norm: Affine,
+    action_norm: Affine,
+}
+
+impl<S: ScoreModel> ScoreTeacher<S> {
+    /// The teacher `model`, whose score works in the space normalised by `state_norm` and
+    /// `action_norm`. Errors unless the model is variance-exploding and the dimensions match.
+    pub fn new(model: S, state_norm: Affine, action_norm: Affine) -> Result<Self, CoreError> {
+        if model.noise_convention() != NoiseConvention::Sigma {
+            return Err(CoreError::Config(
+                "a score teacher must be variance-exploding (noise levels σ)".into(),
+            ));
+        }
+        check_len("state normaliser vs model state_dim", state_norm.dim(), model.state_dim())?;
+        check_len("action normaliser vs model action_dim", action_norm.dim(), model.action_dim())?;
+        Ok(Self { model, state_norm, action_norm })
+    }
+
+    /// The teacher `model` on raw data (identity normalisers).
+    pub fn identity(model: S) -> Result<Self, CoreError> {
+        let (ds, da) = (model.state_dim(), model.action_dim());
+        Self::new(model, Affine::identity(ds), Affine::identity(da))
+    }
+
+    /// The score model.
+    pub fn model(&self) -> &S {
+        &self.model
+    }
+}
+
+impl<S: ScoreModel> ConsistencyTeacher for ScoreTeacher<S> {
+    fn state_dim(&self) -> usize {
+        self.state_norm.dim()
+    }
+    fn action_dim(&self) -> usize {
+        self.action_norm.dim()
+    }
+    fn normalizers(&self) -> (&Affine, &Affine) {
+        (&self.state_norm, &self.action_norm)
+    }
+    fn denoise(
+        &mut self,
+        x: MatRef<'_, f32>,
+        sigma: &[f32],
+        states: MatRef<'_, f32>,
+        mut out: MatMut<'_, f32>,
+    ) -> Result<(), CoreError> {
+        check_denoise_args(self, x, sigma, states, out.rb())?;
+        self.model.score(x, states, sigma, out.as_mut())?;
+        for j in 0..x.ncols() {
+            for i in 0..x.nrows() {
+                out[(i, j)] = x[(i, j)] + sigma[i] * sigma[i] * out[(i, j)];
+            }
+        }
+        Ok(())
+    }
 }
 
 /// The consistency-model preconditioning of Song et al. (2023), EDM-style with the boundary
@@ -266,27 +412,6 @@ impl BoundaryPreconditioning {
     #[inline]
     pub fn c_noise(&self, sigma: f32) -> f32 {
         0.25 * sigma.ln()
-    }
-}
-
-/// Per-row coefficients of a preconditioned evaluation
-/// `out_i = skip_i x_i + out_i F(c_in_i x_i, s_i, noise_i[, noise_to_i])`.
-#[derive(Debug, Clone, Default)]
-pub(crate) struct Coefficients {
-    pub c_in: Vec<f32>,
-    pub noise: Vec<f32>,
-    pub noise_to: Vec<f32>,
-    pub skip: Vec<f32>,
-    pub out: Vec<f32>,
-}
-
-impl Coefficients {
-    pub(crate) fn clear(&mut self) {
-        self.c_in.clear();
-        self.noise.clear();
-        self.noise_to.clear();
-        self.skip.clear();
-        self.out.clear();
     }
 }
 
@@ -484,9 +609,11 @@ impl ConditionedNet {
     }
 
     /// Backward pass for the last forward: accumulates parameter gradients for `grad_out`
-    /// (`n x action_dim`).
-    pub fn backward(&mut self, grad_out: MatRef<'_, f32>) {
-        self.mlp.backward(grad_out);
+    /// (`n x action_dim`) and returns the gradient with respect to the `x` input
+    /// (`n x action_dim`; the state and embedding columns are not differentiated).
+    pub fn backward(&mut self, grad_out: MatRef<'_, f32>) -> MatRef<'_, f32> {
+        let da = self.action_dim;
+        self.mlp.backward(grad_out).subcols(0, da)
     }
 
     /// `out_i = skip_i x_i + out_i F(c_in_i x_i, s_i, noise_i, noise_to_i)` for every row.
@@ -527,17 +654,131 @@ impl Parameters for ConditionedNet {
     }
 }
 
-/// Optimisation settings shared by [`crate::cd`] and [`crate::ctm`].
+/// The settings of Consistency Distillation ([`crate::cd::CdConfig`] is this type), which the
+/// Consistency Trajectory Model shares ([`crate::ctm::CtmConfig::base`]): the student network,
+/// the noise levels, sampling and optimisation.
+///
+/// ```
+/// use vdd_baselines::consistency::ConsistencyConfig;
+/// use vdd_diffusion::BesoConfig;
+/// let beso = BesoConfig::default();
+/// let config = ConsistencyConfig::for_beso(&beso).with_seed(3);
+/// assert!(config.init_from_teacher && config.sigma_max == beso.sigma_max);
+/// assert_eq!(config.train.seed, 3);
+/// config.validate().unwrap();
+/// ```
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct ConsistencyConfig {
+    /// The student network `F_θ` (the teacher's architecture to start from its weights).
+    pub net: NetConfig,
+    /// Start the student from the teacher's network (it must have one of the same
+    /// architecture; the paper's choice); otherwise fresh weights from the seed's `"init"`
+    /// stream.
+    pub init_from_teacher: bool,
+    /// `σ_data` of the preconditioning (normalised action space).
+    pub sigma_data: f32,
+    /// The boundary level `σ_min`, the end of the grid and of sampling.
+    pub sigma_min: f32,
+    /// The largest level `σ_max`, where sampling starts.
+    pub sigma_max: f32,
+    /// The Karras grid's `ρ`.
+    pub rho: f32,
+    /// Number of grid levels `N` (Song et al. use 18 for their EDM teacher).
+    pub num_scales: usize,
+    /// Sampling steps of the returned policy (1: one-step sampling).
+    pub sampling_steps: usize,
+    /// Optimisation.
+    pub train: ConsistencyTrainConfig,
+}
+
+impl Default for ConsistencyConfig {
+    /// BESO's default levels (`σ_data = 0.5`, `σ ∈ [0.002, 80]`, `ρ = 7`), `N = 18`, a fresh
+    /// student of the default [`NetConfig`], one-step sampling, the default optimisation.
+    fn default() -> Self {
+        Self {
+            net: NetConfig::default(),
+            init_from_teacher: false,
+            sigma_data: 0.5,
+            sigma_min: 0.002,
+            sigma_max: 80.0,
+            rho: 7.0,
+            num_scales: 18,
+            sampling_steps: 1,
+            train: ConsistencyTrainConfig::default(),
+        }
+    }
+}
+
+impl ConsistencyConfig {
+    /// The configuration for distilling a BESO teacher built with `beso`: its network
+    /// architecture (the student starts from its weights), `σ_data`, `σ_min`, `σ_max`, `ρ`.
+    pub fn for_beso(beso: &BesoConfig) -> Self {
+        Self {
+            net: beso.net.clone(),
+            init_from_teacher: true,
+            sigma_data: beso.sigma_data,
+            sigma_min: beso.sigma_min,
+            sigma_max: beso.sigma_max,
+            rho: beso.rho,
+            ..Self::default()
+        }
+    }
+
+    /// [`ConsistencyConfig::for_beso`] for a teacher that is a BESO teacher (starting from its
+    /// network when it exposes one), the defaults otherwise.
+    pub fn for_teacher<T: ConsistencyTeacher + ?Sized>(teacher: &T) -> Self {
+        match teacher.beso_config() {
+            Some(beso) => {
+                Self { init_from_teacher: teacher.network().is_some(), ..Self::for_beso(beso) }
+            }
+            None => Self::default(),
+        }
+    }
+
+    /// The same settings with the root seed of every random draw set to `seed`.
+    pub fn with_seed(mut self, seed: u64) -> Self {
+        self.train.seed = seed;
+        self
+    }
+
+    /// Checks the numbers.
+    pub fn validate(&self) -> Result<(), CoreError> {
+        self.net.validate().map_err(CoreError::from)?;
+        BoundaryPreconditioning::new(self.sigma_data, self.sigma_min)?;
+        if !(self.sigma_max.is_finite() && self.sigma_max > self.sigma_min) {
+            return Err(CoreError::Config(format!(
+                "need sigma_max > sigma_min, got {} <= {}",
+                self.sigma_max, self.sigma_min
+            )));
+        }
+        if !(self.rho.is_finite() && self.rho > 0.0) {
+            return Err(CoreError::Config(format!("rho must be positive, got {}", self.rho)));
+        }
+        if self.num_scales < 2 {
+            return Err(CoreError::Config(format!(
+                "num_scales must be >= 2, got {}",
+                self.num_scales
+            )));
+        }
+        if self.sampling_steps == 0 {
+            return Err(CoreError::Config("sampling_steps must be >= 1".into()));
+        }
+        self.train.validate()
+    }
+}
+
+/// Optimisation settings of a consistency training run.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct ConsistencyTrainConfig {
     /// Optimisation steps.
     pub steps: u64,
     /// Minibatch size (rows drawn uniformly with replacement from the data).
     pub batch_size: usize,
-    /// Adam's hyper-parameters.
+    /// Adam's hyper-parameters (`lr` is the initial learning rate).
     pub adam: AdamConfig,
-    /// Learning-rate schedule over the steps.
-    pub lr_schedule: LrSchedule,
+    /// The learning rate decays from `adam.lr` to `final_lr_factor · adam.lr` along a cosine
+    /// over the `steps`.
+    pub final_lr_factor: f32,
     /// Global gradient-norm clipping threshold (`None`: no clipping).
     pub grad_clip: Option<f32>,
     /// Decay `μ` of the target network `θ⁻ ← μ θ⁻ + (1 − μ) θ` (updated after every step).
@@ -547,22 +788,24 @@ pub struct ConsistencyTrainConfig {
     pub ema_decay: f32,
     /// Report progress every this many steps (and after the last).
     pub log_every: u64,
-    /// Root seed of every random draw of the run.
+    /// Root seed of every random draw of the run (initialisation, minibatches, noise, and the
+    /// returned policy's stream).
     pub seed: u64,
 }
 
 impl Default for ConsistencyTrainConfig {
-    /// 4000 steps of 256 pairs, Adam `2e-4` with a cosine decay to 10%, clipping at norm 1,
-    /// target decay 0.95 (Song et al.'s CD setting), evaluation average 0.999.
+    /// 3000 steps of 256 pairs, Adam `2e-4` with a cosine decay to 10%, clipping at norm 1,
+    /// target decay 0.95 (Song et al.'s CD setting), evaluation average 0.995 (a half-life of
+    /// about 140 steps, so nothing of the initial weights remains after 3000).
     fn default() -> Self {
         Self {
-            steps: 4000,
+            steps: 3000,
             batch_size: 256,
             adam: AdamConfig { lr: 2e-4, ..AdamConfig::default() },
-            lr_schedule: LrSchedule::Cosine { total_steps: 4000, final_factor: 0.1 },
+            final_lr_factor: 0.1,
             grad_clip: Some(1.0),
             target_ema_decay: 0.95,
-            ema_decay: 0.999,
+            ema_decay: 0.995,
             log_every: 500,
             seed: 0,
         }
@@ -583,15 +826,15 @@ impl ConsistencyTrainConfig {
             && a.eps > 0.0
             && a.weight_decay.is_finite()
             && a.weight_decay >= 0.0
+            && (0.0..=1.0).contains(&self.final_lr_factor)
             && (0.0..1.0).contains(&self.target_ema_decay)
             && (0.0..1.0).contains(&self.ema_decay)
             && self.grad_clip.is_none_or(|g| g.is_finite() && g > 0.0);
-        if !ok {
-            return Err(CoreError::Config(format!("invalid training configuration {self:?}")));
+        if ok {
+            Ok(())
+        } else {
+            Err(CoreError::Config(format!("invalid training configuration {self:?}")))
         }
-        self.lr_schedule
-            .validate()
-            .map_err(|e| CoreError::Config(format!("learning-rate schedule: {e}")))
     }
 }
 
@@ -614,316 +857,10 @@ pub struct ConsistencyProgress {
     pub elapsed_secs: f64,
 }
 
-/// Validates raw `states`/`actions` against the teacher and normalises them with its
-/// normalisers.
-pub(crate) fn normalised_data<T: ConsistencyTeacher + ?Sized>(
-    teacher: &T,
-    states: MatRef<'_, f32>,
-    actions: MatRef<'_, f32>,
-) -> Result<Dataset, CoreError> {
-    let (sn, an) = teacher.normalizers();
-    check_len("teacher state normaliser", sn.dim(), teacher.state_dim())?;
-    check_len("teacher action normaliser", an.dim(), teacher.action_dim())?;
-    check_len("data state columns vs teacher state_dim", states.ncols(), teacher.state_dim())?;
-    check_len("data action columns vs teacher action_dim", actions.ncols(), teacher.action_dim())?;
-    check_finite("training states", states)?;
-    check_finite("training actions", actions)?;
-    let norm = |m: MatRef<'_, f32>, a: &Affine| {
-        Mat::from_fn(m.nrows(), m.ncols(), |i, j| (m[(i, j)] - a.offset[j]) / a.scale[j])
-    };
-    Dataset::new(norm(states, sn), norm(actions, an))
-}
-
-/// Checks the σ grid settings shared by both distillations.
-pub(crate) fn validate_levels(
-    sigma_data: f32,
-    sigma_min: f32,
-    sigma_max: f32,
-    rho: f32,
-    num_scales: usize,
-) -> Result<(), CoreError> {
-    BoundaryPreconditioning::new(sigma_data, sigma_min)?;
-    if !(sigma_max.is_finite() && sigma_max > sigma_min) {
-        return Err(CoreError::Config(format!(
-            "need sigma_max > sigma_min, got {sigma_max} <= {sigma_min}"
-        )));
-    }
-    if !(rho.is_finite() && rho > 0.0) {
-        return Err(CoreError::Config(format!("rho must be positive, got {rho}")));
-    }
-    if num_scales < 2 {
-        return Err(CoreError::Config(format!("num_scales must be >= 2, got {num_scales}")));
-    }
-    Ok(())
-}
-
-/// The `n ≥ 1` Karras levels from `σ_max` down to `σ_min` (without the trailing 0).
-pub(crate) fn karras_levels(
-    n: usize,
-    sigma_min: f32,
-    sigma_max: f32,
-    rho: f32,
-) -> Result<Vec<f32>, CoreError> {
-    let mut v = vdd_diffusion::karras_sigmas(n, sigma_min, sigma_max, rho)?;
-    v.pop();
-    Ok(v)
-}
-
-/// The student's initial weights: the teacher's network when asked (it must exist and match),
-/// or a fresh network from the seed's `"init"` stream.
-pub(crate) fn initial_network<T: ConsistencyTeacher + ?Sized>(
-    teacher: &T,
-    config: &NetConfig,
-    init_from_teacher: bool,
-    levels: usize,
-    seed: u64,
-) -> Result<ConditionedNet, BaselineError> {
-    if !init_from_teacher {
-        return ConditionedNet::new(
-            config,
-            teacher.action_dim(),
-            teacher.state_dim(),
-            levels,
-            &mut Seeds::new(seed).stream("init"),
-        );
-    }
-    let Some(net) = teacher.network() else {
-        return Err(CoreError::Config(
-            "init_from_teacher is set but the teacher exposes no network".into(),
-        )
-        .into());
-    };
-    if net.config() != config
-        || net.action_dim() != teacher.action_dim()
-        || net.state_dim() != teacher.state_dim()
-    {
-        return Err(CoreError::Config(format!(
-            "init_from_teacher is set but the student architecture {config:?} differs from the \
-             teacher's {:?}",
-            net.config()
-        ))
-        .into());
-    }
-    ConditionedNet::from_teacher(net, levels)
-}
-
-/// Adam, the learning-rate schedule, the target network's and the evaluation average.
-#[derive(Debug, Clone)]
-pub(crate) struct Optimisation {
-    adam: Adam,
-    schedule: LrSchedule,
-    grad_clip: Option<f32>,
-    target_ema: Ema,
-    eval_ema: Ema,
-    base_lr: f32,
-}
-
-impl Optimisation {
-    pub(crate) fn new(
-        config: &ConsistencyTrainConfig,
-        online: &ConditionedNet,
-    ) -> Result<Self, BaselineError> {
-        Ok(Self {
-            adam: Adam::new(config.adam),
-            schedule: config.lr_schedule.clone(),
-            grad_clip: config.grad_clip,
-            target_ema: Ema::new(online, config.target_ema_decay)?,
-            eval_ema: Ema::new(online, config.ema_decay)?,
-            base_lr: config.adam.lr,
-        })
-    }
-
-    /// Clips (or rejects non-finite) gradients, takes one Adam step on `online`, moves the
-    /// target network and the evaluation average. Returns the learning rate used.
-    pub(crate) fn apply(
-        &mut self,
-        online: &mut ConditionedNet,
-        target: &mut ConditionedNet,
-        step: u64,
-    ) -> Result<f32, BaselineError> {
-        fit::clip_or_fail(online, self.grad_clip, step as usize, "consistency gradient")?;
-        let factor = self.schedule.factor(step);
-        self.adam.step(online, factor);
-        self.target_ema.update(online)?;
-        self.target_ema.copy_to(target)?;
-        self.eval_ema.update(online)?;
-        Ok(self.base_lr * factor)
-    }
-
-    /// A copy of `online` carrying the evaluation average.
-    pub(crate) fn averaged(
-        &self,
-        online: &ConditionedNet,
-    ) -> Result<ConditionedNet, BaselineError> {
-        let mut net = online.clone();
-        self.eval_ema.copy_to(&mut net)?;
-        Ok(net)
-    }
-}
-
-/// Accumulates the loss terms between progress reports.
-#[derive(Debug, Clone, Default)]
-pub(crate) struct LossMeter {
-    total: f64,
-    consistency: f64,
-    dsm: f64,
-    count: u64,
-}
-
-impl LossMeter {
-    pub(crate) fn add(&mut self, consistency: f32, dsm: f32, total: f32) {
-        self.total += f64::from(total);
-        self.consistency += f64::from(consistency);
-        self.dsm += f64::from(dsm);
-        self.count += 1;
-    }
-
-    /// The report for `step` of `total_steps`, resetting the averages.
-    pub(crate) fn report(
-        &mut self,
-        step: u64,
-        total_steps: u64,
-        lr: f32,
-        elapsed_secs: f64,
-    ) -> ConsistencyProgress {
-        let c = self.count.max(1) as f64;
-        let p = ConsistencyProgress {
-            step,
-            total_steps,
-            loss: (self.total / c) as f32,
-            consistency_loss: (self.consistency / c) as f32,
-            dsm_loss: (self.dsm / c) as f32,
-            lr,
-            elapsed_secs,
-        };
-        *self = Self::default();
-        p
-    }
-}
-
-/// Minibatch buffers: row indices, states, actions.
-#[derive(Debug, Clone)]
-pub(crate) struct Minibatch {
-    pub idx: Vec<usize>,
-    pub states: Mat<f32>,
-    pub actions: Mat<f32>,
-}
-
-impl Default for Minibatch {
-    fn default() -> Self {
-        Self { idx: Vec::new(), states: Mat::zeros(0, 0), actions: Mat::zeros(0, 0) }
-    }
-}
-
-impl Minibatch {
-    pub(crate) fn draw(
-        &mut self,
-        data: &Dataset,
-        sampler: &fit::RowSampler,
-        size: usize,
-        rng: &mut vdd_core::Rng,
-    ) {
-        sampler.draw(rng, size, &mut self.idx);
-        fit::gather_rows(data.states(), &self.idx, &mut self.states);
-        fit::gather_rows(data.actions(), &self.idx, &mut self.actions);
-    }
-}
-
-/// Resizes `m` to `r x c` when its shape differs.
-pub(crate) fn ensure(m: &mut Mat<f32>, r: usize, c: usize) {
-    if m.nrows() != r || m.ncols() != c {
-        *m = Mat::zeros(r, c);
-    }
-}
-
-/// Fills `m` with standard normal draws.
-pub(crate) fn fill_normal(m: &mut Mat<f32>, rng: &mut vdd_core::Rng) {
-    for j in 0..m.ncols() {
-        vdd_core::fill_standard_normal(rng, m.col_as_slice_mut(j));
-    }
-}
-
-/// Reused raw ↔ normalised buffers of a policy.
-#[derive(Debug, Clone)]
-pub(crate) struct PolicyIo {
-    pub obs: Mat<f32>,
-    pub act: Mat<f32>,
-}
-
-impl Default for PolicyIo {
-    fn default() -> Self {
-        Self { obs: Mat::zeros(0, 0), act: Mat::zeros(0, 0) }
-    }
-}
-
-impl PolicyIo {
-    /// Normalises raw observations into `self.obs` and sizes `self.act`.
-    pub(crate) fn load(&mut self, obs: MatRef<'_, f32>, norm: &Affine, action_dim: usize) {
-        let n = obs.nrows();
-        ensure(&mut self.obs, n, obs.ncols());
-        ensure(&mut self.act, n, action_dim);
-        for j in 0..obs.ncols() {
-            let (o, s) = (norm.offset[j], norm.scale[j]);
-            let dst = self.obs.col_as_slice_mut(j);
-            for i in 0..n {
-                dst[i] = (obs[(i, j)] - o) / s;
-            }
-        }
-    }
-
-    /// Writes `self.act`, denormalised, into `out`.
-    pub(crate) fn store(&self, norm: &Affine, mut out: MatMut<'_, f32>) {
-        for j in 0..out.ncols() {
-            let (o, s) = (norm.offset[j], norm.scale[j]);
-            let src = self.act.col_as_slice(j);
-            for i in 0..out.nrows() {
-                out[(i, j)] = src[i] * s + o;
-            }
-        }
-    }
-}
-
-/// Checks a policy batch: `obs` `n x obs_dim` finite, `actions` `n x action_dim`.
-pub(crate) fn check_policy_batch(
-    obs: MatRef<'_, f32>,
-    actions: MatRef<'_, f32>,
-    obs_dim: usize,
-    action_dim: usize,
-) -> Result<(), CoreError> {
-    let n = obs.nrows();
-    check_shape("observations", obs, n, obs_dim)?;
-    check_finite("observations", obs)?;
-    check_shape("actions", actions, n, action_dim)
-}
-
-/// Checks normalised model inputs: `x` `n x d_a` and `states` `n x d_s` finite, `out`
-/// `n x d_a`, and positive finite levels of length `n`.
-pub(crate) fn check_model_batch(
-    x: MatRef<'_, f32>,
-    states: MatRef<'_, f32>,
-    levels: &[&[f32]],
-    out: MatRef<'_, f32>,
-    action_dim: usize,
-    state_dim: usize,
-) -> Result<(), CoreError> {
-    let n = x.nrows();
-    check_shape("x", x, n, action_dim)?;
-    check_shape("states", states, n, state_dim)?;
-    check_shape("output", out, n, action_dim)?;
-    check_finite("x", x)?;
-    check_finite("states", states)?;
-    for l in levels {
-        check_len("noise levels", l.len(), n)?;
-        if !l.iter().all(|s| s.is_finite() && *s > 0.0) {
-            return Err(CoreError::Config("noise levels must be positive and finite".into()));
-        }
-    }
-    Ok(())
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
+    use vdd_diffusion::GmmTeacher;
 
     #[test]
     fn student_from_teacher_reproduces_the_teacher_network() {
@@ -956,5 +893,93 @@ mod tests {
         assert!((p.c_out(10.0) - edm.c_out(10.0)).abs() < 1e-3);
         assert!(BoundaryPreconditioning::new(0.0, 0.002).is_err());
         assert!(BoundaryPreconditioning::new(0.5, -1.0).is_err());
+    }
+
+    /// Tweedie's denoiser of a mixture's exact score equals the closed form
+    /// `D = Σ_k r_k (μ_k + s²/(s² + σ²) (x − μ_k))` with posterior responsibilities `r_k`.
+    #[test]
+    fn score_teacher_is_the_exact_gmm_denoiser() {
+        let means = [vec![1.0f32, 0.0], vec![-1.0, 0.5]];
+        let std = 0.3f32;
+        let gmm = GmmTeacher::isotropic(&[1.0, 3.0], &means, std).unwrap();
+        let mut t = ScoreTeacher::identity(gmm).unwrap();
+        let x = Mat::from_fn(4, 2, |i, j| 0.7 * i as f32 - 1.0 + 0.2 * j as f32);
+        let sigma = [0.05f32, 0.3, 1.0, 4.0];
+        let mut out = Mat::zeros(4, 2);
+        t.denoise(x.as_ref(), &sigma, Mat::zeros(4, 1).as_ref(), out.as_mut()).unwrap();
+        for i in 0..4 {
+            let v = std * std + sigma[i] * sigma[i];
+            let logits: Vec<f32> = means
+                .iter()
+                .zip([0.25f32, 0.75])
+                .map(|(m, w)| {
+                    w.ln() - ((x[(i, 0)] - m[0]).powi(2) + (x[(i, 1)] - m[1]).powi(2)) / (2.0 * v)
+                })
+                .collect();
+            let max = logits[0].max(logits[1]);
+            let r: Vec<f32> = logits.iter().map(|l| (l - max).exp()).collect();
+            let total = r[0] + r[1];
+            for j in 0..2 {
+                let want: f32 = (0..2)
+                    .map(|k| {
+                        r[k] / total * (means[k][j] + std * std / v * (x[(i, j)] - means[k][j]))
+                    })
+                    .sum();
+                assert!((out[(i, j)] - want).abs() < 1e-4, "row {i}: {} vs {want}", out[(i, j)]);
+            }
+        }
+        // Shapes are checked.
+        let mut bad = Mat::zeros(3, 2);
+        assert!(t.denoise(x.as_ref(), &sigma, Mat::zeros(4, 1).as_ref(), bad.as_mut()).is_err());
+        assert!(
+            ScoreTeacher::new(GmmTeacher::circle_toy(), Affine::identity(2), Affine::identity(2))
+                .is_err()
+        );
+    }
+
+    /// The distilled policies can move to evaluation threads.
+    #[test]
+    fn distilled_policies_are_send_and_clone() {
+        fn check<P: vdd_core::Policy + Send + Clone>() {}
+        check::<crate::ConsistencyModel>();
+        check::<crate::TrajectoryModel>();
+    }
+
+    #[test]
+    fn configs_follow_the_teacher_and_reject_bad_numbers() {
+        let beso =
+            Beso::new(&BesoConfig::default(), Affine::identity(3), Affine::identity(2), 0).unwrap();
+        let c = ConsistencyConfig::for_teacher(&beso);
+        assert!(c.init_from_teacher);
+        assert_eq!(c.net, beso.config().net);
+        let wrapped = DiffusionTeacher::from(beso);
+        assert_eq!(ConsistencyConfig::for_teacher(&wrapped), c);
+        assert!(wrapped.validate().is_ok());
+        let gmm = ScoreTeacher::identity(GmmTeacher::circle_toy()).unwrap();
+        assert_eq!(ConsistencyConfig::for_teacher(&gmm), ConsistencyConfig::default());
+        let ddpm = vdd_diffusion::Ddpm::new(
+            &vdd_diffusion::DdpmConfig::default(),
+            Affine::identity(1),
+            Affine::identity(2),
+            0,
+        )
+        .unwrap();
+        assert!(DiffusionTeacher::from(ddpm).validate().is_err());
+        let ok = ConsistencyConfig::default();
+        for bad in [
+            ConsistencyConfig { num_scales: 1, ..ok.clone() },
+            ConsistencyConfig { sigma_min: 0.0, ..ok.clone() },
+            ConsistencyConfig { sigma_max: 0.001, ..ok.clone() },
+            ConsistencyConfig { rho: -1.0, ..ok.clone() },
+            ConsistencyConfig { sampling_steps: 0, ..ok.clone() },
+        ] {
+            assert!(bad.validate().is_err(), "{bad:?}");
+        }
+        let mut bad = ok.clone();
+        bad.train.target_ema_decay = 1.0;
+        assert!(bad.validate().is_err());
+        let mut bad = ok;
+        bad.train.final_lr_factor = 2.0;
+        assert!(bad.validate().is_err());
     }
 }

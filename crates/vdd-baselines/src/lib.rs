@@ -21,18 +21,29 @@
 //!   `G(x, t, u)` jumping from any level to any lower one, trained with soft consistency
 //!   matching against the teacher ODE plus denoising score matching (no GAN term);
 //! * [`consistency`]: what both share — the teacher seen through its denoiser
-//!   ([`ConsistencyTeacher`], implemented for [`vdd_diffusion::Beso`] and closures), the
-//!   noise-conditioned student network, training settings and progress reports.
+//!   ([`ConsistencyTeacher`], implemented for [`vdd_diffusion::Beso`], for a
+//!   [`vdd_diffusion::DiffusionTeacher`] holding one, for any variance-exploding score model
+//!   through [`ScoreTeacher`] — e.g. the exact [`vdd_diffusion::GmmTeacher`] — and for
+//!   closures), the settings ([`ConsistencyConfig`], which is [`CdConfig`]), the
+//!   noise-conditioned student network, the trainer ([`consistency::ConsistencyTrainer`],
+//!   used as [`CdTrainer`] / [`CtmTrainer`]) and the distilled policy
+//!   ([`consistency::DistilledPolicy`], used as [`ConsistencyModel`] / [`TrajectoryModel`]).
 //!
 //! EM and IMC take plain matrices in a [`Dataset`] (states `n x d_s`, actions `n x d_a`,
-//! already normalised); CD and CTM take raw matrices and normalise them with the teacher's
-//! normalisers. Every random draw comes from `vdd_core::Seeds::new(seed)` of the config.
+//! already normalised); CD and CTM take the raw matrices the teacher was trained on (action
+//! chunks flattened) and normalise them with the teacher's normalisers; their policies map raw
+//! observations to raw actions. Every random draw comes from `vdd_core::Seeds::new(seed)` of
+//! the config.
+//!
+//! The DDPM-1 and BESO-1 baselines are the teachers' own samplers with one step
+//! (`DiffusionTeacher::set_steps(1)` in `vdd-diffusion`); nothing here re-implements them.
 #![warn(missing_docs)]
 
 pub mod cd;
 pub mod consistency;
 pub mod ctm;
 mod dataset;
+mod distill;
 pub mod em;
 mod error;
 pub mod fit;
@@ -45,9 +56,10 @@ mod test_support;
 
 pub use cd::{CdConfig, CdTrainer, ConsistencyModel};
 pub use consistency::{
-    ConsistencyProgress, ConsistencyTeacher, ConsistencyTrainConfig, DenoiserFn,
+    ConsistencyConfig, ConsistencyProgress, ConsistencyTeacher, ConsistencyTrainConfig, DenoiserFn,
+    ScoreTeacher,
 };
-pub use ctm::{CtmConfig, CtmTrainer, TrajectoryModel};
+pub use ctm::{CtmConfig, CtmMatching, CtmTrainer, DsmWeighting, TrajectoryModel};
 pub use dataset::Dataset;
 pub use em::{Em, EmConfig, EmMetrics};
 pub use error::BaselineError;
