@@ -4,8 +4,9 @@
 //! [`vdd_core::ScoreModel`]s — what Variational Diffusion Distillation distils — and as
 //! [`vdd_core::Policy`]s (the paper's DDPM, DDPM-1, BESO and BESO-1 baselines).
 //!
-//! * [`Ddpm`]: variance-preserving, `ε`-prediction, cosine or linear-VP `β`, `N` steps
-//!   (default 16); DDPM ancestral and DDIM samplers with any `k ≤ N` steps (`k = 1`: DDPM-1).
+//! * [`Ddpm`]: variance-preserving, `ε`-prediction, cosine or linear `β`, `N` steps
+//!   (default 16); DDPM ancestral (variance `β_t` or `β̃_t`) and DDIM samplers with any
+//!   `k ≤ N` steps (`k = 1`: DDPM-1).
 //!   Score `−ε̂(a, t, s)/sqrt(1 − ᾱ_t)` at continuous `t ∈ (0, N]` (noise convention `t`).
 //! * [`Beso`]: variance-exploding with Karras (EDM) preconditioning, log-normal or
 //!   log-logistic training `σ`, the Karras `σ` schedule and Euler / Heun / Euler-ancestral /
@@ -13,7 +14,11 @@
 //!   convention `σ`).
 //! * [`GmmTeacher`]: an exact Gaussian mixture, state-conditioned or not.
 //!
-//! Learned teachers store the data normalisers fitted on their training data: their
+//! Both learned teachers are [`LearnedTeacher`]s — one type holds what they share (normalisers,
+//! network and EMA weights, training, save / load, the `ScoreModel` and `Policy`
+//! implementations) and is parameterised by the diffusion process (`Ddpm =
+//! LearnedTeacher<DdpmProcess>`, `Beso = LearnedTeacher<BesoProcess>`). Learned teachers
+//! store the data normalisers fitted on their training data: their
 //! `ScoreModel` works in the normalised space, their `Policy` maps raw observations to raw
 //! actions. Both are trained from plain matrices by seeded minibatch denoising score matching
 //! ([`TrainConfig`]), sample with EMA weights, and save to `safetensors` with their config and
@@ -58,6 +63,7 @@ mod common;
 mod ddpm;
 mod error;
 pub mod gmm;
+mod learned;
 pub mod metrics;
 mod net;
 mod normalize;
@@ -72,6 +78,7 @@ pub use beso::{Beso, BesoConfig, SigmaDistribution};
 pub use ddpm::{Ddpm, DdpmConfig, MIN_TIME, TimeSampling};
 pub use error::{DiffusionError, Result};
 pub use gmm::{Gmm, GmmTeacher};
+pub use learned::LearnedTeacher;
 pub use net::{DenoiserNet, NetConfig};
 pub use normalize::{NormalizerKind, fit_normalizer};
 pub use sampling::{KarrasSampler, SamplerBuffers, VpSampler, heun_step, sample_karras, sample_vp};

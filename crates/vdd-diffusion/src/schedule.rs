@@ -19,6 +19,17 @@ pub enum BetaSchedule {
         /// `β(1)` (default 20).
         beta_max: f32,
     },
+    /// Ho et al.'s (2020) discrete linear schedule: `β_i` evenly spaced from `beta_start`
+    /// (`i = 1`) to `beta_end` (`i = N`), `ᾱ_i = Π_{j ≤ i} (1 − β_j)`. Sampling starts from
+    /// `N(0, I)`, so `ᾱ_N` must be small: Ho et al.'s `1e-4 … 0.02` needs about 1000 steps;
+    /// with 16 steps use e.g. `0.05 … 0.7` (or [`BetaSchedule::Linear`], which stays
+    /// consistent for any `N`).
+    LinearBetas {
+        /// `β_1`.
+        beta_start: f32,
+        /// `β_N`.
+        beta_end: f32,
+    },
     /// The cosine schedule of Nichol & Dhariwal (2021):
     /// `ᾱ_i = f(i/N) / f(0)`, `f(τ) = cos²(π/2 · (τ + s)/(1 + s))`, with `β_i` clipped at 0.999.
     Cosine {
@@ -78,6 +89,20 @@ impl VpSchedule {
                 for i in 1..=num_steps {
                     let tau = i as f64 / n;
                     log_ab.push(-(b0 * tau + 0.5 * (b1 - b0) * tau * tau));
+                }
+            }
+            BetaSchedule::LinearBetas { beta_start, beta_end } => {
+                let (b0, b1) = (f64::from(beta_start), f64::from(beta_end));
+                if !(b0.is_finite() && b1.is_finite() && b0 > 0.0 && b0 <= b1 && b1 < 1.0) {
+                    return Err(DiffusionError::Config(format!(
+                        "linear betas need 0 < beta_start <= beta_end < 1, got {beta_start}, {beta_end}"
+                    )));
+                }
+                let mut log_acc = 0.0f64;
+                for i in 1..=num_steps {
+                    let r = if num_steps == 1 { 1.0 } else { (i - 1) as f64 / (n - 1.0) };
+                    log_acc += (-(b0 + r * (b1 - b0))).ln_1p();
+                    log_ab.push(log_acc);
                 }
             }
             BetaSchedule::Cosine { s } => {
@@ -144,6 +169,12 @@ impl VpSchedule {
     /// `sqrt(1 − ᾱ(t))`, the noise standard deviation of `x_t`, computed without cancellation.
     pub fn noise_std(&self, t: f32) -> f32 {
         (-(self.log_alpha_bar(t).exp_m1())).sqrt() as f32
+    }
+
+    /// `sqrt(1 − ᾱ(t)/ᾱ(s))` for `s ≤ t`: the standard deviation of the forward process's noise
+    /// from `s` to `t` (`sqrt(β_t)` for one grid step).
+    pub fn step_noise_std(&self, t: f32, s: f32) -> f32 {
+        (-(self.log_alpha_bar(t) - self.log_alpha_bar(s)).exp_m1()).max(0.0).sqrt() as f32
     }
 
     /// The equivalent VE noise level `σ(t) = sqrt((1 − ᾱ)/ᾱ)` (`x_t / sqrt(ᾱ) = a + σ ε`).
@@ -345,6 +376,17 @@ mod tests {
         let f = |t: f32| ((t + 0.008) / 1.008 * std::f32::consts::FRAC_PI_2).cos().powi(2);
         assert!((c.alpha_bars()[1] - f(1.0 / 16.0) / f(0.0)).abs() < 1e-6);
         assert!(VpSchedule::new(BetaSchedule::Linear { beta_min: 1.0, beta_max: 0.5 }, 4).is_err());
+        // Ho et al.'s linear betas: evenly spaced β_i.
+        let ho = VpSchedule::new(BetaSchedule::LinearBetas { beta_start: 0.05, beta_end: 0.7 }, 16)
+            .unwrap();
+        let betas = ho.betas();
+        assert!((betas[0] - 0.05).abs() < 1e-6 && (betas[15] - 0.7).abs() < 1e-5, "{betas:?}");
+        assert!(betas.windows(2).all(|w| ((w[1] - w[0]) - 0.65 / 15.0).abs() < 1e-5));
+        assert!(ho.alpha_bar(16.0) < 1e-3);
+        for bad in [(0.0, 0.5), (0.5, 0.1), (0.1, 1.0)] {
+            let kind = BetaSchedule::LinearBetas { beta_start: bad.0, beta_end: bad.1 };
+            assert!(VpSchedule::new(kind, 4).is_err(), "{bad:?}");
+        }
         assert!(VpSchedule::new(BetaSchedule::default(), 0).is_err());
     }
 

@@ -110,18 +110,12 @@ impl DiffusionTeacher {
 
     /// Sets the number of sampling steps, keeping the sampler (`1 ≤ steps`, and `≤ N` for DDPM).
     pub fn set_steps(&mut self, steps: usize) -> Result<()> {
-        match self {
-            DiffusionTeacher::Ddpm(t) => t.set_sampler(t.config().sampler, steps),
-            DiffusionTeacher::Beso(t) => t.set_sampler(t.config().sampler, steps),
-        }
+        delegate!(self, t => t.set_sampler(t.sampler().0, steps))
     }
 
     /// The current number of sampling steps.
     pub fn steps(&self) -> usize {
-        match self {
-            DiffusionTeacher::Ddpm(t) => t.config().sampling_steps,
-            DiffusionTeacher::Beso(t) => t.config().sampling_steps,
-        }
+        delegate!(self, t => t.sampler().1)
     }
 }
 

@@ -147,20 +147,121 @@ pub(crate) fn normalized(m: MatRef<'_, f32>, norm: &Affine) -> Mat<f32> {
     Mat::from_fn(m.nrows(), m.ncols(), |i, j| (m[(i, j)] - norm.offset[j]) / norm.scale[j])
 }
 
-/// One denoising-score-matching objective (DDPM's ε loss, EDM's preconditioned loss).
-pub(crate) trait DsmObjective {
-    /// Draws the noise levels and Gaussian noise for a batch of `n` rows of `d` dimensions.
-    fn draw(&mut self, n: usize, d: usize, rng: &mut vdd_core::Rng);
+/// One row's denoising-score-matching coefficients at a noise level: the network sees
+/// `x = input_a · a + input_eps · ε` with noise condition `c_noise` and regresses
+/// `target_a · a + target_eps · ε`.
+///
+/// DDPM (`ε`-prediction): `x = sqrt(ᾱ) a + sqrt(1 − ᾱ) ε`, target `ε`. EDM: the network input
+/// is `c_in (a + σ ε)` and the target `(a − c_skip (a + σ ε))/c_out`, both linear in `a` and
+/// `ε`; the plain squared error then equals EDM's `λ(σ) ||D − a||²`.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct DsmRow {
+    /// The network's noise condition.
+    pub c_noise: f32,
+    /// Coefficient of the clean action in the network input.
+    pub input_a: f32,
+    /// Coefficient of the noise in the network input.
+    pub input_eps: f32,
+    /// Coefficient of the clean action in the regression target.
+    pub target_a: f32,
+    /// Coefficient of the noise in the regression target.
+    pub target_eps: f32,
+}
+
+/// The training noise of a diffusion process: how levels are drawn and what the network
+/// regresses at a level.
+pub trait DsmNoise {
+    /// One training noise level.
+    fn draw_level(&self, rng: &mut dyn rand::RngCore) -> f32;
+    /// The regression at `level`.
+    fn dsm_row(&self, level: f32) -> DsmRow;
+}
+
+/// Buffers of the denoising-score-matching loss `mean ||F(x, s, c_noise) − target||²` shared
+/// by both teachers.
+#[derive(Debug, Clone)]
+pub(crate) struct Dsm {
+    rows: Vec<DsmRow>,
+    c_noise: Vec<f32>,
+    eps: Mat<f32>,
+    x: Mat<f32>,
+    grad: Mat<f32>,
+}
+
+impl Default for Dsm {
+    fn default() -> Self {
+        Self {
+            rows: Vec::new(),
+            c_noise: Vec::new(),
+            eps: Mat::zeros(0, 0),
+            x: Mat::zeros(0, 0),
+            grad: Mat::zeros(0, 0),
+        }
+    }
+}
+
+impl Dsm {
+    /// Draws the noise levels (one per row) and then the Gaussian noise for a batch of `n`
+    /// rows of `d` dimensions.
+    pub(crate) fn draw(
+        &mut self,
+        noise: &impl DsmNoise,
+        n: usize,
+        d: usize,
+        rng: &mut vdd_core::Rng,
+    ) {
+        self.rows.clear();
+        self.c_noise.clear();
+        for _ in 0..n {
+            let row = noise.dsm_row(noise.draw_level(rng));
+            self.rows.push(row);
+            self.c_noise.push(row.c_noise);
+        }
+        if self.eps.nrows() != n || self.eps.ncols() != d {
+            self.eps = Mat::zeros(n, d);
+            self.x = Mat::zeros(n, d);
+            self.grad = Mat::zeros(n, d);
+        }
+        for j in 0..d {
+            vdd_core::fill_standard_normal(rng, self.eps.col_as_slice_mut(j));
+        }
+    }
 
     /// The loss on a batch with the drawn noise; with `backward`, accumulates its parameter
     /// gradients into `net`.
-    fn loss(
+    pub(crate) fn loss(
         &mut self,
         net: &mut DenoiserNet,
         actions: MatRef<'_, f32>,
         states: MatRef<'_, f32>,
         backward: bool,
-    ) -> f32;
+    ) -> f32 {
+        let (n, d) = (actions.nrows(), actions.ncols());
+        for j in 0..d {
+            let (eps, x) = (self.eps.col_as_slice(j), self.x.col_as_slice_mut(j));
+            for i in 0..n {
+                let r = &self.rows[i];
+                x[i] = r.input_a * actions[(i, j)] + r.input_eps * eps[i];
+            }
+        }
+        let f = net.forward(self.x.as_ref(), states, &self.c_noise);
+        let scale = 1.0 / (n * d) as f32;
+        let mut total = 0.0f64;
+        for j in 0..d {
+            let (g, eps) = (self.grad.col_as_slice_mut(j), self.eps.col_as_slice(j));
+            for i in 0..n {
+                let row = &self.rows[i];
+                let target = row.target_a * actions[(i, j)] + row.target_eps * eps[i];
+                let r = f[(i, j)] - target;
+                total += f64::from(r * r);
+                g[i] = 2.0 * r * scale;
+            }
+        }
+        if backward {
+            net.backward(self.grad.as_ref());
+        }
+        (total * f64::from(scale)) as f32
+    }
 }
 
 fn gather_rows(src: &Mat<f32>, idx: &[usize], dst: &mut Mat<f32>) {
@@ -174,8 +275,8 @@ fn gather_rows(src: &Mat<f32>, idx: &[usize], dst: &mut Mat<f32>) {
 }
 
 /// Trains `net` on the normalised data; returns the EMA network.
-pub(crate) fn train_dsm<O: DsmObjective>(
-    objective: &mut O,
+pub(crate) fn train_dsm(
+    noise: &impl DsmNoise,
     mut net: DenoiserNet,
     config: &TrainConfig,
     data: &PreparedData,
@@ -188,6 +289,7 @@ pub(crate) fn train_dsm<O: DsmObjective>(
     let b = config.batch_size.min(n);
     let mut ema_net = net.clone();
     let mut ema = Ema::new(config.ema_decay);
+    let mut dsm = Dsm::default();
     let mut adam = Adam::new(config.adam);
     let schedule = config.lr_schedule();
     let mut batch_rng = seeds.stream("minibatch");
@@ -214,8 +316,8 @@ pub(crate) fn train_dsm<O: DsmObjective>(
         gather_rows(&data.actions, &idx, &mut a_batch);
         gather_rows(&data.states, &idx, &mut s_batch);
         net.zero_grad();
-        objective.draw(b, da, &mut noise_rng);
-        let loss = objective.loss(&mut net, a_batch.as_ref(), s_batch.as_ref(), true);
+        dsm.draw(noise, b, da, &mut noise_rng);
+        let loss = dsm.loss(&mut net, a_batch.as_ref(), s_batch.as_ref(), true);
         if !loss.is_finite() {
             return Err(DiffusionError::Diverged { step: step + 1, loss });
         }

@@ -1,0 +1,421 @@
+//! [`LearnedTeacher`]: everything the DDPM and BESO teachers share — data normalisers, the
+//! denoiser network with its EMA weights, training, the [`ScoreModel`] and [`Policy`]
+//! implementations, save and load. What differs (the diffusion process, its network
+//! parameterisation, schedule and samplers) is a [`Process`]: [`crate::Ddpm`] is
+//! `LearnedTeacher<DdpmProcess>`, [`crate::Beso`] is `LearnedTeacher<BesoProcess>`.
+
+use std::fmt::Debug;
+use std::path::Path;
+
+use faer::reborrow::Reborrow;
+use faer::{MatMut, MatRef};
+use rand::RngCore;
+use serde::Serialize;
+use serde::de::DeserializeOwned;
+use vdd_core::{
+    Affine, CoreError, NoiseConvention, NoiseSchedule, Policy, ScoreModel, Seeds, check_act_args,
+    check_len, check_score_args, check_shape,
+};
+
+use crate::common::{self, PolicyIo, SavedShape, check_batch};
+use crate::error::Result;
+use crate::net::{DenoiserNet, NetConfig};
+use crate::normalize::NormalizerKind;
+use crate::sampling::SamplerBuffers;
+use crate::train::{self, DsmNoise, TrainConfig, TrainProgress};
+
+/// The part of a learned teacher that depends on the diffusion: its configuration, noise
+/// schedule, network parameterisation, training noise and samplers.
+///
+/// Sealed: implemented by the DDPM (VP, `ε`-prediction) and BESO (VE, EDM denoiser)
+/// processes of this crate only.
+pub trait Process: DsmNoise + Clone + Debug + Send + Sized {
+    /// The teacher's configuration (saved with the weights).
+    type Config: Clone + Debug + PartialEq + Serialize + DeserializeOwned;
+    /// The samplers it offers.
+    type Sampler: Copy + Debug;
+    /// The checkpoint's kind tag.
+    const KIND: &'static str;
+    /// Name of the policy's random stream.
+    const POLICY_STREAM: &'static str;
+    /// What a noise level means for the score model.
+    const NOISE_CONVENTION: NoiseConvention;
+
+    /// Checks a configuration.
+    fn validate(config: &Self::Config) -> Result<()>;
+    /// The denoiser network's architecture.
+    fn net_config(config: &Self::Config) -> &NetConfig;
+    /// How to fit the `(state, action)` normalisers to training data.
+    fn normalizer_kinds(config: &Self::Config) -> (NormalizerKind, NormalizerKind);
+    /// Builds the process (schedule, sampling grid) from a valid configuration.
+    fn build(config: Self::Config) -> Result<Self>;
+    /// The configuration, with the current sampler and steps.
+    fn config(&self) -> &Self::Config;
+    /// The sampler and steps used by `act` and `sample_actions`.
+    fn sampler(&self) -> (Self::Sampler, usize);
+    /// Selects the sampler and steps.
+    fn set_sampler(&mut self, sampler: Self::Sampler, steps: usize) -> Result<()>;
+    /// Checks score-query noise levels (`allow_zero`: a level of 0 is a valid target).
+    fn check_levels(&self, levels: &[f32], allow_zero: bool) -> Result<(), CoreError>;
+    /// The network's prediction at per-row `levels` (`D(x; σ, s)` or `ε̂(x, t, s)`), without
+    /// argument checks.
+    fn evaluate(
+        &mut self,
+        net: &mut DenoiserNet,
+        x: MatRef<'_, f32>,
+        levels: &[f32],
+        states: MatRef<'_, f32>,
+        out: MatMut<'_, f32>,
+    );
+    /// Turns [`Process::evaluate`]'s output at `x` into the score, in place.
+    fn prediction_to_score(&self, x: MatRef<'_, f32>, levels: &[f32], out: MatMut<'_, f32>);
+    /// Samples one action per row of (normalised, checked) `states` into `out`, with the
+    /// configured sampler (`how = None`) or the given one.
+    #[allow(clippy::too_many_arguments)]
+    fn sample(
+        &mut self,
+        net: &mut DenoiserNet,
+        buf: &mut SamplerBuffers,
+        how: Option<(Self::Sampler, usize)>,
+        states: MatRef<'_, f32>,
+        rng: &mut dyn RngCore,
+        out: MatMut<'_, f32>,
+    ) -> Result<(), CoreError>;
+    /// Maps a level drawn from a distillation noise schedule onto a valid query level.
+    fn valid_level(&self, drawn: f32) -> f32;
+}
+
+/// A learned diffusion teacher: a [`DenoiserNet`] trained by denoising score matching on
+/// normalised data, with the diffusion process `P` (DDPM or BESO).
+///
+/// Use it through its aliases [`crate::Ddpm`] and [`crate::Beso`], or [`crate::DiffusionTeacher`]
+/// for either. The [`ScoreModel`] works in the **normalised** space ([`LearnedTeacher::normalizers`]);
+/// the [`Policy`] maps raw observations to raw actions. Sampling and scores use the
+/// exponential-moving-average weights.
+#[derive(Debug, Clone)]
+pub struct LearnedTeacher<P: Process> {
+    pub(crate) process: P,
+    train_config: Option<TrainConfig>,
+    state_norm: Affine,
+    action_norm: Affine,
+    pub(crate) net: DenoiserNet,
+    pub(crate) sampler_buf: SamplerBuffers,
+    io: PolicyIo,
+    rng: vdd_core::Rng,
+}
+
+impl<P: Process> LearnedTeacher<P> {
+    /// An untrained teacher with freshly initialised weights and the given normalisers
+    /// (their dimensions give the state and action dimensions).
+    pub fn new(
+        config: &P::Config,
+        state_norm: Affine,
+        action_norm: Affine,
+        seed: u64,
+    ) -> Result<Self> {
+        P::validate(config)?;
+        let net = DenoiserNet::new(
+            P::net_config(config),
+            action_norm.dim(),
+            state_norm.dim(),
+            &mut Seeds::new(seed).stream("init"),
+        )?;
+        Self::from_parts(config.clone(), None, state_norm, action_norm, net, seed)
+    }
+
+    fn from_parts(
+        config: P::Config,
+        train_config: Option<TrainConfig>,
+        state_norm: Affine,
+        action_norm: Affine,
+        net: DenoiserNet,
+        seed: u64,
+    ) -> Result<Self> {
+        Ok(Self {
+            process: P::build(config)?,
+            train_config,
+            state_norm,
+            action_norm,
+            net,
+            sampler_buf: SamplerBuffers::default(),
+            io: PolicyIo::default(),
+            rng: Seeds::new(seed).stream(P::POLICY_STREAM),
+        })
+    }
+
+    /// Trains a teacher on raw `states` (`n x d_s`) and `actions` (`n x d_a`, action chunks
+    /// flattened) by seeded minibatch denoising score matching with Adam; the returned teacher
+    /// samples with the EMA weights. `progress` receives a report every `train.log_every`
+    /// steps (nothing is printed).
+    pub fn train(
+        config: &P::Config,
+        train: &TrainConfig,
+        states: MatRef<'_, f32>,
+        actions: MatRef<'_, f32>,
+        seed: u64,
+        progress: &mut dyn FnMut(TrainProgress),
+    ) -> Result<Self> {
+        P::validate(config)?;
+        train.validate()?;
+        let (state_kind, action_kind) = P::normalizer_kinds(config);
+        let data = train::prepare_data(states, actions, state_kind, action_kind)?;
+        let seeds = Seeds::new(seed);
+        let net = DenoiserNet::new(
+            P::net_config(config),
+            actions.ncols(),
+            states.ncols(),
+            &mut seeds.stream("init"),
+        )?;
+        let process = P::build(config.clone())?;
+        let ema = train::train_dsm(&process, net, train, &data, &seeds, progress)?;
+        Self::from_parts(
+            config.clone(),
+            Some(train.clone()),
+            data.state_norm,
+            data.action_norm,
+            ema,
+            seed,
+        )
+    }
+
+    /// Dimension of one (flattened) action; the same for the score model and the policy.
+    pub fn action_dim(&self) -> usize {
+        self.action_norm.dim()
+    }
+
+    /// Dimension of one state / observation.
+    pub fn state_dim(&self) -> usize {
+        self.state_norm.dim()
+    }
+
+    /// The configuration (including the current sampler and steps).
+    pub fn config(&self) -> &P::Config {
+        self.process.config()
+    }
+
+    /// The training configuration, when the teacher was trained (or loaded from a trained one).
+    pub fn train_config(&self) -> Option<&TrainConfig> {
+        self.train_config.as_ref()
+    }
+
+    /// The `(state, action)` normalisers; the [`ScoreModel`] works in their normalised space.
+    pub fn normalizers(&self) -> (&Affine, &Affine) {
+        (&self.state_norm, &self.action_norm)
+    }
+
+    /// The network (EMA weights).
+    pub fn net(&self) -> &DenoiserNet {
+        &self.net
+    }
+
+    /// Selects the sampler and number of steps used by `act` and `sample_actions`.
+    pub fn set_sampler(&mut self, sampler: P::Sampler, steps: usize) -> Result<()> {
+        self.process.set_sampler(sampler, steps)
+    }
+
+    /// The sampler and number of steps used by `act` and `sample_actions`.
+    pub fn sampler(&self) -> (P::Sampler, usize) {
+        self.process.sampler()
+    }
+
+    /// Checks a batched network query: `x` (`n x d_a`) and `states` (`n x d_s`) finite, one
+    /// valid level per row, `out` `n x d_a`.
+    pub(crate) fn check_query(
+        &self,
+        x: MatRef<'_, f32>,
+        levels: &[f32],
+        states: MatRef<'_, f32>,
+        out: MatRef<'_, f32>,
+        allow_zero: bool,
+    ) -> Result<(), CoreError> {
+        let n = x.nrows();
+        check_batch("x", x, n, self.action_dim())?;
+        check_batch("states", states, n, self.state_dim())?;
+        check_len("noise levels", levels.len(), n)?;
+        check_shape("output", out, n, self.action_dim())?;
+        self.process.check_levels(levels, allow_zero)
+    }
+
+    /// The network's prediction after argument checks.
+    pub(crate) fn evaluate_checked(
+        &mut self,
+        x: MatRef<'_, f32>,
+        levels: &[f32],
+        states: MatRef<'_, f32>,
+        out: MatMut<'_, f32>,
+    ) -> Result<(), CoreError> {
+        self.check_query(x, levels, states, out.rb(), false)?;
+        self.process.evaluate(&mut self.net, x, levels, states, out);
+        Ok(())
+    }
+
+    /// Samples one action per row of normalised `states` into `out` with an explicit sampler
+    /// and number of steps (normalised space).
+    pub fn sample_with(
+        &mut self,
+        sampler: P::Sampler,
+        steps: usize,
+        states: MatRef<'_, f32>,
+        rng: &mut dyn RngCore,
+        out: MatMut<'_, f32>,
+    ) -> Result<(), CoreError> {
+        self.sample_checked(Some((sampler, steps)), states, rng, out)
+    }
+
+    fn sample_checked(
+        &mut self,
+        how: Option<(P::Sampler, usize)>,
+        states: MatRef<'_, f32>,
+        rng: &mut dyn RngCore,
+        out: MatMut<'_, f32>,
+    ) -> Result<(), CoreError> {
+        let n = states.nrows();
+        check_batch("states", states, n, self.state_dim())?;
+        check_shape("sampled actions", out.rb(), n, self.action_dim())?;
+        self.process.sample(&mut self.net, &mut self.sampler_buf, how, states, rng, out)
+    }
+
+    /// Saves the EMA weights (`safetensors`) with the config, dimensions, normalisers and the
+    /// training config as JSON metadata; the write is atomic.
+    pub fn save(&self, path: &Path) -> Result<()> {
+        let shape = SavedShape {
+            state_dim: self.state_dim(),
+            action_dim: self.action_dim(),
+            state_normalizer: self.state_norm.clone(),
+            action_normalizer: self.action_norm.clone(),
+        };
+        let meta = common::metadata(P::KIND, self.config(), &shape, self.train_config.as_ref())?;
+        vdd_nn::io::save_safetensors(path, &self.net, &meta)?;
+        Ok(())
+    }
+
+    /// Loads a teacher of this kind saved by [`LearnedTeacher::save`]; its policy stream is
+    /// seeded with `seed`.
+    pub fn load(path: &Path, seed: u64) -> Result<Self> {
+        let meta = vdd_nn::io::read_metadata(path)?;
+        let (config, shape, train): (P::Config, SavedShape, Option<TrainConfig>) =
+            common::parse_metadata(path, &meta, P::KIND)?;
+        P::validate(&config).map_err(|e| common::format_err(path, e))?;
+        let mut net = DenoiserNet::new(
+            P::net_config(&config),
+            shape.action_dim,
+            shape.state_dim,
+            &mut Seeds::new(0).stream("init"),
+        )?;
+        vdd_nn::io::load_safetensors(path, &mut net)?;
+        Self::from_parts(config, train, shape.state_normalizer, shape.action_normalizer, net, seed)
+    }
+
+    pub(crate) fn kind() -> &'static str {
+        P::KIND
+    }
+
+    /// The DSM loss of the teacher's process on a batch, with noise drawn from `seed`
+    /// (gradient checks).
+    #[cfg(test)]
+    pub(crate) fn objective_for_tests(
+        &self,
+    ) -> impl FnMut(&mut DenoiserNet, MatRef<'_, f32>, MatRef<'_, f32>, u64, bool) -> f32 + use<P>
+    {
+        let process = self.process.clone();
+        let mut dsm = train::Dsm::default();
+        move |net, a, s, seed, backward| {
+            dsm.draw(&process, a.nrows(), a.ncols(), &mut Seeds::new(seed).stream("t"));
+            dsm.loss(net, a, s, backward)
+        }
+    }
+}
+
+impl<P: Process> ScoreModel for LearnedTeacher<P> {
+    fn action_dim(&self) -> usize {
+        self.action_norm.dim()
+    }
+
+    fn state_dim(&self) -> usize {
+        self.state_norm.dim()
+    }
+
+    fn noise_convention(&self) -> NoiseConvention {
+        P::NOISE_CONVENTION
+    }
+
+    /// The score in the normalised space: `(D(a; σ, s) − a)/σ²` (BESO) or
+    /// `−ε̂(a, t, s)/sqrt(1 − ᾱ(t))` (DDPM).
+    fn score(
+        &mut self,
+        actions: MatRef<'_, f32>,
+        states: MatRef<'_, f32>,
+        noise_levels: &[f32],
+        mut out: MatMut<'_, f32>,
+    ) -> Result<(), CoreError> {
+        check_score_args(self, actions, states, noise_levels, out.rb())?;
+        self.evaluate_checked(actions, noise_levels, states, out.as_mut())?;
+        self.process.prediction_to_score(actions, noise_levels, out);
+        Ok(())
+    }
+
+    /// Samples with the configured sampler and steps (normalised space).
+    fn sample_actions(
+        &mut self,
+        states: MatRef<'_, f32>,
+        rng: &mut dyn RngCore,
+        out: MatMut<'_, f32>,
+    ) -> Result<(), CoreError> {
+        self.sample_checked(None, states, rng, out)
+    }
+
+    /// Draws from `schedule` and maps each draw onto a valid level (BESO: clamped to
+    /// `[σ_min, σ_max]`; DDPM: clamped to `[MIN_TIME, N]`, rounded to the grid with discrete
+    /// training times).
+    fn draw_noise_levels(
+        &self,
+        schedule: &NoiseSchedule,
+        progress: f32,
+        rng: &mut dyn RngCore,
+        out: &mut [f32],
+    ) {
+        for x in out {
+            *x = self.process.valid_level(schedule.draw(progress, rng));
+        }
+    }
+}
+
+impl<P: Process> Policy for LearnedTeacher<P> {
+    fn obs_dim(&self) -> usize {
+        self.state_norm.dim()
+    }
+
+    fn action_dim(&self) -> usize {
+        self.action_norm.dim()
+    }
+
+    fn seed(&mut self, seed: u64) {
+        self.rng = Seeds::new(seed).stream(P::POLICY_STREAM);
+    }
+
+    fn act_into(&mut self, obs: &[f32], action: &mut [f32]) -> Result<(), CoreError> {
+        check_act_args(self, obs, action)?;
+        let (ds, da) = (self.state_norm.dim(), self.action_norm.dim());
+        self.act_batch(
+            MatRef::from_row_major_slice(obs, 1, ds),
+            MatMut::from_row_major_slice_mut(action, 1, da),
+        )
+    }
+
+    fn act_batch(
+        &mut self,
+        obs: MatRef<'_, f32>,
+        actions: MatMut<'_, f32>,
+    ) -> Result<(), CoreError> {
+        let n = obs.nrows();
+        let (ds, da) = (self.state_norm.dim(), self.action_norm.dim());
+        check_batch("observations", obs, n, ds)?;
+        check_shape("actions", actions.rb(), n, da)?;
+        self.io.prepare(n, ds, da);
+        self.io.load_obs(obs, &self.state_norm);
+        let Self { process, net, sampler_buf, io, rng, .. } = self;
+        process.sample(net, sampler_buf, None, io.obs.as_ref(), rng, io.act.as_mut())?;
+        self.io.store_actions(&self.action_norm, actions);
+        Ok(())
+    }
+}
