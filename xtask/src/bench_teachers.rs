@@ -1,6 +1,631 @@
-//! `cargo xtask` command (not implemented yet).
+//! `cargo xtask bench teachers`: the acceptance checks of the learned diffusion teachers on the
+//! paper's 2-D toys, and their sampling latency per action (our version of the paper's
+//! inference-time table).
+//!
+//! ```text
+//! cargo xtask bench teachers [--seed S] [--steps N] [--rot-steps N] [--width W] [--blocks B]
+//!                            [--lr X] [--batch B] [--ema D] [--noise-mean M] [--noise-std S]
+//!                            [--sigma X] [--min-secs T] [--cache DIR]
+//!                            [--retrain] [--no-acceptance] [--no-latency]
+//! ```
+//!
+//! Defaults (the toy teachers): residual MLP 64 wide with 2 blocks, Adam lr 1e-2 with 200
+//! warm-up steps and a cosine decay to 2%, batch 1024, EMA 0.995, training noise
+//! `ln σ ~ N(−1.6, 1.2²)` for both teachers, 4000 steps on the circle toy and 2000 on the
+//! rotating toy. A whole run from scratch uses about 100 CPU-seconds (training runs the two
+//! teachers on two threads); 2 to 4 minutes of wall clock on a busy 2-core machine.
+//!
+//! * Acceptance, 2-D toy (8 modes on a circle of radius 2, std 0.5, 5000 training pairs): for
+//!   the DDPM and the BESO teacher, the share of 10,000 samples nearest to each mode (each must
+//!   be ≥ 6%), MMD² (RBF, bandwidth 1) between 2,000 teacher samples and 2,000 fresh true
+//!   samples against 3× the MMD² of two independent true sets, and the mean cosine similarity
+//!   of the learned score at `σ = 0.1` (normalised units; DDPM: the matching `t`) with the
+//!   exact smoothed score on true samples (≥ 0.9).
+//! * Acceptance, rotating toy (mode k at angle `s + 2πk/8`, `s ~ U[0, 2π)`): both teachers,
+//!   conditioned on the state, must put ≥ 6% of 2,000 samples on every mode at 8 states.
+//! * Latency: µs per action of `act_batch` (single thread) at batch 1 and 256, for every
+//!   sampler against 1, 2, 4, 8, 16 steps and the default.
+//!
+//! Trained teachers are cached as `safetensors` under `--cache` (default
+//! `target/xtask-cache/teachers`), keyed by a hash of their configuration, training
+//! configuration and seed; `--retrain` ignores the cache. The command fails when a check fails.
+
+use std::path::PathBuf;
+use std::time::Instant;
+
+use faer::Mat;
+use rand::Rng as _;
+use serde::Serialize;
+use vdd_core::{Policy, ScoreModel, Seeds};
+use vdd_diffusion::metrics::{mean_cosine_similarity, mmd2_rbf, nearest_mode_counts};
+use vdd_diffusion::{
+    Beso, BesoConfig, Ddpm, DdpmConfig, DiffusionTeacher, Gmm, GmmTeacher, KarrasSampler,
+    NetConfig, SigmaDistribution, TeacherKind, TimeSampling, TrainConfig, TrainProgress, VpSampler,
+};
+
+use crate::cli::Opts;
+
+const FLAGS: &[&str] = &["retrain", "no-acceptance", "no-latency"];
+const KNOWN: &[&str] = &[
+    "retrain",
+    "no-acceptance",
+    "no-latency",
+    "seed",
+    "steps",
+    "rot-steps",
+    "width",
+    "blocks",
+    "lr",
+    "batch",
+    "ema",
+    "noise-mean",
+    "noise-std",
+    "sigma",
+    "min-secs",
+    "cache",
+];
+
+/// Everything that determines the toy teachers.
+#[derive(Debug, Clone, Serialize)]
+struct Setup {
+    seed: u64,
+    steps: u64,
+    rot_steps: u64,
+    width: usize,
+    blocks: usize,
+    lr: f32,
+    batch: usize,
+    ema: f32,
+    /// Training noise: `ln σ ~ N(mean, std²)` for both teachers.
+    noise: (f32, f32),
+}
 
 /// Runs the command.
-pub fn run(_args: &[String]) -> crate::XResult {
-    Err("not implemented yet".into())
+pub fn run(args: &[String]) -> crate::XResult {
+    let opts = Opts::parse(args, FLAGS)?;
+    opts.only(KNOWN)?;
+    let setup = Setup {
+        seed: opts.get("seed", 0)?,
+        steps: opts.get("steps", 4000)?,
+        rot_steps: opts.get("rot-steps", 2000)?,
+        width: opts.get("width", 64)?,
+        blocks: opts.get("blocks", 2)?,
+        lr: opts.get("lr", 1e-2)?,
+        batch: opts.get("batch", 1024)?,
+        ema: opts.get("ema", 0.995)?,
+        noise: (opts.get("noise-mean", -1.6)?, opts.get("noise-std", 1.2)?),
+    };
+    let sigma: f32 = opts.get("sigma", 0.1)?;
+    let min_secs: f64 = opts.get("min-secs", 0.3)?;
+    let cache = Cache {
+        dir: PathBuf::from(opts.get("cache", "target/xtask-cache/teachers".to_owned())?),
+        retrain: opts.flag("retrain"),
+    };
+    std::fs::create_dir_all(&cache.dir)?;
+    let t0 = Instant::now();
+    println!(
+        "toy teachers: residual MLP {} wide, {} blocks; Adam lr {} (warm-up, cosine decay), \
+         batch {}; {} training steps (circle), {} (rotating); seed {}",
+        setup.width, setup.blocks, setup.lr, setup.batch, setup.steps, setup.rot_steps, setup.seed
+    );
+    println!(
+        "DDPM: cosine β, N = 16, ε-prediction, log-normal training noise; BESO: EDM \
+         preconditioning (σ_data 0.5), Karras σ ∈ [0.002, 80], ρ = 7, log-normal training noise"
+    );
+    let (states, actions) = circle_data(5000, "toy-data", setup.seed)?;
+    let task = Task { name: "circle", steps: setup.steps, states: &states, actions: &actions };
+    let mut circle = teachers(&task, &setup, &cache)?;
+    let mut failures = Vec::new();
+    if !opts.flag("no-acceptance") {
+        failures.extend(circle_acceptance(&mut circle, &setup, sigma)?);
+        failures.extend(rotating_acceptance(&setup, &cache)?);
+    }
+    if !opts.flag("no-latency") {
+        latency_tables(&mut circle, min_secs)?;
+    }
+    println!("\nbench teachers finished in {:.1} s", t0.elapsed().as_secs_f64());
+    if failures.is_empty() {
+        if !opts.flag("no-acceptance") {
+            println!("acceptance: all checks pass");
+        }
+        Ok(())
+    } else {
+        for f in &failures {
+            println!("FAILED: {f}");
+        }
+        Err(format!("{} acceptance check(s) failed", failures.len()).into())
+    }
+}
+
+fn net(setup: &Setup) -> NetConfig {
+    NetConfig { hidden_dim: setup.width, num_blocks: setup.blocks, ..Default::default() }
+}
+
+/// DDPM for the toys: the library defaults (cosine β, N = 16, ancestral sampling with
+/// `σ_t² = β_t` over all 16 steps) with log-normal training times.
+fn toy_ddpm(setup: &Setup) -> DdpmConfig {
+    let (mean, std) = setup.noise;
+    DdpmConfig {
+        net: net(setup),
+        time_sampling: TimeSampling::LogNormal { mean, std },
+        ..Default::default()
+    }
+}
+
+/// BESO for the toys: the library defaults with Heun over 24 steps (47 network evaluations);
+/// first-order samplers need many more steps for the same fidelity.
+fn toy_beso(setup: &Setup) -> BesoConfig {
+    let (mean, std) = setup.noise;
+    BesoConfig {
+        net: net(setup),
+        training_sigma: SigmaDistribution::LogNormal { mean, std },
+        sampler: KarrasSampler::Heun,
+        sampling_steps: 24,
+        ..Default::default()
+    }
+}
+
+fn toy_train(setup: &Setup, steps: u64) -> TrainConfig {
+    TrainConfig {
+        steps,
+        batch_size: setup.batch,
+        adam: vdd_nn::AdamConfig { lr: setup.lr, ..Default::default() },
+        warmup_steps: 200.min(steps / 10),
+        final_lr_factor: 0.02,
+        ema_decay: setup.ema,
+        grad_clip: Some(1.0),
+        log_every: (steps / 4).max(1),
+    }
+}
+
+/// FNV-1a of the JSON of `v`: the cache key.
+fn key_hash<T: Serialize>(v: &T) -> crate::XResult<String> {
+    let bytes = serde_json::to_vec(v)?;
+    let mut h: u64 = 0xcbf2_9ce4_8422_2325;
+    for b in bytes {
+        h ^= u64::from(b);
+        h = h.wrapping_mul(0x0100_0000_01b3);
+    }
+    Ok(format!("{h:016x}"))
+}
+
+/// A toy task's training data and training length.
+struct Task<'a> {
+    name: &'a str,
+    steps: u64,
+    states: &'a Mat<f32>,
+    actions: &'a Mat<f32>,
+}
+
+/// Where trained teachers are cached, and whether to ignore the cache.
+struct Cache {
+    dir: PathBuf,
+    retrain: bool,
+}
+
+/// Trains a teacher of `kind` on `task`, or loads it from the cache; returns the training
+/// seconds (`None` when loaded).
+fn train_or_load(
+    kind: TeacherKind,
+    task: &Task<'_>,
+    setup: &Setup,
+    cache: &Cache,
+) -> crate::XResult<(DiffusionTeacher, Option<f64>)> {
+    let train = toy_train(setup, task.steps);
+    let (ddpm, beso) = (toy_ddpm(setup), toy_beso(setup));
+    let hash = match kind {
+        TeacherKind::Ddpm => key_hash(&(task.name, &ddpm, &train, setup.seed))?,
+        TeacherKind::Beso => key_hash(&(task.name, &beso, &train, setup.seed))?,
+    };
+    let label = format!("{} {}", format!("{kind:?}").to_lowercase(), task.name);
+    let path = cache.dir.join(format!("{}-{hash}.safetensors", label.replace(' ', "-")));
+    if path.is_file() && !cache.retrain {
+        eprintln!("[{label}] loaded from {}", path.display());
+        return Ok((DiffusionTeacher::load(&path, setup.seed)?, None));
+    }
+    let mut report = |p: TrainProgress| {
+        eprintln!(
+            "  [{label}] step {:>6}/{}  loss {:.4}  lr {:.2e}  {:.1} s",
+            p.step, p.total_steps, p.loss, p.lr, p.elapsed_secs
+        )
+    };
+    let t0 = Instant::now();
+    let (s, a, seed) = (task.states.as_ref(), task.actions.as_ref(), setup.seed);
+    let teacher: DiffusionTeacher = match kind {
+        TeacherKind::Ddpm => Ddpm::train(&ddpm, &train, s, a, seed, &mut report)?.into(),
+        TeacherKind::Beso => Beso::train(&beso, &train, s, a, seed, &mut report)?.into(),
+    };
+    let secs = t0.elapsed().as_secs_f64();
+    teacher.save(&path)?;
+    Ok((teacher, Some(secs)))
+}
+
+/// Both teachers of one task, trained in parallel on two threads.
+fn teachers(
+    task: &Task<'_>,
+    setup: &Setup,
+    cache: &Cache,
+) -> crate::XResult<[DiffusionTeacher; 2]> {
+    let go = |kind| train_or_load(kind, task, setup, cache).map_err(|e| e.to_string());
+    let (ddpm, beso) = std::thread::scope(|s| {
+        let h = s.spawn(|| go(TeacherKind::Ddpm));
+        let beso = go(TeacherKind::Beso);
+        (h.join().unwrap_or_else(|_| Err("training thread panicked".into())), beso)
+    });
+    let (ddpm, beso) = (ddpm?, beso?);
+    let secs = |s: Option<f64>| s.map_or("cached".to_owned(), |s| format!("{s:.1} s"));
+    println!(
+        "{}: {} training steps: DDPM {}, BESO {} (two threads in parallel)",
+        task.name,
+        task.steps,
+        secs(ddpm.1),
+        secs(beso.1)
+    );
+    Ok([ddpm.0, beso.0])
+}
+
+/// `n` states (all zero) and actions from the circle toy.
+fn circle_data(n: usize, stream: &str, seed: u64) -> crate::XResult<(Mat<f32>, Mat<f32>)> {
+    let mut gmm = GmmTeacher::circle_toy();
+    let states = Mat::<f32>::zeros(n, 1);
+    let actions = gmm.sample(states.as_ref(), &mut Seeds::new(seed).stream(stream))?;
+    Ok((states, actions))
+}
+
+fn circle_means(offset: f32) -> Vec<Vec<f32>> {
+    (0..8)
+        .map(|k| {
+            let a = offset + std::f32::consts::TAU * k as f32 / 8.0;
+            vec![2.0 * a.cos(), 2.0 * a.sin()]
+        })
+        .collect()
+}
+
+/// The exact circle mixture in a teacher's normalised action space: `N(μ, 0.5² I)` becomes
+/// `N((μ − o)/c, diag(0.25/c²))`.
+fn normalized_circle(t: &DiffusionTeacher) -> crate::XResult<GmmTeacher> {
+    let (_, an) = t.normalizers();
+    let means: Vec<Vec<f32>> = circle_means(0.0)
+        .iter()
+        .map(|m| m.iter().enumerate().map(|(j, v)| (v - an.offset[j]) / an.scale[j]).collect())
+        .collect();
+    let cov =
+        vec![0.25 / (an.scale[0] * an.scale[0]), 0.0, 0.0, 0.25 / (an.scale[1] * an.scale[1])];
+    let gmm = Gmm::new(&[1.0; 8], &means, &vec![cov; 8])?;
+    Ok(GmmTeacher::fixed(gmm, 1))
+}
+
+/// Mean cosine similarity of the teacher's score and the exact smoothed score at normalised
+/// noise level `sigma` (VP: at the matching `t`, where the exact score of `x_t` at `a` is the
+/// smoothed score at `a / sqrt(ᾱ_t)`, up to a positive factor), on raw `actions` (state 0).
+/// Returns the cosine and the level the teacher was queried at.
+fn score_cosine(
+    t: &mut DiffusionTeacher,
+    actions: &Mat<f32>,
+    sigma: f32,
+) -> crate::XResult<(f32, f32)> {
+    let mut exact = normalized_circle(t)?;
+    let n = actions.nrows();
+    let (sn, an) = {
+        let (s, a) = t.normalizers();
+        (s.clone(), a.clone())
+    };
+    let a = Mat::from_fn(n, 2, |i, j| (actions[(i, j)] - an.offset[j]) / an.scale[j]);
+    let s = Mat::from_fn(n, 1, |_, _| -sn.offset[0] / sn.scale[0]);
+    let (level, x_scale) = match t {
+        DiffusionTeacher::Ddpm(d) => {
+            let time = d.schedule().time_for_sigma(sigma);
+            (time, 1.0 / d.schedule().alpha_bar(time).sqrt())
+        }
+        DiffusionTeacher::Beso(_) => (sigma, 1.0),
+    };
+    let mut learned = Mat::zeros(n, 2);
+    t.score(a.as_ref(), s.as_ref(), &vec![level; n], learned.as_mut())?;
+    let y = Mat::from_fn(n, 2, |i, j| a[(i, j)] * x_scale);
+    let mut truth = Mat::zeros(n, 2);
+    exact.score(y.as_ref(), Mat::<f32>::zeros(n, 1).as_ref(), &vec![sigma; n], truth.as_mut())?;
+    Ok((mean_cosine_similarity(learned.as_ref(), truth.as_ref()), level))
+}
+
+/// A sampler setting of either teacher.
+#[derive(Debug, Clone, Copy)]
+enum AnySampler {
+    Vp(VpSampler, usize),
+    Ve(KarrasSampler, usize),
+}
+
+impl AnySampler {
+    /// The sampler's name.
+    fn name(self) -> String {
+        match self {
+            AnySampler::Vp(v, _) => format!("{v:?}"),
+            AnySampler::Ve(v, _) => format!("{v:?}"),
+        }
+    }
+
+    /// Name and steps.
+    fn label(self) -> String {
+        format!("{} {}", self.name(), self.steps())
+    }
+
+    fn steps(self) -> usize {
+        match self {
+            AnySampler::Vp(_, k) | AnySampler::Ve(_, k) => k,
+        }
+    }
+
+    /// The same sampler with `k` steps.
+    fn with_steps(self, k: usize) -> Self {
+        match self {
+            AnySampler::Vp(v, _) => AnySampler::Vp(v, k),
+            AnySampler::Ve(v, _) => AnySampler::Ve(v, k),
+        }
+    }
+
+    /// Network evaluations per sample.
+    fn nfe(self) -> usize {
+        match self {
+            AnySampler::Vp(_, k) => k,
+            AnySampler::Ve(v, k) => v.evaluations(k),
+        }
+    }
+}
+
+/// The teacher's current sampler.
+fn current_sampler(t: &DiffusionTeacher) -> AnySampler {
+    match t {
+        DiffusionTeacher::Ddpm(d) => AnySampler::Vp(d.sampler().0, d.sampler().1),
+        DiffusionTeacher::Beso(b) => AnySampler::Ve(b.sampler().0, b.sampler().1),
+    }
+}
+
+/// Sets the sampler; returns the previous one.
+fn set_sampler(t: &mut DiffusionTeacher, s: AnySampler) -> crate::XResult<AnySampler> {
+    let old = current_sampler(t);
+    match (t, s) {
+        (DiffusionTeacher::Ddpm(d), AnySampler::Vp(v, k)) => d.set_sampler(v, k)?,
+        (DiffusionTeacher::Beso(b), AnySampler::Ve(v, k)) => b.set_sampler(v, k)?,
+        _ => return Err("sampler of the other teacher kind".into()),
+    }
+    Ok(old)
+}
+
+/// Every sampler of the teacher's kind.
+fn samplers(t: &DiffusionTeacher, steps: usize) -> Vec<AnySampler> {
+    match t {
+        DiffusionTeacher::Ddpm(_) => {
+            [VpSampler::AncestralLarge, VpSampler::Ancestral, VpSampler::Ddim]
+                .map(|v| AnySampler::Vp(v, steps))
+                .to_vec()
+        }
+        DiffusionTeacher::Beso(_) => [
+            KarrasSampler::Euler,
+            KarrasSampler::Heun,
+            KarrasSampler::EulerAncestral,
+            KarrasSampler::Ddim,
+        ]
+        .map(|v| AnySampler::Ve(v, steps))
+        .to_vec(),
+    }
+}
+
+fn teacher_name(t: &DiffusionTeacher) -> &'static str {
+    match t.kind() {
+        TeacherKind::Ddpm => "DDPM",
+        TeacherKind::Beso => "BESO",
+    }
+}
+
+/// `n` teacher samples at raw state `s` with the teacher's policy stream seeded by `seed`.
+fn sample_at(t: &mut DiffusionTeacher, s: f32, n: usize, seed: u64) -> crate::XResult<Mat<f32>> {
+    t.seed(seed);
+    let obs = Mat::from_fn(n, 1, |_, _| s);
+    let mut out = Mat::<f32>::zeros(n, 2);
+    t.act_batch(obs.as_ref(), out.as_mut())?;
+    Ok(out)
+}
+
+fn min_share(samples: &Mat<f32>, means: &[Vec<f32>]) -> (f32, Vec<f32>) {
+    let counts = nearest_mode_counts(samples.as_ref(), means);
+    let n = samples.nrows() as f32;
+    let shares: Vec<f32> = counts.iter().map(|&c| c as f32 / n).collect();
+    (shares.iter().copied().fold(f32::INFINITY, f32::min), shares)
+}
+
+fn fmt_shares(shares: &[f32]) -> String {
+    shares.iter().map(|s| format!("{:.3}", s)).collect::<Vec<_>>().join(" ")
+}
+
+fn pass(ok: bool) -> &'static str {
+    if ok { "pass" } else { "FAIL" }
+}
+
+fn circle_acceptance(
+    ts: &mut [DiffusionTeacher; 2],
+    setup: &Setup,
+    sigma: f32,
+) -> crate::XResult<Vec<String>> {
+    let seed = setup.seed;
+    let (_, true_a) = circle_data(2000, "fresh-true-a", seed)?;
+    let (_, true_b) = circle_data(2000, "fresh-true-b", seed)?;
+    let baseline = mmd2_rbf(true_a.as_ref(), true_b.as_ref(), 1.0);
+    let bar = 3.0 * baseline;
+    let means = circle_means(0.0);
+    let mut failures = Vec::new();
+    println!("\n== acceptance: 2-D toy (8 modes on a circle of radius 2, std 0.5; 5000 pairs) ==");
+    println!(
+        "MMD² (RBF, bandwidth 1), two independent true sets of 2000: {baseline:.5}; bar 3x = {bar:.5}"
+    );
+    println!(
+        "{:<6} {:<18} {:>4} {:>10} {:>9} {:>8} {:>22} {:>6}",
+        "",
+        "sampler, steps",
+        "NFE",
+        "min share",
+        "MMD²",
+        "MMD²/true",
+        "score cos (σ = 0.1)",
+        "result"
+    );
+    for t in ts.iter_mut() {
+        let name = teacher_name(t);
+        let default = current_sampler(t);
+        let samples = sample_at(t, 0.0, 10_000, seed)?;
+        let (share, shares) = min_share(&samples, &means);
+        let mmd = mmd2_rbf(samples.as_ref().subrows(0, 2000), true_a.as_ref(), 1.0);
+        let (cos, level) = score_cosine(t, &true_b, sigma)?;
+        let at = match t.kind() {
+            TeacherKind::Ddpm => format!("{cos:.4} (t = {level:.3})"),
+            TeacherKind::Beso => format!("{cos:.4}"),
+        };
+        let ok = share >= 0.06 && mmd <= bar && cos >= 0.9;
+        println!(
+            "{name:<6} {:<18} {:>4} {share:>10.3} {mmd:>9.5} {:>8.2}x {at:>22} {:>6}",
+            default.label(),
+            default.nfe(),
+            mmd / baseline,
+            pass(ok)
+        );
+        if share < 0.06 {
+            failures.push(format!("{name}: min mode share {share:.3} < 0.06"));
+        }
+        if mmd > bar {
+            failures.push(format!("{name}: MMD² {mmd:.5} > 3 x {baseline:.5}"));
+        }
+        if cos < 0.9 {
+            failures.push(format!("{name}: score cosine {cos:.4} < 0.9 at σ = {sigma}"));
+        }
+        println!("       mode shares: {}", fmt_shares(&shares));
+        let (half, _) = score_cosine(t, &true_b, 0.5 * sigma)?;
+        println!("       (info) score cosine at σ = {}: {half:.4}", 0.5 * sigma);
+    }
+    println!("(info) other samplers, 2000 samples each (not part of the acceptance):");
+    println!(
+        "{:<6} {:<18} {:>4} {:>10} {:>9} {:>9}",
+        "", "sampler, steps", "NFE", "min share", "MMD²", "MMD²/true"
+    );
+    for t in ts.iter_mut() {
+        let name = teacher_name(t);
+        for steps in [16usize, 8, 1] {
+            for s in samplers(t, steps) {
+                let saved = set_sampler(t, s)?;
+                let x = sample_at(t, 0.0, 2000, seed);
+                set_sampler(t, saved)?;
+                let x = x?;
+                let (share, _) = min_share(&x, &means);
+                let mmd = mmd2_rbf(x.as_ref(), true_a.as_ref(), 1.0);
+                println!(
+                    "{name:<6} {:<18} {:>4} {share:>10.3} {mmd:>9.5} {:>8.2}x",
+                    s.label(),
+                    s.nfe(),
+                    mmd / baseline
+                );
+            }
+        }
+    }
+    Ok(failures)
+}
+
+fn rotating_acceptance(setup: &Setup, cache: &Cache) -> crate::XResult<Vec<String>> {
+    let seed = setup.seed;
+    let n_rot = 20_000;
+    let mut rng = Seeds::new(seed).stream("rot-states");
+    let states = Mat::from_fn(n_rot, 1, |_, _| rng.random_range(0.0..std::f32::consts::TAU));
+    let mut rot = GmmTeacher::rotating_toy(8, 2.0, 0.5)?;
+    let actions = rot.sample(states.as_ref(), &mut Seeds::new(seed).stream("rot-data"))?;
+    println!(
+        "\n== acceptance: rotating toy (mode k at angle s + 2πk/8, s ~ U[0, 2π); {n_rot} pairs) =="
+    );
+    let task =
+        Task { name: "rotating", steps: setup.rot_steps, states: &states, actions: &actions };
+    let mut ts = teachers(&task, setup, cache)?;
+    println!("min share of 2000 samples over the 8 modes at state s (MMD² to 1000 true samples):");
+    println!("{:>7} {:>22} {:>22}", "s", "DDPM", "BESO");
+    let mut worst = [f32::INFINITY; 2];
+    let mut covered = [0usize; 2];
+    for i in 0..8 {
+        let s = (i as f32 + 0.5) * std::f32::consts::TAU / 8.0 * 0.999;
+        let obs = Mat::from_fn(1000, 1, |_, _| s);
+        let truth =
+            rot.sample(obs.as_ref(), &mut Seeds::new(seed).stream_indexed("rot-true", i))?;
+        let mut cells = Vec::new();
+        for (k, t) in ts.iter_mut().enumerate() {
+            let x = sample_at(t, s, 2000, seed + i)?;
+            let (share, _) = min_share(&x, &circle_means(s));
+            let mmd = mmd2_rbf(x.as_ref().subrows(0, 1000), truth.as_ref(), 1.0);
+            worst[k] = worst[k].min(share);
+            covered[k] += usize::from(share >= 0.06);
+            cells.push(format!("{share:.3} ({mmd:.4})"));
+        }
+        println!("{s:>7.3} {:>22} {:>22}", cells[0], cells[1]);
+    }
+    let mut failures = Vec::new();
+    for (k, name) in ["DDPM", "BESO"].iter().enumerate() {
+        let ok = covered[k] == 8;
+        println!(
+            "{name}: all 8 modes (>= 6% each) at {}/8 states, worst share {:.3}: {}",
+            covered[k],
+            worst[k],
+            pass(ok)
+        );
+        if !ok {
+            failures.push(format!("{name} rotating: modes covered at {}/8 states", covered[k]));
+        }
+    }
+    Ok(failures)
+}
+
+/// Wall-clock µs per action of `act_batch` at batch size `n`: the best of 5 rounds of at least
+/// `min_secs / 5` each (the best round is the least disturbed by other jobs).
+fn latency(t: &mut DiffusionTeacher, n: usize, min_secs: f64) -> crate::XResult<f64> {
+    let obs = Mat::<f32>::zeros(n, 1);
+    let mut out = Mat::<f32>::zeros(n, 2);
+    for _ in 0..3 {
+        t.act_batch(obs.as_ref(), out.as_mut())?;
+    }
+    let mut best = f64::INFINITY;
+    for _ in 0..5 {
+        let (start, mut calls) = (Instant::now(), 0u32);
+        while calls < 2 || start.elapsed().as_secs_f64() < min_secs / 5.0 {
+            t.act_batch(obs.as_ref(), out.as_mut())?;
+            calls += 1;
+        }
+        best = best.min(start.elapsed().as_secs_f64() / f64::from(calls));
+    }
+    Ok(best * 1e6 / n as f64)
+}
+
+fn latency_tables(ts: &mut [DiffusionTeacher; 2], min_secs: f64) -> crate::XResult {
+    println!(
+        "\n== sampling latency: µs per action (act_batch, single thread, best of 5 rounds) =="
+    );
+    println!(
+        "(2-D toy teachers; wall clock on a shared machine: other jobs inflate these figures)"
+    );
+    let steps = [1usize, 2, 4, 8, 16];
+    for batch in [1usize, 256] {
+        println!("\nbatch {batch}:");
+        let head: String = steps.iter().map(|k| format!("{:>9}", format!("{k} st"))).collect();
+        println!("{:<6} {:<16}{head} {:>16}", "", "sampler", "default");
+        for t in ts.iter_mut() {
+            let name = teacher_name(t);
+            let default = current_sampler(t);
+            for s in samplers(t, 1) {
+                let mut row = String::new();
+                for &k in &steps {
+                    set_sampler(t, s.with_steps(k))?;
+                    row.push_str(&format!("{:>9.1}", latency(t, batch, min_secs)?));
+                }
+                let def = if s.name() == default.name() {
+                    set_sampler(t, default)?;
+                    format!("{:.1} ({} st)", latency(t, batch, min_secs)?, default.steps())
+                } else {
+                    String::new()
+                };
+                println!("{name:<6} {:<16}{row} {def:>16}", s.name());
+            }
+            set_sampler(t, default)?;
+        }
+    }
+    Ok(())
 }

@@ -1,30 +1,55 @@
-//! `cargo xtask`: experiment recipes, benchmarks and demos.
+//! `cargo xtask`: experiment recipes, result tables, benchmarks and demos.
 //!
 //! ```text
-//! cargo xtask experiment toy-gmm [--teacher exact|ddpm|beso] [--seed N] [--out DIR]
+//! cargo xtask experiment <recipe> [--seed N | --seeds 0,1,2] [--methods a,b] [--set k.path=v]...
+//!                                 [--quick] [--out DIR] [--fresh]
+//! cargo xtask table RUN_DIR... [--out FILE]
+//! cargo xtask compare RUN_DIR_A RUN_DIR_B
 //! cargo xtask bench nn|teachers
 //! cargo xtask demos avoiding --n 200 --seed 0 --out DIR
 //! ```
+//!
+//! Recipes are the TOML files in `recipes/` (see [`recipe`] for how they resolve and
+//! [`experiment`] for the run directory layout).
 
+mod avoiding;
 mod bench_nn;
 mod bench_teachers;
 mod demos;
+mod experiment;
+mod methods;
+mod plots;
+mod policy;
+mod recipe;
+mod report;
+mod teachers;
 mod toy;
 
 /// Errors of any xtask command, printed at the top level.
 pub type XResult<T = ()> = Result<T, Box<dyn std::error::Error>>;
 
 const USAGE: &str = "usage:
-  cargo xtask experiment toy-gmm [--teacher exact|ddpm|beso] [--seed N] [--out DIR]
-  cargo xtask experiment toy-conditional [--seed N] [--out DIR] [--iterations N]
+  cargo xtask experiment <recipe> [options]   run a recipe from recipes/ (or a .toml path)
+      --seed N | --seeds 0,1,2     seeds (default: the recipe's)
+      --methods a,b|all            methods (ddpm, beso, ddpm-1, beso-1, cd, ctm, em, imc,
+                                   vdd-ddpm, vdd-beso; toys: vdd-exact)
+      --set key.path=value         override any recipe key (repeatable; value parsed as TOML)
+      --quick                      the recipe's smaller [quick] settings
+      --out DIR                    results directory (default results/<recipe>/<run>)
+      --fresh                      retrain cached teachers
+    toy-gmm also takes --teacher exact|ddpm|beso and --iterations N;
+    toy-conditional --iterations N, --experts N, --lr X, --weighting gating|uniform
+  cargo xtask table RUN_DIR... [--out FILE]   mean ± std tables over the runs' seeds
+  cargo xtask compare RUN_A RUN_B             metrics.json equal apart from timings?
   cargo xtask bench nn|teachers
   cargo xtask demos avoiding [--n N] [--seed S] [--out DIR]";
 
 fn main() {
     let args: Vec<String> = std::env::args().skip(1).collect();
     let result = match args.iter().map(String::as_str).collect::<Vec<_>>().as_slice() {
-        ["experiment", "toy-gmm", rest @ ..] => toy::run(&strings(rest)),
-        ["experiment", "toy-conditional", rest @ ..] => toy::run_conditional(&strings(rest)),
+        ["experiment", rest @ ..] => experiment::run(&strings(rest)),
+        ["table", rest @ ..] => report::run_table(&strings(rest)),
+        ["compare", rest @ ..] => report::run_compare(&strings(rest)),
         ["bench", "nn", rest @ ..] => bench_nn::run(&strings(rest)),
         ["bench", "teachers", rest @ ..] => bench_teachers::run(&strings(rest)),
         ["demos", rest @ ..] => demos::run(&strings(rest)),
@@ -57,6 +82,19 @@ pub mod progress {
                 .progress_chars("=> "),
         );
         bar.set_prefix(what.to_owned());
+        bar
+    }
+
+    /// A spinner labelled `what` with message `msg`, for stages without a step count.
+    pub fn spinner(what: &str, msg: &str) -> ProgressBar {
+        let bar = ProgressBar::new_spinner();
+        bar.set_style(
+            ProgressStyle::with_template("{prefix:>10} {spinner} {elapsed} {msg}")
+                .expect("valid template"),
+        );
+        bar.set_prefix(what.to_owned());
+        bar.set_message(msg.to_owned());
+        bar.enable_steady_tick(std::time::Duration::from_millis(200));
         bar
     }
 }

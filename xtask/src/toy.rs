@@ -1,269 +1,757 @@
-//! `cargo xtask experiment toy-gmm`: the paper's 2-D toy. VDD distils a teacher of the 8-mode
-//! circle mixture (exact score, or a learned DDPM / BESO teacher) into 8 diagonal experts, then
-//! measures reverse/forward KL against the exact density by Monte Carlo, modes covered and
-//! training speed, and writes `DIR/metrics.json`.
+//! The toy recipes (`recipes/toy-gmm.toml`, `recipes/toy-conditional.toml`).
+//!
+//! * `toy-gmm`: the paper's 2-D toy. VDD distils a teacher of the 8-mode circle mixture — the
+//!   exact score (`vdd-exact`), or a learned DDPM / BESO teacher trained on 5000 samples
+//!   (`vdd-ddpm`, `vdd-beso`; cached like every learned teacher) — into 8 diagonal experts,
+//!   then measures reverse/forward KL against the exact density by Monte Carlo, modes covered
+//!   and training speed.
+//! * `toy-conditional`: the rotating-modes toy (mode `k` at angle `s + 2πk/K`) distilled from its
+//!   exact teacher with a learned gating trained on dataset actions; coverage and KL at 8
+//!   evaluation states.
+//!
+//! `metrics.json` has the common `methods.<method>` layout ([`crate::report`]) and, for the
+//! first method, the top-level keys of the original command: `reverse_kl`, `forward_kl`,
+//! `modes_covered` (the minimum over seeds), `ms_per_iter`, `train_seconds` (means over seeds)
+//! for `toy-gmm`; `states_fully_covered` (minimum), `mean_reverse_kl`, `mean_forward_kl`,
+//! `ms_per_iter`, `train_seconds` and the first seed's per-state results for `toy-conditional`.
+//! KL and coverage are computed in the student's (teacher-normalised) action space with the
+//! target transformed alike; KL is invariant under that affine map, and coverage distances are
+//! measured after mapping the experts' means back to raw actions.
 
-use std::path::PathBuf;
 use std::time::Instant;
 
 use faer::Mat;
-use serde::Serialize;
-use vdd::{eval, DistillData, Vdd, VddConfig};
-use vdd_core::{ScoreModel, Seeds};
-use vdd_diffusion::{Gmm, GmmTeacher};
-use vdd_moe::{Moe, MoeConfig};
+use serde::{Deserialize, Serialize};
+use serde_json::{Value, json};
+use vdd::{DistillData, ExpertWeighting, Vdd, VddConfig, eval};
+use vdd_core::{Affine, NoiseSchedule, ScoreModel, Seeds};
+use vdd_diffusion::{
+    BesoConfig, DdpmConfig, Gmm, GmmTeacher, KarrasSampler, NetConfig, SigmaDistribution,
+    TeacherKind, TimeSampling, TrainConfig, VpSampler,
+};
+use vdd_moe::{GatingKind, Moe, MoeConfig};
+use vdd_nn::{AdamConfig, LrSchedule};
 
-use crate::cli::Opts;
+use crate::avoiding::vdd_config_for;
+use crate::experiment::RunContext;
+use crate::methods::{self, Method};
+use crate::plots::{self, DensityPanel, ExpertEllipse};
+use crate::recipe::{self, Overrides};
+use crate::report::{self, Row};
+use crate::teachers::{self, BesoTeacherConfig, DdpmTeacherConfig, TeachersConfig};
 
-/// Monte-Carlo sample count for each KL estimate.
-const KL_SAMPLES: usize = 100_000;
-/// Number of data states (the toy has one fixed state; the paper uses 5000 data points).
-const DATA_POINTS: usize = 5000;
-
-/// Everything `metrics.json` records.
-#[derive(Debug, Serialize)]
-struct Metrics {
-    task: &'static str,
-    teacher: String,
-    seed: u64,
-    reverse_kl: f64,
-    forward_kl: f64,
-    modes_covered: usize,
-    modes_total: usize,
-    ms_per_iter: f64,
-    train_seconds: f64,
-    iterations: usize,
-    config: VddConfig,
-    student: MoeConfig,
+/// A toy recipe.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ToyRecipe {
+    /// Recipe name.
+    pub name: String,
+    /// What it shows.
+    pub description: String,
+    /// `toy-gmm` or `toy-conditional`.
+    pub task: String,
+    /// Run seeds.
+    pub seeds: Vec<u64>,
+    /// Methods (`vdd-exact`; `toy-gmm` also `vdd-ddpm`, `vdd-beso`).
+    pub methods: Vec<String>,
+    /// Data.
+    pub data: ToyData,
+    /// Learned teachers (trained on `data.points` samples of the mixture).
+    pub teachers: TeachersConfig,
+    /// The student (`state_dim` / `action_dim` come from the task).
+    pub student: MoeConfig,
+    /// VDD for each teacher.
+    pub vdd: ToyVdd,
+    /// Evaluation.
+    pub eval: ToyEval,
+    /// Figure 2.
+    pub plots: ToyPlots,
 }
 
-/// Runs the command.
-pub fn run(args: &[String]) -> crate::XResult {
-    let opts = Opts::parse(args, &[])?;
-    opts.only(&["teacher", "seed", "out", "iterations"])?;
-    let teacher_kind: String = opts.get("teacher", "exact".to_owned())?;
-    let seed: u64 = opts.get("seed", 0)?;
-    let out: PathBuf =
-        opts.get("out", PathBuf::from(format!("results/toy-gmm/{teacher_kind}-seed{seed}")))?;
-    let mut config = VddConfig::toy();
-    config.seed = seed;
-    config.iterations = opts.get("iterations", config.iterations)?;
-    let it = config.iterations as u64;
-    config.expert_lr_schedule =
-        vdd_nn::LrSchedule::LinearDecay { total_steps: it, final_factor: 0.0 };
-    config.gating_lr_schedule = config.expert_lr_schedule.clone();
+/// Data of a toy recipe.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ToyData {
+    /// Number of states (and mixture samples) VDD distils on; learned teachers train on them.
+    pub points: usize,
+}
 
-    let truth = Gmm::circle(8, 2.0, 0.5, 0.0)?;
-    let metrics = match teacher_kind.as_str() {
-        "exact" => distil(GmmTeacher::circle_toy(), &truth, config, seed, "exact")?,
-        "ddpm" | "beso" => {
-            return Err(
-                format!("the learned `{teacher_kind}` toy teacher is not wired in yet").into()
-            )
+/// VDD for each teacher.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ToyVdd {
+    /// Exact mixture score.
+    pub exact: VddConfig,
+    /// Learned BESO teacher (noise levels in σ).
+    pub beso: VddConfig,
+    /// Learned DDPM teacher (noise levels in time `t`).
+    pub ddpm: VddConfig,
+    /// Rescale decaying LR schedules to end at the last iteration.
+    pub schedules_follow_iterations: bool,
+}
+
+/// Evaluation of a toy recipe.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ToyEval {
+    /// Monte-Carlo samples per KL estimate (and per evaluation state).
+    pub kl_samples: usize,
+    /// Evaluation states of `toy-conditional` (`s_i = (i + 0.5) 2π / n`).
+    pub eval_states: usize,
+    /// A mode is covered when an expert mean lies within this distance.
+    pub coverage_radius: f32,
+    /// ... and that expert's gating weight is at least this.
+    pub min_weight: f32,
+}
+
+/// Figure 2 settings.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ToyPlots {
+    /// Write the figure.
+    pub enabled: bool,
+    /// Also PNG.
+    pub png: bool,
+    /// Density grid cells per side.
+    pub grid: usize,
+    /// Score arrows per side.
+    pub arrows: usize,
+    /// Half-width of the plotted square.
+    pub extent: f32,
+    /// Panels of `toy-conditional` (states spread over `[0, 2π)`).
+    pub states: usize,
+}
+
+impl ToyRecipe {
+    /// The defaults of `task`.
+    pub fn defaults(task: &str) -> Self {
+        let toy_net = NetConfig { hidden_dim: 128, num_blocks: 2, ..Default::default() };
+        let log_normal = SigmaDistribution::LogNormal { mean: -1.2, std: 1.2 };
+        let train = TrainConfig {
+            steps: 8000,
+            batch_size: 256,
+            adam: AdamConfig { lr: 1e-2, ..Default::default() },
+            warmup_steps: 200,
+            final_lr_factor: 0.02,
+            ema_decay: 0.999,
+            grad_clip: Some(1.0),
+            log_every: 100,
+        };
+        let teachers = TeachersConfig {
+            beso: BesoTeacherConfig {
+                config: BesoConfig {
+                    net: toy_net.clone(),
+                    training_sigma: log_normal,
+                    sampler: KarrasSampler::Heun,
+                    sampling_steps: 24,
+                    ..Default::default()
+                },
+                train: train.clone(),
+            },
+            ddpm: DdpmTeacherConfig {
+                config: DdpmConfig {
+                    net: toy_net,
+                    num_steps: 32,
+                    sampling_steps: 32,
+                    sampler: VpSampler::Ancestral,
+                    time_sampling: TimeSampling::LogNormal { mean: -1.2, std: 1.2 },
+                    ..Default::default()
+                },
+                train,
+            },
+        };
+        let exact = VddConfig::toy();
+        let learned = |noise| VddConfig { noise, ..VddConfig::toy() };
+        let mut r = Self {
+            name: task.into(),
+            description: "the paper's 2-D toy: 8 modes on a circle of radius 2, std 0.5".into(),
+            task: task.into(),
+            seeds: vec![0],
+            methods: vec!["vdd-exact".into()],
+            data: ToyData { points: 5000 },
+            teachers,
+            student: MoeConfig::toy(1, 2, 8),
+            vdd: ToyVdd {
+                exact,
+                beso: learned(NoiseSchedule::Fixed { level: 0.1 }),
+                ddpm: learned(NoiseSchedule::Fixed { level: 1.0 }),
+                schedules_follow_iterations: true,
+            },
+            eval: ToyEval {
+                kl_samples: 100_000,
+                eval_states: 8,
+                coverage_radius: 0.3,
+                min_weight: 0.01,
+            },
+            plots: ToyPlots {
+                enabled: true,
+                png: true,
+                grid: 120,
+                arrows: 17,
+                extent: 4.0,
+                states: 4,
+            },
+        };
+        if task == "toy-conditional" {
+            r.description =
+                "rotating modes (mode k at angle s + 2πk/8) with a learned gating".into();
+            let it = 3000;
+            let sched = LrSchedule::LinearDecay { total_steps: it, final_factor: 0.0 };
+            r.vdd.exact = VddConfig {
+                iterations: it as usize,
+                expert_optimizer: AdamConfig { lr: 1e-2, ..Default::default() },
+                gating_optimizer: AdamConfig { lr: 1e-2, ..Default::default() },
+                expert_lr_schedule: sched.clone(),
+                gating_lr_schedule: sched,
+                expert_weighting: ExpertWeighting::Gating,
+                ..VddConfig::toy()
+            };
+            // Twice as many experts as modes: with exactly K, reverse-KL training can leave an
+            // expert switching modes part-way around the circle (measured: 4-7 of 8 states).
+            r.student = MoeConfig { gating: GatingKind::Learned, ..MoeConfig::toy(1, 2, 16) };
+            r.eval.kl_samples = 20_000;
         }
-        other => return Err(format!("unknown teacher `{other}` (exact|ddpm|beso)").into()),
-    };
-    std::fs::create_dir_all(&out)?;
-    let path = out.join("metrics.json");
-    vdd_nn::io::write_atomic(&path, serde_json::to_string_pretty(&metrics)?.as_bytes())?;
-    println!(
-        "toy-gmm teacher={} seed={}: reverse KL {:.5} nats, forward KL {:.5} nats, modes {}/{}, \
-         {:.3} ms/iter ({:.2} s)",
-        metrics.teacher,
-        seed,
-        metrics.reverse_kl,
-        metrics.forward_kl,
-        metrics.modes_covered,
-        metrics.modes_total,
-        metrics.ms_per_iter,
-        metrics.train_seconds
-    );
-    println!("wrote {}", path.display());
+        r
+    }
+}
+
+/// Translates the original commands' options into recipe overrides: `toy-gmm --teacher X`
+/// (methods = `vdd-X`), `--iterations N`; `toy-conditional --iterations N --experts N --lr X
+/// --weighting gating|uniform`.
+pub fn apply_shorthands(
+    task: &str,
+    shorthands: &[(String, String)],
+    o: &mut Overrides,
+) -> Result<(), String> {
+    let mut teacher = "exact".to_owned();
+    for (k, v) in shorthands {
+        if k == "teacher" {
+            if task != "toy-gmm" {
+                return Err(format!("--teacher is a toy-gmm option; use --methods for `{task}`"));
+            }
+            if !["exact", "ddpm", "beso"].contains(&v.as_str()) {
+                return Err(format!("unknown teacher `{v}` (exact|ddpm|beso)"));
+            }
+            teacher = v.clone();
+            o.methods = Some(vec![format!("vdd-{v}")]);
+        }
+    }
+    for (k, v) in shorthands {
+        let sets: Vec<(String, String)> = match (task, k.as_str()) {
+            (_, "teacher") => continue,
+            ("toy-gmm" | "toy-conditional", "iterations") => {
+                let t = if task == "toy-gmm" { teacher.as_str() } else { "exact" };
+                vec![(format!("vdd.{t}.iterations"), v.clone())]
+            }
+            ("toy-conditional", "experts") => vec![("student.num_experts".into(), v.clone())],
+            ("toy-conditional", "lr") => vec![
+                ("vdd.exact.expert_optimizer.lr".into(), v.clone()),
+                ("vdd.exact.gating_optimizer.lr".into(), v.clone()),
+            ],
+            ("toy-conditional", "weighting") => {
+                if !["gating", "uniform"].contains(&v.as_str()) {
+                    return Err(format!("unknown weighting `{v}` (gating|uniform)"));
+                }
+                vec![("vdd.exact.expert_weighting".into(), format!("\"{v}\""))]
+            }
+            _ => return Err(format!("option --{k} does not apply to task `{task}`")),
+        };
+        o.sets.extend(sets);
+    }
     Ok(())
 }
 
-fn distil<S: ScoreModel>(
-    teacher: S,
-    truth: &Gmm,
-    config: VddConfig,
-    seed: u64,
-    name: &str,
-) -> crate::XResult<Metrics> {
-    let student_config = MoeConfig::toy(1, 2, 8);
-    let student = Moe::from_config(student_config.clone(), seed)?;
-    let data = DistillData::from_states(Mat::zeros(DATA_POINTS, 1))?;
-    let iterations = config.iterations;
-    let mut vdd = Vdd::new(config.clone(), teacher, student, data)?;
-    let bar = crate::progress::bar(iterations as u64, "VDD");
-    let start = Instant::now();
-    vdd.train(|m| {
-        bar.inc(1);
-        if m.iteration % 50 == 0 {
-            bar.set_message(format!("|g| {:.3}", m.expert.corrected_score_rms));
-        }
-    })?;
-    let train_seconds = start.elapsed().as_secs_f64();
-    bar.finish_and_clear();
+/// The teacher a toy method distils.
+enum ToyTeacher {
+    Exact(Box<GmmTeacher>),
+    Learned(Box<teachers::TrainedTeacher>),
+}
 
-    let mut student = vdd.into_student();
-    let seeds = Seeds::new(seed).child("toy-eval");
-    let log_p = |a: &[f32]| truth.log_density(a, 0.0).unwrap_or(f32::NEG_INFINITY);
-    let reverse_kl =
-        eval::reverse_kl(&mut student, &[0.0], log_p, KL_SAMPLES, &mut seeds.stream("reverse"))?;
-    let mut target = Mat::zeros(KL_SAMPLES, 2);
-    let mut rng = seeds.stream("forward");
-    let mut a = [0.0f32; 2];
-    for i in 0..KL_SAMPLES {
-        truth.sample_into(&mut rng, &mut a);
-        target[(i, 0)] = a[0];
-        target[(i, 1)] = a[1];
+/// Everything the student needs to be evaluated in raw coordinates.
+struct Distilled {
+    student: Moe,
+    /// The student's (= teacher's) normalisers.
+    state_norm: Affine,
+    action_norm: Affine,
+    train_seconds: f64,
+    teacher_seconds: Option<f64>,
+    iterations: usize,
+    teacher: ToyTeacher,
+    noise_level: f32,
+}
+
+fn distil(
+    method: Method,
+    cfg: &ToyRecipe,
+    seed: u64,
+    ctx: &RunContext,
+    label: &str,
+) -> crate::XResult<Distilled> {
+    let task = vdd_tasks::toy::CircleGmm::toy_conditional();
+    let conditional = cfg.task == "toy-conditional";
+    let n = cfg.data.points;
+    if n == 0 {
+        return Err("data.points must be positive".into());
     }
-    let forward_kl = eval::forward_kl(&mut student, &[0.0], log_p, target.as_ref())?;
-    let modes: Vec<Vec<f32>> = (0..8).map(|k| truth.mean(k).to_vec()).collect();
-    let modes_covered = eval::modes_covered(&mut student, &[0.0], &modes, 0.3, 0.01)?;
-    Ok(Metrics {
-        task: "toy-gmm",
-        teacher: name.to_owned(),
-        seed,
-        reverse_kl,
-        forward_kl,
-        modes_covered,
-        modes_total: 8,
-        ms_per_iter: train_seconds * 1e3 / iterations as f64,
+    // Data: the toy-gmm state is constant (0); toy-conditional samples states and actions.
+    let (states, actions) = if conditional {
+        task.sample(n, seed)?
+    } else {
+        let mut gmm = GmmTeacher::circle_toy();
+        let states = Mat::<f32>::zeros(n, 1);
+        let actions = gmm.sample(states.as_ref(), &mut Seeds::new(seed).stream("toy-data"))?;
+        (states, actions)
+    };
+    let (vc, teacher) = match method {
+        Method::VddExact => {
+            let t = if conditional { task.teacher()? } else { GmmTeacher::circle_toy() };
+            (&cfg.vdd.exact, ToyTeacher::Exact(Box::new(t)))
+        }
+        Method::VddBeso | Method::VddDdpm => {
+            let kind = method.teacher().ok_or("no teacher")?;
+            let t = teachers::train_or_load(
+                kind,
+                &cfg.teachers,
+                states.as_ref(),
+                actions.as_ref(),
+                seed,
+                &ctx.cache_dir,
+                ctx.fresh,
+                &format!("{} s{seed}", teachers::kind_name(kind)),
+            )?;
+            let vc = if kind == TeacherKind::Beso { &cfg.vdd.beso } else { &cfg.vdd.ddpm };
+            (vc, ToyTeacher::Learned(Box::new(t)))
+        }
+        other => {
+            return Err(format!("method `{}` is not available on toy tasks", other.name()).into());
+        }
+    };
+    let vc: VddConfig = vdd_config_for(vc, seed, cfg.vdd.schedules_follow_iterations);
+    let (state_norm, action_norm) = match &teacher {
+        ToyTeacher::Exact(_) => (Affine::identity(1), Affine::identity(2)),
+        ToyTeacher::Learned(t) => {
+            let (s, a) = t.teacher.normalizers();
+            (s.clone(), a.clone())
+        }
+    };
+    let norm = |m: &Mat<f32>, a: &Affine| {
+        Mat::from_fn(m.nrows(), m.ncols(), |i, j| (m[(i, j)] - a.offset[j]) / a.scale[j])
+    };
+    let mut student_cfg = cfg.student.clone();
+    student_cfg.state_dim = 1;
+    student_cfg.action_dim = 2;
+    let student = Moe::from_config(student_cfg, seed)?;
+    let data = if student.has_learned_gating() {
+        DistillData::new(norm(&states, &state_norm), Some(norm(&actions, &action_norm)))?
+    } else {
+        DistillData::from_states(norm(&states, &state_norm))?
+    };
+    let iterations = vc.iterations;
+    let bar = crate::progress::bar(iterations as u64, label);
+    let mut noise_sum = 0.0f64;
+    let mut callback = |m: &vdd::IterationMetrics| {
+        bar.inc(1);
+        noise_sum += f64::from(m.expert.noise_level);
+        if m.iteration % 50 == 0 {
+            bar.set_message(format!(
+                "|g| {:.3}, H(z|s) {:.3}",
+                m.expert.corrected_score_rms, m.gating_entropy
+            ));
+        }
+    };
+    let t0 = Instant::now();
+    let (student, teacher) = match teacher {
+        ToyTeacher::Exact(mut t) => {
+            let mut vdd = Vdd::new(vc, t.as_mut(), student, data)?;
+            vdd.train(&mut callback)?;
+            (vdd.into_student(), ToyTeacher::Exact(t))
+        }
+        ToyTeacher::Learned(mut t) => {
+            let mut vdd = Vdd::new(vc, &mut t.teacher, student, data)?;
+            vdd.train(&mut callback)?;
+            (vdd.into_student(), ToyTeacher::Learned(t))
+        }
+    };
+    let train_seconds = t0.elapsed().as_secs_f64();
+    bar.finish_and_clear();
+    let teacher_seconds = match &teacher {
+        ToyTeacher::Learned(t) => Some(t.train_seconds),
+        ToyTeacher::Exact(_) => None,
+    };
+    Ok(Distilled {
+        student,
+        state_norm,
+        action_norm,
         train_seconds,
+        teacher_seconds,
         iterations,
-        config,
-        student: student_config,
+        teacher,
+        noise_level: (noise_sum / iterations.max(1) as f64) as f32,
     })
 }
 
-/// Per-state results of the rotating-modes toy.
-#[derive(Debug, Serialize)]
-struct StateResult {
-    state: f32,
-    modes_covered: usize,
-    reverse_kl: f64,
-    forward_kl: f64,
-}
-
-/// Everything `metrics.json` of `toy-conditional` records.
-#[derive(Debug, Serialize)]
-struct ConditionalMetrics {
-    task: &'static str,
-    seed: u64,
-    modes: usize,
-    states_fully_covered: usize,
-    states: Vec<StateResult>,
-    mean_reverse_kl: f64,
-    mean_forward_kl: f64,
-    ms_per_iter: f64,
-    train_seconds: f64,
-    config: VddConfig,
-    student: MoeConfig,
-}
-
-/// `cargo xtask experiment toy-conditional [--seed N] [--out DIR] [--iterations N]`: the
-/// rotating-modes toy (mode `k` at angle `s + 2πk/K`) distilled from its exact teacher with a
-/// learned gating trained on dataset actions; coverage and KL at 8 evaluation states.
-pub fn run_conditional(args: &[String]) -> crate::XResult {
-    use vdd_moe::GatingKind;
-    let opts = Opts::parse(args, &[])?;
-    opts.only(&["seed", "out", "iterations", "experts", "lr", "weighting"])?;
-    let seed: u64 = opts.get("seed", 0)?;
-    let out: PathBuf =
-        opts.get("out", PathBuf::from(format!("results/toy-conditional/seed{seed}")))?;
-    let task = vdd_tasks::toy::CircleGmm::toy_conditional();
-    let k = task.n_modes();
-    let mut config = VddConfig::toy();
-    config.seed = seed;
-    config.iterations = opts.get("iterations", 3000)?;
-    config.expert_optimizer.lr = opts.get("lr", 1e-2)?;
-    config.gating_optimizer.lr = config.expert_optimizer.lr;
-    config.expert_weighting = match opts.get("weighting", "gating".to_owned())?.as_str() {
-        "gating" => vdd::ExpertWeighting::Gating,
-        "uniform" => vdd::ExpertWeighting::Uniform,
-        other => return Err(format!("unknown weighting `{other}` (gating|uniform)").into()),
+/// KL both ways and coverage of the student at raw state `s` against the exact mixture `truth`.
+fn evaluate_at(
+    d: &mut Distilled,
+    truth: &Gmm,
+    s: f32,
+    samples: usize,
+    cfg: &ToyEval,
+    seeds: &Seeds,
+    index: u64,
+) -> crate::XResult<(f64, f64, usize)> {
+    let an = d.action_norm.clone();
+    let log_det: f32 = an.scale.iter().map(|c| c.ln()).sum();
+    let s_n = [(s - d.state_norm.offset[0]) / d.state_norm.scale[0]];
+    // log p in the normalised space: p_n(a_n) = p(denorm(a_n)) · Π scale.
+    let log_p = |a: &[f32]| {
+        let raw = [a[0] * an.scale[0] + an.offset[0], a[1] * an.scale[1] + an.offset[1]];
+        truth.log_density(&raw, 0.0).map(|l| l + log_det).unwrap_or(f32::NEG_INFINITY)
     };
-    let it = config.iterations as u64;
-    config.expert_lr_schedule =
-        vdd_nn::LrSchedule::LinearDecay { total_steps: it, final_factor: 0.0 };
-    config.gating_lr_schedule = config.expert_lr_schedule.clone();
-    // Twice as many experts as modes: with exactly K, reverse-KL training can leave an expert
-    // switching modes part-way around the circle (measured: 4-7 of 8 states covered).
-    let experts = opts.get("experts", 2 * k)?;
-    let student_config = MoeConfig { gating: GatingKind::Learned, ..MoeConfig::toy(1, 2, experts) };
-
-    let (states, actions) = task.sample(DATA_POINTS, seed)?;
-    let data = DistillData::new(states, Some(actions))?;
-    let student = Moe::from_config(student_config.clone(), seed)?;
-    let mut vdd = Vdd::new(config.clone(), task.teacher()?, student, data)?;
-    let bar = crate::progress::bar(it, "VDD");
-    let start = Instant::now();
-    vdd.train(|m| {
-        bar.inc(1);
-        if m.iteration % 50 == 0 {
-            bar.set_message(format!("gating H {:.3}", m.gating_entropy));
+    let reverse = eval::reverse_kl(
+        &mut d.student,
+        &s_n,
+        log_p,
+        samples,
+        &mut seeds.stream_indexed("reverse", index),
+    )?;
+    let mut rng = seeds.stream_indexed("forward", index);
+    let mut target = Mat::zeros(samples, 2);
+    let mut a = [0.0f32; 2];
+    for i in 0..samples {
+        truth.sample_into(&mut rng, &mut a);
+        for j in 0..2 {
+            target[(i, j)] = (a[j] - an.offset[j]) / an.scale[j];
         }
-    })?;
-    let train_seconds = start.elapsed().as_secs_f64();
-    bar.finish_and_clear();
-
-    let mut student = vdd.into_student();
-    let seeds = Seeds::new(seed).child("toy-eval");
-    let n_eval = 20_000;
-    let mut results = Vec::new();
-    for i in 0..8 {
-        let s = (i as f32 + 0.5) * std::f32::consts::TAU / 8.0;
-        let truth = Gmm::circle(k, 2.0, 0.5, s)?;
-        let log_p = |a: &[f32]| truth.log_density(a, 0.0).unwrap_or(f32::NEG_INFINITY);
-        let reverse_kl = eval::reverse_kl(
-            &mut student,
-            &[s],
-            log_p,
-            n_eval,
-            &mut seeds.stream_indexed("reverse", i),
-        )?;
-        let mut rng = seeds.stream_indexed("forward", i);
-        let mut target = Mat::zeros(n_eval, 2);
-        let mut a = [0.0f32; 2];
-        for r in 0..n_eval {
-            truth.sample_into(&mut rng, &mut a);
-            target[(r, 0)] = a[0];
-            target[(r, 1)] = a[1];
-        }
-        let forward_kl = eval::forward_kl(&mut student, &[s], log_p, target.as_ref())?;
-        let modes: Vec<Vec<f32>> = (0..k).map(|m| truth.mean(m).to_vec()).collect();
-        let modes_covered = eval::modes_covered(&mut student, &[s], &modes, 0.3, 0.01)?;
-        results.push(StateResult { state: s, modes_covered, reverse_kl, forward_kl });
     }
-    let n = results.len() as f64;
-    let metrics = ConditionalMetrics {
-        task: "toy-conditional",
-        seed,
-        modes: k,
-        states_fully_covered: results.iter().filter(|r| r.modes_covered == k).count(),
-        mean_reverse_kl: results.iter().map(|r| r.reverse_kl).sum::<f64>() / n,
-        mean_forward_kl: results.iter().map(|r| r.forward_kl).sum::<f64>() / n,
-        states: results,
-        ms_per_iter: train_seconds * 1e3 / config.iterations as f64,
-        train_seconds,
-        config,
-        student: student_config,
+    let forward = eval::forward_kl(&mut d.student, &s_n, log_p, target.as_ref())?;
+    // Coverage in raw coordinates.
+    d.student.forward(faer::MatRef::from_row_major_slice(&s_n, 1, 1))?;
+    let out = d.student.output();
+    let lg = out.log_gating_row(0);
+    let covered = (0..truth.num_components())
+        .filter(|&k| {
+            let m = truth.mean(k);
+            (0..out.num_experts).any(|z| {
+                let mu = out.mean(0, z);
+                let raw = [mu[0] * an.scale[0] + an.offset[0], mu[1] * an.scale[1] + an.offset[1]];
+                let dist = ((raw[0] - m[0]).powi(2) + (raw[1] - m[1]).powi(2)).sqrt();
+                lg[z].exp() >= cfg.min_weight && dist <= cfg.coverage_radius
+            })
+        })
+        .count();
+    Ok((reverse, forward, covered))
+}
+
+/// One panel of Figure 2 at raw state `s`.
+fn density_panel(
+    d: &mut Distilled,
+    s: f32,
+    title: String,
+    modes: Vec<(f32, f32)>,
+    p: &ToyPlots,
+) -> crate::XResult<DensityPanel> {
+    let (sn, an) = (d.state_norm.clone(), d.action_norm.clone());
+    let s_n = (s - sn.offset[0]) / sn.scale[0];
+    let e = p.extent;
+    let n = p.grid.max(2);
+    let h = 2.0 * e / n as f32;
+    let norm_point =
+        |x: f32, y: f32| [(x - an.offset[0]) / an.scale[0], (y - an.offset[1]) / an.scale[1]];
+    let mut pts = Mat::<f32>::zeros(n * n, 2);
+    for i in 0..n {
+        for j in 0..n {
+            let q = norm_point(-e + (j as f32 + 0.5) * h, -e + (i as f32 + 0.5) * h);
+            pts[(i * n + j, 0)] = q[0];
+            pts[(i * n + j, 1)] = q[1];
+        }
+    }
+    let log_q = eval::student_log_density(&mut d.student, &[s_n], pts.as_ref())?;
+    let density: Vec<f32> = log_q.iter().map(|l| l.exp()).collect();
+    // Score field of the teacher at its VDD noise level, mapped to raw coordinates.
+    let k = p.arrows.max(2);
+    let spacing = 2.0 * e / k as f32;
+    let mut apts = Mat::<f32>::zeros(k * k, 2);
+    let mut raw_pos = Vec::with_capacity(k * k);
+    for i in 0..k {
+        for j in 0..k {
+            let (x, y) = (-e + (j as f32 + 0.5) * spacing, -e + (i as f32 + 0.5) * spacing);
+            let q = norm_point(x, y);
+            apts[(i * k + j, 0)] = q[0];
+            apts[(i * k + j, 1)] = q[1];
+            raw_pos.push((x, y));
+        }
+    }
+    let states = Mat::from_fn(k * k, 1, |_, _| s_n);
+    let levels = vec![d.noise_level; k * k];
+    let mut score = Mat::<f32>::zeros(k * k, 2);
+    match &mut d.teacher {
+        ToyTeacher::Exact(t) => t.score(apts.as_ref(), states.as_ref(), &levels, score.as_mut())?,
+        ToyTeacher::Learned(t) => {
+            t.teacher.score(apts.as_ref(), states.as_ref(), &levels, score.as_mut())?
+        }
+    }
+    let arrows = raw_pos
+        .iter()
+        .enumerate()
+        .map(|(r, &pos)| {
+            let (gx, gy) = (score[(r, 0)] / an.scale[0], score[(r, 1)] / an.scale[1]);
+            let len = (gx * gx + gy * gy).sqrt().max(1e-12);
+            // Direction at a fixed length, shortened where the field is weak.
+            let l = 0.4 * spacing * (len / (len + 0.5));
+            (pos, (gx / len * l, gy / len * l))
+        })
+        .collect();
+    d.student.forward(faer::MatRef::from_row_major_slice(&[s_n], 1, 1))?;
+    let out = d.student.output();
+    let experts = (0..out.num_experts)
+        .map(|z| {
+            let mu = out.mean(0, z);
+            let l = out.scale(0, z);
+            let (l00, l10, l11) = (l[0], l[2], l[3]);
+            let (c00, c01, c11) = (l00 * l00, l00 * l10, l10 * l10 + l11 * l11);
+            let (s0, s1) = (an.scale[0], an.scale[1]);
+            ExpertEllipse {
+                mean: (mu[0] * s0 + an.offset[0], mu[1] * s1 + an.offset[1]),
+                cov: (c00 * s0 * s0, c01 * s0 * s1, c11 * s1 * s1),
+                weight: out.log_gating_row(0)[z].exp(),
+            }
+        })
+        .collect();
+    Ok(DensityPanel { title, extent: e, density, n, arrows, experts, modes })
+}
+
+fn circle_modes(k: usize, offset: f32) -> Vec<(f32, f32)> {
+    (0..k)
+        .map(|i| {
+            let a = offset + std::f32::consts::TAU * i as f32 / k as f32;
+            (2.0 * a.cos(), 2.0 * a.sin())
+        })
+        .collect()
+}
+
+/// Runs a toy recipe.
+pub fn run_recipe(ctx: &RunContext, task: &str) -> crate::XResult {
+    let resolved = recipe::resolve(&ToyRecipe::defaults(task), &ctx.file, &ctx.overrides)?;
+    let base = &resolved.base;
+    if base.task != task {
+        return Err(format!("recipe task `{}` changed to `{task}`", base.task).into());
+    }
+    if base.seeds.is_empty() {
+        return Err("the recipe lists no seeds".into());
+    }
+    let mut plan: Vec<(String, Method, &ToyRecipe)> = Vec::new();
+    for (variant, cfg) in resolved.configs() {
+        for m in methods::parse_methods(&cfg.methods, task)? {
+            plan.push((methods::label(m, variant.map(|v| v.name.as_str())), m, cfg));
+        }
+    }
+    let dir = ctx.run_dir(&base.seeds);
+    ctx.write_resolved(&dir, &resolved.to_toml()?)?;
+    let conditional = task == "toy-conditional";
+    let k = 8;
+    let mut rows: Vec<(String, Vec<Row>)> =
+        plan.iter().map(|(l, _, _)| (l.clone(), Vec::new())).collect();
+    let mut panels = Vec::new();
+    let mut first_states: Option<Value> = None;
+    let mut teacher_log: Vec<Value> = Vec::new();
+    for (si, &seed) in base.seeds.iter().enumerate() {
+        for (pi, (label, method, cfg)) in plan.iter().enumerate() {
+            let tag = format!("{label} s{seed}");
+            let mut d = distil(*method, cfg, seed, ctx, &tag)?;
+            if let ToyTeacher::Learned(t) = &d.teacher {
+                teacher_log.push(teachers::cache_entry(t.teacher.kind(), seed, t));
+            }
+            let seeds = Seeds::new(seed).child("toy-eval");
+            let ms_per_iter = d.train_seconds * 1e3 / d.iterations.max(1) as f64;
+            let mut row = Row::new();
+            row.insert("seed".into(), json!(seed));
+            if conditional {
+                let n_states = cfg.eval.eval_states.max(1);
+                let mut states = Vec::new();
+                for i in 0..n_states {
+                    let s = (i as f32 + 0.5) * std::f32::consts::TAU / n_states as f32;
+                    let truth = Gmm::circle(k, 2.0, 0.5, s)?;
+                    let (rev, fwd, cov) = evaluate_at(
+                        &mut d,
+                        &truth,
+                        s,
+                        cfg.eval.kl_samples,
+                        &cfg.eval,
+                        &seeds,
+                        i as u64,
+                    )?;
+                    states.push(json!({"state": s, "modes_covered": cov, "reverse_kl": rev, "forward_kl": fwd}));
+                }
+                let mean = |key: &str| {
+                    states.iter().filter_map(|v| v[key].as_f64()).sum::<f64>() / states.len() as f64
+                };
+                let full =
+                    states.iter().filter(|v| v["modes_covered"].as_u64() == Some(k as u64)).count();
+                row.insert("states_fully_covered".into(), json!(full));
+                row.insert("eval_states".into(), json!(n_states));
+                row.insert("mean_reverse_kl".into(), report::json_f64(mean("reverse_kl")));
+                row.insert("mean_forward_kl".into(), report::json_f64(mean("forward_kl")));
+                eprintln!(
+                    "[{tag}] all {k} modes covered at {full}/{n_states} states, mean reverse KL {:.4}, mean forward KL {:.4} nats, {:.2} s",
+                    mean("reverse_kl"),
+                    mean("forward_kl"),
+                    d.train_seconds
+                );
+                row.insert("states".into(), Value::Array(states.clone()));
+                if si == 0 && pi == 0 {
+                    first_states = Some(Value::Array(states));
+                }
+            } else {
+                let truth = Gmm::circle(k, 2.0, 0.5, 0.0)?;
+                let (rev, fwd, cov) =
+                    evaluate_at(&mut d, &truth, 0.0, cfg.eval.kl_samples, &cfg.eval, &seeds, 0)?;
+                eprintln!(
+                    "[{tag}] reverse KL {rev:.5} nats, forward KL {fwd:.5} nats, modes {cov}/{k}, {ms_per_iter:.3} ms/iter ({:.2} s)",
+                    d.train_seconds
+                );
+                row.insert("reverse_kl".into(), report::json_f64(rev));
+                row.insert("forward_kl".into(), report::json_f64(fwd));
+                row.insert("modes_covered".into(), json!(cov));
+                row.insert("modes_total".into(), json!(k));
+            }
+            row.insert("ms_per_iter".into(), report::json_f64(ms_per_iter));
+            row.insert("train_seconds".into(), report::json_f64(d.train_seconds));
+            if let Some(t) = d.teacher_seconds {
+                row.insert("teacher_seconds".into(), report::json_f64(t));
+            }
+            row.insert("iterations".into(), json!(d.iterations));
+            rows[pi].1.push(row);
+            if si == 0 && cfg.plots.enabled {
+                if conditional {
+                    let n = cfg.plots.states.max(1);
+                    for i in 0..n {
+                        let s = (i as f32 + 0.5) * std::f32::consts::TAU / n as f32;
+                        let title = format!("{label}, s = {s:.2}");
+                        panels.push(density_panel(
+                            &mut d,
+                            s,
+                            title,
+                            circle_modes(k, s),
+                            &cfg.plots,
+                        )?);
+                    }
+                } else {
+                    panels.push(density_panel(
+                        &mut d,
+                        0.0,
+                        label.clone(),
+                        circle_modes(k, 0.0),
+                        &cfg.plots,
+                    )?);
+                }
+            }
+        }
+    }
+
+    let mut metrics = report::metrics_json(&ctx.name, task, &base.seeds, &rows);
+    // The original command's top-level keys, from the first method.
+    let first = &rows[0].1;
+    let mean = |key: &str| {
+        report::mean_std(&first.iter().filter_map(|r| r.get(key)?.as_f64()).collect::<Vec<_>>()).0
     };
-    std::fs::create_dir_all(&out)?;
-    let path = out.join("metrics.json");
+    let min = |key: &str| first.iter().filter_map(|r| r.get(key)?.as_u64()).min().unwrap_or(0);
+    metrics.insert("method".into(), json!(rows[0].0));
+    metrics.insert("teacher".into(), json!(rows[0].0.trim_start_matches("vdd-")));
+    metrics.insert("seed".into(), json!(base.seeds[0]));
+    if conditional {
+        metrics.insert("modes".into(), json!(k));
+        metrics.insert("states_fully_covered".into(), json!(min("states_fully_covered")));
+        metrics.insert("mean_reverse_kl".into(), report::json_f64(mean("mean_reverse_kl")));
+        metrics.insert("mean_forward_kl".into(), report::json_f64(mean("mean_forward_kl")));
+        metrics.insert("states".into(), first_states.unwrap_or(Value::Null));
+    } else {
+        metrics.insert("reverse_kl".into(), report::json_f64(mean("reverse_kl")));
+        metrics.insert("forward_kl".into(), report::json_f64(mean("forward_kl")));
+        metrics.insert("modes_covered".into(), json!(min("modes_covered")));
+        metrics.insert("modes_total".into(), json!(k));
+    }
+    metrics.insert("ms_per_iter".into(), report::json_f64(mean("ms_per_iter")));
+    metrics.insert("train_seconds".into(), report::json_f64(mean("train_seconds")));
+    let path = dir.join("metrics.json");
     vdd_nn::io::write_atomic(&path, serde_json::to_string_pretty(&metrics)?.as_bytes())?;
-    for r in &metrics.states {
-        println!(
-            "  s = {:.3}: modes {}/{k}, reverse KL {:.4}, forward KL {:.4}",
-            r.state, r.modes_covered, r.reverse_kl, r.forward_kl
-        );
-    }
-    println!(
-        "toy-conditional seed={seed}: all {k} modes covered at {}/8 states, mean reverse KL {:.4}, \
-         mean forward KL {:.4} nats, {:.2} s",
-        metrics.states_fully_covered, metrics.mean_reverse_kl, metrics.mean_forward_kl, train_seconds
+    let table = format!(
+        "## {} ({task})\n\n{}\n\n{}\nmean ± std over seeds {:?}\n",
+        ctx.name,
+        base.description,
+        report::markdown_table(&rows, &report::columns_for(task)),
+        base.seeds
     );
+    vdd_nn::io::write_atomic(&dir.join("table.md"), table.as_bytes())?;
+    let mut figures = Vec::new();
+    if base.plots.enabled && !panels.is_empty() {
+        figures = plots::toy_density(&dir.join("density"), &panels, base.plots.png)?;
+    }
+    ctx.write_run_info(&dir, json!({ "figures": figures, "teachers": teacher_log }))?;
+    println!("\n{table}");
     println!("wrote {}", path.display());
     Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn toy_recipes_resolve_and_shorthands_translate() {
+        for task in ["toy-gmm", "toy-conditional"] {
+            let file = recipe::read_recipe(&recipe::recipe_path(task).unwrap()).unwrap();
+            let r =
+                recipe::resolve(&ToyRecipe::defaults(task), &file, &Overrides::default()).unwrap();
+            methods::parse_methods(&r.base.methods, task).unwrap();
+            assert_eq!(r.base.task, task);
+        }
+        let mut o = Overrides::default();
+        apply_shorthands(
+            "toy-gmm",
+            &[("teacher".into(), "beso".into()), ("iterations".into(), "7".into())],
+            &mut o,
+        )
+        .unwrap();
+        assert_eq!(o.methods, Some(vec!["vdd-beso".to_owned()]));
+        let file = recipe::read_recipe(&recipe::recipe_path("toy-gmm").unwrap()).unwrap();
+        let r = recipe::resolve(&ToyRecipe::defaults("toy-gmm"), &file, &o).unwrap();
+        assert_eq!(r.base.vdd.beso.iterations, 7);
+        assert!(
+            apply_shorthands(
+                "toy-gmm",
+                &[("teacher".into(), "x".into())],
+                &mut Overrides::default()
+            )
+            .is_err()
+        );
+        assert!(
+            apply_shorthands(
+                "avoiding",
+                &[("teacher".into(), "beso".into())],
+                &mut Overrides::default()
+            )
+            .is_err()
+        );
+        let mut o = Overrides::default();
+        apply_shorthands(
+            "toy-conditional",
+            &[("weighting".into(), "uniform".into()), ("experts".into(), "8".into())],
+            &mut o,
+        )
+        .unwrap();
+        let file = recipe::read_recipe(&recipe::recipe_path("toy-conditional").unwrap()).unwrap();
+        let r = recipe::resolve(&ToyRecipe::defaults("toy-conditional"), &file, &o).unwrap();
+        assert_eq!(r.base.vdd.exact.expert_weighting, ExpertWeighting::Uniform);
+        assert_eq!(r.base.student.num_experts, 8);
+    }
+
+    #[test]
+    fn toy_defaults_match_the_paper() {
+        let r = ToyRecipe::defaults("toy-gmm");
+        assert_eq!(r.vdd.exact, VddConfig::toy());
+        assert_eq!(r.student, MoeConfig::toy(1, 2, 8));
+        assert_eq!(r.data.points, 5000);
+        assert_eq!(r.eval.kl_samples, 100_000);
+    }
 }

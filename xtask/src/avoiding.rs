@@ -1,0 +1,1016 @@
+//! The Avoiding pipeline: scripted demonstrations → dataset → teachers (cached) → VDD and
+//! baselines → rollouts (success rate, task entropy) and µs per action → `metrics.json`,
+//! `table.md`, `curves.json`, plots.
+//!
+//! Seeds: the demonstrations come from `data.seed` (one fixed dataset for every run seed);
+//! the run seed drives teacher training, student initialisation and training, and the
+//! evaluation rollouts (`Seeds::new(seed).child("avoiding-eval")`, the same for every method of
+//! a seed, so methods are compared on the same episode seeds). Every `seed` field inside the
+//! component configurations is replaced by the run seed.
+
+use std::collections::HashMap;
+use std::time::Instant;
+
+use faer::Mat;
+use serde::{Deserialize, Serialize};
+use serde_json::{Value, json};
+use vdd::{DistillData, Vdd, VddConfig};
+use vdd_baselines::{
+    CdConfig, CdTrainer, ConsistencyProgress, CtmConfig, CtmTrainer, Dataset, Em, EmConfig, Imc,
+    ImcConfig,
+};
+use vdd_core::{Affine, Seeds};
+use vdd_data::{Episodes, Normalization, NormalizationKind, SequenceDataset, WindowConfig};
+use vdd_diffusion::{
+    BesoConfig, DdpmConfig, DiffusionTeacher, KarrasSampler, NetConfig, SigmaDistribution,
+    TeacherKind, TimeSampling, TrainConfig, VpSampler,
+};
+use vdd_moe::{ActMode, GatingKind, Moe, MoeConfig, NetworkConfig};
+use vdd_nn::{AdamConfig, LrSchedule};
+use vdd_tasks::avoiding::rollout::{EvalConfig, Evaluation, Stepping, evaluate_cloned};
+use vdd_tasks::{DemonstratorConfig, generate_demonstrations};
+
+use crate::experiment::{RunContext, StageTimes};
+use crate::methods::{self, Method};
+use crate::plots::{self, Curves, TrajectoryPanel};
+use crate::policy::{TrainedPolicy, Windowed, us_per_action};
+use crate::recipe;
+use crate::report::{self, Row};
+use crate::teachers::{self, BesoTeacherConfig, DdpmTeacherConfig, TeachersConfig, TrainedTeacher};
+
+/// A recipe of the Avoiding task (see `recipes/avoiding.toml`).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct AvoidingRecipe {
+    /// Recipe name (results go to `results/<name>/`).
+    pub name: String,
+    /// One line on what the recipe shows.
+    pub description: String,
+    /// Always `avoiding`.
+    pub task: String,
+    /// Run seeds.
+    pub seeds: Vec<u64>,
+    /// Methods to run (`beso`, `vdd-beso`, ...).
+    pub methods: Vec<String>,
+    /// Demonstrations and windowing.
+    pub data: AvoidingData,
+    /// The learned teachers.
+    pub teachers: TeachersConfig,
+    /// The mixture of experts of VDD, EM and IMC (`state_dim` / `action_dim` come from the data).
+    pub student: MoeConfig,
+    /// VDD's trainer for each teacher.
+    pub vdd: VddMethods,
+    /// EM and IMC.
+    pub baselines: Baselines,
+    /// Rollouts and timing.
+    pub eval: AvoidingEval,
+    /// Figures.
+    pub plots: PlotSettings,
+}
+
+/// Demonstrations and windowing.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct AvoidingData {
+    /// Number of successful scripted demonstrations.
+    pub demonstrations: usize,
+    /// Seed of the demonstrations and of the train/validation split (fixed across run seeds).
+    pub seed: u64,
+    /// Share of episodes held out (0: train on all; the normalisation is fitted on the rest).
+    pub validation_fraction: f64,
+    /// Observation window `W` (steps).
+    pub obs_window: usize,
+    /// Action chunk `C` (steps).
+    pub action_chunk: usize,
+    /// Actions of each predicted chunk executed before predicting again (`1..=C`).
+    pub execute_steps: usize,
+    /// Also train on the first `W − 1` steps with the window padded by the first observation.
+    pub pad_start: bool,
+    /// The scripted demonstrator.
+    pub demonstrator: DemonstratorConfig,
+}
+
+/// VDD's trainer for each teacher, and how the student acts.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct VddMethods {
+    /// VDD-BESO (noise levels are BESO's `σ`).
+    pub beso: VddConfig,
+    /// VDD-DDPM (noise levels are DDPM's time `t`).
+    pub ddpm: VddConfig,
+    /// Acting: greedy gating instead of sampling `z ~ q(z|s)`.
+    pub greedy_gating: bool,
+    /// Acting: sample `a ~ N(μ_z, Σ_z)` instead of returning `μ_z` (the paper uses `μ_z`).
+    pub sample_action: bool,
+    /// Rescale decaying LR schedules to end at the last step (so `--set ...iterations=N` alone
+    /// keeps the schedule's shape).
+    pub schedules_follow_iterations: bool,
+}
+
+/// The baselines: EM and IMC on the same mixture of experts, CD and CTM distilled from the
+/// BESO teacher.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Baselines {
+    /// EM.
+    pub em: EmConfig,
+    /// IMC.
+    pub imc: ImcConfig,
+    /// Consistency distillation of the BESO teacher.
+    pub cd: CdConfig,
+    /// Consistency trajectory model distilled from the BESO teacher.
+    pub ctm: CtmConfig,
+    /// For CD and CTM students started from the teacher (`init_from_teacher`): take the
+    /// network architecture and the levels (`σ_data`, `σ_min`, `σ_max`, `ρ`) from the BESO
+    /// teacher's configuration, so `--set teachers.beso...` changes need no matching change here.
+    pub consistency_follows_teacher: bool,
+    /// As [`VddMethods::schedules_follow_iterations`] (EM and IMC).
+    pub schedules_follow_iterations: bool,
+}
+
+/// Evaluation.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct AvoidingEval {
+    /// Rollouts per method and seed.
+    pub rollouts: usize,
+    /// Environments stepped together with one batched `act_batch` (0: one episode at a time).
+    pub lockstep_batch: usize,
+    /// Evaluation threads (0: all cores).
+    pub threads: usize,
+    /// Timed single-observation `Policy::act` calls for µs per action (single thread).
+    pub timing_calls: usize,
+    /// Untimed calls before timing.
+    pub timing_warmup: usize,
+}
+
+/// Figures.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct PlotSettings {
+    /// Write plots at all.
+    pub enabled: bool,
+    /// Rollouts drawn per method in the trajectory figure.
+    pub trajectories: usize,
+    /// Also write PNGs (SVG always).
+    pub png: bool,
+}
+
+impl Default for AvoidingRecipe {
+    fn default() -> Self {
+        let net = NetConfig { hidden_dim: 128, num_blocks: 2, ..Default::default() };
+        let train = TrainConfig {
+            steps: 12_000,
+            batch_size: 256,
+            adam: AdamConfig { lr: 1e-3, ..Default::default() },
+            warmup_steps: 200,
+            final_lr_factor: 0.02,
+            ema_decay: 0.999,
+            grad_clip: Some(1.0),
+            log_every: 100,
+        };
+        let log_normal = (-1.2f32, 1.2f32);
+        let beso = BesoConfig {
+            net: net.clone(),
+            training_sigma: SigmaDistribution::LogNormal { mean: log_normal.0, std: log_normal.1 },
+            sigma_max: 80.0,
+            sampler: KarrasSampler::Ddim,
+            sampling_steps: 16,
+            ..Default::default()
+        };
+        let teachers_beso = beso.clone();
+        let ddpm = DdpmConfig {
+            net,
+            num_steps: 16,
+            sampling_steps: 16,
+            sampler: VpSampler::Ancestral,
+            time_sampling: TimeSampling::LogNormal { mean: log_normal.0, std: log_normal.1 },
+            ..Default::default()
+        };
+        let student = MoeConfig {
+            state_dim: 4,
+            action_dim: 2,
+            num_experts: 8,
+            gating: GatingKind::Learned,
+            init_std: 1.0,
+            experts_network: NetworkConfig { hidden_dim: 64, num_blocks: 2, ..Default::default() },
+            gating_network: NetworkConfig { hidden_dim: 64, num_blocks: 1, ..Default::default() },
+            ..MoeConfig::toy(4, 2, 8)
+        };
+        let iterations = 10_000;
+        let vdd_beso = VddConfig {
+            iterations,
+            batch_size: 64,
+            vi_samples: 2,
+            noise: vdd_core::NoiseSchedule::Uniform { min: 0.05, max: 0.3 },
+            expert_optimizer: AdamConfig { lr: 1e-3, ..Default::default() },
+            gating_optimizer: AdamConfig { lr: 1e-3, ..Default::default() },
+            expert_lr_schedule: LrSchedule::LinearDecay {
+                total_steps: iterations as u64,
+                final_factor: 0.0,
+            },
+            gating_lr_schedule: LrSchedule::LinearDecay {
+                total_steps: iterations as u64,
+                final_factor: 0.0,
+            },
+            gating_batch_size: 256,
+            ..VddConfig::toy()
+        };
+        let vdd_ddpm = VddConfig {
+            noise: vdd_core::NoiseSchedule::Uniform { min: 0.5, max: 2.0 },
+            ..vdd_beso.clone()
+        };
+        Self {
+            name: "avoiding".into(),
+            description: "VDD on the planar Avoiding task".into(),
+            task: "avoiding".into(),
+            seeds: vec![0],
+            methods: vec!["beso".into(), "vdd-beso".into()],
+            data: AvoidingData {
+                demonstrations: 200,
+                seed: 0,
+                validation_fraction: 0.1,
+                obs_window: 1,
+                action_chunk: 1,
+                execute_steps: 1,
+                pad_start: true,
+                demonstrator: DemonstratorConfig::default(),
+            },
+            teachers: TeachersConfig {
+                beso: BesoTeacherConfig { config: beso, train: train.clone() },
+                ddpm: DdpmTeacherConfig { config: ddpm, train },
+            },
+            student,
+            vdd: VddMethods {
+                beso: vdd_beso,
+                ddpm: vdd_ddpm,
+                greedy_gating: false,
+                sample_action: false,
+                schedules_follow_iterations: true,
+            },
+            baselines: Baselines {
+                em: EmConfig::toy(),
+                imc: ImcConfig::toy(),
+                cd: consistency_default(&teachers_beso),
+                ctm: CtmConfig {
+                    base: consistency_default(&teachers_beso),
+                    ..CtmConfig::for_beso(&teachers_beso)
+                },
+                consistency_follows_teacher: true,
+                schedules_follow_iterations: true,
+            },
+            eval: AvoidingEval {
+                rollouts: 500,
+                lockstep_batch: 50,
+                threads: 0,
+                timing_calls: 2000,
+                timing_warmup: 100,
+            },
+            plots: PlotSettings { enabled: true, trajectories: 40, png: true },
+        }
+    }
+}
+
+/// The CD / CTM settings of the recipe: started from the BESO teacher, one-step sampling.
+fn consistency_default(beso: &BesoConfig) -> CdConfig {
+    let mut c = CdConfig::for_beso(beso);
+    c.train.steps = 4000;
+    c
+}
+
+/// A CD / CTM configuration for `seed`: the seed and (with `follow_teacher` and
+/// `init_from_teacher`) the teacher's architecture and levels. (Their learning rate decays over
+/// their `train.steps` by construction.)
+pub fn consistency_config_for(
+    c: &CdConfig,
+    beso: &BesoConfig,
+    seed: u64,
+    follow_teacher: bool,
+) -> CdConfig {
+    let mut c = c.clone().with_seed(seed);
+    if follow_teacher && c.init_from_teacher {
+        let t = CdConfig::for_beso(beso);
+        c.net = t.net;
+        c.sigma_data = t.sigma_data;
+        c.sigma_min = t.sigma_min;
+        c.sigma_max = t.sigma_max;
+        c.rho = t.rho;
+    }
+    c
+}
+
+/// Sets the length of decaying schedules to `total` steps (warm-ups keep their length).
+pub fn fit_schedule(s: &mut LrSchedule, total: u64) {
+    match s {
+        LrSchedule::Constant => {}
+        LrSchedule::LinearDecay { total_steps, .. } | LrSchedule::Cosine { total_steps, .. } => {
+            *total_steps = total.max(1)
+        }
+        LrSchedule::Warmup { warmup_steps, then } => {
+            fit_schedule(then, total.saturating_sub(*warmup_steps))
+        }
+    }
+}
+
+/// The VDD config for a run: seed and (optionally) schedule lengths.
+pub fn vdd_config_for(c: &VddConfig, seed: u64, follow: bool) -> VddConfig {
+    let mut c = c.clone();
+    c.seed = seed;
+    if follow {
+        let it = c.iterations as u64;
+        fit_schedule(&mut c.expert_lr_schedule, it * c.expert_steps_per_iter as u64);
+        let g_it = c.freeze_gating_after.map_or(it, |f| (f as u64).min(it));
+        fit_schedule(&mut c.gating_lr_schedule, g_it * c.gating_steps_per_iter as u64);
+    }
+    c
+}
+
+/// Demonstrations turned into training matrices.
+struct Prepared {
+    /// Raw windows of the training split (`n x W·4`, `n x C·2`).
+    states: Mat<f32>,
+    actions: Mat<f32>,
+    /// `vdd_data` standard normalisation fitted on the training split (EM, IMC).
+    norm: Normalization,
+    /// Normalised windows of the training split (EM, IMC).
+    states_n: Mat<f32>,
+    actions_n: Mat<f32>,
+    /// Raw observations of the training episodes (µs-per-action timing).
+    episodes_obs: Vec<Mat<f32>>,
+    summary: Value,
+}
+
+fn prepare(data: &AvoidingData) -> crate::XResult<Prepared> {
+    let t0 = Instant::now();
+    let demos = generate_demonstrations(data.demonstrations, data.seed, &data.demonstrator)?;
+    let episodes = Episodes::from_episodes(demos.observations, demos.actions)?;
+    let train = if data.validation_fraction > 0.0 {
+        episodes.split(data.validation_fraction, data.seed)?.train
+    } else {
+        episodes
+    };
+    let window =
+        WindowConfig::new(data.obs_window, data.action_chunk).with_pad_start(data.pad_start);
+    let raw = SequenceDataset::new(train.clone(), window)?;
+    let (states, actions) = raw.to_matrices();
+    let norm = Normalization::fit(&train, NormalizationKind::standard())?;
+    let (states_n, actions_n) =
+        SequenceDataset::new(train.normalized(&norm)?, window)?.to_matrices();
+    let (episodes_obs, _) = train.to_episode_matrices();
+    let mut counts = vec![0usize; vdd_tasks::avoiding::N_MODES];
+    for m in &demos.modes {
+        counts[m.index()] += 1;
+    }
+    let summary = json!({
+        "demonstrations": data.demonstrations,
+        "train_episodes": train.num_episodes(),
+        "train_samples": states.nrows(),
+        "state_dim": states.ncols(),
+        "action_dim": actions.ncols(),
+        "dataset_modes": counts.iter().filter(|&&c| c > 0).count(),
+        "dataset_entropy": vdd_tasks::normalized_entropy(&counts),
+    });
+    eprintln!(
+        "data: {} demonstrations ({} train episodes, {} samples, {} of 24 modes, entropy {:.3}) in {:.2} s",
+        data.demonstrations,
+        train.num_episodes(),
+        states.nrows(),
+        summary["dataset_modes"],
+        summary["dataset_entropy"].as_f64().unwrap_or(0.0),
+        t0.elapsed().as_secs_f64()
+    );
+    Ok(Prepared { states, actions, norm, states_n, actions_n, episodes_obs, summary })
+}
+
+/// Repeats a per-step normaliser over a window of `k` steps.
+fn tile(a: &Affine, k: usize) -> Affine {
+    Affine { offset: a.offset.repeat(k), scale: a.scale.repeat(k) }
+}
+
+fn normalize_rows(m: &Mat<f32>, a: &Affine) -> Mat<f32> {
+    Mat::from_fn(m.nrows(), m.ncols(), |i, j| (m[(i, j)] - a.offset[j]) / a.scale[j])
+}
+
+/// A trained method before evaluation.
+struct Trained {
+    policy: TrainedPolicy,
+    train_seconds: f64,
+    teacher_seconds: Option<f64>,
+    sampling_steps: Option<usize>,
+    /// Observation / action normalisers of a mixture (to recover the expert chosen per step).
+    moe_norms: Option<(Affine, Affine)>,
+    curves: Curves,
+}
+
+/// Teachers trained in this run, by cache key.
+#[derive(Default)]
+struct TeacherStore {
+    teachers: HashMap<String, TrainedTeacher>,
+    /// One entry per teacher obtained (for `run.json`): kind, seed, cache hash, from cache?
+    log: Vec<Value>,
+    /// Wall-clock seconds spent training or loading teachers.
+    seconds: f64,
+}
+
+impl TeacherStore {
+    fn get(
+        &mut self,
+        kind: TeacherKind,
+        cfg: &AvoidingRecipe,
+        prep: &Prepared,
+        seed: u64,
+        ctx: &RunContext,
+    ) -> crate::XResult<&TrainedTeacher> {
+        let sub = match kind {
+            TeacherKind::Beso => recipe::config_hash(&cfg.teachers.beso)?,
+            TeacherKind::Ddpm => recipe::config_hash(&cfg.teachers.ddpm)?,
+        };
+        let key = format!(
+            "{}-{sub}-{seed}-{}",
+            teachers::kind_name(kind),
+            teachers::data_hash(prep.states.as_ref(), prep.actions.as_ref())
+        );
+        if !self.teachers.contains_key(&key) {
+            let label = format!("{} s{seed}", teachers::kind_name(kind));
+            let t0 = Instant::now();
+            let t = teachers::train_or_load(
+                kind,
+                &cfg.teachers,
+                prep.states.as_ref(),
+                prep.actions.as_ref(),
+                seed,
+                &ctx.cache_dir,
+                ctx.fresh,
+                &label,
+            )?;
+            self.seconds += t0.elapsed().as_secs_f64();
+            self.log.push(teachers::cache_entry(kind, seed, &t));
+            self.teachers.insert(key.clone(), t);
+        }
+        Ok(&self.teachers[&key])
+    }
+}
+
+fn train_method(
+    method: Method,
+    cfg: &AvoidingRecipe,
+    prep: &Prepared,
+    seed: u64,
+    store: &mut TeacherStore,
+    ctx: &RunContext,
+    label: &str,
+) -> crate::XResult<Trained> {
+    let mut curves = Curves::default();
+    match method {
+        Method::Beso | Method::Ddpm | Method::Beso1 | Method::Ddpm1 => {
+            let kind = method.teacher().ok_or("teacher method without a teacher")?;
+            let t = store.get(kind, cfg, prep, seed, ctx)?;
+            let mut teacher = t.teacher.clone();
+            if matches!(method, Method::Beso1 | Method::Ddpm1) {
+                teacher.set_steps(1)?;
+            }
+            curves.insert(
+                format!("{} teacher loss", teachers::kind_name(kind)),
+                t.losses.iter().map(|&(s, l)| (s as f64, f64::from(l))).collect(),
+            );
+            Ok(Trained {
+                sampling_steps: Some(teacher.steps()),
+                policy: TrainedPolicy::Teacher(Box::new(teacher)),
+                train_seconds: t.train_seconds,
+                teacher_seconds: None,
+                moe_norms: None,
+                curves,
+            })
+        }
+        Method::VddBeso | Method::VddDdpm => {
+            let kind = method.teacher().ok_or("VDD without a teacher")?;
+            let vc = match kind {
+                TeacherKind::Beso => &cfg.vdd.beso,
+                TeacherKind::Ddpm => &cfg.vdd.ddpm,
+            };
+            let vc = vdd_config_for(vc, seed, cfg.vdd.schedules_follow_iterations);
+            let t = store.get(kind, cfg, prep, seed, ctx)?;
+            let teacher = t.teacher.clone();
+            let teacher_seconds = t.train_seconds;
+            let (sn, an) = {
+                let (s, a) = teacher.normalizers();
+                (s.clone(), a.clone())
+            };
+            let states = normalize_rows(&prep.states, &sn);
+            let actions = normalize_rows(&prep.actions, &an);
+            let mut mc = cfg.student.clone();
+            mc.state_dim = states.ncols();
+            mc.action_dim = actions.ncols();
+            let student = Moe::from_config(mc, seed)?;
+            let data = DistillData::new(states, Some(actions))?;
+            let iterations = vc.iterations;
+            let mut vdd = Vdd::new(vc, teacher, student, data)?;
+            let bar = crate::progress::bar(iterations as u64, label);
+            let every = (iterations / 200).max(1);
+            let t0 = Instant::now();
+            vdd.train(|m| {
+                bar.inc(1);
+                if m.iteration % every == 0 || m.iteration + 1 == iterations {
+                    let x = m.iteration as f64;
+                    let mut push =
+                        |k: &str, v: f64| curves.entry(k.to_owned()).or_default().push((x, v));
+                    push("expert entropy (nats)", f64::from(m.expert.expert_entropy));
+                    push("corrected score rms", f64::from(m.expert.corrected_score_rms));
+                    push("log responsibility", f64::from(m.expert.log_responsibility));
+                    push("gating entropy (nats)", f64::from(m.gating_entropy));
+                    if let Some(g) = m.gating_loss {
+                        push("gating loss", f64::from(g));
+                    }
+                    bar.set_message(format!("H(z|s) {:.2}", m.gating_entropy));
+                }
+            })?;
+            let train_seconds = t0.elapsed().as_secs_f64();
+            bar.finish_and_clear();
+            let mut student = vdd.into_student();
+            student.set_normalizers(Some(sn.clone()), Some(an.clone()))?;
+            student.set_act_mode(ActMode {
+                greedy_gating: cfg.vdd.greedy_gating,
+                sample_action: cfg.vdd.sample_action,
+            });
+            Ok(Trained {
+                policy: TrainedPolicy::Moe(Box::new(student)),
+                train_seconds,
+                teacher_seconds: Some(teacher_seconds),
+                sampling_steps: None,
+                moe_norms: Some((sn, an)),
+                curves,
+            })
+        }
+        Method::Em | Method::Imc => {
+            let (w, c) = (cfg.data.obs_window, cfg.data.action_chunk);
+            let (sn, an) = (tile(&prep.norm.observations, w), tile(&prep.norm.actions, c));
+            let data = Dataset::new(prep.states_n.clone(), prep.actions_n.clone())?;
+            let mut mc = cfg.student.clone();
+            mc.state_dim = prep.states_n.ncols();
+            mc.action_dim = prep.actions_n.ncols();
+            let student = Moe::from_config(mc, seed)?;
+            let follow = cfg.baselines.schedules_follow_iterations;
+            let t0 = Instant::now();
+            let mut student = if method == Method::Em {
+                let mut ec = cfg.baselines.em.clone();
+                ec.seed = seed;
+                if follow {
+                    fit_schedule(
+                        &mut ec.expert_lr_schedule,
+                        (ec.iterations * ec.expert_steps_per_iter) as u64,
+                    );
+                    fit_schedule(
+                        &mut ec.gating_lr_schedule,
+                        (ec.iterations * ec.gating_steps_per_iter) as u64,
+                    );
+                }
+                let bar = crate::progress::bar(ec.iterations as u64, label);
+                let mut em = Em::new(ec, student, data)?;
+                em.train(|m| {
+                    bar.inc(1);
+                    bar.set_message(format!("log-lik {:.3}", m.log_likelihood));
+                    curves
+                        .entry("log-likelihood (nats)".into())
+                        .or_default()
+                        .push((m.iteration as f64, m.log_likelihood));
+                })?;
+                bar.finish_and_clear();
+                em.into_student()
+            } else {
+                let mut ic = cfg.baselines.imc.clone();
+                ic.seed = seed;
+                if follow {
+                    fit_schedule(
+                        &mut ic.expert_lr_schedule,
+                        (ic.iterations * ic.expert_steps_per_iter) as u64,
+                    );
+                    fit_schedule(
+                        &mut ic.gating_lr_schedule,
+                        (ic.iterations * ic.gating_steps_per_iter) as u64,
+                    );
+                }
+                let bar = crate::progress::bar(ic.iterations as u64, label);
+                let mut imc = Imc::new(ic, student, data)?;
+                imc.train(|m| {
+                    bar.inc(1);
+                    bar.set_message(format!("log-lik {:.3}", m.log_likelihood));
+                    curves
+                        .entry("log-likelihood (nats)".into())
+                        .or_default()
+                        .push((m.iteration as f64, m.log_likelihood));
+                    curves
+                        .entry("IMC objective".into())
+                        .or_default()
+                        .push((m.iteration as f64, m.objective));
+                })?;
+                bar.finish_and_clear();
+                imc.into_student()
+            };
+            let train_seconds = t0.elapsed().as_secs_f64();
+            student.set_normalizers(Some(sn.clone()), Some(an.clone()))?;
+            Ok(Trained {
+                policy: TrainedPolicy::Moe(Box::new(student)),
+                train_seconds,
+                teacher_seconds: None,
+                sampling_steps: None,
+                moe_norms: Some((sn, an)),
+                curves,
+            })
+        }
+        Method::Cd | Method::Ctm => {
+            let t = store.get(TeacherKind::Beso, cfg, prep, seed, ctx)?;
+            let teacher_seconds = t.train_seconds;
+            let DiffusionTeacher::Beso(beso) = t.teacher.clone() else {
+                return Err("CD and CTM need the BESO teacher".into());
+            };
+            let b = &cfg.baselines;
+            let follow = b.consistency_follows_teacher;
+            let (states, actions) = (prep.states.as_ref(), prep.actions.as_ref());
+            let t0 = Instant::now();
+            let mut progress_curves = |bar: &indicatif::ProgressBar, p: &ConsistencyProgress| {
+                bar.set_position(p.step);
+                bar.set_message(format!("loss {:.4}", p.loss));
+                let x = p.step as f64;
+                curves
+                    .entry("consistency loss".into())
+                    .or_default()
+                    .push((x, f64::from(p.consistency_loss)));
+                if p.dsm_loss != 0.0 {
+                    curves.entry("DSM loss".into()).or_default().push((x, f64::from(p.dsm_loss)));
+                }
+            };
+            let (policy, steps) = if method == Method::Cd {
+                let c = consistency_config_for(&b.cd, beso.config(), seed, follow);
+                let steps = c.sampling_steps;
+                let bar = crate::progress::bar(c.train.steps, label);
+                let mut trainer = CdTrainer::new(c, beso, states, actions)?;
+                let model = trainer.train(&mut |p| progress_curves(&bar, p))?;
+                bar.finish_and_clear();
+                (TrainedPolicy::Consistency(Box::new(model)), steps)
+            } else {
+                let mut c = b.ctm.clone();
+                c.base = consistency_config_for(&c.base, beso.config(), seed, follow);
+                let steps = c.base.sampling_steps;
+                let bar = crate::progress::bar(c.base.train.steps, label);
+                let mut trainer = CtmTrainer::new(c, beso, states, actions)?;
+                let model = trainer.train(&mut |p| progress_curves(&bar, p))?;
+                bar.finish_and_clear();
+                (TrainedPolicy::Trajectory(Box::new(model)), steps)
+            };
+            Ok(Trained {
+                policy,
+                train_seconds: t0.elapsed().as_secs_f64(),
+                teacher_seconds: Some(teacher_seconds),
+                sampling_steps: Some(steps),
+                moe_norms: None,
+                curves,
+            })
+        }
+        Method::VddExact => Err(method
+            .check_available("avoiding")
+            .err()
+            .unwrap_or_else(|| "unavailable".into())
+            .into()),
+    }
+}
+
+/// For each step of each recorded rollout, the expert whose mean (denormalised) is nearest to
+/// the applied action: the expert the mixture chose (it acts with the chosen expert's mean).
+fn chosen_experts(
+    moe: &mut Moe,
+    norms: &(Affine, Affine),
+    eval: &Evaluation,
+    n: usize,
+) -> crate::XResult<Vec<Vec<usize>>> {
+    let (sn, an) = norms;
+    let mut out = Vec::new();
+    for r in eval.rollouts.iter().take(n) {
+        let Some(tr) = &r.trajectory else {
+            out.push(Vec::new());
+            continue;
+        };
+        let states = normalize_rows(&tr.observations, sn);
+        moe.forward(states.as_ref())?;
+        let o = moe.output();
+        let mut ids = Vec::with_capacity(tr.actions.nrows());
+        let mut mean = vec![0.0f32; o.action_dim];
+        for t in 0..tr.actions.nrows() {
+            let mut best = (f32::INFINITY, 0);
+            for z in 0..o.num_experts {
+                mean.copy_from_slice(o.mean(t, z));
+                an.denormalize(&mut mean);
+                let d: f32 =
+                    (0..o.action_dim).map(|j| (mean[j] - tr.actions[(t, j)]).powi(2)).sum();
+                if d < best.0 {
+                    best = (d, z);
+                }
+            }
+            ids.push(best.1);
+        }
+        out.push(ids);
+    }
+    Ok(out)
+}
+
+/// Runs the recipe.
+pub fn run(ctx: &RunContext) -> crate::XResult {
+    let resolved = recipe::resolve(&AvoidingRecipe::default(), &ctx.file, &ctx.overrides)?;
+    let base = &resolved.base;
+    if base.task != "avoiding" {
+        return Err(format!("task `{}` is not avoiding", base.task).into());
+    }
+    if base.seeds.is_empty() {
+        return Err("the recipe lists no seeds".into());
+    }
+    let configs = resolved.configs();
+    let mut plan: Vec<(String, Method, &AvoidingRecipe)> = Vec::new();
+    for (variant, cfg) in &configs {
+        for m in methods::parse_methods(&cfg.methods, "avoiding")? {
+            plan.push((methods::label(m, variant.map(|v| v.name.as_str())), m, cfg));
+        }
+        if cfg.data.obs_window == 0
+            || cfg.data.action_chunk == 0
+            || cfg.data.execute_steps == 0
+            || cfg.data.execute_steps > cfg.data.action_chunk
+        {
+            return Err(
+                "data: need obs_window, action_chunk >= 1 and 1 <= execute_steps <= action_chunk"
+                    .into(),
+            );
+        }
+    }
+    let dir = ctx.run_dir(&base.seeds);
+    ctx.write_resolved(&dir, &resolved.to_toml()?)?;
+    eprintln!(
+        "recipe `{}`: {} method run(s) x {} seed(s) -> {}",
+        ctx.name,
+        plan.len(),
+        base.seeds.len(),
+        teachers::rel(&dir)
+    );
+
+    let mut prepared: HashMap<String, Prepared> = HashMap::new();
+    let mut store = TeacherStore::default();
+    let mut rows: Vec<(String, Vec<Row>)> =
+        plan.iter().map(|(l, _, _)| (l.clone(), Vec::new())).collect();
+    let mut all_curves: serde_json::Map<String, Value> = serde_json::Map::new();
+    let mut panels: Vec<TrajectoryPanel> = Vec::new();
+    let mut curve_panels: Vec<(String, Curves)> = Vec::new();
+    let mut data_summary = Value::Null;
+    let mut stages = StageTimes::default();
+    let threads = if base.eval.threads == 0 {
+        std::thread::available_parallelism().map_or(1, |p| p.get())
+    } else {
+        base.eval.threads
+    };
+
+    for (si, &seed) in base.seeds.iter().enumerate() {
+        for (pi, (label, method, cfg)) in plan.iter().enumerate() {
+            let dkey = recipe::config_hash(&cfg.data)?;
+            if !prepared.contains_key(&dkey) {
+                let p = stages.time("data", || prepare(&cfg.data))?;
+                prepared.insert(dkey.clone(), p);
+            }
+            let prep = &prepared[&dkey];
+            data_summary = prep.summary.clone();
+            let tag = format!("{label} s{seed}");
+            let (t0, before) = (Instant::now(), store.seconds);
+            let trained = train_method(*method, cfg, prep, seed, &mut store, ctx, &tag)?;
+            stages.add("teachers", store.seconds - before);
+            stages.add("students", t0.elapsed().as_secs_f64() - (store.seconds - before));
+
+            // Rollouts.
+            let d = &cfg.data;
+            let wrapped = Windowed::new(
+                trained.policy.clone(),
+                d.obs_window,
+                d.action_chunk,
+                d.execute_steps,
+            )?;
+            let eval_seed = Seeds::new(seed).child("avoiding-eval").root();
+            let stepping = match cfg.eval.lockstep_batch {
+                0 => Stepping::PerEpisode,
+                b => Stepping::Lockstep { batch_size: b },
+            };
+            let ec = EvalConfig {
+                n_rollouts: cfg.eval.rollouts,
+                seed: eval_seed,
+                stepping,
+                record: si == 0 && cfg.plots.enabled,
+            };
+            let spin = crate::progress::spinner(&tag, &format!("{} rollouts", cfg.eval.rollouts));
+            let t0 = Instant::now();
+            let ev = evaluate_cloned(&wrapped, threads, &ec)?;
+            let eval_seconds = t0.elapsed().as_secs_f64();
+            stages.add("rollouts", eval_seconds);
+            spin.finish_and_clear();
+
+            // Inference time, single-threaded, one observation per call.
+            let mut timed = wrapped.clone();
+            let us = stages.time("timing", || {
+                us_per_action(
+                    &mut timed,
+                    &prep.episodes_obs,
+                    cfg.eval.timing_calls,
+                    cfg.eval.timing_warmup,
+                    eval_seed,
+                )
+            })?;
+
+            let m = &ev.metrics;
+            eprintln!(
+                "[{tag}] success {:.3}, entropy {:.3} ({} modes), {:.1} µs/action, trained in {:.1} s{}, evaluated in {:.1} s",
+                m.success_rate,
+                m.task_entropy,
+                m.modes_reached,
+                us,
+                trained.train_seconds,
+                trained.teacher_seconds.map_or(String::new(), |t| format!(" (+ teacher {t:.1} s)")),
+                eval_seconds
+            );
+            let mut row = Row::new();
+            row.insert("seed".into(), json!(seed));
+            row.insert("success_rate".into(), json!(m.success_rate));
+            row.insert("task_entropy".into(), json!(m.task_entropy));
+            row.insert("us_per_action".into(), report::json_f64(us));
+            row.insert("train_seconds".into(), report::json_f64(trained.train_seconds));
+            if let Some(t) = trained.teacher_seconds {
+                row.insert("teacher_seconds".into(), report::json_f64(t));
+            }
+            if let Some(s) = trained.sampling_steps {
+                row.insert("sampling_steps".into(), json!(s));
+            }
+            row.insert("rollouts".into(), json!(m.rollouts));
+            row.insert("modes_reached".into(), json!(m.modes_reached));
+            row.insert("collisions".into(), json!(m.collisions));
+            row.insert("timeouts".into(), json!(m.timeouts));
+            row.insert("mean_success_steps".into(), report::json_f64(m.mean_success_steps));
+            row.insert("mode_counts".into(), json!(m.mode_counts));
+            rows[pi].1.push(row);
+            all_curves
+                .insert(format!("{label}/seed{seed}"), serde_json::to_value(&trained.curves)?);
+
+            if si == 0 && cfg.plots.enabled {
+                let t0 = Instant::now();
+                let n = cfg.plots.trajectories;
+                let experts = match (&trained.policy, &trained.moe_norms) {
+                    (TrainedPolicy::Moe(moe), Some(norms))
+                        if d.obs_window == 1 && d.action_chunk == 1 =>
+                    {
+                        let mut moe = moe.as_ref().clone();
+                        Some((chosen_experts(&mut moe, norms, &ev, n)?, moe.num_experts()))
+                    }
+                    _ => None,
+                };
+                panels.push(TrajectoryPanel::from_rollouts(
+                    label,
+                    &ev.rollouts,
+                    n,
+                    experts,
+                    m.success_rate,
+                    m.task_entropy,
+                ));
+                curve_panels.push((label.clone(), trained.curves));
+                stages.add("plots", t0.elapsed().as_secs_f64());
+            }
+        }
+    }
+
+    // Outputs.
+    let mut metrics = report::metrics_json(&ctx.name, "avoiding", &base.seeds, &rows);
+    metrics.insert("data".into(), data_summary.clone());
+    vdd_nn::io::write_atomic(
+        &dir.join("metrics.json"),
+        serde_json::to_string_pretty(&metrics)?.as_bytes(),
+    )?;
+    vdd_nn::io::write_atomic(
+        &dir.join("curves.json"),
+        serde_json::to_string(&all_curves)?.as_bytes(),
+    )?;
+    let table = format!(
+        "## {} (Avoiding)\n\n{}\n\n{}\nmean ± std over seeds {:?}; {} rollouts per method and seed; µs per action: single-threaded `Policy::act` on one observation.\n",
+        ctx.name,
+        base.description,
+        report::markdown_table(&rows, &report::columns_for("avoiding")),
+        base.seeds,
+        base.eval.rollouts
+    );
+    vdd_nn::io::write_atomic(&dir.join("table.md"), table.as_bytes())?;
+    let mut figures = Vec::new();
+    if base.plots.enabled && !panels.is_empty() {
+        let t0 = Instant::now();
+        figures.extend(plots::avoiding_trajectories(
+            &dir.join("trajectories"),
+            &panels,
+            base.plots.png,
+        )?);
+        figures.extend(plots::learning_curves(&dir.join("curves"), &curve_panels, base.plots.png)?);
+        stages.add("plots", t0.elapsed().as_secs_f64());
+    }
+    ctx.write_run_info(
+        &dir,
+        json!({
+            "figures": figures,
+            "data": data_summary,
+            "teachers": store.log,
+            "stage_seconds": stages.to_json(),
+        }),
+    )?;
+    println!("\n{table}");
+    print_acceptance(&rows);
+    println!("stages: {}", stages.summary());
+    let cpu = crate::experiment::cpu_seconds().map_or(String::new(), |c| format!(", {c:.0} s CPU"));
+    println!(
+        "results in {} ({:.1} s wall{cpu})",
+        teachers::rel(&dir),
+        ctx.started.elapsed().as_secs_f64()
+    );
+    Ok(())
+}
+
+/// Prints VDD vs teacher comparisons (issue 7's acceptance) when both are in the run.
+fn print_acceptance(rows: &[(String, Vec<Row>)]) {
+    let mean = |label: &str, key: &str| -> Option<f64> {
+        let (_, r) = rows.iter().find(|(l, _)| l == label)?;
+        let xs: Vec<f64> = r.iter().filter_map(|x| x.get(key)?.as_f64()).collect();
+        (!xs.is_empty()).then(|| report::mean_std(&xs).0)
+    };
+    for (vdd, teacher) in [("vdd-beso", "beso"), ("vdd-ddpm", "ddpm")] {
+        let (Some(vs), Some(ve), Some(vu)) =
+            (mean(vdd, "success_rate"), mean(vdd, "task_entropy"), mean(vdd, "us_per_action"))
+        else {
+            continue;
+        };
+        let mut line = format!(
+            "{vdd}: success {vs:.3} (>= 0.90: {}), entropy {ve:.3} (>= 0.70: {})",
+            yes(vs >= 0.90),
+            yes(ve >= 0.70)
+        );
+        if let (Some(ts), Some(tu)) =
+            (mean(teacher, "success_rate"), mean(teacher, "us_per_action"))
+        {
+            line.push_str(&format!(
+                "; {teacher} success {ts:.3} (within 0.05: {}); speed-up {:.1}x (>= 10x: {})",
+                yes(vs >= ts - 0.05),
+                tu / vu,
+                yes(tu / vu >= 10.0)
+            ));
+        }
+        println!("{line}");
+    }
+}
+
+fn yes(b: bool) -> &'static str {
+    if b { "yes" } else { "NO" }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn recipes_in_the_repository_resolve() {
+        for name in [
+            "avoiding",
+            "avoiding-ablation-experts",
+            "avoiding-ablation-gating",
+            "avoiding-ablation-noise",
+        ] {
+            let path = recipe::recipe_path(name).unwrap();
+            let file = recipe::read_recipe(&path).unwrap();
+            for quick in [false, true] {
+                let o = recipe::Overrides { quick, ..Default::default() };
+                let r = recipe::resolve(&AvoidingRecipe::default(), &file, &o)
+                    .unwrap_or_else(|e| panic!("{name}: {e}"));
+                for (_, c) in r.configs() {
+                    methods::parse_methods(&c.methods, "avoiding").unwrap();
+                }
+            }
+        }
+    }
+
+    #[test]
+    fn schedules_follow_iterations() {
+        let c = VddConfig { iterations: 50, ..VddConfig::toy() };
+        let f = vdd_config_for(&c, 3, true);
+        assert_eq!(f.seed, 3);
+        assert_eq!(
+            f.expert_lr_schedule,
+            LrSchedule::LinearDecay { total_steps: 50, final_factor: 0.0 }
+        );
+        let mut w = LrSchedule::Warmup {
+            warmup_steps: 10,
+            then: Box::new(LrSchedule::Cosine { total_steps: 1, final_factor: 0.1 }),
+        };
+        fit_schedule(&mut w, 100);
+        assert_eq!(
+            w,
+            LrSchedule::Warmup {
+                warmup_steps: 10,
+                then: Box::new(LrSchedule::Cosine { total_steps: 90, final_factor: 0.1 })
+            }
+        );
+        let kept = vdd_config_for(&c, 3, false);
+        assert_eq!(kept.expert_lr_schedule, c.expert_lr_schedule);
+    }
+}

@@ -1,0 +1,330 @@
+//! Trained policies as one evaluable type, observation windows and action chunks at rollout
+//! time, and the µs-per-action measurement.
+
+use std::time::Instant;
+
+use faer::reborrow::ReborrowMut;
+use faer::{Mat, MatMut, MatRef};
+use vdd_baselines::{ConsistencyModel, TrajectoryModel};
+use vdd_core::{CoreError, Policy, check_act_args, check_shape};
+use vdd_diffusion::DiffusionTeacher;
+use vdd_moe::Moe;
+
+/// A trained policy of any method.
+#[derive(Debug, Clone)]
+pub enum TrainedPolicy {
+    /// A diffusion teacher (DDPM, BESO, and their one-step versions).
+    Teacher(Box<DiffusionTeacher>),
+    /// A mixture of experts (VDD, EM, IMC).
+    Moe(Box<Moe>),
+    /// A consistency model (CD).
+    Consistency(Box<ConsistencyModel>),
+    /// A consistency trajectory model (CTM).
+    Trajectory(Box<TrajectoryModel>),
+}
+
+macro_rules! each {
+    ($self:expr, $p:ident => $e:expr) => {
+        match $self {
+            TrainedPolicy::Teacher($p) => $e,
+            TrainedPolicy::Moe($p) => $e,
+            TrainedPolicy::Consistency($p) => $e,
+            TrainedPolicy::Trajectory($p) => $e,
+        }
+    };
+}
+
+impl Policy for TrainedPolicy {
+    fn obs_dim(&self) -> usize {
+        each!(self, p => Policy::obs_dim(p))
+    }
+    fn action_dim(&self) -> usize {
+        each!(self, p => Policy::action_dim(p))
+    }
+    fn reset(&mut self) {
+        each!(self, p => p.reset())
+    }
+    fn seed(&mut self, seed: u64) {
+        each!(self, p => p.seed(seed))
+    }
+    fn act_into(&mut self, obs: &[f32], action: &mut [f32]) -> vdd_core::Result<()> {
+        each!(self, p => p.act_into(obs, action))
+    }
+    fn act_batch(
+        &mut self,
+        obs: MatRef<'_, f32>,
+        actions: MatMut<'_, f32>,
+    ) -> vdd_core::Result<()> {
+        each!(self, p => p.act_batch(obs, actions))
+    }
+}
+
+/// Runs a policy trained on observation windows of `W` steps and action chunks of `C` steps as
+/// a one-observation, one-action policy: it keeps the last `W` observations (the first one
+/// repeated at the start of an episode, as windows padded at the start are built) and
+/// executes the first `execute ≤ C` actions of each predicted chunk before predicting again.
+///
+/// State is kept per batch row, so lockstep evaluation (one `act_batch` per step, row `i`
+/// always the same environment between `reset`s) works; `act_into` uses row 0. With `W = 1`
+/// and `C = execute = 1` it is a pass-through.
+#[derive(Debug, Clone)]
+pub struct Windowed<P> {
+    inner: P,
+    window: usize,
+    chunk: usize,
+    execute: usize,
+    obs_dim: usize,
+    act_dim: usize,
+    rows: Vec<RowState>,
+    batch_obs: Mat<f32>,
+    batch_act: Mat<f32>,
+    need: Vec<usize>,
+}
+
+#[derive(Debug, Clone, Default)]
+struct RowState {
+    /// The last `W` observations, oldest first (empty at episode start).
+    history: Vec<f32>,
+    /// The current chunk (`C · d_act`) and the next index to execute.
+    chunk: Vec<f32>,
+    next: usize,
+}
+
+impl<P: Policy> Windowed<P> {
+    /// Wraps `inner`, whose observation is `window · obs_dim` and action `chunk · act_dim`.
+    pub fn new(inner: P, window: usize, chunk: usize, execute: usize) -> Result<Self, String> {
+        if window == 0 || chunk == 0 || execute == 0 || execute > chunk {
+            return Err(format!(
+                "invalid window {window} / chunk {chunk} / execute {execute} (need 1 <= execute <= chunk)"
+            ));
+        }
+        if inner.obs_dim() % window != 0 || inner.action_dim() % chunk != 0 {
+            return Err(format!(
+                "policy dims {}x{} do not split into window {window} and chunk {chunk}",
+                inner.obs_dim(),
+                inner.action_dim()
+            ));
+        }
+        let (obs_dim, act_dim) = (inner.obs_dim() / window, inner.action_dim() / chunk);
+        Ok(Self {
+            inner,
+            window,
+            chunk,
+            execute,
+            obs_dim,
+            act_dim,
+            rows: Vec::new(),
+            batch_obs: Mat::zeros(0, 0),
+            batch_act: Mat::zeros(0, 0),
+            need: Vec::new(),
+        })
+    }
+
+    fn passthrough(&self) -> bool {
+        self.window == 1 && self.chunk == 1
+    }
+
+    fn push_obs(&mut self, row: usize, obs: &[f32]) {
+        let (w, d) = (self.window, self.obs_dim);
+        let r = &mut self.rows[row];
+        if r.history.is_empty() {
+            r.history = obs.repeat(w);
+        } else {
+            r.history.copy_within(d.., 0);
+            r.history[(w - 1) * d..].copy_from_slice(obs);
+        }
+    }
+}
+
+impl<P: Policy> Policy for Windowed<P> {
+    fn obs_dim(&self) -> usize {
+        self.obs_dim
+    }
+    fn action_dim(&self) -> usize {
+        self.act_dim
+    }
+    fn reset(&mut self) {
+        self.rows.clear();
+        self.inner.reset();
+    }
+    fn seed(&mut self, seed: u64) {
+        self.inner.seed(seed);
+    }
+    fn act_into(&mut self, obs: &[f32], action: &mut [f32]) -> vdd_core::Result<()> {
+        if self.passthrough() {
+            return self.inner.act_into(obs, action);
+        }
+        check_act_args(self, obs, action)?;
+        let o = MatRef::from_row_major_slice(obs, 1, obs.len());
+        let a = MatMut::from_row_major_slice_mut(action, 1, self.act_dim);
+        self.act_batch(o, a)
+    }
+    fn act_batch(
+        &mut self,
+        obs: MatRef<'_, f32>,
+        mut actions: MatMut<'_, f32>,
+    ) -> vdd_core::Result<()> {
+        if self.passthrough() {
+            return self.inner.act_batch(obs, actions);
+        }
+        let n = obs.nrows();
+        check_shape("observations", obs, n, self.obs_dim)?;
+        check_shape("actions", actions.rb_mut().as_ref(), n, self.act_dim)?;
+        if self.rows.len() != n {
+            self.rows = vec![RowState::default(); n];
+        }
+        let mut o = vec![0.0f32; self.obs_dim];
+        self.need.clear();
+        for i in 0..n {
+            for (j, x) in o.iter_mut().enumerate() {
+                *x = obs[(i, j)];
+            }
+            if o.iter().any(|x| !x.is_finite()) {
+                return Err(CoreError::NonFinite { what: "observation" });
+            }
+            self.push_obs(i, &o);
+            let r = &self.rows[i];
+            if r.chunk.is_empty() || r.next >= self.execute {
+                self.need.push(i);
+            }
+        }
+        if !self.need.is_empty() {
+            let (m, win_dim, chunk_dim) =
+                (self.need.len(), self.window * self.obs_dim, self.chunk * self.act_dim);
+            if self.batch_obs.nrows() != m {
+                self.batch_obs = Mat::zeros(m, win_dim);
+                self.batch_act = Mat::zeros(m, chunk_dim);
+            }
+            for (b, &i) in self.need.iter().enumerate() {
+                for (j, x) in self.rows[i].history.iter().enumerate() {
+                    self.batch_obs[(b, j)] = *x;
+                }
+            }
+            self.inner.act_batch(self.batch_obs.as_ref(), self.batch_act.as_mut())?;
+            for (b, &i) in self.need.iter().enumerate() {
+                let r = &mut self.rows[i];
+                r.chunk.clear();
+                r.chunk.extend((0..chunk_dim).map(|j| self.batch_act[(b, j)]));
+                r.next = 0;
+            }
+        }
+        for i in 0..n {
+            let r = &mut self.rows[i];
+            let start = r.next * self.act_dim;
+            for j in 0..self.act_dim {
+                actions[(i, j)] = r.chunk[start + j];
+            }
+            r.next += 1;
+        }
+        Ok(())
+    }
+}
+
+/// Mean wall-clock µs of one `Policy::act` call over the given episodes' observations (the
+/// policy is seeded with `seed` and reset at each episode start), after `warmup` calls;
+/// single-threaded. Stops after `calls` timed calls.
+pub fn us_per_action<P: Policy>(
+    policy: &mut P,
+    episodes: &[Mat<f32>],
+    calls: usize,
+    warmup: usize,
+    seed: u64,
+) -> Result<f64, CoreError> {
+    let total: usize = episodes.iter().map(Mat::nrows).sum();
+    if total == 0 || calls == 0 {
+        return Err(CoreError::Config("timing needs observations and calls > 0".into()));
+    }
+    let d = policy.obs_dim();
+    let mut obs = vec![0.0f32; d];
+    let mut action = vec![0.0f32; policy.action_dim()];
+    policy.seed(seed);
+    let mut run = |n: usize, policy: &mut P| -> Result<(), CoreError> {
+        let mut done = 0;
+        'outer: loop {
+            for ep in episodes {
+                policy.reset();
+                for t in 0..ep.nrows() {
+                    if done == n {
+                        break 'outer;
+                    }
+                    for (j, x) in obs.iter_mut().enumerate() {
+                        *x = ep[(t, j)];
+                    }
+                    policy.act_into(&obs, &mut action)?;
+                    done += 1;
+                }
+            }
+        }
+        Ok(())
+    };
+    run(warmup, policy)?;
+    let t0 = Instant::now();
+    run(calls, policy)?;
+    Ok(t0.elapsed().as_secs_f64() * 1e6 / calls as f64)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Observation window of 2 (4 numbers), chunk of 3 (action = [sum of window, call count, t]).
+    #[derive(Clone)]
+    struct Probe {
+        calls: f32,
+    }
+    impl Policy for Probe {
+        fn obs_dim(&self) -> usize {
+            4
+        }
+        fn action_dim(&self) -> usize {
+            3
+        }
+        fn reset(&mut self) {
+            self.calls = 0.0;
+        }
+        fn act_into(&mut self, obs: &[f32], action: &mut [f32]) -> vdd_core::Result<()> {
+            self.calls += 1.0;
+            action[0] = obs[0] * 1000.0 + obs[2];
+            action[1] = self.calls;
+            action[2] = obs[1] * 1000.0 + obs[3];
+            Ok(())
+        }
+    }
+
+    #[test]
+    fn windows_pad_at_start_and_chunks_are_executed_in_order() {
+        // obs_dim 2, act_dim 1; window 2, chunk 3, execute 2.
+        let mut w = Windowed::new(Probe { calls: 0.0 }, 2, 3, 2).unwrap();
+        assert_eq!((w.obs_dim(), w.action_dim()), (2, 1));
+        let a0 = w.act(&[1.0, 2.0]).unwrap(); // window [o0, o0] -> chunk [1001, 1, 2002]
+        assert_eq!(a0, vec![1001.0]);
+        let a1 = w.act(&[3.0, 4.0]).unwrap(); // second action of the chunk
+        assert_eq!(a1, vec![1.0]);
+        let a2 = w.act(&[5.0, 6.0]).unwrap(); // new chunk from window [o1, o2]
+        assert_eq!(a2, vec![3005.0]);
+        w.reset();
+        let a = w.act(&[7.0, 8.0]).unwrap();
+        assert_eq!(a, vec![7007.0], "reset clears the history");
+        assert!(Windowed::new(Probe { calls: 0.0 }, 2, 3, 4).is_err());
+        assert!(Windowed::new(Probe { calls: 0.0 }, 3, 3, 1).is_err());
+    }
+
+    #[test]
+    fn batched_rows_keep_their_own_state() {
+        let mut w = Windowed::new(Probe { calls: 0.0 }, 2, 3, 3).unwrap();
+        let obs = faer::mat![[1.0f32, 0.0], [2.0, 0.0]];
+        let mut act = Mat::<f32>::zeros(2, 1);
+        w.act_batch(obs.as_ref(), act.as_mut()).unwrap();
+        assert_eq!((act[(0, 0)], act[(1, 0)]), (1001.0, 2002.0));
+        w.act_batch(obs.as_ref(), act.as_mut()).unwrap();
+        assert_eq!((act[(0, 0)], act[(1, 0)]), (1.0, 2.0), "second chunk entry: call count");
+    }
+
+    #[test]
+    fn timing_counts_calls() {
+        let eps = vec![Mat::<f32>::zeros(5, 4)];
+        let us = us_per_action(&mut Probe { calls: 0.0 }, &eps, 12, 3, 0).unwrap();
+        assert!(us >= 0.0 && us.is_finite());
+        assert!(us_per_action(&mut Probe { calls: 0.0 }, &[], 12, 3, 0).is_err());
+    }
+}

@@ -1,0 +1,257 @@
+//! Learned diffusion teachers for recipes: configuration, training with a progress bar, and a
+//! cache keyed by a hash of everything that determines the trained weights.
+//!
+//! The cache key is the teacher kind, its model configuration without the sampling settings
+//! (sampler and default steps are applied after loading, so changing them reuses the cached
+//! weights), its training configuration, the training seed and a hash of the training data's
+//! bits (so a change in the demonstrator or the windowing gives a new key). A cached teacher is
+//! `results/cache/teachers/<kind>-<hash>.safetensors` with a `.json` sidecar (key, training
+//! seconds, loss curve); `--fresh` retrains and overwrites. Loading a cached teacher gives bit-identical scores and samples to the freshly
+//! trained one (the weights are stored as `f32`).
+
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+use faer::MatRef;
+use serde::{Deserialize, Serialize};
+use vdd_diffusion::{
+    Beso, BesoConfig, Ddpm, DdpmConfig, DiffusionTeacher, TeacherKind, TrainConfig,
+};
+
+/// A BESO teacher's model and training configuration.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct BesoTeacherConfig {
+    /// The model (network, noise distribution, sampler and default sampling steps).
+    pub config: BesoConfig,
+    /// Denoising-score-matching training.
+    pub train: TrainConfig,
+}
+
+/// A DDPM teacher's model and training configuration.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct DdpmTeacherConfig {
+    /// The model (network, schedule, sampler and default sampling steps).
+    pub config: DdpmConfig,
+    /// Denoising-score-matching training.
+    pub train: TrainConfig,
+}
+
+/// Both learned teachers of a recipe.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct TeachersConfig {
+    /// The BESO teacher (methods `beso`, `beso-1`, `vdd-beso`).
+    pub beso: BesoTeacherConfig,
+    /// The DDPM teacher (methods `ddpm`, `ddpm-1`, `vdd-ddpm`).
+    pub ddpm: DdpmTeacherConfig,
+}
+
+/// A trained (or cache-loaded) teacher.
+#[derive(Debug, Clone)]
+pub struct TrainedTeacher {
+    /// The teacher.
+    pub teacher: DiffusionTeacher,
+    /// Wall-clock training time (from the cache sidecar when loaded).
+    pub train_seconds: f64,
+    /// Whether it came from the cache.
+    pub cached: bool,
+    /// `(step, loss)` reports of training.
+    pub losses: Vec<(u64, f32)>,
+    /// The cache key hash.
+    pub hash: String,
+}
+
+#[derive(Serialize)]
+struct CacheKey<'a> {
+    version: u32,
+    kind: TeacherKind,
+    /// The model configuration without its sampling settings (`sampler`, `sampling_steps`):
+    /// they do not change the trained weights and are applied after loading.
+    config: serde_json::Value,
+    train: &'a TrainConfig,
+    seed: u64,
+    rows: usize,
+    state_dim: usize,
+    action_dim: usize,
+    data: String,
+}
+
+#[derive(Serialize, Deserialize)]
+struct Sidecar {
+    key: String,
+    kind: TeacherKind,
+    train_seconds: f64,
+    losses: Vec<(u64, f32)>,
+}
+
+/// A hash of a matrix's shape and bits.
+pub fn data_hash(states: MatRef<'_, f32>, actions: MatRef<'_, f32>) -> String {
+    let mut bytes =
+        Vec::with_capacity(4 * (states.nrows() * (states.ncols() + actions.ncols())) + 32);
+    for m in [states, actions] {
+        bytes.extend_from_slice(&(m.nrows() as u64).to_le_bytes());
+        bytes.extend_from_slice(&(m.ncols() as u64).to_le_bytes());
+        for j in 0..m.ncols() {
+            for i in 0..m.nrows() {
+                bytes.extend_from_slice(&m[(i, j)].to_bits().to_le_bytes());
+            }
+        }
+    }
+    format!("{:016x}", crate::recipe::fnv1a(&bytes))
+}
+
+/// Trains the teacher of `kind` on raw `states` / `actions` with `seed`, or loads it from
+/// `cache_dir` when a teacher with the same key exists (and `fresh` is false).
+#[allow(clippy::too_many_arguments)]
+pub fn train_or_load(
+    kind: TeacherKind,
+    config: &TeachersConfig,
+    states: MatRef<'_, f32>,
+    actions: MatRef<'_, f32>,
+    seed: u64,
+    cache_dir: &Path,
+    fresh: bool,
+    label: &str,
+) -> crate::XResult<TrainedTeacher> {
+    let data = data_hash(states, actions);
+    let (rows, state_dim, action_dim) = (states.nrows(), states.ncols(), actions.ncols());
+    let (hash, train) = match kind {
+        TeacherKind::Beso => {
+            let c = &config.beso;
+            let key = CacheKey {
+                version: 2,
+                kind,
+                config: training_part(&c.config)?,
+                train: &c.train,
+                seed,
+                rows,
+                state_dim,
+                action_dim,
+                data,
+            };
+            (crate::recipe::config_hash(&key)?, c.train.clone())
+        }
+        TeacherKind::Ddpm => {
+            let c = &config.ddpm;
+            let key = CacheKey {
+                version: 2,
+                kind,
+                config: training_part(&c.config)?,
+                train: &c.train,
+                seed,
+                rows,
+                state_dim,
+                action_dim,
+                data,
+            };
+            (crate::recipe::config_hash(&key)?, c.train.clone())
+        }
+    };
+    let name = kind_name(kind);
+    let weights = cache_dir.join(format!("{name}-{hash}.safetensors"));
+    let sidecar = cache_dir.join(format!("{name}-{hash}.json"));
+    if !fresh && weights.is_file() && sidecar.is_file() {
+        let side: Sidecar = serde_json::from_str(&std::fs::read_to_string(&sidecar)?)
+            .map_err(|e| format!("reading {}: {e}", sidecar.display()))?;
+        let mut teacher = DiffusionTeacher::load(&weights, seed)?;
+        if teacher.kind() == kind && side.key == hash {
+            apply_sampling(&mut teacher, config)?;
+            eprintln!("[{label}] teacher loaded from {}", rel(&weights));
+            return Ok(TrainedTeacher {
+                teacher,
+                train_seconds: side.train_seconds,
+                cached: true,
+                losses: side.losses,
+                hash,
+            });
+        }
+    }
+    let bar = crate::progress::bar(train.steps, label);
+    let mut losses = Vec::new();
+    let mut progress = |p: vdd_diffusion::TrainProgress| {
+        bar.set_position(p.step);
+        bar.set_message(format!("loss {:.4}", p.loss));
+        losses.push((p.step, p.loss));
+    };
+    let t0 = Instant::now();
+    let mut teacher: DiffusionTeacher = match kind {
+        TeacherKind::Beso => {
+            Beso::train(&config.beso.config, &train, states, actions, seed, &mut progress)?.into()
+        }
+        TeacherKind::Ddpm => {
+            Ddpm::train(&config.ddpm.config, &train, states, actions, seed, &mut progress)?.into()
+        }
+    };
+    let train_seconds = t0.elapsed().as_secs_f64();
+    bar.finish_and_clear();
+    apply_sampling(&mut teacher, config)?;
+    std::fs::create_dir_all(cache_dir)?;
+    teacher.save(&weights)?;
+    let side = Sidecar { key: hash.clone(), kind, train_seconds, losses: losses.clone() };
+    vdd_nn::io::write_atomic(&sidecar, serde_json::to_string(&side)?.as_bytes())?;
+    let last = losses.last().map_or(f32::NAN, |l| l.1);
+    eprintln!(
+        "[{label}] teacher trained in {train_seconds:.1} s ({} steps, final loss {last:.4}); cached as {}",
+        train.steps,
+        rel(&weights)
+    );
+    Ok(TrainedTeacher { teacher, train_seconds, cached: false, losses, hash })
+}
+
+/// `config` as JSON without the keys that only affect sampling.
+fn training_part<C: Serialize>(config: &C) -> crate::XResult<serde_json::Value> {
+    let mut v = serde_json::to_value(config)?;
+    if let Some(m) = v.as_object_mut() {
+        m.remove("sampler");
+        m.remove("sampling_steps");
+    }
+    Ok(v)
+}
+
+/// Sets the teacher's sampler and default steps from the recipe (a cached teacher carries the
+/// ones it was saved with).
+fn apply_sampling(teacher: &mut DiffusionTeacher, config: &TeachersConfig) -> crate::XResult {
+    match teacher {
+        DiffusionTeacher::Beso(b) => {
+            let c = &config.beso.config;
+            b.set_sampler(c.sampler, c.sampling_steps)?;
+        }
+        DiffusionTeacher::Ddpm(d) => {
+            let c = &config.ddpm.config;
+            d.set_sampler(c.sampler, c.sampling_steps)?;
+        }
+    }
+    Ok(())
+}
+
+/// A `run.json` entry for a teacher: kind, seed, cache hash, whether it came from the cache
+/// and its training seconds.
+pub fn cache_entry(kind: TeacherKind, seed: u64, t: &TrainedTeacher) -> serde_json::Value {
+    serde_json::json!({
+        "teacher": kind_name(kind),
+        "seed": seed,
+        "hash": t.hash,
+        "cached": t.cached,
+        "train_seconds": t.train_seconds,
+    })
+}
+
+/// `ddpm` / `beso`.
+pub fn kind_name(kind: TeacherKind) -> &'static str {
+    match kind {
+        TeacherKind::Ddpm => "ddpm",
+        TeacherKind::Beso => "beso",
+    }
+}
+
+/// `path` relative to the current directory when possible.
+pub fn rel(path: &Path) -> String {
+    let cwd = std::env::current_dir().unwrap_or_default();
+    path.strip_prefix(&cwd)
+        .map(PathBuf::from)
+        .unwrap_or_else(|_| path.to_path_buf())
+        .display()
+        .to_string()
+}
