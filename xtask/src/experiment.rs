@@ -120,6 +120,55 @@ impl StageTimes {
     }
 }
 
+/// Runs `f` on every item with up to `workers` threads (work-stealing by index) and returns the
+/// results in item order, or the first error in item order. After a failure no new item starts.
+pub fn parallel_map<T: Sync, R: Send>(
+    items: &[T],
+    workers: usize,
+    f: impl Fn(&T) -> Result<R, String> + Sync,
+) -> Result<Vec<R>, String> {
+    use std::sync::Mutex;
+    use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
+    let n = items.len();
+    let workers = workers.clamp(1, n.max(1));
+    if workers == 1 {
+        return items.iter().map(&f).collect();
+    }
+    let next = AtomicUsize::new(0);
+    let failed = AtomicBool::new(false);
+    let slots: Vec<Mutex<Option<Result<R, String>>>> = (0..n).map(|_| Mutex::new(None)).collect();
+    std::thread::scope(|s| {
+        for _ in 0..workers {
+            s.spawn(|| {
+                while !failed.load(Ordering::Relaxed) {
+                    let i = next.fetch_add(1, Ordering::Relaxed);
+                    if i >= n {
+                        break;
+                    }
+                    let r = f(&items[i]);
+                    if r.is_err() {
+                        failed.store(true, Ordering::Relaxed);
+                    }
+                    *slots[i].lock().unwrap_or_else(|e| e.into_inner()) = Some(r);
+                }
+            });
+        }
+    });
+    let mut out = Vec::with_capacity(n);
+    let mut skipped = false;
+    for slot in slots {
+        match slot.into_inner().unwrap_or_else(|e| e.into_inner()) {
+            Some(Ok(v)) => out.push(v),
+            Some(Err(e)) => return Err(e),
+            None => skipped = true,
+        }
+    }
+    if skipped {
+        return Err("internal: a job was skipped without an error".into());
+    }
+    Ok(out)
+}
+
 /// CPU seconds (user + system) used by this process so far, from `/proc/self/stat` (Linux;
 /// `None` elsewhere). With other jobs on the machine, wall-clock times are inflated; CPU time
 /// is not (but it sums over threads).
@@ -319,6 +368,20 @@ mod tests {
         assert!(ExperimentArgs::parse(&args("x --bogus 1")).is_err());
         assert!(ExperimentArgs::parse(&args("x --seed")).is_err());
         assert!(ExperimentArgs::parse(&args("x --set novalue")).is_err());
+    }
+
+    #[test]
+    fn parallel_map_keeps_order_and_reports_the_first_error() {
+        let items: Vec<u64> = (0..20).collect();
+        for workers in [1, 2, 4] {
+            let out = parallel_map(&items, workers, |&x| Ok(x * x)).unwrap();
+            assert_eq!(out, items.iter().map(|x| x * x).collect::<Vec<_>>());
+        }
+        let e = parallel_map(&items, 1, |&x| if x >= 3 { Err(format!("bad {x}")) } else { Ok(x) });
+        assert_eq!(e.unwrap_err(), "bad 3");
+        let e = parallel_map(&items, 3, |&x| if x == 7 { Err("seven".to_owned()) } else { Ok(x) });
+        assert_eq!(e.unwrap_err(), "seven");
+        assert!(parallel_map(&Vec::<u8>::new(), 2, |&x| Ok(x)).unwrap().is_empty());
     }
 
     #[test]

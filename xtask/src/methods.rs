@@ -73,6 +73,11 @@ impl Method {
         }
     }
 
+    /// Whether the method is a learned teacher itself (`ddpm`, `beso`, `ddpm-1`, `beso-1`).
+    pub fn is_teacher(self) -> bool {
+        matches!(self, Method::Ddpm | Method::Beso | Method::Ddpm1 | Method::Beso1)
+    }
+
     /// Fails for methods `task` does not support.
     pub fn check_available(self, task: &str) -> Result<(), String> {
         let ok = match task {

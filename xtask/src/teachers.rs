@@ -158,7 +158,7 @@ pub fn train_or_load(
         let mut teacher = DiffusionTeacher::load(&weights, seed)?;
         if teacher.kind() == kind && side.key == hash {
             apply_sampling(&mut teacher, config)?;
-            eprintln!("[{label}] teacher loaded from {}", rel(&weights));
+            crate::progress::log(format!("[{label}] teacher loaded from {}", rel(&weights)));
             return Ok(TrainedTeacher {
                 teacher,
                 train_seconds: side.train_seconds,
@@ -192,11 +192,11 @@ pub fn train_or_load(
     let side = Sidecar { key: hash.clone(), kind, train_seconds, losses: losses.clone() };
     vdd_nn::io::write_atomic(&sidecar, serde_json::to_string(&side)?.as_bytes())?;
     let last = losses.last().map_or(f32::NAN, |l| l.1);
-    eprintln!(
+    crate::progress::log(format!(
         "[{label}] teacher trained in {train_seconds:.1} s ({} steps, final loss {last:.4}); cached as {}",
         train.steps,
         rel(&weights)
-    );
+    ));
     Ok(TrainedTeacher { teacher, train_seconds, cached: false, losses, hash })
 }
 

@@ -125,15 +125,17 @@ pub struct ToyPlots {
 impl ToyRecipe {
     /// The defaults of `task`.
     pub fn defaults(task: &str) -> Self {
-        let toy_net = NetConfig { hidden_dim: 128, num_blocks: 2, ..Default::default() };
-        let log_normal = SigmaDistribution::LogNormal { mean: -1.2, std: 1.2 };
+        // The toy teachers of `cargo xtask bench teachers` (which checks their acceptance bars):
+        // 64 wide, 2 blocks, batch 1024, 4000 steps, EMA 0.995, log-normal training noise.
+        let toy_net = NetConfig { hidden_dim: 64, num_blocks: 2, ..Default::default() };
+        let (noise_mean, noise_std) = (-1.6, 1.2);
         let train = TrainConfig {
-            steps: 8000,
-            batch_size: 256,
+            steps: 4000,
+            batch_size: 1024,
             adam: AdamConfig { lr: 1e-2, ..Default::default() },
             warmup_steps: 200,
             final_lr_factor: 0.02,
-            ema_decay: 0.999,
+            ema_decay: 0.995,
             grad_clip: Some(1.0),
             log_every: 100,
         };
@@ -141,7 +143,10 @@ impl ToyRecipe {
             beso: BesoTeacherConfig {
                 config: BesoConfig {
                     net: toy_net.clone(),
-                    training_sigma: log_normal,
+                    training_sigma: SigmaDistribution::LogNormal {
+                        mean: noise_mean,
+                        std: noise_std,
+                    },
                     sampler: KarrasSampler::Heun,
                     sampling_steps: 24,
                     ..Default::default()
@@ -151,10 +156,10 @@ impl ToyRecipe {
             ddpm: DdpmTeacherConfig {
                 config: DdpmConfig {
                     net: toy_net,
-                    num_steps: 32,
-                    sampling_steps: 32,
-                    sampler: VpSampler::Ancestral,
-                    time_sampling: TimeSampling::LogNormal { mean: -1.2, std: 1.2 },
+                    num_steps: 16,
+                    sampling_steps: 16,
+                    sampler: VpSampler::AncestralLarge,
+                    time_sampling: TimeSampling::LogNormal { mean: noise_mean, std: noise_std },
                     ..Default::default()
                 },
                 train,
@@ -174,7 +179,7 @@ impl ToyRecipe {
             vdd: ToyVdd {
                 exact,
                 beso: learned(NoiseSchedule::Fixed { level: 0.1 }),
-                ddpm: learned(NoiseSchedule::Fixed { level: 1.0 }),
+                ddpm: learned(NoiseSchedule::Fixed { level: 0.833 }),
                 schedules_follow_iterations: true,
             },
             eval: ToyEval {
@@ -592,12 +597,12 @@ pub fn run_recipe(ctx: &RunContext, task: &str) -> crate::XResult {
                 row.insert("eval_states".into(), json!(n_states));
                 row.insert("mean_reverse_kl".into(), report::json_f64(mean("reverse_kl")));
                 row.insert("mean_forward_kl".into(), report::json_f64(mean("forward_kl")));
-                eprintln!(
+                crate::progress::log(format!(
                     "[{tag}] all {k} modes covered at {full}/{n_states} states, mean reverse KL {:.4}, mean forward KL {:.4} nats, {:.2} s",
                     mean("reverse_kl"),
                     mean("forward_kl"),
                     d.train_seconds
-                );
+                ));
                 row.insert("states".into(), Value::Array(states.clone()));
                 if si == 0 && pi == 0 {
                     first_states = Some(Value::Array(states));
@@ -606,10 +611,10 @@ pub fn run_recipe(ctx: &RunContext, task: &str) -> crate::XResult {
                 let truth = Gmm::circle(k, 2.0, 0.5, 0.0)?;
                 let (rev, fwd, cov) =
                     evaluate_at(&mut d, &truth, 0.0, cfg.eval.kl_samples, &cfg.eval, &seeds, 0)?;
-                eprintln!(
+                crate::progress::log(format!(
                     "[{tag}] reverse KL {rev:.5} nats, forward KL {fwd:.5} nats, modes {cov}/{k}, {ms_per_iter:.3} ms/iter ({:.2} s)",
                     d.train_seconds
-                );
+                ));
                 row.insert("reverse_kl".into(), report::json_f64(rev));
                 row.insert("forward_kl".into(), report::json_f64(fwd));
                 row.insert("modes_covered".into(), json!(cov));
