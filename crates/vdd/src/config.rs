@@ -47,6 +47,11 @@ pub struct VddConfig {
     pub gating_lr_schedule: LrSchedule,
     /// Clip each network's gradient to this global norm.
     pub max_grad_norm: Option<f32>,
+    /// Decay of an exponential moving average of the student's parameters, updated after
+    /// every iteration; [`crate::Vdd::into_student`] then returns the averaged student.
+    /// `None` (the default) returns the last iterate.
+    #[serde(default)]
+    pub student_ema: Option<f32>,
     /// Root seed of every random draw of the run.
     pub seed: u64,
 }
@@ -77,6 +82,7 @@ impl VddConfig {
                 final_factor: 0.0,
             },
             max_grad_norm: None,
+            student_ema: None,
             seed: 0,
         }
     }
@@ -104,6 +110,11 @@ impl VddConfig {
         if let Some(m) = self.max_grad_norm {
             if !(m.is_finite() && m > 0.0) {
                 return Err(CoreError::Config("max_grad_norm must be positive".into()));
+            }
+        }
+        if let Some(d) = self.student_ema {
+            if !(0.0..1.0).contains(&d) {
+                return Err(CoreError::Config(format!("student_ema must be in [0, 1), got {d}")));
             }
         }
         self.noise.validate()

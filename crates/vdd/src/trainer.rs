@@ -7,7 +7,7 @@ use rand::Rng as _;
 use serde::{Deserialize, Serialize};
 use vdd_core::{CoreError, Expert, ScoreModel, Seeds, check_finite, check_len};
 use vdd_moe::{ExpertFamily, Moe, MoeOutput};
-use vdd_nn::{Adam, Parameters};
+use vdd_nn::{Adam, Ema, Parameters};
 
 use crate::config::{ExpertWeighting, VddConfig};
 use crate::error::VddError;
@@ -71,6 +71,8 @@ struct TrainerState {
     iteration: usize,
     expert_optimizer: Adam,
     gating_optimizer: Adam,
+    #[serde(default)]
+    student_ema: Option<Ema>,
 }
 
 /// Variational Diffusion Distillation of a teacher `S` into a mixture of experts of family `E`.
@@ -120,6 +122,7 @@ pub struct Vdd<S: ScoreModel, E: Expert = ExpertFamily> {
     data: DistillData,
     expert_optimizer: Adam,
     gating_optimizer: Adam,
+    student_ema: Option<Ema>,
     iteration: usize,
     seeds: Seeds,
     buf: ExpertStepBuffers,
@@ -163,9 +166,11 @@ impl<S: ScoreModel, E: Expert> Vdd<S, E> {
                 })?;
         }
         let (z, d) = (mc.num_experts, mc.action_dim);
+        let student_ema = config.student_ema.map(|decay| Ema::new(&student, decay)).transpose()?;
         Ok(Self {
             expert_optimizer: Adam::new(config.expert_optimizer),
             gating_optimizer: Adam::new(config.gating_optimizer),
+            student_ema,
             iteration: 0,
             seeds: Seeds::new(config.seed),
             buf: ExpertStepBuffers::default(),
@@ -195,7 +200,8 @@ impl<S: ScoreModel, E: Expert> Vdd<S, E> {
         self.iteration
     }
 
-    /// The student being trained.
+    /// The student being trained (the last iterate, not the average of
+    /// [`VddConfig::student_ema`]).
     pub fn student(&self) -> &Moe<E> {
         &self.student
     }
@@ -210,8 +216,12 @@ impl<S: ScoreModel, E: Expert> Vdd<S, E> {
         &mut self.teacher
     }
 
-    /// Ends training and returns the student.
-    pub fn into_student(self) -> Moe<E> {
+    /// Ends training and returns the student: the moving average of its parameters when
+    /// [`VddConfig::student_ema`] is set, else the last iterate.
+    pub fn into_student(mut self) -> Moe<E> {
+        if let Some(ema) = &self.student_ema {
+            ema.copy_to(&mut self.student).expect("the average was made from this student");
+        }
         self.student
     }
 
@@ -316,6 +326,9 @@ impl<S: ScoreModel, E: Expert> Vdd<S, E> {
             }
         }
 
+        if let Some(ema) = &mut self.student_ema {
+            ema.update(&self.student)?;
+        }
         self.iteration += 1;
         Ok(IterationMetrics {
             iteration: it,
@@ -407,6 +420,7 @@ impl<S: ScoreModel, E: Expert> Vdd<S, E> {
             iteration: self.iteration,
             expert_optimizer: self.expert_optimizer.clone(),
             gating_optimizer: self.gating_optimizer.clone(),
+            student_ema: self.student_ema.clone(),
         };
         let json = serde_json::to_vec(&state).map_err(|e| err(e.to_string()))?;
         vdd_nn::io::write_atomic(&tmp.join("trainer.json"), &json)?;
@@ -451,6 +465,9 @@ impl<S: ScoreModel, E: Expert> Vdd<S, E> {
         vdd.iteration = state.iteration;
         vdd.expert_optimizer = state.expert_optimizer;
         vdd.gating_optimizer = state.gating_optimizer;
+        if state.student_ema.is_some() {
+            vdd.student_ema = state.student_ema;
+        }
         Ok(vdd)
     }
 }
@@ -534,7 +551,8 @@ mod tests {
     #[test]
     fn resuming_from_a_checkpoint_reproduces_an_uninterrupted_run() {
         let dir = std::env::temp_dir().join(format!("vdd-resume-{}", std::process::id()));
-        let (config, teacher, student, data) = small_run(12);
+        let (mut config, teacher, student, data) = small_run(12);
+        config.student_ema = Some(0.9);
         let mut straight =
             Vdd::new(config.clone(), teacher.clone(), student.clone(), data.clone()).unwrap();
         straight.train(|_| {}).unwrap();
@@ -548,12 +566,52 @@ mod tests {
         let mut resumed = Vdd::resume(&dir, teacher, data).unwrap();
         assert_eq!(resumed.iteration(), 5);
         resumed.train(|_| {}).unwrap();
-        let mut a = Vec::new();
-        straight.student().visit_params("", &mut |n, p| a.push((n.to_owned(), p.value.clone())));
-        let mut b = Vec::new();
-        resumed.student().visit_params("", &mut |n, p| b.push((n.to_owned(), p.value.clone())));
-        assert_eq!(a, b);
+        assert_eq!(params(straight.student()), params(resumed.student()));
+        // The moving average is part of the checkpoint too.
+        assert_eq!(params(&straight.into_student()), params(&resumed.into_student()));
         std::fs::remove_dir_all(&dir).ok();
+    }
+
+    fn params(student: &Moe) -> Vec<(String, Vec<f32>)> {
+        let mut out = Vec::new();
+        student.visit_params("", &mut |n, p| out.push((n.to_owned(), p.value.clone())));
+        out
+    }
+
+    #[test]
+    fn the_returned_student_is_the_moving_average_of_the_iterates() {
+        let (mut config, teacher, student, data) = small_run(6);
+        let decay = 0.7;
+        config.student_ema = Some(decay);
+        let mut average = params(&student);
+        let mut vdd = Vdd::new(config, teacher, student, data).unwrap();
+        let mut trainable = Vec::new();
+        vdd.student().visit_params("", &mut |_, p| trainable.push(p.trainable));
+        for _ in 0..6 {
+            vdd.step().unwrap();
+            for ((avg, (_, now)), &t) in
+                average.iter_mut().zip(params(vdd.student())).zip(&trainable)
+            {
+                for (a, v) in avg.1.iter_mut().zip(now) {
+                    *a = if t { *a + (1.0 - decay) * (v - *a) } else { v };
+                }
+            }
+        }
+        let last = params(vdd.student());
+        let averaged = params(&vdd.into_student());
+        assert_ne!(averaged, last);
+        for ((name, got), (_, want)) in averaged.iter().zip(&average) {
+            for (g, w) in got.iter().zip(want) {
+                assert!((g - w).abs() < 1e-6, "{name}: {g} vs {w}");
+            }
+        }
+    }
+
+    #[test]
+    fn an_ema_decay_outside_zero_to_one_is_rejected() {
+        let (mut config, teacher, student, data) = small_run(2);
+        config.student_ema = Some(1.0);
+        assert!(Vdd::new(config, teacher, student, data).is_err());
     }
 
     struct NanAfter(IsoGmm, usize);
