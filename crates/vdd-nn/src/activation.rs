@@ -98,27 +98,8 @@ impl Activation {
     }
 
     /// `y = f(x)` and `d = f'(x)` element-wise over slices of equal length (a tight loop that
-    /// the compiler vectorises for ReLU, Mish and SiLU, with 256-bit registers where the CPU
-    /// has AVX2; the numbers are the same either way).
+    /// the compiler vectorises for ReLU, Mish and SiLU).
     pub fn apply_slices(self, x: &[f32], y: &mut [f32], d: &mut [f32]) {
-        #[cfg(target_arch = "x86_64")]
-        if std::arch::is_x86_feature_detected!("avx2") {
-            // SAFETY: the CPU supports AVX2 (checked on the line above).
-            return unsafe { self.apply_slices_avx2(x, y, d) };
-        }
-        self.apply_slices_portable(x, y, d)
-    }
-
-    /// [`Activation::apply_slices`] compiled for AVX2. Element-wise operations without fused
-    /// multiply-adds, so each element's result is bit for bit the portable one.
-    #[cfg(target_arch = "x86_64")]
-    #[target_feature(enable = "avx2")]
-    unsafe fn apply_slices_avx2(self, x: &[f32], y: &mut [f32], d: &mut [f32]) {
-        self.apply_slices_portable(x, y, d)
-    }
-
-    #[inline(always)]
-    fn apply_slices_portable(self, x: &[f32], y: &mut [f32], d: &mut [f32]) {
         let n = x.len();
         let (y, d) = (&mut y[..n], &mut d[..n]);
         match self {
