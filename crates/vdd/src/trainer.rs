@@ -465,9 +465,8 @@ impl<S: ScoreModel, E: Expert> Vdd<S, E> {
         vdd.iteration = state.iteration;
         vdd.expert_optimizer = state.expert_optimizer;
         vdd.gating_optimizer = state.gating_optimizer;
-        if state.student_ema.is_some() {
-            vdd.student_ema = state.student_ema;
-        }
+        // A checkpoint written without an average starts one at the resumed student.
+        vdd.student_ema = state.student_ema.or(vdd.student_ema);
         Ok(vdd)
     }
 }
