@@ -36,6 +36,7 @@ use crate::plots::{self, Curves, TrajectoryPanel};
 use crate::policy::{TrainedPolicy, Windowed, us_per_action};
 use crate::recipe;
 use crate::report::{self, Row};
+use crate::student_cache::{CachedStudent, StudentCache};
 use crate::teachers::{
     self, BesoTeacherConfig, ClippedTeacher, DdpmTeacherConfig, TeachersConfig, TrainedTeacher,
 };
@@ -145,6 +146,10 @@ pub struct VddMethods {
     pub greedy_gating: bool,
     /// Acting: sample `a ~ N(μ_z, Σ_z)` instead of returning `μ_z` (the paper uses `μ_z`).
     pub sample_action: bool,
+    /// Acting: keep the previous step's expert while its gating probability stays at least
+    /// this value ([`ActMode::hold_expert`]); `None`: choose at every step (the paper).
+    #[serde(default)]
+    pub hold_expert: Option<f32>,
     /// Rescale decaying LR schedules to end at the last step (so `--set ...iterations=N` alone
     /// keeps the schedule's shape).
     pub schedules_follow_iterations: bool,
@@ -311,6 +316,7 @@ impl Default for AvoidingRecipe {
                 clip_margin: Some(0.5),
                 greedy_gating: false,
                 sample_action: false,
+                hold_expert: None,
                 schedules_follow_iterations: true,
             },
             baselines: Baselines {
@@ -547,6 +553,7 @@ fn train_method(
     prep: &Prepared,
     seed: u64,
     store: &TeacherStore,
+    students: StudentCache<'_>,
     label: &str,
 ) -> crate::XResult<Trained> {
     let mut curves = Curves::default();
@@ -590,39 +597,52 @@ fn train_method(
             let mut mc = cfg.student.clone();
             mc.state_dim = states.ncols();
             mc.action_dim = actions.ncols();
-            let student = Moe::from_config(mc, seed)?;
-            let bounds = cfg.vdd.clip_margin.map(|m| ClippedTeacher::data_box(actions.as_ref(), m));
-            let teacher = ClippedTeacher::new(teacher, bounds)?;
-            let data = DistillData::new(states, Some(actions))?;
-            let iterations = vc.iterations;
-            let mut vdd = Vdd::new(vc, teacher, student, data)?;
-            let bar = crate::progress::bar(iterations as u64, label);
-            let every = (iterations / 200).max(1);
-            let t0 = Instant::now();
-            vdd.train(|m| {
-                bar.inc(1);
-                if m.iteration % every == 0 || m.iteration + 1 == iterations {
-                    let x = m.iteration as f64;
-                    let mut push =
-                        |k: &str, v: f64| curves.entry(k.to_owned()).or_default().push((x, v));
-                    push("expert entropy (nats)", f64::from(m.expert.expert_entropy));
-                    push("corrected score rms", f64::from(m.expert.corrected_score_rms));
-                    push("log responsibility", f64::from(m.expert.log_responsibility));
-                    push("gating entropy (nats)", f64::from(m.gating_entropy));
-                    if let Some(g) = m.gating_loss {
-                        push("gating loss", f64::from(g));
-                    }
-                    bar.set_message(format!("H(z|s) {:.2}", m.gating_entropy));
+            let teacher_config = match kind {
+                TeacherKind::Beso => serde_json::to_value(&cfg.teachers.beso)?,
+                TeacherKind::Ddpm => serde_json::to_value(&cfg.teachers.ddpm)?,
+            };
+            let key = json!({
+                "version": 1,
+                "teacher": teacher_config,
+                "teacher_hash": t.hash,
+                "student": mc,
+                "vdd": vc,
+                "clip_margin": cfg.vdd.clip_margin,
+            });
+            let hash = recipe::config_hash(&key)?;
+            let name = method.name();
+            let trained = match students.load(name, &hash)? {
+                Some(c) => {
+                    crate::progress::log(format!("[{label}] student loaded from the cache"));
+                    c
                 }
-            })?;
-            let train_seconds = t0.elapsed().as_secs_f64();
-            bar.finish_and_clear();
-            let mut student = vdd.into_student();
+                None => {
+                    let c = distill(
+                        vc,
+                        teacher,
+                        mc,
+                        states,
+                        actions,
+                        cfg.vdd.clip_margin,
+                        seed,
+                        label,
+                    )?;
+                    let path = students.store(name, &hash, &c)?;
+                    crate::progress::log(format!(
+                        "[{label}] trained in {:.1} s; cached as {}",
+                        c.train_seconds,
+                        teachers::rel(&path)
+                    ));
+                    c
+                }
+            };
+            let CachedStudent { mut student, train_seconds, curves } = trained;
             student.set_normalizers(Some(sn.clone()), Some(an.clone()))?;
             student.set_act_mode(ActMode {
                 greedy_gating: cfg.vdd.greedy_gating,
                 sample_action: cfg.vdd.sample_action,
-            });
+                hold_expert: cfg.vdd.hold_expert,
+            })?;
             Ok(Trained {
                 policy: TrainedPolicy::Moe(Box::new(student)),
                 train_seconds,
@@ -767,6 +787,49 @@ fn train_method(
 
 /// For each step of each recorded rollout, the expert whose mean (denormalised) is nearest to
 /// the applied action: the expert the mixture chose (it acts with the chosen expert's mean).
+/// Distils `teacher` into a new mixture of configuration `mc` with VDD (the states and actions
+/// normalised by the teacher's normalisers), with a progress bar and learning curves.
+#[allow(clippy::too_many_arguments)]
+fn distill(
+    vc: VddConfig,
+    teacher: DiffusionTeacher,
+    mc: MoeConfig,
+    states: Mat<f32>,
+    actions: Mat<f32>,
+    clip_margin: Option<f32>,
+    seed: u64,
+    label: &str,
+) -> crate::XResult<CachedStudent> {
+    let mut curves = Curves::default();
+    let student = Moe::from_config(mc, seed)?;
+    let bounds = clip_margin.map(|m| ClippedTeacher::data_box(actions.as_ref(), m));
+    let teacher = ClippedTeacher::new(teacher, bounds)?;
+    let data = DistillData::new(states, Some(actions))?;
+    let iterations = vc.iterations;
+    let mut vdd = Vdd::new(vc, teacher, student, data)?;
+    let bar = crate::progress::bar(iterations as u64, label);
+    let every = (iterations / 200).max(1);
+    let t0 = Instant::now();
+    vdd.train(|m| {
+        bar.inc(1);
+        if m.iteration % every == 0 || m.iteration + 1 == iterations {
+            let x = m.iteration as f64;
+            let mut push = |k: &str, v: f64| curves.entry(k.to_owned()).or_default().push((x, v));
+            push("expert entropy (nats)", f64::from(m.expert.expert_entropy));
+            push("corrected score rms", f64::from(m.expert.corrected_score_rms));
+            push("log responsibility", f64::from(m.expert.log_responsibility));
+            push("gating entropy (nats)", f64::from(m.gating_entropy));
+            if let Some(g) = m.gating_loss {
+                push("gating loss", f64::from(g));
+            }
+            bar.set_message(format!("H(z|s) {:.2}", m.gating_entropy));
+        }
+    })?;
+    let train_seconds = t0.elapsed().as_secs_f64();
+    bar.finish_and_clear();
+    Ok(CachedStudent { student: vdd.into_student(), train_seconds, curves })
+}
+
 fn chosen_experts(
     moe: &mut Moe,
     norms: &(Affine, Affine),
@@ -896,6 +959,7 @@ pub fn run(ctx: &RunContext) -> crate::XResult {
         Student((usize, usize), Box<Trained>),
     }
     let mut store = TeacherStore::default();
+    let students = StudentCache { dir: &ctx.student_cache_dir, fresh: ctx.fresh };
     let mut trained: HashMap<(usize, usize), Trained> = HashMap::new();
     let run_job = |w: &Work, store: &TeacherStore| -> Result<Done, String> {
         match w {
@@ -919,7 +983,7 @@ pub fn run(ctx: &RunContext) -> crate::XResult {
                 let (label, method, cfg) = &plan[*pi];
                 let prep = &prepared[&dkeys[*pi]];
                 let tag = format!("{label} s{seed}");
-                let t = train_method(*method, cfg, prep, *seed, store, &tag)
+                let t = train_method(*method, cfg, prep, *seed, store, students, &tag)
                     .map_err(|e| format!("{tag}: {e}"))?;
                 Ok(Done::Student((*si, *pi), Box::new(t)))
             }
@@ -972,7 +1036,7 @@ pub fn run(ctx: &RunContext) -> crate::XResult {
             let tag = format!("{label} s{seed}");
             let trained = match trained.remove(&(si, pi)) {
                 Some(t) => t,
-                None => train_method(*method, cfg, prep, seed, &store, &tag)?,
+                None => train_method(*method, cfg, prep, seed, &store, students, &tag)?,
             };
 
             // Rollouts.

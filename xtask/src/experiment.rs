@@ -30,10 +30,12 @@ pub struct RunContext {
     pub overrides: Overrides,
     /// `--out`.
     pub out: Option<PathBuf>,
-    /// `--fresh`: retrain cached teachers.
+    /// `--fresh`: retrain cached teachers and students.
     pub fresh: bool,
     /// The teacher cache directory.
     pub cache_dir: PathBuf,
+    /// The VDD student cache directory ([`crate::student_cache`]).
+    pub student_cache_dir: PathBuf,
     /// The command line, for `run.json`.
     pub command: String,
     /// When the command started.
@@ -321,6 +323,7 @@ pub fn run(args: &[String]) -> crate::XResult {
         out: parsed.out.clone(),
         fresh: parsed.fresh,
         cache_dir: recipe::repo_root().join("results").join("cache").join("teachers"),
+        student_cache_dir: recipe::repo_root().join("results").join("cache").join("students"),
         command: std::iter::once("cargo xtask experiment".to_owned())
             .chain(args.iter().cloned())
             .collect::<Vec<_>>()

@@ -22,6 +22,7 @@ mod plots;
 mod policy;
 mod recipe;
 mod report;
+mod student_cache;
 mod teachers;
 mod toy;
 
