@@ -146,10 +146,6 @@ pub struct VddMethods {
     pub greedy_gating: bool,
     /// Acting: sample `a ~ N(μ_z, Σ_z)` instead of returning `μ_z` (the paper uses `μ_z`).
     pub sample_action: bool,
-    /// Acting: keep the previous step's expert while its gating probability stays at least
-    /// this value ([`ActMode::hold_expert`]); `None`: choose at every step (the paper).
-    #[serde(default)]
-    pub hold_expert: Option<f32>,
     /// Rescale decaying LR schedules to end at the last step (so `--set ...iterations=N` alone
     /// keeps the schedule's shape).
     pub schedules_follow_iterations: bool,
@@ -316,7 +312,6 @@ impl Default for AvoidingRecipe {
                 clip_margin: Some(0.5),
                 greedy_gating: false,
                 sample_action: false,
-                hold_expert: None,
                 schedules_follow_iterations: true,
             },
             baselines: Baselines {
@@ -641,8 +636,7 @@ fn train_method(
             student.set_act_mode(ActMode {
                 greedy_gating: cfg.vdd.greedy_gating,
                 sample_action: cfg.vdd.sample_action,
-                hold_expert: cfg.vdd.hold_expert,
-            })?;
+            });
             Ok(Trained {
                 policy: TrainedPolicy::Moe(Box::new(student)),
                 train_seconds,

@@ -2,7 +2,7 @@
 //! everything that determines the trained weights (the teacher's configuration and cache hash,
 //! which covers the data, the student's architecture, VDD's configuration with the run seed,
 //! and the score clipping), but not the act mode or the evaluation, so that changing how a
-//! student acts (`vdd.greedy_gating`, `vdd.hold_expert`, ...) or is evaluated re-uses it.
+//! student acts (`vdd.greedy_gating`, `vdd.sample_action`) or is evaluated re-uses it.
 //!
 //! A cached student is `results/cache/students/<method>-<hash>.safetensors` with a `.json`
 //! sidecar (key, training seconds, learning curves); `--fresh` retrains and overwrites.

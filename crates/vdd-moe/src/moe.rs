@@ -109,30 +109,12 @@ impl MoeConfig {
 }
 
 /// How [`Policy::act`] turns the mixture into one action.
-#[derive(Debug, Clone, Copy, Default, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize)]
 pub struct ActMode {
     /// Pick the most probable expert instead of sampling `z ~ q(z|s)`.
     pub greedy_gating: bool,
     /// Sample `a ~ N(μ_z, Σ_z)` instead of returning `μ_z` (the paper evaluates with `μ_z`).
     pub sample_action: bool,
-    /// Keep the expert chosen at the previous step of the same episode while its gating
-    /// probability `q(z|s)` stays at least this value (in `(0, 1]`); choose anew (as the other
-    /// fields say) when it drops below and after [`Policy::reset`]. One held expert per row of
-    /// [`Policy::act_batch`] (row `i` is one episode between resets). `None`: choose at every
-    /// step, as the paper evaluates.
-    #[serde(default)]
-    pub hold_expert: Option<f32>,
-}
-
-impl ActMode {
-    fn validate(&self) -> Result<(), MoeError> {
-        match self.hold_expert {
-            Some(p) if !(p > 0.0 && p <= 1.0) => {
-                Err(MoeError::Config(format!("hold_expert must be in (0, 1], got {p}")))
-            }
-            _ => Ok(()),
-        }
-    }
 }
 
 #[derive(Debug, Clone)]
@@ -270,7 +252,7 @@ impl MoeOutput {
 /// )?;
 ///
 /// // Deterministic evaluation: the most probable expert's mean.
-/// moe.set_act_mode(ActMode { greedy_gating: true, sample_action: false, ..Default::default() })?;
+/// moe.set_act_mode(ActMode { greedy_gating: true, sample_action: false });
 /// let obs = [0.2f32, 1.5, -0.7];
 /// let action = moe.act(&obs)?;
 /// assert_eq!(action.len(), 2);
@@ -304,8 +286,6 @@ pub struct Moe<E: Expert = ExpertFamily> {
     obs_normalizer: Option<Affine>,
     action_normalizer: Option<Affine>,
     act_mode: ActMode,
-    /// The expert each row acted with at its last step ([`ActMode::hold_expert`]).
-    held: Vec<Option<usize>>,
     rng: Rng,
     out: MoeOutput,
     experts_forwarded: bool,
@@ -408,7 +388,6 @@ impl<E: Expert> Moe<E> {
             obs_normalizer: None,
             action_normalizer: None,
             act_mode: ActMode::default(),
-            held: Vec::new(),
             rng: seeds.stream("moe-act"),
             out: MoeOutput { num_experts: z, action_dim: d, ..Default::default() },
             experts_forwarded: false,
@@ -441,13 +420,9 @@ impl<E: Expert> Moe<E> {
         self.gating.is_some()
     }
 
-    /// Sets how [`Policy::act`] picks the expert and the action; an error (nothing changes)
-    /// for a `hold_expert` threshold outside `(0, 1]`.
-    pub fn set_act_mode(&mut self, mode: ActMode) -> Result<(), MoeError> {
-        mode.validate()?;
+    /// Sets how [`Policy::act`] picks the expert and the action.
+    pub fn set_act_mode(&mut self, mode: ActMode) {
         self.act_mode = mode;
-        self.held.clear();
-        Ok(())
     }
 
     /// Attaches observation and action normalisers (used by the [`Policy`] methods only;
@@ -721,7 +696,7 @@ impl<E: Expert> Moe<E> {
         };
         let obs: Option<Affine> = serde_json::from_str(parse("obs_normalizer")?).map_err(bad)?;
         let act: Option<Affine> = serde_json::from_str(parse("action_normalizer")?).map_err(bad)?;
-        moe.set_act_mode(serde_json::from_str(parse("act_mode")?).map_err(bad)?)?;
+        moe.act_mode = serde_json::from_str(parse("act_mode")?).map_err(bad)?;
         moe.set_normalizers(obs, act)?;
         Ok(moe)
     }
@@ -750,16 +725,7 @@ impl<E: Expert> Moe<E> {
     fn choose_action(&mut self, b: usize, action: &mut [f32]) {
         let z = self.config.num_experts;
         let lg = &self.out.log_gating[b * z..(b + 1) * z];
-        if self.held.len() <= b {
-            self.held.resize(b + 1, None);
-        }
-        let held = match (self.act_mode.hold_expert, self.held[b]) {
-            (Some(p), Some(e)) if lg[e] >= p.ln() => Some(e),
-            _ => None,
-        };
-        let e = if let Some(e) = held {
-            e
-        } else if self.act_mode.greedy_gating {
+        let e = if self.act_mode.greedy_gating {
             (0..z).fold(0, |best, k| if lg[k] > lg[best] { k } else { best })
         } else {
             let u: f32 = self.rng.random();
@@ -774,7 +740,6 @@ impl<E: Expert> Moe<E> {
             }
             pick
         };
-        self.held[b] = Some(e);
         let mean = self.out.mean(b, e);
         if self.act_mode.sample_action {
             let d = self.config.action_dim;
@@ -868,9 +833,6 @@ impl<E: Expert> Policy for Moe<E> {
     }
     fn seed(&mut self, seed: u64) {
         self.rng = Seeds::new(seed).stream("moe-act");
-    }
-    fn reset(&mut self) {
-        self.held.clear();
     }
 
     fn act_into(&mut self, obs: &[f32], action: &mut [f32]) -> vdd_core::Result<()> {
@@ -1467,12 +1429,7 @@ mod tests {
         let n = 16_000;
         let repeated = Mat::from_fn(n, 1, |_, _| obs[0]);
         let mut actions = Mat::<f32>::zeros(n, 2);
-        moe.set_act_mode(ActMode {
-            greedy_gating: false,
-            sample_action: true,
-            ..Default::default()
-        })
-        .unwrap();
+        moe.set_act_mode(ActMode { greedy_gating: false, sample_action: true });
         moe.seed(11);
         moe.act_batch(repeated.as_ref(), actions.as_mut()).unwrap();
         let (sm, sc) = sample_moments(actions.as_ref());
@@ -1487,12 +1444,7 @@ mod tests {
         let lg = moe.output().log_gating_row(0).to_vec();
         let best = (0..3).max_by(|&a, &b| lg[a].total_cmp(&lg[b])).unwrap();
         let (bm, bc) = mixture_moments(&moe, &act_norm, Some(best));
-        moe.set_act_mode(ActMode {
-            greedy_gating: true,
-            sample_action: true,
-            ..Default::default()
-        })
-        .unwrap();
+        moe.set_act_mode(ActMode { greedy_gating: true, sample_action: true });
         moe.act_batch(repeated.as_ref(), actions.as_mut()).unwrap();
         let (sm, sc) = sample_moments(actions.as_ref());
         for i in 0..2 {
@@ -1521,12 +1473,7 @@ mod tests {
     fn greedy_mean_mode_returns_exactly_the_most_probable_experts_mean() {
         for cfg in all_configs(2, 2).into_iter().filter(|c| c.gating == GatingKind::Learned) {
             let mut moe = built(cfg, 9);
-            moe.set_act_mode(ActMode {
-                greedy_gating: true,
-                sample_action: false,
-                ..Default::default()
-            })
-            .unwrap();
+            moe.set_act_mode(ActMode { greedy_gating: true, sample_action: false });
             let obs = obs_batch(5, 2);
             let mut batch = Mat::<f32>::zeros(5, 2);
             moe.act_batch(obs.as_ref(), batch.as_mut()).unwrap();
@@ -1547,98 +1494,10 @@ mod tests {
         }
     }
 
-    /// The expert each action of `actions` (rows) is the mean of, at state `b` of the last
-    /// forward.
-    fn experts_of(moe: &Moe, b: usize, actions: &[[f32; 2]]) -> Vec<usize> {
-        let means = denormalized_means(moe, b);
-        actions
-            .iter()
-            .map(|a| means.iter().position(|m| m[..] == a[..]).expect("an expert's mean"))
-            .collect()
-    }
-
-    #[test]
-    fn held_experts_persist_within_an_episode_and_per_row() {
-        let mut moe = built(config(2, 2, ExpertKind::Diagonal, GatingKind::Learned, true), 10);
-        let hold = ActMode { hold_expert: Some(0.05), ..Default::default() };
-        moe.set_act_mode(hold).unwrap();
-        moe.seed(3);
-        let obs = [0.4f32, -0.3];
-        // Every expert has q(z|s) > 0.05 here, so the first choice is kept for the episode ...
-        let mut firsts = Vec::new();
-        for _ in 0..40 {
-            moe.reset();
-            let steps: Vec<[f32; 2]> =
-                (0..10).map(|_| moe.act(&obs).unwrap().try_into().unwrap()).collect();
-            let z = experts_of(&moe, 0, &steps);
-            assert!(z.iter().all(|&e| e == z[0]), "expert switched within an episode: {z:?}");
-            firsts.push(z[0]);
-        }
-        // ... and episodes still start with different experts.
-        firsts.sort_unstable();
-        firsts.dedup();
-        assert!(firsts.len() >= 2, "{firsts:?}");
-        // Without holding, one episode switches between experts.
-        moe.set_act_mode(ActMode::default()).unwrap();
-        moe.reset();
-        let steps: Vec<[f32; 2]> =
-            (0..40).map(|_| moe.act(&obs).unwrap().try_into().unwrap()).collect();
-        let mut z = experts_of(&moe, 0, &steps);
-        z.dedup();
-        assert!(z.len() > 1, "{z:?}");
-        // Rows of a batch hold their own experts.
-        moe.set_act_mode(hold).unwrap();
-        moe.reset();
-        let n = 8;
-        let batch = Mat::from_fn(n, 2, |_, j| obs[j]);
-        let mut actions = Mat::<f32>::zeros(n, 2);
-        let mut per_step = Vec::new();
-        for _ in 0..5 {
-            moe.act_batch(batch.as_ref(), actions.as_mut()).unwrap();
-            let rows: Vec<[f32; 2]> = (0..n).map(|b| [actions[(b, 0)], actions[(b, 1)]]).collect();
-            per_step.push(experts_of(&moe, 0, &rows));
-        }
-        assert!(per_step.iter().all(|z| *z == per_step[0]), "{per_step:?}");
-        let mut distinct = per_step[0].clone();
-        distinct.sort_unstable();
-        distinct.dedup();
-        assert!(distinct.len() >= 2, "rows chose independently: {:?}", per_step[0]);
-    }
-
-    #[test]
-    fn an_expert_below_the_hold_threshold_is_chosen_anew() {
-        // Threshold 1: no expert ever reaches it, so acting equals choosing at every step, draw
-        // for draw.
-        let mut a = built(config(2, 2, ExpertKind::Diagonal, GatingKind::Learned, true), 10);
-        let mut b = a.clone();
-        a.set_act_mode(ActMode { hold_expert: Some(1.0), ..Default::default() }).unwrap();
-        a.seed(5);
-        b.seed(5);
-        let obs = [0.4f32, -0.3];
-        for _ in 0..50 {
-            assert_eq!(a.act(&obs).unwrap(), b.act(&obs).unwrap());
-        }
-    }
-
-    #[test]
-    fn hold_thresholds_outside_the_unit_interval_are_rejected() {
-        let mut moe = built(config(2, 2, ExpertKind::Diagonal, GatingKind::Learned, true), 10);
-        for p in [0.0, -0.1, 1.5, f32::NAN] {
-            let mode = ActMode { hold_expert: Some(p), ..Default::default() };
-            assert!(matches!(moe.set_act_mode(mode), Err(MoeError::Config(_))), "{p}");
-        }
-        assert_eq!(moe.act_mode(), ActMode::default());
-    }
-
     #[test]
     fn sampled_gating_picks_experts_with_the_gating_probabilities() {
         let mut moe = built(config(2, 2, ExpertKind::Diagonal, GatingKind::Learned, true), 10);
-        moe.set_act_mode(ActMode {
-            greedy_gating: false,
-            sample_action: false,
-            ..Default::default()
-        })
-        .unwrap();
+        moe.set_act_mode(ActMode { greedy_gating: false, sample_action: false });
         moe.seed(3);
         let n = 20_000;
         let obs = Mat::from_fn(n, 2, |_, j| [0.4f32, -0.3][j]);
@@ -1664,12 +1523,12 @@ mod tests {
     #[test]
     fn the_same_seed_gives_the_same_actions_and_seed_resets_the_stream() {
         for mode in [
-            ActMode { greedy_gating: false, sample_action: true, ..Default::default() },
-            ActMode { greedy_gating: false, sample_action: false, ..Default::default() },
-            ActMode { greedy_gating: true, sample_action: true, ..Default::default() },
+            ActMode { greedy_gating: false, sample_action: true },
+            ActMode { greedy_gating: false, sample_action: false },
+            ActMode { greedy_gating: true, sample_action: true },
         ] {
             let mut moe = built(config(2, 2, ExpertKind::Full, GatingKind::Learned, true), 12);
-            moe.set_act_mode(mode).unwrap();
+            moe.set_act_mode(mode);
             let run = |moe: &mut Moe| -> Vec<Vec<f32>> {
                 (0..40).map(|k| moe.act(&[0.1 * k as f32, -0.2]).unwrap()).collect()
             };
@@ -1686,7 +1545,7 @@ mod tests {
 
             // A clone with the same seed (and a freshly built copy) acts identically.
             let mut twin = built(config(2, 2, ExpertKind::Full, GatingKind::Learned, true), 12);
-            twin.set_act_mode(mode).unwrap();
+            twin.set_act_mode(mode);
             twin.seed(5);
             assert_eq!(run(&mut twin), a, "{mode:?}: same weights and seed");
         }
@@ -1696,12 +1555,7 @@ mod tests {
     fn act_batch_equals_repeated_act_into_in_deterministic_mode() {
         for cfg in all_configs(3, 2) {
             let mut moe = built(cfg, 13);
-            moe.set_act_mode(ActMode {
-                greedy_gating: true,
-                sample_action: false,
-                ..Default::default()
-            })
-            .unwrap();
+            moe.set_act_mode(ActMode { greedy_gating: true, sample_action: false });
             let obs = obs_batch(7, 3);
             let mut batch = Mat::<f32>::zeros(7, 2);
             moe.act_batch(obs.as_ref(), batch.as_mut()).unwrap();
@@ -2009,9 +1863,8 @@ mod tests {
             let what =
                 format!("{:?}/{:?}/shared={}", cfg.expert_kind, cfg.gating, cfg.shared_trunk);
             let mut moe = built(cfg, 19);
-            let mode =
-                ActMode { greedy_gating: false, sample_action: true, hold_expert: Some(0.2) };
-            moe.set_act_mode(mode).unwrap();
+            let mode = ActMode { greedy_gating: false, sample_action: true };
+            moe.set_act_mode(mode);
             let path = scratch(&format!("rt-{}.safetensors", what.replace('/', "-")));
             moe.save(&path).unwrap();
             let mut loaded = Moe::load(&path).unwrap();
