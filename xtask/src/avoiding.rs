@@ -383,6 +383,17 @@ pub fn fit_schedule(s: &mut LrSchedule, total: u64) {
     }
 }
 
+/// [`fit_schedule`] for the experts' and the gating's schedules of EM or IMC, which take
+/// `steps.0` expert and `steps.1` gating steps per iteration.
+fn fit_mixture_schedules(
+    schedules: (&mut LrSchedule, &mut LrSchedule),
+    iterations: usize,
+    steps: (usize, usize),
+) {
+    fit_schedule(schedules.0, (iterations * steps.0) as u64);
+    fit_schedule(schedules.1, (iterations * steps.1) as u64);
+}
+
 /// The VDD config for a run: seed and (optionally) schedule lengths.
 pub fn vdd_config_for(c: &VddConfig, seed: u64, follow: bool) -> VddConfig {
     let mut c = c.clone();
@@ -660,14 +671,9 @@ fn train_method(
                 let mut ec = cfg.baselines.em.clone();
                 ec.seed = seed;
                 if follow {
-                    fit_schedule(
-                        &mut ec.expert_lr_schedule,
-                        (ec.iterations * ec.expert_steps_per_iter) as u64,
-                    );
-                    fit_schedule(
-                        &mut ec.gating_lr_schedule,
-                        (ec.iterations * ec.gating_steps_per_iter) as u64,
-                    );
+                    let steps = (ec.expert_steps_per_iter, ec.gating_steps_per_iter);
+                    let schedules = (&mut ec.expert_lr_schedule, &mut ec.gating_lr_schedule);
+                    fit_mixture_schedules(schedules, ec.iterations, steps);
                 }
                 let bar = crate::progress::bar(ec.iterations as u64, label);
                 let mut em = Em::new(ec, student, data)?;
@@ -685,14 +691,9 @@ fn train_method(
                 let mut ic = cfg.baselines.imc.clone();
                 ic.seed = seed;
                 if follow {
-                    fit_schedule(
-                        &mut ic.expert_lr_schedule,
-                        (ic.iterations * ic.expert_steps_per_iter) as u64,
-                    );
-                    fit_schedule(
-                        &mut ic.gating_lr_schedule,
-                        (ic.iterations * ic.gating_steps_per_iter) as u64,
-                    );
+                    let steps = (ic.expert_steps_per_iter, ic.gating_steps_per_iter);
+                    let schedules = (&mut ic.expert_lr_schedule, &mut ic.gating_lr_schedule);
+                    fit_mixture_schedules(schedules, ic.iterations, steps);
                 }
                 let bar = crate::progress::bar(ic.iterations as u64, label);
                 let mut imc = Imc::new(ic, student, data)?;

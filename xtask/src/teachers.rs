@@ -117,38 +117,23 @@ pub fn train_or_load(
 ) -> crate::XResult<TrainedTeacher> {
     let data = data_hash(states, actions);
     let (rows, state_dim, action_dim) = (states.nrows(), states.ncols(), actions.ncols());
-    let (hash, train) = match kind {
-        TeacherKind::Beso => {
-            let c = &config.beso;
-            let key = CacheKey {
-                version: 2,
-                kind,
-                config: training_part(&c.config)?,
-                train: &c.train,
-                seed,
-                rows,
-                state_dim,
-                action_dim,
-                data,
-            };
-            (crate::recipe::config_hash(&key)?, c.train.clone())
-        }
-        TeacherKind::Ddpm => {
-            let c = &config.ddpm;
-            let key = CacheKey {
-                version: 2,
-                kind,
-                config: training_part(&c.config)?,
-                train: &c.train,
-                seed,
-                rows,
-                state_dim,
-                action_dim,
-                data,
-            };
-            (crate::recipe::config_hash(&key)?, c.train.clone())
-        }
+    let (model, train) = match kind {
+        TeacherKind::Beso => (training_part(&config.beso.config)?, &config.beso.train),
+        TeacherKind::Ddpm => (training_part(&config.ddpm.config)?, &config.ddpm.train),
     };
+    let key = CacheKey {
+        version: 2,
+        kind,
+        config: model,
+        train,
+        seed,
+        rows,
+        state_dim,
+        action_dim,
+        data,
+    };
+    let hash = crate::recipe::config_hash(&key)?;
+    let train = train.clone();
     let name = kind_name(kind);
     let weights = cache_dir.join(format!("{name}-{hash}.safetensors"));
     let sidecar = cache_dir.join(format!("{name}-{hash}.json"));
