@@ -232,9 +232,10 @@ impl<P: Policy> Policy for Windowed<P> {
     }
 }
 
-/// Mean wall-clock µs of one `Policy::act` call over the given episodes' observations (the
-/// policy is seeded with `seed` and reset at each episode start), after `warmup` calls;
-/// single-threaded. Stops after `calls` timed calls.
+/// Wall-clock µs of one `Policy::act` call over the given episodes' observations (the policy
+/// is seeded with `seed` and reset at each episode start), after `warmup` calls;
+/// single-threaded: the median over 5 rounds of `calls / 5` calls (rounded up), each round
+/// over the same observations.
 pub fn us_per_action<P: Policy>(
     policy: &mut P,
     episodes: &[Mat<f32>],
@@ -270,10 +271,22 @@ pub fn us_per_action<P: Policy>(
         Ok(())
     };
     run(warmup, policy)?;
-    let t0 = Instant::now();
-    run(calls, policy)?;
-    Ok(t0.elapsed().as_secs_f64() * 1e6 / calls as f64)
+    // The median of a few rounds over the same observations, so that a hiccup of the machine
+    // (another process, a frequency change) during one round does not move the figure.
+    let per_round = calls.div_ceil(TIMING_ROUNDS);
+    let mut rounds = [0.0f64; TIMING_ROUNDS];
+    for r in &mut rounds {
+        policy.seed(seed);
+        let t0 = Instant::now();
+        run(per_round, policy)?;
+        *r = t0.elapsed().as_secs_f64() * 1e6 / per_round as f64;
+    }
+    rounds.sort_by(f64::total_cmp);
+    Ok(rounds[TIMING_ROUNDS / 2])
 }
+
+/// Rounds [`us_per_action`] takes the median of.
+const TIMING_ROUNDS: usize = 5;
 
 #[cfg(test)]
 mod tests {
@@ -364,5 +377,23 @@ mod tests {
         let us = us_per_action(&mut Probe { calls: 0.0 }, &eps, 12, 3, 0).unwrap();
         assert!(us >= 0.0 && us.is_finite());
         assert!(us_per_action(&mut Probe { calls: 0.0 }, &[], 12, 3, 0).is_err());
+
+        /// Counts every call (across resets).
+        struct Count(usize);
+        impl Policy for Count {
+            fn obs_dim(&self) -> usize {
+                4
+            }
+            fn action_dim(&self) -> usize {
+                1
+            }
+            fn act_into(&mut self, _: &[f32], _: &mut [f32]) -> vdd_core::Result<()> {
+                self.0 += 1;
+                Ok(())
+            }
+        }
+        let mut c = Count(0);
+        us_per_action(&mut c, &eps, 12, 3, 0).unwrap();
+        assert_eq!(c.0, 3 + 5 * 3, "warm-up, then 5 rounds of ceil(12 / 5) calls");
     }
 }
