@@ -294,6 +294,10 @@ pub struct Moe<E: Expert = ExpertFamily> {
     grad: Mat<f32>,
     resp: Vec<f32>,
     work: Vec<f32>,
+    /// Acting: the chosen expert's raw outputs for one state.
+    act_raw: Mat<f32>,
+    /// Acting: raw outputs, mean, scale, noise and action of one state.
+    act_work: Vec<f32>,
 }
 
 impl Moe<ExpertFamily> {
@@ -396,6 +400,8 @@ impl<E: Expert> Moe<E> {
             grad: Mat::zeros(0, 0),
             resp: vec![0.0; z],
             work: vec![0.0; d],
+            act_raw: Mat::zeros(1, 0),
+            act_work: Vec::new(),
             config,
         })
     }
@@ -720,38 +726,6 @@ impl<E: Expert> Moe<E> {
     fn log_det_action_scale(&self) -> f32 {
         self.action_normalizer.as_ref().map_or(0.0, |a| a.scale.iter().map(|s| s.ln()).sum())
     }
-
-    /// Picks an expert for state `b` of the last forward and writes the action (normalised).
-    fn choose_action(&mut self, b: usize, action: &mut [f32]) {
-        let z = self.config.num_experts;
-        let lg = &self.out.log_gating[b * z..(b + 1) * z];
-        let e = if self.act_mode.greedy_gating {
-            (0..z).fold(0, |best, k| if lg[k] > lg[best] { k } else { best })
-        } else {
-            let u: f32 = self.rng.random();
-            let mut acc = 0.0;
-            let mut pick = z - 1;
-            for (k, l) in lg.iter().enumerate() {
-                acc += l.exp();
-                if u < acc {
-                    pick = k;
-                    break;
-                }
-            }
-            pick
-        };
-        let mean = self.out.mean(b, e);
-        if self.act_mode.sample_action {
-            let d = self.config.action_dim;
-            vdd_core::fill_standard_normal(&mut self.rng, &mut self.work[..d]);
-            gaussian::sample_into(mean, self.out.scale(b, e), &self.work[..d], action);
-        } else {
-            action.copy_from_slice(mean);
-        }
-        if let Some(norm) = &self.action_normalizer {
-            norm.denormalize(action);
-        }
-    }
 }
 
 /// What a saved mixture records of its expert family, so that loading it with another family
@@ -838,31 +812,17 @@ impl<E: Expert> Policy for Moe<E> {
     fn act_into(&mut self, obs: &[f32], action: &mut [f32]) -> vdd_core::Result<()> {
         check_act_args(self, obs, action)?;
         let o = MatRef::from_row_major_slice(obs, 1, obs.len());
-        self.act_batch_inner(o)?;
-        self.choose_action(0, action);
-        Ok(())
+        let d = action.len();
+        self.act_rows(o, faer::MatMut::from_row_major_slice_mut(action, 1, d))
     }
 
     fn act_batch(
         &mut self,
         obs: MatRef<'_, f32>,
-        mut actions: faer::MatMut<'_, f32>,
+        actions: faer::MatMut<'_, f32>,
     ) -> vdd_core::Result<()> {
-        let n = obs.nrows();
-        check_shape("actions", actions.as_ref(), n, self.config.action_dim)?;
-        self.act_batch_inner(obs)?;
-        let mut a = std::mem::take(&mut self.resp);
-        a.resize(self.config.action_dim.max(self.config.num_experts), 0.0);
-        for b in 0..n {
-            let d = self.config.action_dim;
-            self.choose_action(b, &mut a[..d]);
-            for j in 0..d {
-                actions[(b, j)] = a[j];
-            }
-        }
-        a.truncate(self.config.num_experts);
-        self.resp = a;
-        Ok(())
+        check_shape("actions", actions.as_ref(), obs.nrows(), self.config.action_dim)?;
+        self.act_rows(obs, actions)
     }
 
     fn has_likelihood(&self) -> bool {
@@ -880,7 +840,7 @@ impl<E: Expert> Policy for Moe<E> {
         check_shape("actions", actions, n, self.config.action_dim)?;
         check_len("log-likelihood output", out.len(), n)?;
         check_finite("actions", actions)?;
-        self.act_batch_inner(obs)?;
+        self.forward_observations(obs)?;
         let log_det = self.log_det_action_scale();
         let mut a = vec![0.0; self.config.action_dim];
         for (b, o) in out.iter_mut().enumerate() {
@@ -898,17 +858,128 @@ impl<E: Expert> Policy for Moe<E> {
 }
 
 impl<E: Expert> Moe<E> {
-    fn act_batch_inner(&mut self, obs: MatRef<'_, f32>) -> vdd_core::Result<()> {
+    /// Acting (`Policy::act_into` and `act_batch`): the gating for every state, then for each
+    /// state in turn an expert `z ~ q(z|s)` (or the most likely one) and only that expert's
+    /// outputs: its columns of the shared trunk's output layer (or its own network), decoded
+    /// into `(μ_z, L_z)`. The action is `μ_z`, or a sample of `N(μ_z, L_z L_zᵀ)`.
+    fn act_rows(
+        &mut self,
+        obs: MatRef<'_, f32>,
+        actions: faer::MatMut<'_, f32>,
+    ) -> vdd_core::Result<()> {
+        check_shape("observations", obs, obs.nrows(), self.config.state_dim)?;
+        check_finite("observations", obs)?;
+        self.load_normalized_states(obs);
+        let states = std::mem::replace(&mut self.states, Mat::zeros(0, 0));
+        let r = self.act_on_states(states.as_ref(), actions);
+        self.states = states;
+        r
+    }
+
+    fn act_on_states(
+        &mut self,
+        states: MatRef<'_, f32>,
+        mut actions: faer::MatMut<'_, f32>,
+    ) -> vdd_core::Result<()> {
+        self.forward_gating(states).map_err(to_core)?;
+        // The experts' caches no longer match `output()`: a backward pass needs a forward.
+        self.experts_forwarded = false;
+        let (z, r, d) = (self.config.num_experts, self.expert.raw_dim(), self.config.action_dim);
+        let Self {
+            experts, expert, rng, out, act_work, act_raw, act_mode, action_normalizer, ..
+        } = self;
+        act_work.resize(r + 3 * d + d * d, 0.0);
+        let (raw, rest) = act_work.split_at_mut(r);
+        let (mean, rest) = rest.split_at_mut(d);
+        let (scale, rest) = rest.split_at_mut(d * d);
+        let (noise, action) = rest.split_at_mut(d);
+        if act_raw.nrows() != 1 || act_raw.ncols() != r {
+            *act_raw = Mat::zeros(1, r);
+        }
+        /// Where the chosen expert's raw outputs come from.
+        enum Source<'a> {
+            /// The shared trunk's last hidden features and its output layer.
+            Trunk(MatRef<'a, f32>, &'a vdd_nn::Linear),
+            /// One network per expert.
+            Nets(&'a mut [ResidualMlp]),
+        }
+        let mut source = match &mut experts.0 {
+            ExpertNets::Shared(net) => {
+                let (hidden, layer) = net.forward_hidden(states);
+                Source::Trunk(hidden, layer)
+            }
+            ExpertNets::Separate(nets) => Source::Nets(nets),
+        };
+        for b in 0..states.nrows() {
+            let lg = &out.log_gating[b * z..(b + 1) * z];
+            let e = if act_mode.greedy_gating {
+                (0..z).fold(0, |best, k| if lg[k] > lg[best] { k } else { best })
+            } else {
+                let u: f32 = rng.random();
+                let mut acc = 0.0;
+                let mut pick = z - 1;
+                for (k, l) in lg.iter().enumerate() {
+                    acc += l.exp();
+                    if u < acc {
+                        pick = k;
+                        break;
+                    }
+                }
+                pick
+            };
+            match &mut source {
+                Source::Trunk(hidden, layer) => {
+                    for (c, &v) in layer.bias.value[e * r..(e + 1) * r].iter().enumerate() {
+                        act_raw[(0, c)] = v;
+                    }
+                    faer::linalg::matmul::matmul(
+                        act_raw.as_mut(),
+                        faer::Accum::Add,
+                        hidden.subrows(b, 1),
+                        layer.weight_t().subcols(e * r, r),
+                        1.0,
+                        faer::Par::Seq,
+                    );
+                }
+                Source::Nets(nets) => act_raw.copy_from(nets[e].forward(states.subrows(b, 1))),
+            }
+            for (c, v) in raw.iter_mut().enumerate() {
+                *v = act_raw[(0, c)];
+            }
+            expert.decode(raw, mean, scale);
+            if act_mode.sample_action {
+                vdd_core::fill_standard_normal(rng, noise);
+                gaussian::sample_into(mean, scale, noise, action);
+            } else {
+                action.copy_from_slice(mean);
+            }
+            if let Some(norm) = action_normalizer.as_ref() {
+                norm.denormalize(action);
+            }
+            for (j, &a) in action.iter().enumerate() {
+                actions[(b, j)] = a;
+            }
+        }
+        Ok(())
+    }
+
+    /// Both forward passes on observations (normalised here): for the likelihood.
+    fn forward_observations(&mut self, obs: MatRef<'_, f32>) -> vdd_core::Result<()> {
         check_shape("observations", obs, obs.nrows(), self.config.state_dim)?;
         check_finite("observations", obs)?;
         self.load_normalized_states(obs);
         let states = std::mem::replace(&mut self.states, Mat::zeros(0, 0));
         let r = self.forward(states.as_ref());
         self.states = states;
-        r.map_err(|e| match e {
-            MoeError::Core(c) => c,
-            other => CoreError::Config(other.to_string()),
-        })
+        r.map_err(to_core)
+    }
+}
+
+/// A mixture error as the [`Policy`] trait's error.
+fn to_core(e: MoeError) -> CoreError {
+    match e {
+        MoeError::Core(c) => c,
+        other => CoreError::Config(other.to_string()),
     }
 }
 
@@ -1477,6 +1548,8 @@ mod tests {
             let obs = obs_batch(5, 2);
             let mut batch = Mat::<f32>::zeros(5, 2);
             moe.act_batch(obs.as_ref(), batch.as_mut()).unwrap();
+            // Acting computes only the chosen expert: the full forward pass for comparison.
+            moe.forward_observations(obs.as_ref()).unwrap();
             let mut picked = Vec::new();
             for b in 0..5 {
                 let lg = moe.output().log_gating_row(b).to_vec();
@@ -1491,6 +1564,10 @@ mod tests {
                 assert_eq!(a, [batch[(b, 0)], batch[(b, 1)]]);
             }
             assert_eq!(picked[0], 0, "the spread gating favours expert 0");
+            // Acting leaves no experts' forward pass to back-propagate through.
+            moe.act(&[obs[(0, 0)], obs[(0, 1)]]).unwrap();
+            let grad = vec![0.0; moe.num_experts() * moe.expert().raw_dim()];
+            assert!(matches!(moe.backward_experts(&grad), Err(MoeError::NoForward(_))));
         }
     }
 
@@ -1503,6 +1580,7 @@ mod tests {
         let obs = Mat::from_fn(n, 2, |_, j| [0.4f32, -0.3][j]);
         let mut actions = Mat::<f32>::zeros(n, 2);
         moe.act_batch(obs.as_ref(), actions.as_mut()).unwrap();
+        moe.forward_observations(obs.subrows(0, 1)).unwrap();
         let means = denormalized_means(&moe, 0);
         let mut counts = [0usize; 3];
         for b in 0..n {

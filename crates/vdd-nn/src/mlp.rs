@@ -355,6 +355,18 @@ impl ResidualMlp {
         v
     }
 
+    /// The last hidden features (`n x hidden_dim`: the input layer and the blocks, without
+    /// the output layer) and the output layer, so that a caller needing only some outputs
+    /// computes just those columns (a mixture acting with one expert of a shared trunk).
+    /// Leaves the output layer's cache stale: run [`Module::forward`] before a backward pass.
+    pub fn forward_hidden(&mut self, x: MatRef<'_, f32>) -> (MatRef<'_, f32>, &Linear) {
+        let mut h = self.input.forward(x);
+        for b in &mut self.blocks {
+            h = b.forward(h);
+        }
+        (h, &self.output)
+    }
+
     /// The output layer (e.g. to initialise its bias in a range).
     pub fn output_layer_mut(&mut self) -> &mut Linear {
         &mut self.output
