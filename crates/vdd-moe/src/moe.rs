@@ -294,8 +294,6 @@ pub struct Moe<E: Expert = ExpertFamily> {
     grad: Mat<f32>,
     resp: Vec<f32>,
     work: Vec<f32>,
-    /// Acting: the chosen expert's raw outputs for one state.
-    act_raw: Mat<f32>,
     /// Acting: raw outputs, mean, scale, noise and action of one state.
     act_work: Vec<f32>,
 }
@@ -400,7 +398,6 @@ impl<E: Expert> Moe<E> {
             grad: Mat::zeros(0, 0),
             resp: vec![0.0; z],
             work: vec![0.0; d],
-            act_raw: Mat::zeros(1, 0),
             act_work: Vec::new(),
             config,
         })
@@ -885,17 +882,12 @@ impl<E: Expert> Moe<E> {
         // The experts' caches no longer match `output()`: a backward pass needs a forward.
         self.experts_forwarded = false;
         let (z, r, d) = (self.config.num_experts, self.expert.raw_dim(), self.config.action_dim);
-        let Self {
-            experts, expert, rng, out, act_work, act_raw, act_mode, action_normalizer, ..
-        } = self;
+        let Self { experts, expert, rng, out, act_work, act_mode, action_normalizer, .. } = self;
         act_work.resize(r + 3 * d + d * d, 0.0);
         let (raw, rest) = act_work.split_at_mut(r);
         let (mean, rest) = rest.split_at_mut(d);
         let (scale, rest) = rest.split_at_mut(d * d);
         let (noise, action) = rest.split_at_mut(d);
-        if act_raw.nrows() != 1 || act_raw.ncols() != r {
-            *act_raw = Mat::zeros(1, r);
-        }
         /// Where the chosen expert's raw outputs come from.
         enum Source<'a> {
             /// The shared trunk's last hidden features and its output layer.
@@ -929,11 +921,9 @@ impl<E: Expert> Moe<E> {
             };
             match &mut source {
                 Source::Trunk(hidden, layer) => {
-                    for (c, &v) in layer.bias.value[e * r..(e + 1) * r].iter().enumerate() {
-                        act_raw[(0, c)] = v;
-                    }
+                    raw.copy_from_slice(&layer.bias.value[e * r..(e + 1) * r]);
                     faer::linalg::matmul::matmul(
-                        act_raw.as_mut(),
+                        faer::MatMut::from_row_major_slice_mut(raw, 1, r),
                         faer::Accum::Add,
                         hidden.subrows(b, 1),
                         layer.weight_t().subcols(e * r, r),
@@ -941,10 +931,12 @@ impl<E: Expert> Moe<E> {
                         faer::Par::Seq,
                     );
                 }
-                Source::Nets(nets) => act_raw.copy_from(nets[e].forward(states.subrows(b, 1))),
-            }
-            for (c, v) in raw.iter_mut().enumerate() {
-                *v = act_raw[(0, c)];
+                Source::Nets(nets) => {
+                    let y = nets[e].forward(states.subrows(b, 1));
+                    for (c, v) in raw.iter_mut().enumerate() {
+                        *v = y[(0, c)];
+                    }
+                }
             }
             expert.decode(raw, mean, scale);
             if act_mode.sample_action {
