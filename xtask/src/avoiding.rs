@@ -214,7 +214,7 @@ impl Default for AvoidingRecipe {
         // teacher also makes every score VDD queries ~3.5x cheaper.
         let net = NetConfig { hidden_dim: 64, num_blocks: 2, ..Default::default() };
         let train = TrainConfig {
-            steps: 48_000,
+            steps: 96_000,
             batch_size: 256,
             adam: AdamConfig { lr: 1e-2, ..Default::default() },
             warmup_steps: 200,
@@ -322,14 +322,8 @@ impl Default for AvoidingRecipe {
                 // Both teachers train 96k steps (3 seeds, 500 rollouts, success / task
                 // entropy; ~110 s per teacher): BESO 0.939 (48k: 0.915); DDPM 0.875 / 0.978,
                 // VDD-DDPM 0.918 / 0.751 (48k: DDPM 0.867 / 0.970, VDD-DDPM 0.851 / 0.746).
-                beso: BesoTeacherConfig {
-                    config: beso,
-                    train: TrainConfig { steps: 96_000, ..train.clone() },
-                },
-                ddpm: DdpmTeacherConfig {
-                    config: ddpm,
-                    train: TrainConfig { steps: 96_000, ..train },
-                },
+                beso: BesoTeacherConfig { config: beso, train: train.clone() },
+                ddpm: DdpmTeacherConfig { config: ddpm, train },
             },
             student,
             vdd: VddMethods {

@@ -864,11 +864,20 @@ impl<E: Expert> Moe<E> {
         obs: MatRef<'_, f32>,
         actions: faer::MatMut<'_, f32>,
     ) -> vdd_core::Result<()> {
+        self.on_observations(obs, |moe, states| moe.act_on_states(states, actions))
+    }
+
+    /// Checks and normalises observations, then runs `f` on the normalised states.
+    fn on_observations<T>(
+        &mut self,
+        obs: MatRef<'_, f32>,
+        f: impl FnOnce(&mut Self, MatRef<'_, f32>) -> vdd_core::Result<T>,
+    ) -> vdd_core::Result<T> {
         check_shape("observations", obs, obs.nrows(), self.config.state_dim)?;
         check_finite("observations", obs)?;
         self.load_normalized_states(obs);
         let states = std::mem::replace(&mut self.states, Mat::zeros(0, 0));
-        let r = self.act_on_states(states.as_ref(), actions);
+        let r = f(self, states.as_ref());
         self.states = states;
         r
     }
@@ -957,13 +966,7 @@ impl<E: Expert> Moe<E> {
 
     /// Both forward passes on observations (normalised here): for the likelihood.
     fn forward_observations(&mut self, obs: MatRef<'_, f32>) -> vdd_core::Result<()> {
-        check_shape("observations", obs, obs.nrows(), self.config.state_dim)?;
-        check_finite("observations", obs)?;
-        self.load_normalized_states(obs);
-        let states = std::mem::replace(&mut self.states, Mat::zeros(0, 0));
-        let r = self.forward(states.as_ref());
-        self.states = states;
-        r.map_err(to_core)
+        self.on_observations(obs, |moe, states| moe.forward(states).map_err(to_core))
     }
 }
 
