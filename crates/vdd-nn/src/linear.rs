@@ -6,7 +6,7 @@ use rand::Rng as _;
 
 use crate::error::NnError;
 use crate::init::{BiasInit, Init};
-use crate::module::{Module, ensure_shape};
+use crate::module::{Module, ensure_shape, gather_row};
 use crate::param::{Param, Parameters, join_name};
 
 /// A fully connected layer with PyTorch's layout: `weight` is `[out, in]`, `bias` is `[out]`.
@@ -30,6 +30,10 @@ pub struct Linear {
     input: Mat<f32>,
     output: Mat<f32>,
     grad_input: Mat<f32>,
+    /// One contiguous input row and its output (the single-row path of `forward`).
+    row: Vec<f32>,
+    /// Whether the last forward took that path (its input is in `row`, not `input`).
+    single_row: bool,
 }
 
 impl Linear {
@@ -58,6 +62,8 @@ impl Linear {
             input: Mat::zeros(0, 0),
             output: Mat::zeros(0, 0),
             grad_input: Mat::zeros(0, 0),
+            row: Vec::new(),
+            single_row: false,
         }
     }
 
@@ -71,6 +77,37 @@ impl Linear {
     pub fn init_bias(&mut self, init: BiasInit, rng: &mut vdd_core::Rng) -> Result<(), NnError> {
         self.bias.value = init.sample(self.out_dim, self.in_dim, rng)?;
         Ok(())
+    }
+
+    /// `y = x W[cols]ᵀ + b[cols]` for one input row `x` (length `in`) and the output columns
+    /// `cols` only (`y.len() == cols.len()`), with the kernel `forward` uses on a single row: the
+    /// same bits as those columns of `forward` on `x` as a `1 x in` matrix. For acting with one
+    /// expert's slice of a shared output layer.
+    ///
+    /// ```
+    /// use vdd_nn::{Linear, Module};
+    /// let mut rng = vdd_core::Seeds::new(0).stream("init");
+    /// let mut layer = Linear::new(3, 4, &mut rng);
+    /// let x = [0.5f32, -1.0, 2.0];
+    /// let mut y = [0.0f32; 2];
+    /// layer.forward_row_cols(&x, 2..4, &mut y);
+    /// let full = layer.forward(faer::MatRef::from_row_major_slice(&x, 1, 3));
+    /// assert_eq!((y[0], y[1]), (full[(0, 2)], full[(0, 3)]));
+    /// ```
+    ///
+    /// # Panics
+    /// If `x.len() != in`, `cols` reaches past `out`, or `y.len() != cols.len()`.
+    pub fn forward_row_cols(&self, x: &[f32], cols: std::ops::Range<usize>, y: &mut [f32]) {
+        assert_eq!(x.len(), self.in_dim, "Linear: input width");
+        assert!(cols.end <= self.out_dim, "Linear: columns past the output");
+        assert_eq!(y.len(), cols.len(), "Linear: output length");
+        let k = self.in_dim;
+        affine_row(
+            &self.weight.value[cols.start * k..cols.end * k],
+            &self.bias.value[cols.clone()],
+            x,
+            y,
+        );
     }
 
     /// `Wᵀ` as an `in x out` view (the row-major `[out, in]` buffer read column-major).
@@ -101,6 +138,17 @@ impl Module for Linear {
     fn forward(&mut self, x: MatRef<'_, f32>) -> MatRef<'_, f32> {
         assert_eq!(x.ncols(), self.in_dim, "Linear: input width");
         let n = x.nrows();
+        self.single_row = n == 1;
+        if n == 1 {
+            // One row (acting on one observation): a general matrix product runs scalar code
+            // here, the row kernel runs SIMD (see `affine_row`). The output is a contiguous row.
+            let (k, m) = (self.in_dim, self.out_dim);
+            self.row.resize(k + m, 0.0);
+            let (xs, ys) = self.row.split_at_mut(k);
+            gather_row(x, xs);
+            affine_row(&self.weight.value, &self.bias.value, xs, ys);
+            return MatRef::from_row_major_slice(ys, 1, m);
+        }
         ensure_shape(&mut self.input, n, self.in_dim);
         self.input.copy_from(x);
         ensure_shape(&mut self.output, n, self.out_dim);
@@ -114,7 +162,12 @@ impl Module for Linear {
     }
 
     fn backward(&mut self, grad_out: MatRef<'_, f32>) -> MatRef<'_, f32> {
-        let n = self.input.nrows();
+        let k = self.in_dim;
+        let input = match self.single_row {
+            true => MatRef::from_row_major_slice(&self.row[..k], 1, k),
+            false => self.input.as_ref(),
+        };
+        let n = input.nrows();
         assert_eq!((grad_out.nrows(), grad_out.ncols()), (n, self.out_dim), "Linear: grad shape");
         if self.weight.grad.len() != self.weight.len() || self.bias.grad.len() != self.bias.len() {
             self.weight.zero_grad();
@@ -126,7 +179,7 @@ impl Module for Linear {
             self.in_dim,
             self.out_dim,
         );
-        matmul(dwt, Accum::Add, self.input.transpose(), grad_out, 1.0, Par::Seq);
+        matmul(dwt, Accum::Add, input.transpose(), grad_out, 1.0, Par::Seq);
         for (j, db) in self.bias.grad.iter_mut().enumerate() {
             let col = grad_out.col(j);
             *db += match col.try_as_col_major() {
@@ -138,5 +191,197 @@ impl Module for Linear {
         let wt = MatRef::from_column_major_slice(&self.weight.value, self.in_dim, self.out_dim);
         matmul(self.grad_input.as_mut(), Accum::Replace, grad_out, wt.transpose(), 1.0, Par::Seq);
         self.grad_input.as_ref()
+    }
+}
+
+/// Accumulator lanes of [`affine_row`]: two AVX registers.
+const LANES: usize = 16;
+
+/// `y[j] = b[j] + Σ_i w[j, i] x[i]` for a row-major `w` of `y.len()` rows of `x.len()`.
+///
+/// Each dot product runs in [`LANES`] independent partial sums combined in a fixed order, with
+/// no fused multiply-adds: the AVX2 and the portable versions compute the same bits.
+fn affine_row(w: &[f32], b: &[f32], x: &[f32], y: &mut [f32]) {
+    debug_assert_eq!(w.len(), x.len() * y.len());
+    debug_assert_eq!(b.len(), y.len());
+    #[cfg(target_arch = "x86_64")]
+    if std::arch::is_x86_feature_detected!("avx2") {
+        // SAFETY: the CPU supports AVX2, checked just above.
+        unsafe { affine_row_avx2(w, b, x, y) };
+        return;
+    }
+    affine_row_portable(w, b, x, y)
+}
+
+/// [`affine_row`] with AVX2 registers for the lanes.
+///
+/// # Safety
+/// The CPU must support AVX2.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2")]
+unsafe fn affine_row_avx2(w: &[f32], b: &[f32], x: &[f32], y: &mut [f32]) {
+    // SAFETY: this function runs only where the CPU supports AVX2.
+    affine_row_with(w, b, x, y, |r, v| unsafe { lane_sums_avx2(r, v) })
+}
+
+/// [`lane_sums`] in two AVX registers.
+///
+/// # Safety
+/// The CPU must support AVX2.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2")]
+#[inline]
+unsafe fn lane_sums_avx2(r: &[f32], v: &[f32]) -> [f32; LANES] {
+    use std::arch::x86_64::{
+        _mm256_add_ps, _mm256_loadu_ps, _mm256_mul_ps, _mm256_setzero_ps, _mm256_storeu_ps,
+    };
+    debug_assert!(r.len() == v.len() && r.len() % LANES == 0);
+    let mut acc = [0.0f32; LANES];
+    // SAFETY: every load reads 8 floats at `c` or `c + 8` with `c + 16 <= len` of both `r` and
+    // `v`; the stores write the 16 floats of `acc`.
+    unsafe {
+        let (mut a0, mut a1) = (_mm256_setzero_ps(), _mm256_setzero_ps());
+        let (rp, vp) = (r.as_ptr(), v.as_ptr());
+        let mut c = 0;
+        while c + LANES <= r.len().min(v.len()) {
+            let p0 = _mm256_mul_ps(_mm256_loadu_ps(rp.add(c)), _mm256_loadu_ps(vp.add(c)));
+            let p1 = _mm256_mul_ps(_mm256_loadu_ps(rp.add(c + 8)), _mm256_loadu_ps(vp.add(c + 8)));
+            a0 = _mm256_add_ps(a0, p0);
+            a1 = _mm256_add_ps(a1, p1);
+            c += LANES;
+        }
+        _mm256_storeu_ps(acc.as_mut_ptr(), a0);
+        _mm256_storeu_ps(acc.as_mut_ptr().add(8), a1);
+    }
+    acc
+}
+
+/// [`affine_row`] in portable code.
+fn affine_row_portable(w: &[f32], b: &[f32], x: &[f32], y: &mut [f32]) {
+    affine_row_with(w, b, x, y, lane_sums)
+}
+
+/// `acc[l] = Σ_c r[c·LANES + l] · v[c·LANES + l]` (lengths a multiple of [`LANES`]).
+#[inline(always)]
+fn lane_sums(r: &[f32], v: &[f32]) -> [f32; LANES] {
+    let mut acc = [0.0f32; LANES];
+    for (r, v) in r.chunks_exact(LANES).zip(v.chunks_exact(LANES)) {
+        for l in 0..LANES {
+            acc[l] += r[l] * v[l];
+        }
+    }
+    acc
+}
+
+/// The row loop of [`affine_row`], with `lanes` for the dot products' lane sums.
+#[inline(always)]
+fn affine_row_with(
+    w: &[f32],
+    b: &[f32],
+    x: &[f32],
+    y: &mut [f32],
+    lanes: impl Fn(&[f32], &[f32]) -> [f32; LANES],
+) {
+    let k = x.len();
+    if k == 0 {
+        y.copy_from_slice(b);
+        return;
+    }
+    let split = k - k % LANES;
+    for ((yj, bj), row) in y.iter_mut().zip(b).zip(w.chunks_exact(k)) {
+        let acc = lanes(&row[..split], &x[..split]);
+        *yj = bj + reduce_lanes(acc, &row[split..], &x[split..]);
+    }
+}
+
+/// The lanes' partial sums folded pairwise (lane `l` with `l + w/2`, halving `w`), plus the
+/// remainder's products in order: the one summation order both versions share.
+#[inline(always)]
+fn reduce_lanes(mut acc: [f32; LANES], rest_w: &[f32], rest_x: &[f32]) -> f32 {
+    let mut width = LANES;
+    while width > 1 {
+        width /= 2;
+        for l in 0..width {
+            acc[l] += acc[l + width];
+        }
+    }
+    let mut s = acc[0];
+    for (r, v) in rest_w.iter().zip(rest_x) {
+        s += r * v;
+    }
+    s
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::gradcheck::check_module;
+
+    fn layer(k: usize, m: usize) -> Linear {
+        Linear::new(k, m, &mut vdd_core::Seeds::new(3).stream("init"))
+    }
+
+    fn rows(n: usize, k: usize) -> Mat<f32> {
+        Mat::from_fn(n, k, |i, j| ((i * 7 + j * 3) % 11) as f32 * 0.3 - 1.4)
+    }
+
+    /// `x Wᵀ + b` in f64.
+    fn reference(l: &Linear, x: MatRef<'_, f32>) -> Mat<f64> {
+        let (k, m) = (l.in_dim(), l.out_dim());
+        Mat::from_fn(x.nrows(), m, |i, j| {
+            (0..k).map(|c| l.weight.value[j * k + c] as f64 * x[(i, c)] as f64).sum::<f64>()
+                + l.bias.value[j] as f64
+        })
+    }
+
+    #[test]
+    fn one_row_and_a_batch_compute_the_affine_map() {
+        // Widths below, at and past the kernel's lanes, with and without a remainder.
+        for (k, m) in [(0, 3), (1, 1), (5, 4), (16, 2), (21, 7), (64, 64), (70, 9)] {
+            let mut l = layer(k, m);
+            let x = rows(4, k);
+            let want = reference(&l, x.as_ref());
+            let batch = l.forward(x.as_ref()).to_owned();
+            for i in 0..4 {
+                let one = l.forward(x.subrows(i, 1)).to_owned();
+                for j in 0..m {
+                    let tol = 1e-5 * (1.0 + want[(i, j)].abs());
+                    assert!((one[(0, j)] as f64 - want[(i, j)]).abs() < tol, "k={k} row {i}");
+                    assert!((batch[(i, j)] as f64 - want[(i, j)]).abs() < tol, "k={k} batch");
+                }
+            }
+        }
+    }
+
+    #[test]
+    fn a_single_row_backward_matches_finite_differences() {
+        let mut l = layer(21, 5);
+        let mut rng = vdd_core::Seeds::new(4).stream("check");
+        let r = check_module(&mut l, rows(1, 21).as_ref(), 1e-2, 1e-2, &mut rng);
+        assert!(r.input_error < 1e-2 && r.param_error < 1e-2, "{r:?}");
+    }
+
+    #[test]
+    fn the_simd_and_portable_kernels_give_the_same_bits() {
+        let (k, m) = (70, 9);
+        let l = layer(k, m);
+        let x: Vec<f32> = (0..k).map(|i| (i as f32 * 0.37).sin()).collect();
+        let mut a = vec![0.0; m];
+        let mut b = vec![0.0; m];
+        affine_row(&l.weight.value, &l.bias.value, &x, &mut a);
+        affine_row_portable(&l.weight.value, &l.bias.value, &x, &mut b);
+        assert_eq!(a, b);
+    }
+
+    #[test]
+    fn selected_columns_are_those_of_the_full_row() {
+        let mut l = layer(21, 12);
+        let x: Vec<f32> = (0..21).map(|i| i as f32 * 0.1 - 1.0).collect();
+        let full = l.forward(MatRef::from_row_major_slice(&x, 1, 21)).to_owned();
+        let mut y = vec![0.0; 4];
+        l.forward_row_cols(&x, 4..8, &mut y);
+        for (c, v) in y.iter().enumerate() {
+            assert_eq!(*v, full[(0, 4 + c)]);
+        }
     }
 }

@@ -8,7 +8,7 @@ use crate::activation::{Activation, ActivationLayer};
 use crate::error::NnError;
 use crate::init::{BiasInit, Init};
 use crate::linear::Linear;
-use crate::module::{Module, ensure_shape};
+use crate::module::{Module, ensure_shape, gather_row};
 use crate::norm::LayerNorm;
 use crate::param::{Param, Parameters, join_name};
 
@@ -167,6 +167,8 @@ pub struct ResidualBlock {
     l2: Linear,
     output: Mat<f32>,
     grad_input: Mat<f32>,
+    /// The output of a single-row forward pass (and the input row beside it).
+    row: Vec<f32>,
 }
 
 impl ResidualBlock {
@@ -194,6 +196,7 @@ impl ResidualBlock {
             l2,
             output: Mat::zeros(0, 0),
             grad_input: Mat::zeros(0, 0),
+            row: Vec::new(),
         }
     }
 
@@ -255,6 +258,18 @@ impl Module for ResidualBlock {
         };
         let h = self.act2.forward(h);
         let h = self.l2.forward(h);
+        if x.nrows() == 1 {
+            // One row: a contiguous output row (the next layer copies it with one slice copy).
+            let d = x.ncols();
+            self.row.resize(2 * d, 0.0);
+            let (hs, xs) = self.row.split_at_mut(d);
+            gather_row(h, hs);
+            gather_row(x, xs);
+            for (a, b) in hs.iter_mut().zip(xs.iter()) {
+                *a += b;
+            }
+            return MatRef::from_row_major_slice(&self.row[..d], 1, d);
+        }
         ensure_shape(&mut self.output, x.nrows(), x.ncols());
         add_into(&mut self.output, h, x);
         self.output.as_ref()
@@ -471,6 +486,31 @@ mod tests {
             let mut net = ResidualMlp::new(&cfg, &mut rng).unwrap();
             let r = check_module(&mut net, input(5, 3).as_ref(), 1e-2, 1e-2, &mut rng);
             assert!(r.input_error < 5e-3 && r.param_error < 5e-3, "{act:?}: {r:?}");
+            // One row takes the layers' single-row paths (row kernels, contiguous outputs).
+            let r = check_module(&mut net, input(1, 3).as_ref(), 1e-2, 1e-2, &mut rng);
+            assert!(r.input_error < 5e-3 && r.param_error < 5e-3, "{act:?}, one row: {r:?}");
+        }
+    }
+
+    #[test]
+    fn one_row_at_a_time_gives_the_batch_rows() {
+        let cfg = ResidualMlpConfig {
+            in_dim: 5,
+            hidden_dim: 40,
+            num_blocks: 2,
+            out_dim: 3,
+            activation: Activation::Mish,
+            layer_norm: false,
+        };
+        let mut net = ResidualMlp::new(&cfg, &mut vdd_core::Seeds::new(2).stream("t")).unwrap();
+        let x = input(6, 5);
+        let batch = net.forward(x.as_ref()).to_owned();
+        for i in 0..6 {
+            let one = net.forward(x.subrows(i, 1)).to_owned();
+            for j in 0..3 {
+                let (a, b) = (one[(0, j)], batch[(i, j)]);
+                assert!((a - b).abs() <= 1e-5 * (1.0 + b.abs()), "row {i}: {a} vs {b}");
+            }
         }
     }
 

@@ -32,6 +32,21 @@ pub trait Module: Parameters {
     fn backward(&mut self, grad_out: MatRef<'_, f32>) -> MatRef<'_, f32>;
 }
 
+/// Copies the single row of `x` (`1 x dst.len()`) into `dst`: a slice copy when the row is
+/// contiguous (the single-row outputs of the crate's layers are).
+#[inline]
+pub(crate) fn gather_row(x: MatRef<'_, f32>, dst: &mut [f32]) {
+    debug_assert_eq!((x.nrows(), x.ncols()), (1, dst.len()));
+    match x.row(0).try_as_row_major() {
+        Some(r) => dst.copy_from_slice(r.as_slice()),
+        None => {
+            for (j, v) in dst.iter_mut().enumerate() {
+                *v = x[(0, j)];
+            }
+        }
+    }
+}
+
 /// `x` itself when its columns are contiguous, otherwise a contiguous copy in `scratch`.
 pub(crate) fn contiguous<'a>(
     x: MatRef<'a, f32>,
