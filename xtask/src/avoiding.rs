@@ -191,6 +191,9 @@ pub struct AvoidingEval {
     pub timing_calls: usize,
     /// Untimed calls before timing.
     pub timing_warmup: usize,
+    /// The shortest timing round in milliseconds: a fast policy makes more than
+    /// `timing_calls / 5` calls a round (see `policy::us_per_action`).
+    pub timing_min_round_ms: f64,
 }
 
 /// Figures.
@@ -353,6 +356,7 @@ impl Default for AvoidingRecipe {
                 threads: 0,
                 timing_calls: 2000,
                 timing_warmup: 100,
+                timing_min_round_ms: 20.0,
             },
             plots: PlotSettings { enabled: true, trajectories: 40, png: true },
         }
@@ -1106,6 +1110,7 @@ pub fn run(ctx: &RunContext) -> crate::XResult {
                     &prep.episodes_obs,
                     cfg.eval.timing_calls,
                     cfg.eval.timing_warmup,
+                    cfg.eval.timing_min_round_ms,
                     eval_seed,
                 )
             })?;

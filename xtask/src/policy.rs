@@ -234,18 +234,26 @@ impl<P: Policy> Policy for Windowed<P> {
 
 /// Wall-clock µs of one `Policy::act` call over the given episodes' observations (the policy
 /// is seeded with `seed` and reset at each episode start), after `warmup` calls;
-/// single-threaded: the median over 5 rounds of `calls / 5` calls (rounded up), each round
-/// over the same observations.
+/// single-threaded: the median over 5 rounds, each round over the same observations. A round
+/// makes `calls / 5` calls (rounded up), or more where the warm-up's pace says that many would
+/// take less than `min_round_ms`: a round of a few microsecond-long calls is shorter than the
+/// machine's hiccups, and its figure jumps with them.
 pub fn us_per_action<P: Policy>(
     policy: &mut P,
     episodes: &[Mat<f32>],
     calls: usize,
     warmup: usize,
+    min_round_ms: f64,
     seed: u64,
 ) -> Result<f64, CoreError> {
     let total: usize = episodes.iter().map(Mat::nrows).sum();
     if total == 0 || calls == 0 {
         return Err(CoreError::Config("timing needs observations and calls > 0".into()));
+    }
+    if !(min_round_ms.is_finite() && min_round_ms >= 0.0) {
+        return Err(CoreError::Config(format!(
+            "the minimum timing round must be finite and >= 0 ms, got {min_round_ms}"
+        )));
     }
     let d = policy.obs_dim();
     let mut obs = vec![0.0f32; d];
@@ -270,10 +278,16 @@ pub fn us_per_action<P: Policy>(
         }
         Ok(())
     };
+    let t0 = Instant::now();
     run(warmup, policy)?;
+    let mut per_round = calls.div_ceil(TIMING_ROUNDS);
+    if warmup > 0 && min_round_ms > 0.0 {
+        let us_per_call = t0.elapsed().as_secs_f64() * 1e6 / warmup as f64;
+        let needed = (min_round_ms * 1e3 / us_per_call.max(1e-3)).ceil();
+        per_round = per_round.max(needed.min(MAX_ROUND_CALLS as f64) as usize);
+    }
     // The median of a few rounds over the same observations, so that a hiccup of the machine
     // (another process, a frequency change) during one round does not move the figure.
-    let per_round = calls.div_ceil(TIMING_ROUNDS);
     let mut rounds = [0.0f64; TIMING_ROUNDS];
     for r in &mut rounds {
         policy.seed(seed);
@@ -284,6 +298,10 @@ pub fn us_per_action<P: Policy>(
     rounds.sort_by(f64::total_cmp);
     Ok(rounds[TIMING_ROUNDS / 2])
 }
+
+/// The most calls a timing round makes however fast the policy (a policy that does nothing
+/// would otherwise be called billions of times).
+const MAX_ROUND_CALLS: usize = 1_000_000;
 
 /// Rounds [`us_per_action`] takes the median of.
 const TIMING_ROUNDS: usize = 5;
@@ -374,9 +392,10 @@ mod tests {
     #[test]
     fn timing_counts_calls() {
         let eps = vec![Mat::<f32>::zeros(5, 4)];
-        let us = us_per_action(&mut Probe { calls: 0.0 }, &eps, 12, 3, 0).unwrap();
+        let us = us_per_action(&mut Probe { calls: 0.0 }, &eps, 12, 3, 0.0, 0).unwrap();
         assert!(us >= 0.0 && us.is_finite());
-        assert!(us_per_action(&mut Probe { calls: 0.0 }, &[], 12, 3, 0).is_err());
+        assert!(us_per_action(&mut Probe { calls: 0.0 }, &[], 12, 3, 0.0, 0).is_err());
+        assert!(us_per_action(&mut Probe { calls: 0.0 }, &eps, 12, 3, -1.0, 0).is_err());
 
         /// Counts every call (across resets).
         struct Count(usize);
@@ -393,7 +412,35 @@ mod tests {
             }
         }
         let mut c = Count(0);
-        us_per_action(&mut c, &eps, 12, 3, 0).unwrap();
+        us_per_action(&mut c, &eps, 12, 3, 0.0, 0).unwrap();
         assert_eq!(c.0, 3 + 5 * 3, "warm-up, then 5 rounds of ceil(12 / 5) calls");
+    }
+
+    #[test]
+    fn fast_policies_are_timed_over_rounds_of_the_minimum_length() {
+        /// Takes at least 20 µs a call, and counts the calls.
+        struct Slow(usize);
+        impl Policy for Slow {
+            fn obs_dim(&self) -> usize {
+                1
+            }
+            fn action_dim(&self) -> usize {
+                1
+            }
+            fn act_into(&mut self, _: &[f32], _: &mut [f32]) -> vdd_core::Result<()> {
+                let t0 = Instant::now();
+                while t0.elapsed().as_secs_f64() < 20e-6 {}
+                self.0 += 1;
+                Ok(())
+            }
+        }
+        let eps = vec![Mat::<f32>::zeros(7, 1)];
+        let mut p = Slow(0);
+        let us = us_per_action(&mut p, &eps, 10, 50, 2.0, 0).unwrap();
+        assert!(us >= 20.0, "{us}");
+        // 2 ms rounds need about 100 calls of 20 µs; without the minimum a round makes 2. Only
+        // a warm-up of 50 calls preempted for 8 ms or more would give fewer than 11 a round.
+        assert!(p.0 > 50 + 5 * 10, "{} calls", p.0);
+        assert!(p.0 <= 50 + 5 * 100, "{} calls: rounds longer than the minimum needs", p.0);
     }
 }
