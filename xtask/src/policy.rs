@@ -232,20 +232,35 @@ impl<P: Policy> Policy for Windowed<P> {
     }
 }
 
-/// Wall-clock µs of one `Policy::act` call over the given episodes' observations (the policy
-/// is seeded with `seed` and reset at each episode start), after `warmup` calls;
-/// single-threaded: the median over 5 rounds, each round over the same observations. A round
-/// makes `calls / 5` calls (rounded up), or more where the warm-up's pace says that many would
-/// take less than `min_round_ms`: a round of a few microsecond-long calls is shorter than the
-/// machine's hiccups, and its figure jumps with them.
+/// How [`us_per_action`] times policies.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Timing {
+    /// Timed calls per policy, split over the rounds (at least one a round).
+    pub calls: usize,
+    /// Untimed calls before timing; their pace also sets how many calls a round needs.
+    pub warmup: usize,
+    /// The shortest round in milliseconds: a round of a few hundred microsecond-long calls is
+    /// shorter than the machine's hiccups, and its figure jumps with them.
+    pub min_round_ms: f64,
+}
+
+/// Wall-clock µs of one `Policy::act` call of each policy, over the given episodes'
+/// observations (a policy is seeded with `seed` at the start of each round and reset at each
+/// episode start); single-threaded.
+///
+/// Each policy makes `timing.warmup` untimed calls, then [`TIMING_ROUNDS`] timed rounds over
+/// the same observations, and its figure is the median round. A round makes `calls / rounds`
+/// calls (rounded up), or more where the warm-up's pace says that many would take less than
+/// `min_round_ms`. The policies take their rounds in turn (round 1 of every policy, then round
+/// 2, ...), so a slow spell of the machine lasting a few rounds lands on every policy's
+/// figures rather than on one policy's, and the ratios between policies stay fair.
 pub fn us_per_action<P: Policy>(
-    policy: &mut P,
+    policies: &mut [P],
     episodes: &[Mat<f32>],
-    calls: usize,
-    warmup: usize,
-    min_round_ms: f64,
+    timing: Timing,
     seed: u64,
-) -> Result<f64, CoreError> {
+) -> Result<Vec<f64>, CoreError> {
+    let Timing { calls, warmup, min_round_ms } = timing;
     let total: usize = episodes.iter().map(Mat::nrows).sum();
     if total == 0 || calls == 0 {
         return Err(CoreError::Config("timing needs observations and calls > 0".into()));
@@ -255,11 +270,11 @@ pub fn us_per_action<P: Policy>(
             "the minimum timing round must be finite and >= 0 ms, got {min_round_ms}"
         )));
     }
-    let d = policy.obs_dim();
-    let mut obs = vec![0.0f32; d];
-    let mut action = vec![0.0f32; policy.action_dim()];
-    policy.seed(seed);
+    let (mut obs, mut action) = (Vec::new(), Vec::new());
+    // `n` calls of `policy` over the episodes (from the first, again and again).
     let mut run = |n: usize, policy: &mut P| -> Result<(), CoreError> {
+        obs.resize(policy.obs_dim(), 0.0);
+        action.resize(policy.action_dim(), 0.0);
         let mut done = 0;
         'outer: loop {
             for ep in episodes {
@@ -278,25 +293,33 @@ pub fn us_per_action<P: Policy>(
         }
         Ok(())
     };
-    let t0 = Instant::now();
-    run(warmup, policy)?;
-    let mut per_round = calls.div_ceil(TIMING_ROUNDS);
-    if warmup > 0 && min_round_ms > 0.0 {
-        let us_per_call = t0.elapsed().as_secs_f64() * 1e6 / warmup as f64;
-        let needed = (min_round_ms * 1e3 / us_per_call.max(1e-3)).ceil();
-        per_round = per_round.max(needed.min(MAX_ROUND_CALLS as f64) as usize);
-    }
-    // The median of a few rounds over the same observations, so that a hiccup of the machine
-    // (another process, a frequency change) during one round does not move the figure.
-    let mut rounds = [0.0f64; TIMING_ROUNDS];
-    for r in &mut rounds {
+    let mut per_round = vec![calls.div_ceil(TIMING_ROUNDS); policies.len()];
+    for (policy, n) in policies.iter_mut().zip(&mut per_round) {
         policy.seed(seed);
         let t0 = Instant::now();
-        run(per_round, policy)?;
-        *r = t0.elapsed().as_secs_f64() * 1e6 / per_round as f64;
+        run(warmup, policy)?;
+        if warmup > 0 && min_round_ms > 0.0 {
+            let us_per_call = t0.elapsed().as_secs_f64() * 1e6 / warmup as f64;
+            let needed = (min_round_ms * 1e3 / us_per_call.max(1e-3)).ceil();
+            *n = (*n).max(needed.min(MAX_ROUND_CALLS as f64) as usize);
+        }
     }
-    rounds.sort_by(f64::total_cmp);
-    Ok(rounds[TIMING_ROUNDS / 2])
+    let mut rounds = vec![[0.0f64; TIMING_ROUNDS]; policies.len()];
+    for r in 0..TIMING_ROUNDS {
+        for ((policy, &n), times) in policies.iter_mut().zip(&per_round).zip(&mut rounds) {
+            policy.seed(seed);
+            let t0 = Instant::now();
+            run(n, policy)?;
+            times[r] = t0.elapsed().as_secs_f64() * 1e6 / n as f64;
+        }
+    }
+    Ok(rounds
+        .into_iter()
+        .map(|mut times| {
+            times.sort_by(f64::total_cmp);
+            times[TIMING_ROUNDS / 2]
+        })
+        .collect())
 }
 
 /// The most calls a timing round makes however fast the policy (a policy that does nothing
@@ -304,7 +327,7 @@ pub fn us_per_action<P: Policy>(
 const MAX_ROUND_CALLS: usize = 1_000_000;
 
 /// Rounds [`us_per_action`] takes the median of.
-const TIMING_ROUNDS: usize = 5;
+pub const TIMING_ROUNDS: usize = 5;
 
 #[cfg(test)]
 mod tests {
@@ -389,58 +412,56 @@ mod tests {
         }
     }
 
+    /// Timing settings, positionally.
+    fn timing(calls: usize, warmup: usize, min_round_ms: f64) -> Timing {
+        Timing { calls, warmup, min_round_ms }
+    }
+
+    /// Counts every call (across resets); each call takes at least `.1` µs.
+    struct Count(usize, f64);
+    impl Policy for Count {
+        fn obs_dim(&self) -> usize {
+            4
+        }
+        fn action_dim(&self) -> usize {
+            1
+        }
+        fn act_into(&mut self, _: &[f32], _: &mut [f32]) -> vdd_core::Result<()> {
+            let t0 = Instant::now();
+            while t0.elapsed().as_secs_f64() * 1e6 < self.1 {}
+            self.0 += 1;
+            Ok(())
+        }
+    }
+
     #[test]
     fn timing_counts_calls() {
         let eps = vec![Mat::<f32>::zeros(5, 4)];
-        let us = us_per_action(&mut Probe { calls: 0.0 }, &eps, 12, 3, 0.0, 0).unwrap();
-        assert!(us >= 0.0 && us.is_finite());
-        assert!(us_per_action(&mut Probe { calls: 0.0 }, &[], 12, 3, 0.0, 0).is_err());
-        assert!(us_per_action(&mut Probe { calls: 0.0 }, &eps, 12, 3, -1.0, 0).is_err());
+        let us = us_per_action(&mut [Probe { calls: 0.0 }], &eps, timing(12, 3, 0.0), 0).unwrap();
+        assert!(us.len() == 1 && us[0] >= 0.0 && us[0].is_finite());
+        assert!(us_per_action(&mut [Probe { calls: 0.0 }], &[], timing(12, 3, 0.0), 0).is_err());
+        let bad = timing(12, 3, -1.0);
+        assert!(us_per_action(&mut [Probe { calls: 0.0 }], &eps, bad, 0).is_err());
 
-        /// Counts every call (across resets).
-        struct Count(usize);
-        impl Policy for Count {
-            fn obs_dim(&self) -> usize {
-                4
-            }
-            fn action_dim(&self) -> usize {
-                1
-            }
-            fn act_into(&mut self, _: &[f32], _: &mut [f32]) -> vdd_core::Result<()> {
-                self.0 += 1;
-                Ok(())
-            }
+        let mut c = [Count(0, 0.0), Count(0, 0.0)];
+        assert_eq!(us_per_action(&mut c, &eps, timing(12, 3, 0.0), 0).unwrap().len(), 2);
+        for c in c {
+            assert_eq!(c.0, 3 + 5 * 3, "warm-up, then 5 rounds of ceil(12 / 5) calls");
         }
-        let mut c = Count(0);
-        us_per_action(&mut c, &eps, 12, 3, 0.0, 0).unwrap();
-        assert_eq!(c.0, 3 + 5 * 3, "warm-up, then 5 rounds of ceil(12 / 5) calls");
     }
 
     #[test]
     fn fast_policies_are_timed_over_rounds_of_the_minimum_length() {
-        /// Takes at least 20 µs a call, and counts the calls.
-        struct Slow(usize);
-        impl Policy for Slow {
-            fn obs_dim(&self) -> usize {
-                1
-            }
-            fn action_dim(&self) -> usize {
-                1
-            }
-            fn act_into(&mut self, _: &[f32], _: &mut [f32]) -> vdd_core::Result<()> {
-                let t0 = Instant::now();
-                while t0.elapsed().as_secs_f64() < 20e-6 {}
-                self.0 += 1;
-                Ok(())
-            }
-        }
-        let eps = vec![Mat::<f32>::zeros(7, 1)];
-        let mut p = Slow(0);
-        let us = us_per_action(&mut p, &eps, 10, 50, 2.0, 0).unwrap();
-        assert!(us >= 20.0, "{us}");
+        let eps = vec![Mat::<f32>::zeros(7, 4)];
+        // A slow policy (20 µs a call) and one 10x faster.
+        let mut p = [Count(0, 20.0), Count(0, 2.0)];
+        let us = us_per_action(&mut p, &eps, timing(10, 50, 2.0), 0).unwrap();
+        assert!(us[0] >= 20.0 && us[1] >= 2.0, "{us:?}");
         // 2 ms rounds need about 100 calls of 20 µs; without the minimum a round makes 2. Only
         // a warm-up of 50 calls preempted for 8 ms or more would give fewer than 11 a round.
-        assert!(p.0 > 50 + 5 * 10, "{} calls", p.0);
-        assert!(p.0 <= 50 + 5 * 100, "{} calls: rounds longer than the minimum needs", p.0);
+        assert!(p[0].0 > 50 + 5 * 10, "{} calls", p[0].0);
+        assert!(p[0].0 <= 50 + 5 * 100, "{} calls: rounds longer than the minimum needs", p[0].0);
+        // Each policy's rounds are sized by its own pace: the fast one makes more calls.
+        assert!(p[1].0 > p[0].0, "{} vs {} calls", p[1].0, p[0].0);
     }
 }
