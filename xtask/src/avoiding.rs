@@ -293,11 +293,11 @@ impl Default for AvoidingRecipe {
         };
         // VDD-BESO distils the 96k-step BESO teacher with noise U[0.05, 0.3], batches of 128
         // states and a uniform gating (`vdd.beso_gating`), 3 seeds, 500 rollouts (success /
-        // task entropy): 0.912 / 0.860 (0.916 / 0.948 / 0.872), teacher 0.939. The learned
-        // gating with the same settings is 0.967 / 0.636: it sharpens the mixture into fewer
-        // paths; batch 96 0.900 / 0.823, 64 0.887 / 0.834. The former default (48k teacher
-        // 0.915, U[0.02, 0.2], batch 64, learned gating) was 0.895 / 0.775; the README lists
-        // the rest.
+        // task entropy): 0.912 / 0.860 (0.916 / 0.948 / 0.872), teacher 0.939. A learned gating
+        // sharpens the mixture into fewer paths: 0.887 / 0.543 at batch 128, 0.967 / 0.636 at
+        // 64; with the uniform gating, batch 96 gives 0.900 / 0.823 and 64 0.887 / 0.834. The
+        // former default (48k teacher 0.915, U[0.02, 0.2], batch 64, learned gating) was 0.895
+        // / 0.775; docs/avoiding-tuning.md lists the rest.
         let vdd_beso = VddConfig {
             batch_size: 128,
             noise: vdd_core::NoiseSchedule::Uniform { min: 0.05, max: 0.3 },
