@@ -196,6 +196,17 @@ pub struct AvoidingEval {
     pub timing_min_round_ms: f64,
 }
 
+impl AvoidingEval {
+    /// The settings of `us_per_action`.
+    fn timing(&self) -> Timing {
+        Timing {
+            calls: self.timing_calls,
+            warmup: self.timing_warmup,
+            min_round_ms: self.timing_min_round_ms,
+        }
+    }
+}
+
 /// Figures.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
@@ -1057,6 +1068,8 @@ pub fn run(ctx: &RunContext) -> crate::XResult {
     let mut panels: Vec<TrajectoryPanel> = Vec::new();
     let mut curve_panels: Vec<(String, Curves)> = Vec::new();
     for (si, &seed) in base.seeds.iter().enumerate() {
+        // Rollouts and timing use the same seed for every method of a run seed.
+        let eval_seed = Seeds::new(seed).child("avoiding-eval").root();
         let mut timed: Vec<(usize, Windowed<TrainedPolicy>)> = Vec::with_capacity(plan.len());
         for (pi, (label, method, cfg)) in plan.iter().enumerate() {
             let prep = &prepared[&dkeys[pi]];
@@ -1077,7 +1090,6 @@ pub fn run(ctx: &RunContext) -> crate::XResult {
             if let Some(f) = d.features.map() {
                 wrapped = wrapped.with_features(f);
             }
-            let eval_seed = Seeds::new(seed).child("avoiding-eval").root();
             let stepping = match cfg.eval.lockstep_batch {
                 0 => Stepping::PerEpisode,
                 b => Stepping::Lockstep { batch_size: b },
@@ -1171,23 +1183,11 @@ pub fn run(ctx: &RunContext) -> crate::XResult {
         // them).
         let t0 = Instant::now();
         while let Some((first, _)) = timed.first() {
-            let (cfg, dkey) = (&plan[*first].2, &dkeys[*first]);
-            let eval = &cfg.eval;
-            let timing = Timing {
-                calls: eval.timing_calls,
-                warmup: eval.timing_warmup,
-                min_round_ms: eval.timing_min_round_ms,
-            };
-            let same = |pi: usize| {
-                let e = &plan[pi].2.eval;
-                dkeys[pi] == *dkey
-                    && (e.timing_calls, e.timing_warmup, e.timing_min_round_ms)
-                        == (timing.calls, timing.warmup, timing.min_round_ms)
-            };
+            let (timing, dkey) = (plan[*first].2.eval.timing(), &dkeys[*first]);
+            let same = |pi: usize| dkeys[pi] == *dkey && plan[pi].2.eval.timing() == timing;
             let (group, rest): (Vec<_>, Vec<_>) = timed.drain(..).partition(|(pi, _)| same(*pi));
             timed = rest;
             let (pis, mut policies): (Vec<usize>, Vec<_>) = group.into_iter().unzip();
-            let eval_seed = Seeds::new(seed).child("avoiding-eval").root();
             let episodes = &prepared[dkey].episodes_obs;
             let us = us_per_action(&mut policies, episodes, timing, eval_seed)?;
             let mut line = Vec::with_capacity(pis.len());
