@@ -923,6 +923,8 @@ pub fn run(ctx: &RunContext) -> crate::XResult {
         for m in methods::parse_methods(&cfg.methods, "avoiding")? {
             plan.push((methods::label(m, variant.map(|v| v.name.as_str())), m, cfg));
         }
+        // Before any training: a bad timing setting would otherwise fail after it.
+        cfg.eval.timing().check().map_err(|e| format!("eval: {e}"))?;
         if cfg.data.obs_window == 0
             || cfg.data.action_chunk == 0
             || cfg.data.execute_steps == 0

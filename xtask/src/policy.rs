@@ -244,6 +244,22 @@ pub struct Timing {
     pub min_round_ms: f64,
 }
 
+impl Timing {
+    /// Checks the settings: calls > 0 and a finite, non-negative minimum round.
+    pub fn check(&self) -> Result<(), CoreError> {
+        if self.calls == 0 {
+            return Err(CoreError::Config("timing needs calls > 0".into()));
+        }
+        if !(self.min_round_ms.is_finite() && self.min_round_ms >= 0.0) {
+            return Err(CoreError::Config(format!(
+                "the minimum timing round must be finite and >= 0 ms, got {}",
+                self.min_round_ms
+            )));
+        }
+        Ok(())
+    }
+}
+
 /// Wall-clock µs of one `Policy::act` call of each policy, over the given episodes'
 /// observations (a policy is seeded with `seed` at the start of each round and reset at each
 /// episode start); single-threaded.
@@ -260,15 +276,10 @@ pub fn us_per_action<P: Policy>(
     timing: Timing,
     seed: u64,
 ) -> Result<Vec<f64>, CoreError> {
+    timing.check()?;
     let Timing { calls, warmup, min_round_ms } = timing;
-    let total: usize = episodes.iter().map(Mat::nrows).sum();
-    if total == 0 || calls == 0 {
-        return Err(CoreError::Config("timing needs observations and calls > 0".into()));
-    }
-    if !(min_round_ms.is_finite() && min_round_ms >= 0.0) {
-        return Err(CoreError::Config(format!(
-            "the minimum timing round must be finite and >= 0 ms, got {min_round_ms}"
-        )));
+    if episodes.iter().all(|ep| ep.nrows() == 0) {
+        return Err(CoreError::Config("timing needs observations".into()));
     }
     let (mut obs, mut action) = (Vec::new(), Vec::new());
     // `n` calls of `policy` over the episodes (from the first, again and again).
@@ -440,8 +451,11 @@ mod tests {
         let us = us_per_action(&mut [Probe { calls: 0.0 }], &eps, timing(12, 3, 0.0), 0).unwrap();
         assert!(us.len() == 1 && us[0] >= 0.0 && us[0].is_finite());
         assert!(us_per_action(&mut [Probe { calls: 0.0 }], &[], timing(12, 3, 0.0), 0).is_err());
-        let bad = timing(12, 3, -1.0);
-        assert!(us_per_action(&mut [Probe { calls: 0.0 }], &eps, bad, 0).is_err());
+        for bad in [timing(12, 3, -1.0), timing(12, 3, f64::NAN), timing(0, 3, 0.0)] {
+            assert!(bad.check().is_err(), "{bad:?}");
+            assert!(us_per_action(&mut [Probe { calls: 0.0 }], &eps, bad, 0).is_err());
+        }
+        assert!(timing(12, 3, 20.0).check().is_ok());
 
         let mut c = [Count(0, 0.0), Count(0, 0.0)];
         assert_eq!(us_per_action(&mut c, &eps, timing(12, 3, 0.0), 0).unwrap().len(), 2);
