@@ -19,6 +19,7 @@ mod normalize;
 mod policy;
 mod score;
 mod seed;
+mod trainer;
 
 pub use error::{CoreError, Result, check_finite, check_finite_slice, check_len, check_shape};
 pub use expert::{Expert, ScaleActivation, sigmoid, softplus};
@@ -26,6 +27,7 @@ pub use normalize::Affine;
 pub use policy::{Policy, check_act_args};
 pub use score::{NoiseConvention, NoiseSchedule, ScoreModel, check_score_args};
 pub use seed::{Rng, Seeds, fill_standard_normal, standard_normal};
+pub use trainer::Trainer;
 
 /// Re-export of `faer` so downstream crates and users name the same version.
 pub use faer;
