@@ -16,9 +16,28 @@ use faer::linalg::matmul::matmul;
 use faer::{Accum, Mat, Par};
 use vdd_nn::{Activation, Module, Parameters, ResidualMlp, ResidualMlpConfig};
 
-use crate::cli::Opts;
-
-const KNOWN: &[&str] = &["batch", "width", "blocks", "reps", "activation", "layer-norm"];
+/// The command line of `bench nn`.
+#[derive(Debug, Clone, clap::Args)]
+pub struct Args {
+    /// Rows per forward/backward pass.
+    #[arg(long, default_value_t = 1024)]
+    pub batch: usize,
+    /// Input, hidden and output width.
+    #[arg(long, default_value_t = 256)]
+    pub width: usize,
+    /// Residual blocks.
+    #[arg(long, default_value_t = 2)]
+    pub blocks: usize,
+    /// Timed repetitions.
+    #[arg(long, default_value_t = 20)]
+    pub reps: usize,
+    /// Activation (as in a network configuration: mish, relu, ...).
+    #[arg(long, default_value = "mish")]
+    pub activation: String,
+    /// With layer normalisation.
+    #[arg(long)]
+    pub layer_norm: bool,
+}
 
 /// Smallest of a list of timings in seconds.
 fn min(v: &[f64]) -> f64 {
@@ -32,16 +51,11 @@ fn median(mut v: Vec<f64>) -> f64 {
 }
 
 /// Runs the benchmark and prints both rates and their ratio.
-pub fn run(args: &[String]) -> crate::XResult {
-    let opts = Opts::parse(args, &["layer-norm"])?;
-    opts.only(KNOWN)?;
-    let batch: usize = opts.get("batch", 1024)?;
-    let width: usize = opts.get("width", 256)?;
-    let blocks: usize = opts.get("blocks", 2)?;
-    let reps: usize = opts.get("reps", 20)?;
-    let act_name: String = opts.get("activation", "mish".to_owned())?;
-    let activation: Activation = serde_json::from_value(serde_json::Value::String(act_name))
-        .map_err(|e| format!("--activation: {e}"))?;
+pub fn run(args: &Args) -> crate::XResult {
+    let (batch, width, blocks, reps) = (args.batch, args.width, args.blocks, args.reps);
+    let activation: Activation =
+        serde_json::from_value(serde_json::Value::String(args.activation.clone()))
+            .map_err(|e| format!("--activation: {e}"))?;
     if batch == 0 || width == 0 || reps == 0 {
         return Err("--batch, --width and --reps must be positive".into());
     }
@@ -52,7 +66,7 @@ pub fn run(args: &[String]) -> crate::XResult {
         num_blocks: blocks,
         out_dim: width,
         activation,
-        layer_norm: opts.flag("layer-norm"),
+        layer_norm: args.layer_norm,
     };
     let seeds = vdd_core::Seeds::new(0);
     let mut net = ResidualMlp::new(&cfg, &mut seeds.stream("bench-init"))?;

@@ -43,27 +43,58 @@ use vdd_diffusion::{
     NetConfig, SigmaDistribution, TeacherKind, TimeSampling, TrainConfig, TrainProgress, VpSampler,
 };
 
-use crate::cli::Opts;
-
-const FLAGS: &[&str] = &["retrain", "no-acceptance", "no-latency"];
-const KNOWN: &[&str] = &[
-    "retrain",
-    "no-acceptance",
-    "no-latency",
-    "seed",
-    "steps",
-    "rot-steps",
-    "width",
-    "blocks",
-    "lr",
-    "batch",
-    "ema",
-    "noise-mean",
-    "noise-std",
-    "sigma",
-    "min-secs",
-    "cache",
-];
+/// The command line of `bench teachers`.
+#[derive(Debug, Clone, clap::Args)]
+pub struct Args {
+    /// Seed of the data, the training and the checks.
+    #[arg(long, default_value_t = 0)]
+    pub seed: u64,
+    /// Training steps on the circle toy.
+    #[arg(long, default_value_t = 4000)]
+    pub steps: u64,
+    /// Training steps on the rotating toy.
+    #[arg(long, default_value_t = 2000)]
+    pub rot_steps: u64,
+    /// Hidden width of the residual MLP.
+    #[arg(long, default_value_t = 64)]
+    pub width: usize,
+    /// Residual blocks.
+    #[arg(long, default_value_t = 2)]
+    pub blocks: usize,
+    /// Adam learning rate.
+    #[arg(long, default_value_t = 1e-2)]
+    pub lr: f32,
+    /// Batch size.
+    #[arg(long, default_value_t = 1024)]
+    pub batch: usize,
+    /// EMA decay of the weights.
+    #[arg(long, default_value_t = 0.995)]
+    pub ema: f32,
+    /// Training noise: mean of ln σ.
+    #[arg(long, default_value_t = -1.6, allow_negative_numbers = true)]
+    pub noise_mean: f32,
+    /// Training noise: std of ln σ.
+    #[arg(long, default_value_t = 1.2)]
+    pub noise_std: f32,
+    /// Noise level of the score check (normalised units).
+    #[arg(long, default_value_t = 0.1)]
+    pub sigma: f32,
+    /// Minimum seconds per latency measurement.
+    #[arg(long, default_value_t = 0.3)]
+    pub min_secs: f64,
+    /// Cache directory of the trained teachers.
+    #[arg(long, value_name = "DIR", default_value = "target/xtask-cache/teachers")]
+    pub cache: PathBuf,
+    /// Retrain even when cached.
+    #[arg(long)]
+    pub retrain: bool,
+    /// Skip the acceptance checks.
+    #[arg(long)]
+    pub no_acceptance: bool,
+    /// Skip the latency tables.
+    #[arg(long)]
+    pub no_latency: bool,
+}
 
 /// Everything that determines the toy teachers.
 #[derive(Debug, Clone, Serialize)]
@@ -81,26 +112,20 @@ struct Setup {
 }
 
 /// Runs the command.
-pub fn run(args: &[String]) -> crate::XResult {
-    let opts = Opts::parse(args, FLAGS)?;
-    opts.only(KNOWN)?;
+pub fn run(args: &Args) -> crate::XResult {
     let setup = Setup {
-        seed: opts.get("seed", 0)?,
-        steps: opts.get("steps", 4000)?,
-        rot_steps: opts.get("rot-steps", 2000)?,
-        width: opts.get("width", 64)?,
-        blocks: opts.get("blocks", 2)?,
-        lr: opts.get("lr", 1e-2)?,
-        batch: opts.get("batch", 1024)?,
-        ema: opts.get("ema", 0.995)?,
-        noise: (opts.get("noise-mean", -1.6)?, opts.get("noise-std", 1.2)?),
+        seed: args.seed,
+        steps: args.steps,
+        rot_steps: args.rot_steps,
+        width: args.width,
+        blocks: args.blocks,
+        lr: args.lr,
+        batch: args.batch,
+        ema: args.ema,
+        noise: (args.noise_mean, args.noise_std),
     };
-    let sigma: f32 = opts.get("sigma", 0.1)?;
-    let min_secs: f64 = opts.get("min-secs", 0.3)?;
-    let cache = Cache {
-        dir: PathBuf::from(opts.get("cache", "target/xtask-cache/teachers".to_owned())?),
-        retrain: opts.flag("retrain"),
-    };
+    let (sigma, min_secs) = (args.sigma, args.min_secs);
+    let cache = Cache { dir: args.cache.clone(), retrain: args.retrain };
     std::fs::create_dir_all(&cache.dir)?;
     let t0 = Instant::now();
     println!(
@@ -116,16 +141,16 @@ pub fn run(args: &[String]) -> crate::XResult {
     let task = Task { name: "circle", steps: setup.steps, states: &states, actions: &actions };
     let mut circle = teachers(&task, &setup, &cache)?;
     let mut failures = Vec::new();
-    if !opts.flag("no-acceptance") {
+    if !args.no_acceptance {
         failures.extend(circle_acceptance(&mut circle, &setup, sigma)?);
         failures.extend(rotating_acceptance(&setup, &cache)?);
     }
-    if !opts.flag("no-latency") {
+    if !args.no_latency {
         latency_tables(&mut circle, min_secs)?;
     }
     println!("\nbench teachers finished in {:.1} s", t0.elapsed().as_secs_f64());
     if failures.is_empty() {
-        if !opts.flag("no-acceptance") {
+        if !args.no_acceptance {
             println!("acceptance: all checks pass");
         }
         Ok(())

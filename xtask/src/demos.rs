@@ -24,30 +24,31 @@ use vdd_tasks::{
     AvoidingDemonstrator, DemonstratorConfig, generate_demonstrations, normalized_entropy,
 };
 
-use crate::cli::Opts;
-
-const KNOWN: &[&str] = &["n", "seed", "out", "eval", "threads"];
-const USAGE: &str = "usage: cargo xtask demos avoiding [--n 200] [--seed 0] [--out DIR] \
-                     [--eval 500] [--threads N]";
-
-/// Runs the command; `args` are the words after `demos`.
-pub fn run(args: &[String]) -> crate::XResult {
-    match args.first().map(String::as_str) {
-        Some("avoiding") => avoiding(&args[1..]),
-        Some(other) => Err(format!("unknown demonstration task `{other}`\n{USAGE}").into()),
-        None => Err(USAGE.into()),
-    }
+/// The command line of `demos avoiding`.
+#[derive(Debug, Clone, clap::Args)]
+pub struct AvoidingArgs {
+    /// Successful demonstrations to generate.
+    #[arg(long, default_value_t = 200)]
+    pub n: usize,
+    /// Seed of the demonstrations (the evaluation derives its own from it).
+    #[arg(long, default_value_t = 0)]
+    pub seed: u64,
+    /// Output directory.
+    #[arg(long, value_name = "DIR", default_value = "results/demos/avoiding")]
+    pub out: PathBuf,
+    /// Evaluation rollouts of the demonstrator.
+    #[arg(long, default_value_t = 500)]
+    pub eval: usize,
+    /// Evaluation threads (default: all cores).
+    #[arg(long)]
+    pub threads: Option<usize>,
 }
 
-fn avoiding(args: &[String]) -> crate::XResult {
-    let opts = Opts::parse(args, &[])?;
-    opts.only(KNOWN)?;
-    let n: usize = opts.get("n", 200)?;
-    let seed: u64 = opts.get("seed", 0)?;
-    let out: PathBuf = opts.get("out", PathBuf::from("results/demos/avoiding"))?;
-    let n_eval: usize = opts.get("eval", 500)?;
+/// `cargo xtask demos avoiding`.
+pub fn avoiding(args: &AvoidingArgs) -> crate::XResult {
+    let (n, seed, out, n_eval) = (args.n, args.seed, args.out.clone(), args.eval);
     let default_threads = std::thread::available_parallelism().map_or(1, |p| p.get());
-    let threads: usize = opts.get("threads", default_threads)?;
+    let threads = args.threads.unwrap_or(default_threads);
     if n == 0 || n_eval == 0 || threads == 0 {
         return Err("--n, --eval and --threads must be positive".into());
     }

@@ -220,85 +220,99 @@ pub fn git_revision() -> (String, Option<bool>) {
     }
 }
 
-/// Parsed command line of `experiment`.
-#[derive(Debug, Clone, Default, PartialEq)]
+/// The command line of `experiment` (repeating an option other than `--set` keeps the last).
+#[derive(Debug, Clone, Default, PartialEq, clap::Args)]
+#[command(args_override_self = true)]
 pub struct ExperimentArgs {
-    /// Recipe name or path.
+    /// Recipe name (a file in recipes/) or a path to a .toml recipe.
     pub recipe: String,
-    /// Generic overrides.
-    pub overrides: Overrides,
-    /// `--out`.
+    /// Run seeds: N, a list 0,1,2 or a range 0..3 (default: the recipe's).
+    #[arg(long, visible_alias = "seed", value_name = "SEEDS", value_parser = seed_list)]
+    pub seeds: Option<SeedList>,
+    /// Methods, comma-separated, or `all` (ddpm, beso, ddpm-1, beso-1, cd, ctm, em, imc,
+    /// vdd-ddpm, vdd-beso; toys: vdd-exact).
+    #[arg(long, value_name = "A,B")]
+    pub methods: Option<String>,
+    /// Override any recipe key; the value is parsed as TOML, a bare word is a string
+    /// (repeatable, applied in order).
+    #[arg(long = "set", value_name = "KEY.PATH=VALUE", value_parser = key_value)]
+    pub sets: Vec<(String, String)>,
+    /// Merge the recipe's smaller [quick] settings.
+    #[arg(long)]
+    pub quick: bool,
+    /// Results directory (default: results/<recipe>/<run>).
+    #[arg(long, value_name = "DIR")]
     pub out: Option<PathBuf>,
-    /// `--fresh`.
+    /// Retrain cached teachers and students.
+    #[arg(long)]
     pub fresh: bool,
-    /// Task-specific shorthands (`--teacher`, `--iterations`, ...), translated by the task.
-    pub shorthands: Vec<(String, String)>,
+    /// toy-gmm: the teacher VDD distils (shorthand for --methods vdd-<teacher>).
+    #[arg(long, value_parser = ["exact", "ddpm", "beso"])]
+    pub teacher: Option<String>,
+    /// Toys: VDD iterations of the distilled teacher.
+    #[arg(long, value_name = "N")]
+    pub iterations: Option<usize>,
+    /// toy-conditional: number of experts.
+    #[arg(long, value_name = "N")]
+    pub experts: Option<usize>,
+    /// toy-conditional: learning rate of the experts and the gating.
+    #[arg(long, value_name = "X", value_parser = finite_float)]
+    pub lr: Option<String>,
+    /// toy-conditional: expert weighting.
+    #[arg(long, value_parser = ["gating", "uniform"])]
+    pub weighting: Option<String>,
 }
 
-/// Options that take a value and are passed to the task as shorthands.
-const SHORTHANDS: [&str; 5] = ["teacher", "iterations", "experts", "lr", "weighting"];
+/// Seeds given on the command line (a newtype, so that the parser takes one value).
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct SeedList(pub Vec<u64>);
 
-impl ExperimentArgs {
-    /// Parses the words after `experiment`.
-    pub fn parse(args: &[String]) -> Result<Self, String> {
-        let mut it = args.iter();
-        let recipe = it.next().filter(|a| !a.starts_with("--")).ok_or_else(|| {
-            format!(
-                "usage: cargo xtask experiment <recipe> [options]; recipes: {}",
-                recipe::available_recipes().join(", ")
-            )
-        })?;
-        let mut out = Self { recipe: recipe.clone(), ..Default::default() };
-        while let Some(a) = it.next() {
-            let key = a.strip_prefix("--").ok_or_else(|| format!("unexpected argument `{a}`"))?;
-            let (key, inline) = match key.split_once('=') {
-                Some((k, v)) if k != "set" => (k, Some(v.to_owned())),
-                _ => (key, None),
-            };
-            let mut value = || -> Result<String, String> {
-                match &inline {
-                    Some(v) => Ok(v.clone()),
-                    None => {
-                        it.next().cloned().ok_or_else(|| format!("option --{key} needs a value"))
-                    }
-                }
-            };
-            match key {
-                "quick" => out.overrides.quick = true,
-                "fresh" => out.fresh = true,
-                "seed" | "seeds" => out.overrides.seeds = Some(recipe::parse_seeds(&value()?)?),
-                "methods" => {
-                    let v = value()?;
-                    out.overrides.methods = Some(
-                        v.split(',')
-                            .map(|m| m.trim().to_owned())
-                            .filter(|m| !m.is_empty())
-                            .collect(),
-                    );
-                }
-                "out" => out.out = Some(PathBuf::from(value()?)),
-                "set" => {
-                    let v = value()?;
-                    let (k, val) = v
-                        .split_once('=')
-                        .ok_or_else(|| format!("--set needs key.path=value, got `{v}`"))?;
-                    out.overrides.sets.push((k.trim().to_owned(), val.trim().to_owned()));
-                }
-                k if SHORTHANDS.contains(&k) => {
-                    let v = value()?;
-                    out.shorthands.push((k.to_owned(), v));
-                }
-                other => return Err(format!("unknown option --{other}")),
-            }
-        }
-        Ok(out)
+fn seed_list(s: &str) -> Result<SeedList, String> {
+    recipe::parse_seeds(s).map(SeedList)
+}
+
+fn key_value(s: &str) -> Result<(String, String), String> {
+    let (k, v) = s.split_once('=').ok_or_else(|| format!("expected key.path=value, got `{s}`"))?;
+    Ok((k.trim().to_owned(), v.trim().to_owned()))
+}
+
+/// Keeps the text (it becomes a recipe value parsed as TOML) after checking it is a number.
+fn finite_float(s: &str) -> Result<String, String> {
+    match s.trim().parse::<f64>() {
+        Ok(x) if x.is_finite() => Ok(s.trim().to_owned()),
+        _ => Err(format!("expected a finite number, got `{s}`")),
     }
 }
 
-/// Runs the command; `args` are the words after `experiment`.
-pub fn run(args: &[String]) -> crate::XResult {
+impl ExperimentArgs {
+    /// The generic recipe overrides (`--quick`, `--seeds`, `--methods`, `--set`).
+    pub fn overrides(&self) -> Overrides {
+        Overrides {
+            quick: self.quick,
+            seeds: self.seeds.as_ref().map(|s| s.0.clone()),
+            methods: self.methods.as_ref().map(|v| {
+                v.split(',').map(|m| m.trim().to_owned()).filter(|m| !m.is_empty()).collect()
+            }),
+            sets: self.sets.clone(),
+        }
+    }
+
+    /// The task-specific shorthands given, as `(option, value)`, translated by the task.
+    pub fn shorthands(&self) -> Vec<(String, String)> {
+        let given = [
+            ("teacher", self.teacher.clone()),
+            ("iterations", self.iterations.map(|n| n.to_string())),
+            ("experts", self.experts.map(|n| n.to_string())),
+            ("lr", self.lr.clone()),
+            ("weighting", self.weighting.clone()),
+        ];
+        given.into_iter().filter_map(|(k, v)| Some((k.to_owned(), v?))).collect()
+    }
+}
+
+/// Runs the command; `command` is the command line, for `resolved.toml` and `run.json`.
+pub fn run(parsed: &ExperimentArgs, command: &str) -> crate::XResult {
     let started = Instant::now();
-    let parsed = ExperimentArgs::parse(args)?;
     let path = recipe::recipe_path(&parsed.recipe)?;
     let file = recipe::read_recipe(&path)?;
     let name = file
@@ -314,8 +328,8 @@ pub fn run(args: &[String]) -> crate::XResult {
             format!("{} has no `task` key (toy-gmm, toy-conditional or avoiding)", path.display())
         })?
         .to_owned();
-    let mut overrides = parsed.overrides.clone();
-    crate::toy::apply_shorthands(&task, &parsed.shorthands, &mut overrides)?;
+    let mut overrides = parsed.overrides();
+    crate::toy::apply_shorthands(&task, &parsed.shorthands(), &mut overrides)?;
     let ctx = RunContext {
         name,
         file,
@@ -324,10 +338,7 @@ pub fn run(args: &[String]) -> crate::XResult {
         fresh: parsed.fresh,
         cache_dir: recipe::repo_root().join("results").join("cache").join("teachers"),
         student_cache_dir: recipe::repo_root().join("results").join("cache").join("students"),
-        command: std::iter::once("cargo xtask experiment".to_owned())
-            .chain(args.iter().cloned())
-            .collect::<Vec<_>>()
-            .join(" "),
+        command: command.to_owned(),
         started,
     };
     match task.as_str() {
@@ -345,32 +356,59 @@ pub fn run(args: &[String]) -> crate::XResult {
 mod tests {
     use super::*;
 
-    fn args(s: &str) -> Vec<String> {
-        s.split_whitespace().map(String::from).collect()
+    fn parse(s: &str) -> Result<ExperimentArgs, clap::Error> {
+        #[derive(clap::Parser)]
+        struct Cmd {
+            #[command(flatten)]
+            args: ExperimentArgs,
+        }
+        use clap::Parser;
+        Cmd::try_parse_from(std::iter::once("experiment").chain(s.split_whitespace()))
+            .map(|c| c.args)
     }
 
     #[test]
     fn experiment_options_parse() {
-        let a = ExperimentArgs::parse(&args(
+        let a = parse(
             "avoiding --seeds 0,1,2 --methods vdd-beso,beso --set vdd.beso.iterations=10 --set a.b=c=d --quick --out /tmp/x --fresh --teacher ddpm",
-        ))
+        )
         .unwrap();
         assert_eq!(a.recipe, "avoiding");
-        assert_eq!(a.overrides.seeds, Some(vec![0, 1, 2]));
-        assert_eq!(a.overrides.methods, Some(vec!["vdd-beso".to_owned(), "beso".to_owned()]));
+        let o = a.overrides();
+        assert_eq!(o.seeds, Some(vec![0, 1, 2]));
+        assert_eq!(o.methods, Some(vec!["vdd-beso".to_owned(), "beso".to_owned()]));
         assert_eq!(
-            a.overrides.sets,
+            o.sets,
             vec![("vdd.beso.iterations".into(), "10".into()), ("a.b".into(), "c=d".into())]
         );
-        assert!(a.overrides.quick && a.fresh);
+        assert!(o.quick && a.fresh);
         assert_eq!(a.out, Some(PathBuf::from("/tmp/x")));
-        assert_eq!(a.shorthands, vec![("teacher".to_owned(), "ddpm".to_owned())]);
-        let b = ExperimentArgs::parse(&args("toy-gmm --seed=3")).unwrap();
-        assert_eq!(b.overrides.seeds, Some(vec![3]));
-        assert!(ExperimentArgs::parse(&args("--quick")).is_err());
-        assert!(ExperimentArgs::parse(&args("x --bogus 1")).is_err());
-        assert!(ExperimentArgs::parse(&args("x --seed")).is_err());
-        assert!(ExperimentArgs::parse(&args("x --set novalue")).is_err());
+        assert_eq!(a.shorthands(), vec![("teacher".to_owned(), "ddpm".to_owned())]);
+        let b = parse("toy-gmm --seed=3").unwrap();
+        assert_eq!(b.overrides().seeds, Some(vec![3]));
+        let c = parse("toy-gmm --seed 3 --seeds 0..2 --iterations 5 --lr 1e-2").unwrap();
+        assert_eq!(c.overrides().seeds, Some(vec![0, 1]), "the last seed option wins");
+        assert_eq!(
+            c.shorthands(),
+            vec![("iterations".to_owned(), "5".to_owned()), ("lr".to_owned(), "1e-2".to_owned())]
+        );
+        for bad in [
+            "--quick",
+            "x --bogus 1",
+            "x --seed",
+            "x --set novalue",
+            "x --seeds 0..18446744073709551615",
+            "x --seeds 3..3",
+            "x --seeds -1",
+            "x --teacher x",
+            "x --weighting w",
+            "x --lr inf",
+            "x --iterations -5",
+            "x y",
+        ] {
+            let e = parse(bad).unwrap_err();
+            assert!(e.use_stderr(), "`{bad}` is an error, not help");
+        }
     }
 
     #[test]

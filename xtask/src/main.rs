@@ -1,16 +1,17 @@
 //! `cargo xtask`: experiment recipes, result tables, benchmarks and demos.
 //!
 //! ```text
-//! cargo xtask experiment <recipe> [--seed N | --seeds 0,1,2] [--methods a,b] [--set k.path=v]...
-//!                                 [--quick] [--out DIR] [--fresh]
-//! cargo xtask table RUN_DIR... [--out FILE]
+//! cargo xtask experiment <recipe> [--seed N | --seeds 0,1,2 | --seeds 0..3] [--methods a,b]
+//!                                 [--set k.path=v]... [--quick] [--out DIR] [--fresh]
+//! cargo xtask table [RUN_DIR...] [--out FILE]
 //! cargo xtask compare RUN_DIR_A RUN_DIR_B
 //! cargo xtask bench nn|teachers
 //! cargo xtask demos avoiding --n 200 --seed 0 --out DIR
 //! ```
 //!
-//! Recipes are the TOML files in `recipes/` (see [`recipe`] for how they resolve and
-//! [`experiment`] for the run directory layout).
+//! `cargo xtask help [COMMAND]` describes every option (the parser is `clap`'s derive API; bad
+//! input exits with status 1 and a message). Recipes are the TOML files in `recipes/` (see
+//! [`recipe`] for how they resolve and [`experiment`] for the run directory layout).
 
 mod avoiding;
 mod bench_nn;
@@ -29,45 +30,86 @@ mod toy;
 /// Errors of any xtask command, printed at the top level.
 pub type XResult<T = ()> = Result<T, Box<dyn std::error::Error>>;
 
-const USAGE: &str = "usage:
-  cargo xtask experiment <recipe> [options]   run a recipe from recipes/ (or a .toml path)
-      --seed N | --seeds 0,1,2     seeds (default: the recipe's)
-      --methods a,b|all            methods (ddpm, beso, ddpm-1, beso-1, cd, ctm, em, imc,
-                                   vdd-ddpm, vdd-beso; toys: vdd-exact)
-      --set key.path=value         override any recipe key (repeatable; value parsed as TOML)
-      --quick                      the recipe's smaller [quick] settings
-      --out DIR                    results directory (default results/<recipe>/<run>)
-      --fresh                      retrain cached teachers
-    toy-gmm also takes --teacher exact|ddpm|beso and --iterations N;
-    toy-conditional --iterations N, --experts N, --lr X, --weighting gating|uniform
-  cargo xtask table RUN_DIR... [--out FILE]   mean ± std tables over the runs' seeds
-  cargo xtask compare RUN_A RUN_B             metrics.json equal apart from timings?
-  cargo xtask bench nn|teachers
-  cargo xtask demos avoiding [--n N] [--seed S] [--out DIR]";
+/// The command line: one subcommand per task.
+#[derive(Debug, clap::Parser)]
+#[command(
+    name = "cargo xtask",
+    bin_name = "cargo xtask",
+    about = "Experiment recipes, result tables, benchmarks and demos of the VDD workspace.",
+    disable_version_flag = true
+)]
+enum Cli {
+    /// Run a recipe from recipes/ (or a .toml path).
+    Experiment(experiment::ExperimentArgs),
+    /// Mean ± std tables over the runs' seeds.
+    Table(report::TableArgs),
+    /// Whether two runs' metrics.json are equal apart from timings.
+    Compare(report::CompareArgs),
+    /// Benchmarks.
+    #[command(subcommand)]
+    Bench(Bench),
+    /// Scripted demonstrations.
+    #[command(subcommand)]
+    Demos(Demos),
+}
+
+/// `cargo xtask bench ...`.
+#[derive(Debug, clap::Subcommand)]
+enum Bench {
+    /// Residual MLP forward+backward throughput against a bare faer matmul.
+    Nn(bench_nn::Args),
+    /// Acceptance checks and sampling latency of the learned toy teachers.
+    Teachers(bench_teachers::Args),
+}
+
+/// `cargo xtask demos ...`.
+#[derive(Debug, clap::Subcommand)]
+enum Demos {
+    /// Scripted Avoiding demonstrations written as .npz, and the demonstrator's metrics.
+    Avoiding(demos::AvoidingArgs),
+}
+
+/// The command line parser, with the recipes found in `recipes/` listed under `experiment`.
+fn command() -> clap::Command {
+    use clap::CommandFactory;
+    let recipes = recipe::available_recipes().join(", ");
+    Cli::command().mut_subcommand("experiment", |c| c.after_help(format!("Recipes: {recipes}")))
+}
+
+/// Parses `args` (without the program name). Help requests come back as errors too; clap's
+/// error says which (and how to print it).
+fn parse(args: &[String]) -> Result<Cli, clap::Error> {
+    use clap::FromArgMatches;
+    let words = std::iter::once("cargo xtask".to_owned()).chain(args.iter().cloned());
+    Cli::from_arg_matches(&command().try_get_matches_from(words)?)
+}
 
 fn main() {
     let args: Vec<String> = std::env::args().skip(1).collect();
-    let result = match args.iter().map(String::as_str).collect::<Vec<_>>().as_slice() {
-        ["experiment", rest @ ..] => experiment::run(&strings(rest)),
-        ["table", rest @ ..] => report::run_table(&strings(rest)),
-        ["compare", rest @ ..] => report::run_compare(&strings(rest)),
-        ["bench", "nn", rest @ ..] => bench_nn::run(&strings(rest)),
-        ["bench", "teachers", rest @ ..] => bench_teachers::run(&strings(rest)),
-        ["demos", rest @ ..] => demos::run(&strings(rest)),
-        ["help" | "--help" | "-h"] | [] => {
-            println!("{USAGE}");
-            Ok(())
+    if args.is_empty() {
+        println!("{}", command().render_help());
+        return;
+    }
+    let cli = match parse(&args) {
+        Ok(cli) => cli,
+        Err(e) => {
+            // Help goes to stdout and succeeds; bad input is an error (exit 1, not clap's 2).
+            let _ = e.print();
+            std::process::exit(if e.use_stderr() { 1 } else { 0 });
         }
-        _ => Err(format!("unknown command `{}`\n{USAGE}", args.join(" ")).into()),
+    };
+    let result = match cli {
+        Cli::Experiment(a) => experiment::run(&a, &format!("cargo xtask {}", args.join(" "))),
+        Cli::Table(a) => report::run_table(&a),
+        Cli::Compare(a) => report::run_compare(&a),
+        Cli::Bench(Bench::Nn(a)) => bench_nn::run(&a),
+        Cli::Bench(Bench::Teachers(a)) => bench_teachers::run(&a),
+        Cli::Demos(Demos::Avoiding(a)) => demos::avoiding(&a),
     };
     if let Err(e) = result {
         eprintln!("error: {e}");
         std::process::exit(1);
     }
-}
-
-fn strings(s: &[&str]) -> Vec<String> {
-    s.iter().map(|x| x.to_string()).collect()
 }
 
 /// Progress bars shared by the commands (stderr, hidden when not a terminal). Bars of
@@ -115,51 +157,33 @@ pub mod progress {
     }
 }
 
-/// Minimal `--key value` / `--flag` parser shared by the commands.
-pub mod cli {
-    use std::collections::BTreeMap;
+#[cfg(test)]
+mod tests {
+    use super::*;
 
-    /// Parsed options: `--key value` pairs and bare `--flag`s (value `"true"`).
-    #[derive(Debug, Default)]
-    pub struct Opts(pub BTreeMap<String, String>);
+    fn words(s: &str) -> Vec<String> {
+        s.split_whitespace().map(String::from).collect()
+    }
 
-    impl Opts {
-        /// Parses `args`; `flags` names the options that take no value.
-        pub fn parse(args: &[String], flags: &[&str]) -> Result<Self, String> {
-            let mut map = BTreeMap::new();
-            let mut it = args.iter();
-            while let Some(a) = it.next() {
-                let key =
-                    a.strip_prefix("--").ok_or_else(|| format!("unexpected argument `{a}`"))?;
-                if flags.contains(&key) {
-                    map.insert(key.to_owned(), "true".to_owned());
-                } else {
-                    let v = it.next().ok_or_else(|| format!("option --{key} needs a value"))?;
-                    map.insert(key.to_owned(), v.clone());
-                }
-            }
-            Ok(Self(map))
+    #[test]
+    fn the_command_line_is_consistent_and_parses_every_command() {
+        command().debug_assert();
+        assert!(
+            matches!(parse(&words("table a b --out t.md")), Ok(Cli::Table(t)) if t.runs.len() == 2)
+        );
+        assert!(matches!(parse(&words("compare a b")), Ok(Cli::Compare(_))));
+        let nn = parse(&words("bench nn --batch 8 --layer-norm")).unwrap();
+        assert!(matches!(nn, Cli::Bench(Bench::Nn(a)) if a.batch == 8 && a.layer_norm));
+        let t = parse(&words("bench teachers --noise-mean -1.2 --retrain")).unwrap();
+        assert!(matches!(t, Cli::Bench(Bench::Teachers(a)) if a.noise_mean == -1.2 && a.retrain));
+        let d = parse(&words("demos avoiding --n 5 --seed 2 --out /tmp/d")).unwrap();
+        assert!(matches!(d, Cli::Demos(Demos::Avoiding(a)) if a.n == 5 && a.seed == 2));
+        // Help is not an error; bad input is.
+        for help in ["help", "--help", "help experiment", "experiment --help"] {
+            assert!(!parse(&words(help)).unwrap_err().use_stderr(), "{help}");
         }
-
-        /// The value of `--key` parsed as `T`, or `default`.
-        pub fn get<T: std::str::FromStr>(&self, key: &str, default: T) -> Result<T, String> {
-            match self.0.get(key) {
-                None => Ok(default),
-                Some(v) => v.parse().map_err(|_| format!("invalid value `{v}` for --{key}")),
-            }
-        }
-
-        /// Whether the bare flag `--key` was given.
-        pub fn flag(&self, key: &str) -> bool {
-            self.0.contains_key(key)
-        }
-
-        /// Fails on options not in `known`.
-        pub fn only(&self, known: &[&str]) -> Result<(), String> {
-            match self.0.keys().find(|k| !known.contains(&k.as_str())) {
-                Some(k) => Err(format!("unknown option --{k}")),
-                None => Ok(()),
-            }
+        for bad in ["frobnicate", "bench", "bench gpu", "demos", "compare a", "table --bogus"] {
+            assert!(parse(&words(bad)).unwrap_err().use_stderr(), "{bad}");
         }
     }
 }

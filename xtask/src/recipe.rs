@@ -381,18 +381,35 @@ pub fn read_recipe(path: &Path) -> RecipeResult<Table> {
     text.parse::<Table>().map_err(|e| format!("parsing {}: {e}", path.display()))
 }
 
-/// Parses `0,1,2` (or `0..3`) into seeds.
+/// The most seeds one run takes (a longer `--seeds` range is a typo, not a plan).
+pub const MAX_SEEDS: usize = 1000;
+
+/// Parses `0,1,2` (or `0..3`, or one seed) into at most [`MAX_SEEDS`] seeds, each a valid TOML
+/// integer (at most `i64::MAX`).
 pub fn parse_seeds(s: &str) -> RecipeResult<Vec<u64>> {
-    let bad = || format!("invalid seed list `{s}` (expected e.g. 0,1,2 or 0..3)");
+    let bad = || format!("invalid seed list `{s}` (expected e.g. 0, 0,1,2 or 0..3)");
+    let seed = |x: &str| -> RecipeResult<u64> {
+        let v: u64 = x.trim().parse().map_err(|_| bad())?;
+        if i64::try_from(v).is_err() {
+            return Err(format!("seed {v} is too large (at most {})", i64::MAX));
+        }
+        Ok(v)
+    };
+    let too_many = || format!("`{s}` gives more than {MAX_SEEDS} seeds");
     let seeds: Vec<u64> = if let Some((a, b)) = s.split_once("..") {
-        let (a, b): (u64, u64) =
-            (a.trim().parse().map_err(|_| bad())?, b.trim().parse().map_err(|_| bad())?);
+        let (a, b) = (seed(a)?, seed(b)?);
+        if b.saturating_sub(a) > MAX_SEEDS as u64 {
+            return Err(too_many());
+        }
         (a..b).collect()
     } else {
-        s.split(',').map(|x| x.trim().parse().map_err(|_| bad())).collect::<RecipeResult<_>>()?
+        s.split(',').map(seed).collect::<RecipeResult<_>>()?
     };
     if seeds.is_empty() {
         return Err(bad());
+    }
+    if seeds.len() > MAX_SEEDS {
+        return Err(too_many());
     }
     Ok(seeds)
 }
@@ -616,6 +633,11 @@ mod tests {
         assert_eq!(parse_seeds("2..5").unwrap(), vec![2, 3, 4]);
         assert!(parse_seeds("a").is_err());
         assert!(parse_seeds("3..3").is_err());
+        assert!(parse_seeds("0..18446744073709551615").is_err());
+        assert!(parse_seeds("0..1001").unwrap_err().contains("more than 1000"));
+        assert_eq!(parse_seeds("0..1000").unwrap().len(), 1000);
+        assert!(parse_seeds("9223372036854775808").unwrap_err().contains("too large"));
+        assert!(parse_seeds(&vec!["1"; 1001].join(",")).is_err());
         let a = config_hash(&defaults()).unwrap();
         let mut d = defaults();
         d.vdd.lr = 2e-3;

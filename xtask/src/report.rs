@@ -231,20 +231,22 @@ pub fn collect_rows(metrics: &[Value], notes: &mut Vec<String>) -> Vec<(String, 
         .collect()
 }
 
+/// The command line of `table`.
+#[derive(Debug, Clone, clap::Args)]
+pub struct TableArgs {
+    /// Run directories (or their metrics.json), all of one task; none: every run under results/.
+    #[arg(value_name = "RUN_DIR")]
+    pub runs: Vec<PathBuf>,
+    /// Also write the tables to FILE.
+    #[arg(long, value_name = "FILE")]
+    pub out: Option<PathBuf>,
+}
+
 /// `cargo xtask table [--out FILE] [RUN_DIR | metrics.json]...`: one mean ± std table over
 /// every seed found in the given runs (which must be of one task). Without paths, one table
 /// per recipe over every run under `results/` (the teacher cache excluded).
-pub fn run_table(args: &[String]) -> crate::XResult {
-    let mut paths: Vec<PathBuf> = Vec::new();
-    let mut out: Option<PathBuf> = None;
-    let mut it = args.iter();
-    while let Some(a) = it.next() {
-        match a.as_str() {
-            "--out" => out = Some(it.next().ok_or("--out needs a value")?.into()),
-            s if s.starts_with("--") => return Err(format!("unknown option {s}").into()),
-            s => paths.push(s.into()),
-        }
-    }
+pub fn run_table(args: &TableArgs) -> crate::XResult {
+    let (paths, out) = (&args.runs, &args.out);
     let text = if paths.is_empty() {
         let groups = find_runs(&crate::recipe::repo_root().join("results"));
         if groups.is_empty() {
@@ -259,11 +261,11 @@ pub fn run_table(args: &[String]) -> crate::XResult {
         }
         text
     } else {
-        table_text(&paths)?
+        table_text(paths)?
     };
     print!("{text}");
     if let Some(out) = out {
-        std::fs::write(&out, &text).map_err(|e| format!("writing {}: {e}", out.display()))?;
+        std::fs::write(out, &text).map_err(|e| format!("writing {}: {e}", out.display()))?;
         eprintln!("wrote {}", out.display());
     }
     Ok(())
@@ -348,13 +350,20 @@ pub fn strip_timings(v: &mut Value) {
     }
 }
 
+/// The command line of `compare`.
+#[derive(Debug, Clone, clap::Args)]
+pub struct CompareArgs {
+    /// The first run directory (or its metrics.json).
+    pub run_a: PathBuf,
+    /// The second run directory (or its metrics.json).
+    pub run_b: PathBuf,
+}
+
 /// `cargo xtask compare A B`: whether two runs' `metrics.json` agree apart from timings.
-pub fn run_compare(args: &[String]) -> crate::XResult {
-    let [a, b] = args else {
-        return Err("usage: cargo xtask compare RUN_DIR_A RUN_DIR_B".into());
-    };
-    let (fa, mut va) = read_metrics(Path::new(a))?;
-    let (fb, mut vb) = read_metrics(Path::new(b))?;
+pub fn run_compare(args: &CompareArgs) -> crate::XResult {
+    let (a, b) = (&args.run_a, &args.run_b);
+    let (fa, mut va) = read_metrics(a)?;
+    let (fb, mut vb) = read_metrics(b)?;
     strip_timings(&mut va);
     strip_timings(&mut vb);
     if va == vb {
