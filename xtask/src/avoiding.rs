@@ -30,7 +30,7 @@ use vdd_nn::{AdamConfig, LrSchedule};
 use vdd_tasks::avoiding::rollout::{EvalConfig, Evaluation, Stepping, evaluate_cloned};
 use vdd_tasks::{DemonstratorConfig, generate_demonstrations};
 
-use crate::experiment::{RunContext, StageTimes};
+use crate::context::{RunContext, StageTimes};
 use crate::methods::{self, Method};
 use crate::plots::{self, Curves, TrajectoryPanel};
 use crate::policy::{Timing, TrainedPolicy, Windowed, us_per_action};
@@ -1047,12 +1047,12 @@ pub fn run(ctx: &RunContext) -> crate::XResult {
         .collect();
     let t0 = Instant::now();
     let empty = TeacherStore::default();
-    let done = crate::experiment::parallel_map(&phase1, jobs, |w| run_job(w, &empty))?;
+    let done = crate::context::parallel_map(&phase1, jobs, |w| run_job(w, &empty))?;
     collect(done, &mut store);
     stages.add("teachers_em_imc", t0.elapsed().as_secs_f64());
     let phase2: Vec<Work> = dependent.iter().map(|&j| Work::Student(j)).collect();
     let t0 = Instant::now();
-    let done = crate::experiment::parallel_map(&phase2, jobs, |w| run_job(w, &store))?;
+    let done = crate::context::parallel_map(&phase2, jobs, |w| run_job(w, &store))?;
     collect(done, &mut store);
     stages.add("distillation", t0.elapsed().as_secs_f64());
     let teacher_log: Vec<Value> = teacher_jobs
@@ -1246,7 +1246,7 @@ pub fn run(ctx: &RunContext) -> crate::XResult {
     println!("\n{table}");
     print_acceptance(&rows);
     println!("stages: {}", stages.summary());
-    let cpu = crate::experiment::cpu_seconds().map_or(String::new(), |c| format!(", {c:.0} s CPU"));
+    let cpu = crate::context::cpu_seconds().map_or(String::new(), |c| format!(", {c:.0} s CPU"));
     println!(
         "results in {} ({:.1} s wall{cpu})",
         teachers::rel(&dir),

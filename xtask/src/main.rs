@@ -16,6 +16,7 @@
 mod avoiding;
 mod bench_nn;
 mod bench_teachers;
+mod context;
 mod demos;
 mod experiment;
 mod methods;

@@ -33,7 +33,7 @@ use vdd_moe::{GatingKind, Moe, MoeConfig};
 use vdd_nn::{AdamConfig, LrSchedule};
 
 use crate::avoiding::vdd_config_for;
-use crate::experiment::RunContext;
+use crate::context::RunContext;
 use crate::methods::{self, Method};
 use crate::plots::{self, DensityPanel, ExpertEllipse};
 use crate::recipe::{self, Overrides};
