@@ -219,6 +219,16 @@ pub struct PlotSettings {
     pub png: bool,
 }
 
+/// `recipes/defaults/avoiding.toml`, embedded so that the binary is self-contained.
+const DEFAULTS: &str = include_str!("../../recipes/defaults/avoiding.toml");
+
+impl AvoidingRecipe {
+    /// The task's defaults, `recipes/defaults/avoiding.toml`, which a recipe file overrides.
+    pub fn defaults() -> recipe::RecipeResult<Self> {
+        recipe::defaults_from_toml(&[("recipes/defaults/avoiding.toml", DEFAULTS)])
+    }
+}
+
 impl Default for AvoidingRecipe {
     fn default() -> Self {
         // Tuned on seed 0 (success of the BESO teacher, 200 rollouts, DDIM 16 steps): 128 wide
@@ -909,7 +919,7 @@ fn chosen_experts(
 
 /// Runs the recipe.
 pub fn run(ctx: &RunContext) -> crate::XResult {
-    let resolved = recipe::resolve(&AvoidingRecipe::default(), &ctx.file, &ctx.overrides)?;
+    let resolved = recipe::resolve(&AvoidingRecipe::defaults()?, &ctx.file, &ctx.overrides)?;
     let base = &resolved.base;
     if base.task != "avoiding" {
         return Err(format!("task `{}` is not avoiding", base.task).into());
@@ -1307,6 +1317,14 @@ mod tests {
     }
 
     #[test]
+    fn the_defaults_file_is_complete_and_valid() {
+        recipe::assert_complete_defaults::<AvoidingRecipe>(&[(
+            "recipes/defaults/avoiding.toml",
+            DEFAULTS,
+        )]);
+    }
+
+    #[test]
     fn recipes_in_the_repository_resolve() {
         for name in [
             "avoiding",
@@ -1318,7 +1336,7 @@ mod tests {
             let file = recipe::read_recipe(&path).unwrap();
             for quick in [false, true] {
                 let o = recipe::Overrides { quick, ..Default::default() };
-                let r = recipe::resolve(&AvoidingRecipe::default(), &file, &o)
+                let r = recipe::resolve(&AvoidingRecipe::defaults().unwrap(), &file, &o)
                     .unwrap_or_else(|e| panic!("{name}: {e}"));
                 for (_, c) in r.configs() {
                     methods::parse_methods(&c.methods, "avoiding").unwrap();

@@ -154,6 +154,38 @@ pub fn resolve<R: Serialize + DeserializeOwned>(
     Ok(Resolved { base, tree, variants: resolved_variants })
 }
 
+/// A task's defaults: the TOML `files` (`(name, text)`, the first complete, each next merged on
+/// top of it as in [`merge`]) deserialised into the recipe type. Every field must be given
+/// (the recipe types have no defaults of their own) and every key known.
+pub fn defaults_from_toml<R: Serialize + DeserializeOwned>(
+    files: &[(&str, &str)],
+) -> RecipeResult<R> {
+    let names: Vec<&str> = files.iter().map(|(n, _)| *n).collect();
+    from_tree(&defaults_tree(files)?).map_err(|e| format!("{}: {e}", names.join(" + ")))
+}
+
+/// The merged tree of [`defaults_from_toml`], as written in the files.
+pub fn defaults_tree(files: &[(&str, &str)]) -> RecipeResult<Table> {
+    let mut tree = Table::new();
+    for (name, text) in files {
+        let t: Table = text.parse().map_err(|e| format!("parsing {name}: {e}"))?;
+        merge(&mut tree, &expand_dotted(&t)?);
+    }
+    Ok(tree)
+}
+
+/// Test helper: the defaults `files` deserialise into `R` and state every key that `R`
+/// serialises (none is left to a serde default), with values that read back unchanged.
+#[cfg(test)]
+pub fn assert_complete_defaults<R: Serialize + DeserializeOwned>(files: &[(&str, &str)]) {
+    let tree = defaults_tree(files).unwrap();
+    let r: R = defaults_from_toml(files).unwrap();
+    let back = to_tree(&r).unwrap();
+    let missing = unknown_keys(&back, &tree, "");
+    assert!(missing.is_empty(), "keys missing from the defaults: {missing:?}");
+    assert_eq!(back, tree, "values that do not read back unchanged");
+}
+
 /// Deserialises `tree`, failing on keys the type does not know.
 pub fn from_tree<R: Serialize + DeserializeOwned>(tree: &Table) -> RecipeResult<R> {
     let r: R = Value::Table(tree.clone())

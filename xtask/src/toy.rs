@@ -122,8 +122,31 @@ pub struct ToyPlots {
     pub states: usize,
 }
 
+/// `recipes/defaults/toy-gmm.toml` and the `toy-conditional` keys merged on top of it,
+/// embedded so that the binary is self-contained.
+const DEFAULTS: [(&str, &str); 2] = [
+    ("recipes/defaults/toy-gmm.toml", include_str!("../../recipes/defaults/toy-gmm.toml")),
+    (
+        "recipes/defaults/toy-conditional.toml",
+        include_str!("../../recipes/defaults/toy-conditional.toml"),
+    ),
+];
+
+impl ToyRecipe {
+    /// The defaults of `task` (`toy-gmm` or `toy-conditional`), from `recipes/defaults/`,
+    /// which a recipe file overrides.
+    pub fn task_defaults(task: &str) -> recipe::RecipeResult<Self> {
+        match task {
+            "toy-gmm" => recipe::defaults_from_toml(&DEFAULTS[..1]),
+            "toy-conditional" => recipe::defaults_from_toml(&DEFAULTS),
+            other => Err(format!("no toy task `{other}` (toy-gmm, toy-conditional)")),
+        }
+    }
+}
+
 impl ToyRecipe {
     /// The defaults of `task`.
+    #[cfg_attr(not(test), allow(dead_code))]
     pub fn defaults(task: &str) -> Self {
         // The toy teachers of `cargo xtask bench teachers` (which checks their acceptance bars):
         // 64 wide, 2 blocks, batch 1024, 4000 steps, EMA 0.995, log-normal training noise.
@@ -537,7 +560,7 @@ fn circle_modes(k: usize, offset: f32) -> Vec<(f32, f32)> {
 
 /// Runs a toy recipe.
 pub fn run_recipe(ctx: &RunContext, task: &str) -> crate::XResult {
-    let resolved = recipe::resolve(&ToyRecipe::defaults(task), &ctx.file, &ctx.overrides)?;
+    let resolved = recipe::resolve(&ToyRecipe::task_defaults(task)?, &ctx.file, &ctx.overrides)?;
     let base = &resolved.base;
     if base.task != task {
         return Err(format!("recipe task `{}` changed to `{task}`", base.task).into());
@@ -752,11 +775,72 @@ mod tests {
     }
 
     #[test]
+    fn the_defaults_files_are_complete_and_valid() {
+        recipe::assert_complete_defaults::<ToyRecipe>(&DEFAULTS[..1]);
+        recipe::assert_complete_defaults::<ToyRecipe>(&DEFAULTS);
+    }
+
+    #[test]
     fn toy_defaults_match_the_paper() {
         let r = ToyRecipe::defaults("toy-gmm");
         assert_eq!(r.vdd.exact, VddConfig::toy());
         assert_eq!(r.student, MoeConfig::toy(1, 2, 8));
         assert_eq!(r.data.points, 5000);
         assert_eq!(r.eval.kl_samples, 100_000);
+    }
+}
+
+/// The one-off check that the TOML defaults equal the Rust defaults they replace.
+#[cfg(test)]
+mod defaults_equal_the_rust_defaults {
+    use super::*;
+    use crate::avoiding::AvoidingRecipe;
+
+    fn same<R: Serialize + PartialEq + std::fmt::Debug>(toml: &R, rust: &R) {
+        assert_eq!(toml, rust);
+        // Bit for bit: the JSON the cache keys hash, and the TOML tree resolution starts from.
+        assert_eq!(serde_json::to_string(toml).unwrap(), serde_json::to_string(rust).unwrap());
+        let (a, b) = (recipe::to_tree(toml).unwrap(), recipe::to_tree(rust).unwrap());
+        assert_eq!(toml::to_string(&a).unwrap(), toml::to_string(&b).unwrap());
+    }
+
+    /// Every repository recipe of `task`, with and without `--quick`, resolves to the same
+    /// configuration and the same `resolved.toml` text from either defaults.
+    fn same_resolved<R>(task: &str, toml: &R, rust: &R)
+    where
+        R: Serialize + serde::de::DeserializeOwned + PartialEq + std::fmt::Debug,
+    {
+        let mut n = 0;
+        for name in recipe::available_recipes() {
+            let file = recipe::read_recipe(&recipe::recipe_path(&name).unwrap()).unwrap();
+            if file.get("task").and_then(|t| t.as_str()) != Some(task) {
+                continue;
+            }
+            for quick in [false, true] {
+                let o = Overrides { quick, ..Default::default() };
+                let a = recipe::resolve(toml, &file, &o).unwrap();
+                let b = recipe::resolve(rust, &file, &o).unwrap();
+                same(&a.base, &b.base);
+                assert_eq!(a.to_toml().unwrap(), b.to_toml().unwrap(), "{name}");
+                n += 1;
+            }
+        }
+        assert!(n >= 2, "{task}: no recipe checked");
+    }
+
+    #[test]
+    fn avoiding() {
+        let (toml, rust) = (AvoidingRecipe::defaults().unwrap(), AvoidingRecipe::default());
+        same(&toml, &rust);
+        same_resolved("avoiding", &toml, &rust);
+    }
+
+    #[test]
+    fn toys() {
+        for task in ["toy-gmm", "toy-conditional"] {
+            let (toml, rust) = (ToyRecipe::task_defaults(task).unwrap(), ToyRecipe::defaults(task));
+            same(&toml, &rust);
+            same_resolved(task, &toml, &rust);
+        }
     }
 }
