@@ -21,12 +21,9 @@ use vdd_baselines::{
 };
 use vdd_core::{Affine, Seeds};
 use vdd_data::{Episodes, Normalization, NormalizationKind, SequenceDataset, WindowConfig};
-use vdd_diffusion::{
-    BesoConfig, DdpmConfig, DiffusionTeacher, KarrasSampler, NetConfig, SigmaDistribution,
-    TeacherKind, TimeSampling, TrainConfig, VpSampler,
-};
-use vdd_moe::{ActMode, GatingKind, Moe, MoeConfig, NetworkConfig};
-use vdd_nn::{AdamConfig, LrSchedule};
+use vdd_diffusion::{BesoConfig, DiffusionTeacher, TeacherKind};
+use vdd_moe::{ActMode, GatingKind, Moe, MoeConfig};
+use vdd_nn::LrSchedule;
 use vdd_tasks::avoiding::rollout::{EvalConfig, Evaluation, Stepping, evaluate_cloned};
 use vdd_tasks::{DemonstratorConfig, generate_demonstrations};
 
@@ -37,11 +34,10 @@ use crate::policy::{Timing, TrainedPolicy, Windowed, us_per_action};
 use crate::recipe;
 use crate::report::{self, Row};
 use crate::student_cache::{CachedStudent, StudentCache};
-use crate::teachers::{
-    self, BesoTeacherConfig, ClippedTeacher, DdpmTeacherConfig, TeachersConfig, TrainedTeacher,
-};
+use crate::teachers::{self, ClippedTeacher, TeachersConfig, TrainedTeacher};
 
-/// A recipe of the Avoiding task (see `recipes/avoiding.toml`).
+/// A recipe of the Avoiding task (see `recipes/avoiding.toml`): the schema of the recipe files;
+/// the values not given there come from `recipes/defaults/avoiding.toml` ([`Self::defaults`]).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct AvoidingRecipe {
@@ -227,173 +223,6 @@ impl AvoidingRecipe {
     pub fn defaults() -> recipe::RecipeResult<Self> {
         recipe::defaults_from_toml(&[("recipes/defaults/avoiding.toml", DEFAULTS)])
     }
-}
-
-impl Default for AvoidingRecipe {
-    fn default() -> Self {
-        // Tuned on seed 0 (success of the BESO teacher, 200 rollouts, DDIM 16 steps): 128 wide
-        // with lr 1e-3 / 12k steps 0.45, 3e-3 / 12k 0.67, 1e-2 / 12k 0.78, 1e-2 / 24k 0.88,
-        // 1e-2 / 48k 0.91 (276 s of training); 64 wide with 1e-2 / 48k 0.925 in 80 s. The number
-        // of training pairs seen matters, the width does not (256 did not help), and a narrow
-        // teacher also makes every score VDD queries ~3.5x cheaper.
-        let net = NetConfig { hidden_dim: 64, num_blocks: 2, ..Default::default() };
-        let train = TrainConfig {
-            steps: 96_000,
-            batch_size: 256,
-            adam: AdamConfig { lr: 1e-2, ..Default::default() },
-            warmup_steps: 200,
-            final_lr_factor: 0.02,
-            ema_decay: 0.999,
-            grad_clip: Some(1.0),
-            log_every: 100,
-        };
-        let log_normal = (-1.2f32, 1.2f32);
-        let beso = BesoConfig {
-            net: net.clone(),
-            training_sigma: SigmaDistribution::LogNormal { mean: log_normal.0, std: log_normal.1 },
-            sigma_max: 80.0,
-            sampler: KarrasSampler::Ddim,
-            sampling_steps: 16,
-            ..Default::default()
-        };
-        let teachers_beso = beso.clone();
-        // DDPM's sampler (teachers of seeds 0, 1, 2; success / task entropy, 500 rollouts):
-        // ancestral with the posterior variance β̃ 0.886 / 0.962, 0.870 / 0.981, 0.844 / 0.967;
-        // with β (the library default, better on the toy) 0.854, 0.764, 0.762; DDIM 0.798 /
-        // 0.736, 0.874 / 0.386, 0.666 / 0.717. The sampler does not change the trained network
-        // (nor the score VDD distils), so the teacher cache is shared.
-        let ddpm = DdpmConfig {
-            net,
-            num_steps: 16,
-            sampling_steps: 16,
-            sampler: VpSampler::Ancestral,
-            time_sampling: TimeSampling::LogNormal { mean: log_normal.0, std: log_normal.1 },
-            ..Default::default()
-        };
-        let student = MoeConfig {
-            state_dim: 4,
-            action_dim: 2,
-            num_experts: 8,
-            gating: GatingKind::Learned,
-            init_std: 1.0,
-            experts_network: NetworkConfig { hidden_dim: 64, num_blocks: 2, ..Default::default() },
-            gating_network: NetworkConfig { hidden_dim: 64, num_blocks: 1, ..Default::default() },
-            ..MoeConfig::toy(4, 2, 8)
-        };
-        // Tuned on seed 0 with the 64-wide BESO teacher (success / task entropy, 200 rollouts):
-        // 10k iterations of 64 states with 2 samples 0.25 / 0.56; 30k with 1 sample 0.875 /
-        // 0.52; noise U[0.02, 0.2] instead of U[0.05, 0.3] raises the entropy (20k: 0.665 / 0.79
-        // vs 0.685 / 0.56); 60k iterations with it 0.93 / 0.82 (305 s). A larger learning rate
-        // (2e-3) or batch (128) did worse for the same time: the student needs many small
-        // steps, like EM (0.23 after 3k steps, 0.925 after 24k).
-        let iterations = 60_000;
-        let vdd_base = VddConfig {
-            iterations,
-            batch_size: 64,
-            vi_samples: 1,
-            noise: vdd_core::NoiseSchedule::Uniform { min: 0.02, max: 0.2 },
-            expert_optimizer: AdamConfig { lr: 1e-3, ..Default::default() },
-            gating_optimizer: AdamConfig { lr: 1e-3, ..Default::default() },
-            expert_lr_schedule: LrSchedule::LinearDecay {
-                total_steps: iterations as u64,
-                final_factor: 0.0,
-            },
-            gating_lr_schedule: LrSchedule::LinearDecay {
-                total_steps: iterations as u64,
-                final_factor: 0.0,
-            },
-            gating_batch_size: 256,
-            ..VddConfig::toy()
-        };
-        // DDPM's time `t` (cosine schedule, N = 16; σ = sqrt((1 − ᾱ_t) / ᾱ_t)): t = 0.1 ≙ σ 0.02,
-        // t = 1.0 ≙ σ 0.11, t = 1.9 ≙ σ 0.2. Seed 0: U[0.1, 1.9] 0.905 / 0.62, U[0.1, 1.0]
-        // 0.935 / 0.73 (success / task entropy).
-        let vdd_ddpm = VddConfig {
-            noise: vdd_core::NoiseSchedule::Uniform { min: 0.1, max: 1.0 },
-            ..vdd_base.clone()
-        };
-        // VDD-BESO distils the 96k-step BESO teacher with noise U[0.05, 0.3], batches of 128
-        // states and a uniform gating (`vdd.beso_gating`), 3 seeds, 500 rollouts (success /
-        // task entropy): 0.912 / 0.860 (0.916 / 0.948 / 0.872), teacher 0.939. A learned gating
-        // sharpens the mixture into fewer paths: 0.887 / 0.543 at batch 128, 0.967 / 0.636 at
-        // 64; with the uniform gating, batch 96 gives 0.900 / 0.823 and 64 0.887 / 0.834. The
-        // former default (48k teacher 0.915, U[0.02, 0.2], batch 64, learned gating) was 0.895
-        // / 0.775; docs/avoiding-tuning.md lists the rest.
-        let vdd_beso = VddConfig {
-            batch_size: 128,
-            noise: vdd_core::NoiseSchedule::Uniform { min: 0.05, max: 0.3 },
-            ..vdd_base
-        };
-        Self {
-            name: "avoiding".into(),
-            description: "VDD on the planar Avoiding task".into(),
-            task: "avoiding".into(),
-            seeds: vec![0],
-            methods: vec!["beso".into(), "vdd-beso".into()],
-            jobs: 0,
-            data: AvoidingData {
-                demonstrations: 200,
-                seed: 0,
-                validation_fraction: 0.1,
-                obs_window: 1,
-                action_chunk: 1,
-                execute_steps: 1,
-                pad_start: true,
-                features: ObsFeatures::default(),
-                demonstrator: DemonstratorConfig::default(),
-            },
-            teachers: TeachersConfig {
-                // Both teachers train 96k steps (3 seeds, 500 rollouts, success / task
-                // entropy; ~110 s per teacher): BESO 0.939 (48k: 0.915); DDPM 0.875 / 0.978,
-                // VDD-DDPM 0.918 / 0.751 (48k: DDPM 0.867 / 0.970, VDD-DDPM 0.851 / 0.746).
-                beso: BesoTeacherConfig { config: beso, train: train.clone() },
-                ddpm: DdpmTeacherConfig { config: ddpm, train },
-            },
-            student,
-            vdd: VddMethods {
-                beso: vdd_beso,
-                ddpm: vdd_ddpm,
-                clip_margin: Some(0.5),
-                beso_gating: Some(GatingKind::Uniform),
-                ddpm_gating: None,
-                greedy_gating: false,
-                sample_action: false,
-                schedules_follow_iterations: true,
-            },
-            baselines: Baselines {
-                em: EmConfig { iterations: MIXTURE_ITERATIONS, ..EmConfig::toy() },
-                imc: ImcConfig { iterations: MIXTURE_ITERATIONS, ..ImcConfig::toy() },
-                cd: consistency_default(&teachers_beso),
-                ctm: CtmConfig {
-                    base: consistency_default(&teachers_beso),
-                    ..CtmConfig::for_beso(&teachers_beso)
-                },
-                consistency_follows_teacher: true,
-                schedules_follow_iterations: true,
-            },
-            eval: AvoidingEval {
-                rollouts: 500,
-                lockstep_batch: 50,
-                threads: 0,
-                timing_calls: 2000,
-                timing_warmup: 100,
-                timing_min_round_ms: 20.0,
-            },
-            plots: PlotSettings { enabled: true, trajectories: 40, png: true },
-        }
-    }
-}
-
-/// Iterations of EM and IMC on Avoiding: 800 of 30 steps (24,000 gradient steps of 256 pairs,
-/// the order of steps VDD's student takes). With the toy's 100 iterations EM reaches success
-/// 0.23 on seed 0, with 800 0.925 (210 s).
-const MIXTURE_ITERATIONS: usize = 800;
-
-/// The CD / CTM settings of the recipe: started from the BESO teacher, one-step sampling.
-fn consistency_default(beso: &BesoConfig) -> CdConfig {
-    let mut c = CdConfig::for_beso(beso);
-    c.train.steps = 4000;
-    c
 }
 
 /// A CD / CTM configuration for `seed`: the seed and (with `follow_teacher` and

@@ -1,12 +1,14 @@
-//! Experiment recipes: TOML files in `recipes/` resolved against the defaults in code.
+//! Experiment recipes: TOML files in `recipes/` resolved against the task's defaults, the TOML
+//! files in `recipes/defaults/`.
 //!
 //! # Resolution
 //!
-//! A recipe file only states what differs from the task's defaults (written in Rust next to
-//! each task, e.g. [`crate::avoiding::AvoidingRecipe::default`]). Resolution builds one TOML
-//! tree and deserialises it once:
+//! A recipe file only states what differs from the task's defaults
+//! (`recipes/defaults/<task>.toml`, embedded in the binary and read with [`defaults_from_toml`];
+//! they state every key of the task's recipe type, which has no defaults of its own).
+//! Resolution builds one TOML tree and deserialises it once:
 //!
-//! 1. the task's defaults, serialised;
+//! 1. the task's defaults (deserialised, which validates them, and serialised again);
 //! 2. the recipe file merged on top (tables merge key by key; see [`merge`]), except its
 //!    `[quick]` table and `[[variants]]` list;
 //! 3. with `--quick`, the recipe's `[quick]` table merged on top;
