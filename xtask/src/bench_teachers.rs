@@ -26,22 +26,24 @@
 //! * Latency: µs per action of `act_batch` (single thread) at batch 1 and 256, for every
 //!   sampler against 1, 2, 4, 8, 16 steps and the default.
 //!
-//! Trained teachers are cached as `safetensors` under `--cache` (default
-//! `target/xtask-cache/teachers`), keyed by a hash of their configuration, training
-//! configuration and seed; `--retrain` ignores the cache. The command fails when a check fails.
+//! Trained teachers are cached under `--cache` (default `target/xtask-cache/teachers`) by the
+//! recipes' teacher cache ([`crate::teachers::train_or_load`]: keyed by the cache version, the
+//! model and training configuration, the seed and the training data); `--retrain` ignores the
+//! cache. The command fails when a check fails.
 
 use std::path::PathBuf;
 use std::time::Instant;
 
 use faer::Mat;
 use rand::Rng as _;
-use serde::Serialize;
 use vdd_core::{Policy, ScoreModel, Seeds};
 use vdd_diffusion::metrics::{mean_cosine_similarity, mmd2_rbf, nearest_mode_counts};
 use vdd_diffusion::{
-    Beso, BesoConfig, Ddpm, DdpmConfig, DiffusionTeacher, Gmm, GmmTeacher, KarrasSampler,
-    NetConfig, SigmaDistribution, TeacherKind, TimeSampling, TrainConfig, TrainProgress, VpSampler,
+    BesoConfig, DdpmConfig, DiffusionTeacher, Gmm, GmmTeacher, KarrasSampler, NetConfig,
+    SigmaDistribution, TeacherKind, TimeSampling, TrainConfig, VpSampler,
 };
+
+use crate::teachers::{self, BesoTeacherConfig, DdpmTeacherConfig, TeachersConfig};
 
 /// The command line of `bench teachers`.
 #[derive(Debug, Clone, clap::Args)]
@@ -97,7 +99,7 @@ pub struct Args {
 }
 
 /// Everything that determines the toy teachers.
-#[derive(Debug, Clone, Serialize)]
+#[derive(Debug, Clone)]
 struct Setup {
     seed: u64,
     steps: u64,
@@ -203,17 +205,6 @@ fn toy_train(setup: &Setup, steps: u64) -> TrainConfig {
     }
 }
 
-/// FNV-1a of the JSON of `v`: the cache key.
-fn key_hash<T: Serialize>(v: &T) -> crate::XResult<String> {
-    let bytes = serde_json::to_vec(v)?;
-    let mut h: u64 = 0xcbf2_9ce4_8422_2325;
-    for b in bytes {
-        h ^= u64::from(b);
-        h = h.wrapping_mul(0x0100_0000_01b3);
-    }
-    Ok(format!("{h:016x}"))
-}
-
 /// A toy task's training data and training length.
 struct Task<'a> {
     name: &'a str,
@@ -228,41 +219,34 @@ struct Cache {
     retrain: bool,
 }
 
-/// Trains a teacher of `kind` on `task`, or loads it from the cache; returns the training
-/// seconds (`None` when loaded).
+/// Both teachers' model and training configuration for `task`.
+fn teachers_config(task: &Task<'_>, setup: &Setup) -> TeachersConfig {
+    let train = toy_train(setup, task.steps);
+    TeachersConfig {
+        beso: BesoTeacherConfig { config: toy_beso(setup), train: train.clone() },
+        ddpm: DdpmTeacherConfig { config: toy_ddpm(setup), train },
+    }
+}
+
+/// Trains a teacher of `kind` on `task`, or loads it from the cache (the recipes' teacher
+/// cache, [`teachers::train_or_load`]); returns the training seconds (`None` when loaded).
 fn train_or_load(
     kind: TeacherKind,
     task: &Task<'_>,
     setup: &Setup,
     cache: &Cache,
 ) -> crate::XResult<(DiffusionTeacher, Option<f64>)> {
-    let train = toy_train(setup, task.steps);
-    let (ddpm, beso) = (toy_ddpm(setup), toy_beso(setup));
-    let hash = match kind {
-        TeacherKind::Ddpm => key_hash(&(task.name, &ddpm, &train, setup.seed))?,
-        TeacherKind::Beso => key_hash(&(task.name, &beso, &train, setup.seed))?,
-    };
-    let label = format!("{} {}", format!("{kind:?}").to_lowercase(), task.name);
-    let path = cache.dir.join(format!("{}-{hash}.safetensors", label.replace(' ', "-")));
-    if path.is_file() && !cache.retrain {
-        eprintln!("[{label}] loaded from {}", path.display());
-        return Ok((DiffusionTeacher::load(&path, setup.seed)?, None));
-    }
-    let mut report = |p: TrainProgress| {
-        eprintln!(
-            "  [{label}] step {:>6}/{}  loss {:.4}  lr {:.2e}  {:.1} s",
-            p.step, p.total_steps, p.loss, p.lr, p.elapsed_secs
-        )
-    };
-    let t0 = Instant::now();
-    let (s, a, seed) = (task.states.as_ref(), task.actions.as_ref(), setup.seed);
-    let teacher: DiffusionTeacher = match kind {
-        TeacherKind::Ddpm => Ddpm::train(&ddpm, &train, s, a, seed, &mut report)?.into(),
-        TeacherKind::Beso => Beso::train(&beso, &train, s, a, seed, &mut report)?.into(),
-    };
-    let secs = t0.elapsed().as_secs_f64();
-    teacher.save(&path)?;
-    Ok((teacher, Some(secs)))
+    let t = teachers::train_or_load(
+        kind,
+        &teachers_config(task, setup),
+        task.states.as_ref(),
+        task.actions.as_ref(),
+        setup.seed,
+        &cache.dir,
+        cache.retrain,
+        &format!("{} {}", teachers::kind_name(kind), task.name),
+    )?;
+    Ok((t.teacher, (!t.cached).then_some(t.train_seconds)))
 }
 
 /// Both teachers of one task, trained in parallel on two threads.

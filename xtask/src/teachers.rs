@@ -1,13 +1,16 @@
-//! Learned diffusion teachers for recipes: configuration, training with a progress bar, and a
-//! cache keyed by a hash of everything that determines the trained weights.
+//! Learned diffusion teachers for recipes and benchmarks: configuration, training with a
+//! progress bar, and the one teacher cache ([`train_or_load`]), keyed by a hash of everything
+//! that determines the trained weights.
 //!
-//! The cache key is the teacher kind, its model configuration without the sampling settings
-//! (sampler and default steps are applied after loading, so changing them reuses the cached
-//! weights), its training configuration, the training seed and a hash of the training data's
-//! bits (so a change in the demonstrator or the windowing gives a new key). A cached teacher is
-//! `results/cache/teachers/<kind>-<hash>.safetensors` with a `.json` sidecar (key, training
-//! seconds, loss curve); `--fresh` retrains and overwrites. Loading a cached teacher gives bit-identical scores and samples to the freshly
-//! trained one (the weights are stored as `f32`).
+//! The cache key is [`TEACHER_CACHE_VERSION`], the teacher kind, its model configuration without
+//! the sampling settings (sampler and default steps are applied after loading, so changing them
+//! reuses the cached weights), its training configuration, the training seed and a hash of the
+//! training data's bits (so a change in the demonstrator or the windowing gives a new key). A
+//! cached teacher is `<cache dir>/<kind>-<hash>.safetensors` with a `.json` sidecar (key,
+//! training seconds, loss curve); the recipes' cache directory is `results/cache/teachers`,
+//! `cargo xtask bench teachers` uses its own. `--fresh` (`--retrain`) retrains and overwrites.
+//! Loading a cached teacher gives bit-identical scores and samples to the freshly trained one
+//! (the weights are stored as `f32`).
 
 use std::path::{Path, PathBuf};
 use std::time::Instant;
@@ -63,8 +66,14 @@ pub struct TrainedTeacher {
     pub hash: String,
 }
 
+/// The version of the teacher cache's key and files, part of every key: raise it when the
+/// training code or the file format changes what a cached teacher would be (every teacher is
+/// then retrained once). Version 2 is the format since the sidecar files.
+pub const TEACHER_CACHE_VERSION: u32 = 2;
+
 #[derive(Serialize)]
 struct CacheKey<'a> {
+    /// [`TEACHER_CACHE_VERSION`].
     version: u32,
     kind: TeacherKind,
     /// The model configuration without its sampling settings (`sampler`, `sampling_steps`):
@@ -122,7 +131,7 @@ pub fn train_or_load(
         TeacherKind::Ddpm => (training_part(&config.ddpm.config)?, &config.ddpm.train),
     };
     let key = CacheKey {
-        version: 2,
+        version: TEACHER_CACHE_VERSION,
         kind,
         config: model,
         train,
@@ -416,6 +425,42 @@ mod tests {
             }
             assert!(out[(1, 0)] < 0.0 && out[(1, 1)] > 0.0, "far points are pulled back: {out:?}");
         }
+    }
+
+    #[test]
+    fn the_cache_stores_then_loads_the_same_teacher_under_one_key() {
+        let dir = std::env::temp_dir().join(format!("xtask-teacher-cache-{}", std::process::id()));
+        let train = TrainConfig { steps: 3, batch_size: 8, log_every: 1, ..Default::default() };
+        let config = TeachersConfig {
+            beso: BesoTeacherConfig {
+                config: BesoConfig { net: tiny_net(), ..Default::default() },
+                train: train.clone(),
+            },
+            ddpm: DdpmTeacherConfig {
+                config: DdpmConfig { net: tiny_net(), ..Default::default() },
+                train,
+            },
+        };
+        let states = Mat::from_fn(16, 1, |i, _| i as f32 / 16.0);
+        let actions = Mat::from_fn(16, 2, |i, j| (i * (j + 1)) as f32 / 8.0);
+        let go = |fresh| {
+            let (s, a) = (states.as_ref(), actions.as_ref());
+            train_or_load(TeacherKind::Beso, &config, s, a, 4, &dir, fresh, "t").unwrap()
+        };
+        let first = go(false);
+        let loaded = go(false);
+        assert!(!first.cached && loaded.cached);
+        assert_eq!(first.hash, loaded.hash);
+        assert_eq!(loaded.losses, first.losses);
+        let (a, s) = (actions.as_ref(), states.as_ref());
+        let levels = vec![0.3f32; 16];
+        let mut x = Mat::<f32>::zeros(16, 2);
+        let mut y = Mat::<f32>::zeros(16, 2);
+        first.teacher.clone().score(a, s, &levels, x.as_mut()).unwrap();
+        loaded.teacher.clone().score(a, s, &levels, y.as_mut()).unwrap();
+        assert_eq!(x, y, "a cached teacher scores bit-identically");
+        assert!(!go(true).cached, "--fresh retrains");
+        std::fs::remove_dir_all(&dir).unwrap();
     }
 
     #[test]
