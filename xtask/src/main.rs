@@ -79,14 +79,15 @@ fn command() -> clap::Command {
 
 /// Parses `args` (without the program name). Help requests come back as errors too; clap's
 /// error says which (and how to print it).
-fn parse(args: &[String]) -> Result<Cli, clap::Error> {
+fn parse<S: Into<std::ffi::OsString> + Clone>(args: &[S]) -> Result<Cli, clap::Error> {
     use clap::FromArgMatches;
-    let words = std::iter::once("cargo xtask".to_owned()).chain(args.iter().cloned());
+    let words = std::iter::once("cargo xtask".into()).chain(args.iter().cloned().map(Into::into));
     Cli::from_arg_matches(&command().try_get_matches_from(words)?)
 }
 
 fn main() {
-    let args: Vec<String> = std::env::args().skip(1).collect();
+    // Not `env::args`, which panics on words that are not UTF-8: clap reports them.
+    let args: Vec<std::ffi::OsString> = std::env::args_os().skip(1).collect();
     if args.is_empty() {
         println!("{}", command().render_help());
         return;
@@ -100,7 +101,10 @@ fn main() {
         }
     };
     let result = match cli {
-        Cli::Experiment(a) => experiment::run(&a, &format!("cargo xtask {}", args.join(" "))),
+        Cli::Experiment(a) => {
+            let words: Vec<_> = args.iter().map(|w| w.to_string_lossy()).collect();
+            experiment::run(&a, &format!("cargo xtask {}", words.join(" ")))
+        }
         Cli::Table(a) => report::run_table(&a),
         Cli::Compare(a) => report::run_compare(&a),
         Cli::Bench(Bench::Nn(a)) => bench_nn::run(&a),
@@ -185,6 +189,13 @@ mod tests {
         }
         for bad in ["frobnicate", "bench", "bench gpu", "demos", "compare a", "table --bogus"] {
             assert!(parse(&words(bad)).unwrap_err().use_stderr(), "{bad}");
+        }
+        #[cfg(unix)]
+        {
+            use std::os::unix::ffi::OsStringExt;
+            let not_utf8 = std::ffi::OsString::from_vec(vec![b'x', 0xff]);
+            let args = ["experiment".into(), not_utf8];
+            assert!(parse(&args).unwrap_err().use_stderr(), "an error, not a panic");
         }
     }
 }
