@@ -122,6 +122,8 @@ pub struct Moe<E: Expert = ExpertFamily> {
     work: Vec<f32>,
     /// Acting: raw outputs, mean, scale, noise and action of one state.
     act_work: Vec<f32>,
+    /// The expert chosen for each row of the last `act_into` / `act_batch`.
+    last_experts: Vec<usize>,
 }
 
 impl Moe<ExpertFamily> {
@@ -203,6 +205,7 @@ impl<E: Expert> Moe<E> {
             resp: vec![0.0; z],
             work: vec![0.0; d],
             act_work: Vec::new(),
+            last_experts: Vec::new(),
             config,
         })
     }
@@ -225,6 +228,32 @@ impl<E: Expert> Moe<E> {
     /// Whether the gating is a learned network.
     pub fn has_learned_gating(&self) -> bool {
         self.gating.is_some()
+    }
+
+    /// The expert that produced each row's action in the last
+    /// [`Policy::act_into`](vdd_core::Policy::act_into) (one entry) or
+    /// [`Policy::act_batch`](vdd_core::Policy::act_batch) (one entry per row, in row order) call:
+    /// the expert that acted, not a guess from the action. Empty before the first call (and
+    /// shorter than the batch after a call that failed).
+    ///
+    /// ```
+    /// use vdd_core::Policy;
+    /// use vdd_moe::{Moe, MoeConfig};
+    ///
+    /// let mut moe = Moe::from_config(MoeConfig::toy(2, 1, 4), 0)?;
+    /// let obs = faer::mat![[0.1f32, 0.2], [0.3, 0.4], [0.5, 0.6]];
+    /// let mut actions = faer::Mat::<f32>::zeros(3, 1);
+    /// moe.act_batch(obs.as_ref(), actions.as_mut())?;
+    /// assert_eq!(moe.last_experts().len(), 3);
+    /// // With a uniform gating and mean actions, row b's action is its expert's mean.
+    /// moe.forward(obs.as_ref())?;
+    /// for (b, &z) in moe.last_experts().iter().enumerate() {
+    ///     assert_eq!(actions[(b, 0)], moe.output().mean(b, z)[0]);
+    /// }
+    /// # Ok::<(), Box<dyn std::error::Error>>(())
+    /// ```
+    pub fn last_experts(&self) -> &[usize] {
+        &self.last_experts
     }
 
     /// Sets how [`Policy::act`](vdd_core::Policy::act) picks the expert and the action.

@@ -109,7 +109,18 @@ impl<E: Expert> Moe<E> {
         self.experts_forwarded = false;
         let (z, r, d) = (self.config.num_experts, self.expert.raw_dim(), self.config.action_dim);
         let h = self.config.experts_network.hidden_dim;
-        let Self { experts, expert, rng, out, act_work, act_mode, action_normalizer, .. } = self;
+        let Self {
+            experts,
+            expert,
+            rng,
+            out,
+            act_work,
+            act_mode,
+            action_normalizer,
+            last_experts,
+            ..
+        } = self;
+        last_experts.clear();
         act_work.resize(r + 3 * d + d * d + h, 0.0);
         let (raw, rest) = act_work.split_at_mut(r);
         let (hidden_row, rest) = rest.split_at_mut(h);
@@ -147,6 +158,7 @@ impl<E: Expert> Moe<E> {
                 }
                 pick
             };
+            last_experts.push(e);
             match &mut source {
                 // The kernel the output layer's full forward pass uses on this many rows (a
                 // row kernel for one, a matrix product for more), so the same bits.

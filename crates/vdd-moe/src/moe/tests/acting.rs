@@ -206,6 +206,36 @@ fn greedy_mean_mode_returns_the_most_probable_experts_mean() {
 }
 
 #[test]
+fn last_experts_name_the_expert_that_acted() {
+    for cfg in all_configs(2, 2) {
+        let mut moe = built(cfg, 12);
+        assert!(moe.last_experts().is_empty());
+        let mut used = std::collections::BTreeSet::new();
+        for greedy in [true, false] {
+            moe.set_act_mode(ActMode { greedy_gating: greedy, sample_action: false });
+            moe.seed(5);
+            let obs = obs_batch(8, 2);
+            let mut batch = Mat::<f32>::zeros(8, 2);
+            moe.act_batch(obs.as_ref(), batch.as_mut()).unwrap();
+            let experts = moe.last_experts().to_vec();
+            assert_eq!(experts.len(), 8);
+            used.extend(experts.iter().copied());
+            moe.forward_observations(obs.as_ref()).unwrap();
+            for (b, &z) in experts.iter().enumerate() {
+                let means = denormalized_means(&moe, b);
+                assert_all_close(&[batch[(b, 0)], batch[(b, 1)]], &means[z]);
+                for (other, m) in means.iter().enumerate().filter(|(k, _)| *k != z) {
+                    assert!((m[0] - batch[(b, 0)]).abs() > 1e-3, "expert {other} acts alike");
+                }
+            }
+            moe.act(&[obs[(0, 0)], obs[(0, 1)]]).unwrap();
+            assert_eq!(moe.last_experts().len(), 1, "one entry for one observation");
+        }
+        assert!(used.len() >= 2, "sampled gating uses several experts: {used:?}");
+    }
+}
+
+#[test]
 fn sampled_gating_picks_experts_with_the_gating_probabilities() {
     let mut moe = built(config(2, 2, ExpertKind::Diagonal, GatingKind::Learned, true), 10);
     moe.set_act_mode(ActMode { greedy_gating: false, sample_action: false });
