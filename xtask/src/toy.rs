@@ -24,10 +24,11 @@ use faer::Mat;
 use serde::{Deserialize, Serialize};
 use serde_json::{Value, json};
 use vdd::{DistillData, ExpertWeighting, Vdd, VddConfig, eval};
+use vdd_core::gmm::{Gmm, GmmTeacher};
 use vdd_core::{Affine, NoiseSchedule, ScoreModel, Seeds};
 use vdd_diffusion::{
-    BesoConfig, DdpmConfig, Gmm, GmmTeacher, KarrasSampler, NetConfig, SigmaDistribution,
-    TeacherKind, TimeSampling, TrainConfig, VpSampler,
+    BesoConfig, DdpmConfig, KarrasSampler, NetConfig, SigmaDistribution, TeacherKind, TimeSampling,
+    TrainConfig, VpSampler,
 };
 use vdd_moe::{GatingKind, Moe, MoeConfig};
 use vdd_nn::{AdamConfig, LrSchedule};
