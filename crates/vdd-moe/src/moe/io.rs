@@ -1,5 +1,5 @@
 //! Saving and loading: one `safetensors` file with the weights, the configuration, the
-//! normalisers, the act mode and a fingerprint of the expert family.
+//! normalisers, the act mode, the deployment spec and a fingerprint of the expert family.
 
 use std::collections::BTreeMap;
 use std::path::Path;
@@ -25,6 +25,9 @@ impl Moe<ExpertFamily> {
     }
 }
 
+/// The metadata key of the deployment spec.
+const DEPLOY_SPEC_KEY: &str = "deploy_spec";
+
 fn read_config(path: &Path) -> Result<(MoeConfig, BTreeMap<String, String>), MoeError> {
     let meta = vdd_nn::io::read_metadata(path)?;
     let cfg = meta
@@ -36,8 +39,9 @@ fn read_config(path: &Path) -> Result<(MoeConfig, BTreeMap<String, String>), Moe
 }
 
 impl<E: Expert> Moe<E> {
-    /// Saves weights, configuration, normalisers, act mode and a fingerprint of the expert
-    /// family to one `safetensors` file (atomically), so a deployed policy needs nothing else.
+    /// Saves weights, configuration, normalisers, act mode, deployment spec
+    /// ([`Moe::deploy_spec`]) and a fingerprint of the expert family to one `safetensors` file
+    /// (atomically), so a deployed policy needs nothing else ([`crate::load_policy`]).
     pub fn save(&self, path: &Path) -> Result<(), MoeError> {
         fn json<T: Serialize>(v: &T) -> Result<String, MoeError> {
             serde_json::to_string(v).map_err(|e| MoeError::Config(e.to_string()))
@@ -47,6 +51,7 @@ impl<E: Expert> Moe<E> {
         meta.insert("obs_normalizer".to_owned(), json(&self.obs_normalizer)?);
         meta.insert("action_normalizer".to_owned(), json(&self.action_normalizer)?);
         meta.insert("act_mode".to_owned(), json(&self.act_mode)?);
+        meta.insert(DEPLOY_SPEC_KEY.to_owned(), json(&self.deploy_spec)?);
         meta.insert("expert_family".to_owned(), json(&FamilyFingerprint::of(&self.expert))?);
         vdd_nn::io::save_safetensors(path, self, &meta)?;
         Ok(())
@@ -93,6 +98,13 @@ impl<E: Expert> Moe<E> {
         let act: Option<Affine> = serde_json::from_str(parse("action_normalizer")?).map_err(bad)?;
         moe.act_mode = serde_json::from_str(parse("act_mode")?).map_err(bad)?;
         moe.set_normalizers(obs, act)?;
+        // Files written before the spec existed act on raw observations (the identity spec).
+        if let Some(raw) = meta.get(DEPLOY_SPEC_KEY) {
+            let spec = serde_json::from_str(raw).map_err(|e| {
+                MoeError::Config(format!("metadata `{DEPLOY_SPEC_KEY}` = {raw}: {e}"))
+            })?;
+            moe.set_deploy_spec(spec)?;
+        }
         Ok(moe)
     }
 }

@@ -1,6 +1,7 @@
 //! The mixture of experts `q(a|s) = Σ_z q(z|s) N(a; μ_z(s), L_z(s) L_z(s)ᵀ)`.
 
 mod config;
+mod deploy;
 mod forward;
 mod io;
 mod output;
@@ -9,11 +10,13 @@ mod policy;
 mod tests;
 
 pub use config::{ActMode, GatingKind, MoeConfig, NetworkConfig};
+pub use deploy::{DeployedPolicy, load_policy};
 pub use output::MoeOutput;
 
 use faer::Mat;
 use rand::Rng as _;
 use vdd_core::{Affine, Expert, Rng, Seeds, check_len};
+use vdd_data::DeploySpec;
 use vdd_nn::{Param, Parameters, ResidualMlp, ResidualMlpConfig};
 
 use crate::error::MoeError;
@@ -90,7 +93,7 @@ impl Parameters for ExpertNetworks {
 /// moe.log_likelihood(states.as_ref(), actions.as_ref(), &mut ll)?;
 /// assert!(ll.iter().all(|l| l.is_finite()));
 ///
-/// // One file holds weights, architecture, normalisers and act mode.
+/// // One file holds weights, architecture, normalisers, act mode and deployment spec.
 /// let dir = std::env::temp_dir().join(format!("vdd-moe-doc-{}", std::process::id()));
 /// std::fs::create_dir_all(&dir)?;
 /// let path = dir.join("policy.safetensors");
@@ -112,6 +115,8 @@ pub struct Moe<E: Expert = ExpertFamily> {
     obs_normalizer: Option<Affine>,
     action_normalizer: Option<Affine>,
     act_mode: ActMode,
+    /// How the mixture meets raw observations when deployed (saved with it).
+    deploy_spec: DeploySpec,
     rng: Rng,
     out: MoeOutput,
     experts_forwarded: bool,
@@ -196,6 +201,7 @@ impl<E: Expert> Moe<E> {
             obs_normalizer: None,
             action_normalizer: None,
             act_mode: ActMode::default(),
+            deploy_spec: DeploySpec::identity(),
             rng: seeds.stream("moe-act"),
             out: MoeOutput { num_experts: z, action_dim: d, ..Default::default() },
             experts_forwarded: false,

@@ -5,9 +5,11 @@ use std::collections::BTreeMap;
 
 use faer::{Mat, MatRef};
 use vdd_core::{Affine, CoreError, Policy};
+use vdd_data::DeploySpec;
 use vdd_nn::{Activation, Module, Parameters};
 
 use super::*;
+use crate::DeployedPolicy;
 use crate::error::MoeError;
 use crate::experts::{DiagonalExpert, ExpertKind, FullExpert};
 
