@@ -49,9 +49,10 @@ impl Default for EvalProtocol {
 
 impl EvalProtocol {
     /// The root seed of the evaluation of run seed `run_seed`: the policy seeds of the episodes
-    /// ([`EvalConfig::seed`]) and of the timing ([`us_per_action`](crate::timing::us_per_action)) derive from
-    /// it. It is `Seeds::new(run_seed).child("avoiding-eval")`, independent of every training
-    /// stream of the run.
+    /// ([`EvalConfig::seed`]) and of the timing
+    /// ([`us_per_action`](crate::timing::us_per_action)) derive from it. It is
+    /// `Seeds::new(run_seed).child("avoiding-eval")`, independent of every training stream of
+    /// the run.
     ///
     /// ```
     /// use vdd_tasks::avoiding::EvalProtocol;
