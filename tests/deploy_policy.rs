@@ -4,13 +4,18 @@
 //! Deployment needs nothing but the saved file: the loaded policy must reproduce the
 //! original's rollouts (same seed, sampled gating and actions) and exact log-likelihoods bit
 //! for bit, and damaged files must fail with an error rather than a panic or a wrong policy.
+//! A mixture trained on featured observations (`vdd-data`'s feature maps, named by
+//! `vdd-tasks`' `ObsFeatures`) is saved with its deployment spec, and `vdd_moe::load_policy`
+//! gives a policy on the environment's raw observations whose evaluation (the recipes'
+//! `EvalProtocol`) equals the recipe's wrapping of the original, for any number of threads.
 
 use std::path::PathBuf;
 
 use faer::Mat;
 use vdd_core::{Affine, Policy};
+use vdd_data::{DeploySpec, Windowed};
 use vdd_moe::{ActMode, ExpertKind, GatingKind, Moe, MoeConfig};
-use vdd_tasks::avoiding::{ACTION_DIM, OBS_DIM};
+use vdd_tasks::avoiding::{ACTION_DIM, EvalProtocol, OBS_DIM, ObsFeatures};
 use vdd_tasks::{DemonstratorConfig, generate_demonstrations};
 
 fn scratch(name: &str) -> PathBuf {
@@ -86,4 +91,38 @@ fn damaged_or_mismatched_files_are_errors() {
     // A full-covariance family cannot read diagonal experts' outputs.
     let family = vdd_moe::FullExpert::new(ACTION_DIM, 1.0, 1e-4).unwrap();
     assert!(Moe::load_with_family(&path, family).is_err());
+}
+
+#[test]
+fn a_saved_policy_on_raw_observations_reproduces_the_recipes_evaluation() {
+    // The mixture sees position-and-lag features, normalised by their statistics.
+    let (mut moe, obs, _) = avoiding_policy(ExpertKind::Diagonal);
+    let features = ObsFeatures::PositionAndLag.feature_map();
+    let featured = features.apply_rows(obs.as_ref()).unwrap();
+    let mean: Vec<f32> = (0..OBS_DIM)
+        .map(|j| {
+            (0..featured.nrows()).map(|i| featured[(i, j)]).sum::<f32>() / featured.nrows() as f32
+        })
+        .collect();
+    let act_norm = moe.normalizers().1.cloned();
+    moe.set_normalizers(Some(Affine::new(mean, vec![0.05; OBS_DIM]).unwrap()), act_norm).unwrap();
+    let spec = DeploySpec::identity().with_features(features);
+    moe.set_deploy_spec(spec.clone()).unwrap();
+    let path = scratch("deployed.safetensors");
+    moe.save(&path).unwrap();
+
+    let recipe = Windowed::new(moe.clone(), spec).unwrap();
+    let deployed = vdd_moe::load_policy(&path).unwrap();
+    assert_eq!(deployed.spec(), recipe.spec());
+    let protocol = EvalProtocol { rollouts: 24, lockstep_batch: 8 };
+    let want = protocol.evaluate(&recipe, 3, 1, true).unwrap();
+    for threads in [1, 2] {
+        let got = protocol.evaluate(&deployed, 3, threads, true).unwrap();
+        assert_eq!(got, want, "{threads} thread(s)");
+    }
+    assert!(want.rollouts.iter().all(|r| r.steps > 1));
+    // Without its features the same weights act otherwise: the spec is what makes it deployable.
+    let raw = Moe::load(&path).unwrap();
+    let plain = protocol.evaluate(&raw, 3, 1, true).unwrap();
+    assert_ne!(plain.rollouts, want.rollouts);
 }

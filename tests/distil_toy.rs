@@ -1,4 +1,4 @@
-//! End to end: VDD (`vdd`) distils the exact score of the paper's 2-D toy (`vdd-diffusion`)
+//! End to end: VDD (`vdd`) distils the exact score of the paper's 2-D toy (`vdd_core::gmm`)
 //! into a mixture of experts (`vdd-moe`), for both expert families.
 //!
 //! The run is shorter than the paper's (the full 600-iteration run is
@@ -8,7 +8,7 @@
 use faer::Mat;
 use vdd::{DistillData, Vdd, VddConfig, eval};
 use vdd_core::Seeds;
-use vdd_diffusion::{Gmm, GmmTeacher};
+use vdd_core::gmm::{Gmm, GmmTeacher};
 use vdd_moe::{ExpertKind, Moe, MoeConfig};
 use vdd_nn::LrSchedule;
 

@@ -4,8 +4,8 @@
 //!
 //! Seeds: the demonstrations come from `data.seed` (one fixed dataset for every run seed);
 //! the run seed drives teacher training, student initialisation and training, and the
-//! evaluation rollouts (`Seeds::new(seed).child("avoiding-eval")`, the same for every method of
-//! a seed, so methods are compared on the same episode seeds). Every `seed` field inside the
+//! evaluation rollouts (`vdd_tasks::avoiding::EvalProtocol`: the same episode seeds for every
+//! method of a seed, so methods are compared on the same episodes). Every `seed` field inside the
 //! component configurations is replaced by the run seed.
 
 use std::collections::HashMap;
@@ -19,18 +19,22 @@ use vdd_baselines::{
     CdConfig, CdTrainer, ConsistencyProgress, CtmConfig, CtmTrainer, Dataset, Em, EmConfig, Imc,
     ImcConfig,
 };
-use vdd_core::{Affine, Seeds};
-use vdd_data::{Episodes, Normalization, NormalizationKind, SequenceDataset, WindowConfig};
+use vdd_core::{Affine, Policy};
+use vdd_data::{
+    DeploySpec, Episodes, Normalization, NormalizationKind, SequenceDataset, WindowConfig, Windowed,
+};
 use vdd_diffusion::{BesoConfig, DiffusionTeacher, TeacherKind};
 use vdd_moe::{ActMode, GatingKind, Moe, MoeConfig};
 use vdd_nn::LrSchedule;
-use vdd_tasks::avoiding::rollout::{EvalConfig, Evaluation, Stepping, evaluate_cloned};
+use vdd_tasks::avoiding::rollout::Evaluation;
+use vdd_tasks::avoiding::{EvalProtocol, ObsFeatures};
+use vdd_tasks::timing::{Timing, us_per_action};
 use vdd_tasks::{DemonstratorConfig, generate_demonstrations};
 
 use crate::context::{RunContext, StageTimes};
 use crate::methods::{self, Method};
 use crate::plots::{self, Curves, TrajectoryPanel};
-use crate::policy::{Timing, TrainedPolicy, Windowed, us_per_action};
+use crate::policy::TrainedPolicy;
 use crate::recipe;
 use crate::report::{self, Row};
 use crate::student_cache::{CachedStudent, StudentCache};
@@ -88,41 +92,11 @@ pub struct AvoidingData {
     pub execute_steps: usize,
     /// Also train on the first `W − 1` steps with the window padded by the first observation.
     pub pad_start: bool,
-    /// What the models see of each observation ([`ObsFeatures`]).
+    /// What the models see of each observation ([`ObsFeatures`], a registered feature map
+    /// saved with the models in their deployment spec).
     pub features: ObsFeatures,
     /// The scripted demonstrator.
     pub demonstrator: DemonstratorConfig,
-}
-
-/// The observation features the models see: a fixed, invertible linear map of the task's
-/// observation applied to demonstrations and, by [`Windowed`], at every rollout step.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, Default)]
-#[serde(rename_all = "snake_case")]
-pub enum ObsFeatures {
-    /// The task's observation: previous desired position and current position `(d, c)`.
-    Raw,
-    /// The current position and the tracking lag `(c, d − c)`. The lag is the end effector's
-    /// velocity (about one step's length, ~5 mm) and sets the next action, but under a
-    /// per-dimension normalisation of `(d, c)` it is the small difference of two large,
-    /// nearly equal inputs. Given explicitly, it is normalised to unit scale of its own.
-    #[default]
-    PositionAndLag,
-}
-
-impl ObsFeatures {
-    /// The map applied in place to one observation, `None` for the identity.
-    pub fn map(self) -> Option<fn(&mut [f32])> {
-        match self {
-            ObsFeatures::Raw => None,
-            ObsFeatures::PositionAndLag => Some(position_and_lag),
-        }
-    }
-}
-
-/// `(d_x, d_y, c_x, c_y) → (c_x, c_y, d_x − c_x, d_y − c_y)`.
-fn position_and_lag(obs: &mut [f32]) {
-    let (d, c) = ([obs[0], obs[1]], [obs[2], obs[3]]);
-    obs.copy_from_slice(&[c[0], c[1], d[0] - c[0], d[1] - c[1]]);
 }
 
 /// VDD's trainer for each teacher, and how the student acts.
@@ -188,11 +162,16 @@ pub struct AvoidingEval {
     /// Untimed calls before timing.
     pub timing_warmup: usize,
     /// The shortest timing round in milliseconds: a fast policy makes more than
-    /// `timing_calls / 5` calls a round (see `policy::us_per_action`).
+    /// `timing_calls / 5` calls a round (see `vdd_tasks::timing::us_per_action`).
     pub timing_min_round_ms: f64,
 }
 
 impl AvoidingEval {
+    /// The rollouts' protocol (episodes and lockstep batch; the seed comes from the run seed).
+    fn protocol(&self) -> EvalProtocol {
+        EvalProtocol { rollouts: self.rollouts, lockstep_batch: self.lockstep_batch }
+    }
+
     /// The settings of `us_per_action`.
     fn timing(&self) -> Timing {
         Timing {
@@ -283,6 +262,18 @@ pub fn vdd_config_for(c: &VddConfig, seed: u64, follow: bool) -> VddConfig {
     c
 }
 
+/// How the models of a recipe act on raw observations: saved with the mixtures, applied to
+/// every method's rollouts.
+fn deploy_spec(data: &AvoidingData) -> DeploySpec {
+    DeploySpec {
+        obs_window: data.obs_window,
+        action_chunk: data.action_chunk,
+        execute_steps: data.execute_steps,
+        ..DeploySpec::identity()
+    }
+    .with_features(data.features.feature_map())
+}
+
 /// Demonstrations turned into training matrices.
 struct Prepared {
     /// Raw windows of the training split (`n x W·4`, `n x C·2`).
@@ -312,12 +303,13 @@ fn prepare(data: &AvoidingData) -> crate::XResult<Prepared> {
     // Raw observations of the training episodes (timing feeds them through the policy, which
     // applies the features itself); the models train on the features.
     let (episodes_obs, episode_actions) = train.to_episode_matrices();
-    let train = match data.features.map() {
-        None => train,
-        Some(f) => {
-            let obs = episodes_obs.iter().map(|o| map_rows(o, f)).collect();
-            Episodes::from_episodes(obs, episode_actions)?
-        }
+    let features = data.features.feature_map();
+    let train = if features.is_identity() {
+        train
+    } else {
+        let obs: Result<Vec<_>, _> =
+            episodes_obs.iter().map(|o| features.apply_rows(o.as_ref())).collect();
+        Episodes::from_episodes(obs?, episode_actions)?
     };
     let window =
         WindowConfig::new(data.obs_window, data.action_chunk).with_pad_start(data.pad_start);
@@ -352,22 +344,6 @@ fn prepare(data: &AvoidingData) -> crate::XResult<Prepared> {
     Ok(Prepared { states, actions, norm, states_n, actions_n, episodes_obs, summary, data_hash })
 }
 
-/// `f` applied to each row of `m`.
-fn map_rows(m: &Mat<f32>, f: fn(&mut [f32])) -> Mat<f32> {
-    let mut out = m.clone();
-    let mut row = vec![0.0f32; m.ncols()];
-    for i in 0..m.nrows() {
-        for (j, x) in row.iter_mut().enumerate() {
-            *x = m[(i, j)];
-        }
-        f(&mut row);
-        for (j, x) in row.iter().enumerate() {
-            out[(i, j)] = *x;
-        }
-    }
-    out
-}
-
 /// Repeats a per-step normaliser over a window of `k` steps.
 fn tile(a: &Affine, k: usize) -> Affine {
     Affine { offset: a.offset.repeat(k), scale: a.scale.repeat(k) }
@@ -383,8 +359,6 @@ struct Trained {
     train_seconds: f64,
     teacher_seconds: Option<f64>,
     sampling_steps: Option<usize>,
-    /// Observation / action normalisers of a mixture (to recover the expert chosen per step).
-    moe_norms: Option<(Affine, Affine)>,
     curves: Curves,
 }
 
@@ -456,7 +430,6 @@ fn train_method(
                 policy: TrainedPolicy::Teacher(Box::new(teacher)),
                 train_seconds: t.train_seconds,
                 teacher_seconds: None,
-                moe_norms: None,
                 curves,
             })
         }
@@ -524,7 +497,7 @@ fn train_method(
                 }
             };
             let CachedStudent { mut student, train_seconds, curves } = trained;
-            student.set_normalizers(Some(sn.clone()), Some(an.clone()))?;
+            student.set_normalizers(Some(sn), Some(an))?;
             student.set_act_mode(ActMode {
                 greedy_gating: cfg.vdd.greedy_gating,
                 sample_action: cfg.vdd.sample_action,
@@ -534,7 +507,6 @@ fn train_method(
                 train_seconds,
                 teacher_seconds: Some(teacher_seconds),
                 sampling_steps: None,
-                moe_norms: Some((sn, an)),
                 curves,
             })
         }
@@ -594,13 +566,12 @@ fn train_method(
                 imc.into_student()
             };
             let train_seconds = t0.elapsed().as_secs_f64();
-            student.set_normalizers(Some(sn.clone()), Some(an.clone()))?;
+            student.set_normalizers(Some(sn), Some(an))?;
             Ok(Trained {
                 policy: TrainedPolicy::Moe(Box::new(student)),
                 train_seconds,
                 teacher_seconds: None,
                 sampling_steps: None,
-                moe_norms: Some((sn, an)),
                 curves,
             })
         }
@@ -649,7 +620,6 @@ fn train_method(
                 train_seconds: t0.elapsed().as_secs_f64(),
                 teacher_seconds: Some(teacher_seconds),
                 sampling_steps: Some(steps),
-                moe_norms: None,
                 curves,
             })
         }
@@ -661,8 +631,6 @@ fn train_method(
     }
 }
 
-/// For each step of each recorded rollout, the expert whose mean (denormalised) is nearest to
-/// the applied action: the expert the mixture chose (it acts with the chosen expert's mean).
 /// Distils `teacher` into a new mixture of configuration `mc` with VDD (the states and actions
 /// normalised by the teacher's normalisers), with a progress bar and learning curves.
 #[allow(clippy::too_many_arguments)]
@@ -706,44 +674,83 @@ fn distill(
     Ok(CachedStudent { student: vdd.into_student(), train_seconds, curves })
 }
 
+/// For each step of each of the first `n` recorded rollouts of `eval`, the expert the mixture
+/// inside `policy` acted with ([`vdd_moe::Moe::last_experts`]): the evaluation units holding
+/// those rollouts run again on this thread with a copy of the policy (the same seeds, so the
+/// same rollouts, which is checked). Needs a mixture asked at every step for every row
+/// (observation window and action chunk 1).
 fn chosen_experts(
-    moe: &mut Moe,
-    norms: &(Affine, Affine),
-    features: ObsFeatures,
+    policy: &Windowed<TrainedPolicy>,
+    protocol: EvalProtocol,
+    seed: u64,
     eval: &Evaluation,
     n: usize,
 ) -> crate::XResult<Vec<Vec<usize>>> {
-    let (sn, an) = norms;
-    let mut out = Vec::new();
-    for r in eval.rollouts.iter().take(n) {
-        let Some(tr) = &r.trajectory else {
-            out.push(Vec::new());
-            continue;
-        };
-        let states = match features.map() {
-            Some(f) => normalize_rows(&map_rows(&tr.observations, f), sn),
-            None => normalize_rows(&tr.observations, sn),
-        };
-        moe.forward(states.as_ref())?;
-        let o = moe.output();
-        let mut ids = Vec::with_capacity(tr.actions.nrows());
-        let mut mean = vec![0.0f32; o.action_dim];
-        for t in 0..tr.actions.nrows() {
-            let mut best = (f32::INFINITY, 0);
-            for z in 0..o.num_experts {
-                mean.copy_from_slice(o.mean(t, z));
-                an.denormalize(&mut mean);
-                let d: f32 =
-                    (0..o.action_dim).map(|j| (mean[j] - tr.actions[(t, j)]).powi(2)).sum();
-                if d < best.0 {
-                    best = (d, z);
-                }
-            }
-            ids.push(best.1);
-        }
-        out.push(ids);
+    let unit = protocol.lockstep_batch.max(1);
+    let rollouts = n.div_ceil(unit).saturating_mul(unit).min(protocol.rollouts);
+    let cfg = EvalProtocol { rollouts, ..protocol }.config(seed, true);
+    let mut log = ExpertLog { policy: policy.clone(), units: Vec::new() };
+    let again = vdd_tasks::evaluate(&mut log, &cfg)?;
+    if eval.rollouts.get(..rollouts) != Some(&again.rollouts[..]) {
+        return Err("internal: the rollouts did not replay for expert attribution".into());
+    }
+    let mut out = Vec::with_capacity(n);
+    for (i, r) in again.rollouts.iter().take(n).enumerate() {
+        let steps = log.units.get(i / unit).map_or(&[][..], |u| &u[..]);
+        let ids: Option<Vec<usize>> =
+            (0..r.steps).map(|t| steps.get(t)?.get(i % unit).copied()).collect();
+        out.push(ids.ok_or("internal: the mixture did not act for every row and step")?);
     }
     Ok(out)
+}
+
+/// A policy that logs, for each evaluation unit (from one `reset` to the next) and each call,
+/// the expert of each row ([`vdd_moe::Moe::last_experts`]; nothing for other policies).
+struct ExpertLog {
+    policy: Windowed<TrainedPolicy>,
+    units: Vec<Vec<Vec<usize>>>,
+}
+
+impl ExpertLog {
+    fn log(&mut self) {
+        let experts = match self.policy.inner() {
+            TrainedPolicy::Moe(moe) => moe.last_experts().to_vec(),
+            _ => Vec::new(),
+        };
+        if let Some(unit) = self.units.last_mut() {
+            unit.push(experts);
+        }
+    }
+}
+
+impl Policy for ExpertLog {
+    fn obs_dim(&self) -> usize {
+        self.policy.obs_dim()
+    }
+    fn action_dim(&self) -> usize {
+        self.policy.action_dim()
+    }
+    fn reset(&mut self) {
+        self.policy.reset();
+        self.units.push(Vec::new());
+    }
+    fn seed(&mut self, seed: u64) {
+        self.policy.seed(seed);
+    }
+    fn act_into(&mut self, obs: &[f32], action: &mut [f32]) -> vdd_core::Result<()> {
+        self.policy.act_into(obs, action)?;
+        self.log();
+        Ok(())
+    }
+    fn act_batch(
+        &mut self,
+        obs: faer::MatRef<'_, f32>,
+        actions: faer::MatMut<'_, f32>,
+    ) -> vdd_core::Result<()> {
+        self.policy.act_batch(obs, actions)?;
+        self.log();
+        Ok(())
+    }
 }
 
 /// Runs the recipe.
@@ -764,16 +771,7 @@ pub fn run(ctx: &RunContext) -> crate::XResult {
         }
         // Before any training: a bad timing setting would otherwise fail after it.
         cfg.eval.timing().check().map_err(|e| format!("eval: {e}"))?;
-        if cfg.data.obs_window == 0
-            || cfg.data.action_chunk == 0
-            || cfg.data.execute_steps == 0
-            || cfg.data.execute_steps > cfg.data.action_chunk
-        {
-            return Err(
-                "data: need obs_window, action_chunk >= 1 and 1 <= execute_steps <= action_chunk"
-                    .into(),
-            );
-        }
+        deploy_spec(&cfg.data).validate().map_err(|e| format!("data: {e}"))?;
     }
     let dir = ctx.run_dir(&base.seeds);
     ctx.write_resolved(&dir, &resolved.to_toml()?)?;
@@ -910,54 +908,39 @@ pub fn run(ctx: &RunContext) -> crate::XResult {
     let mut curve_panels: Vec<(String, Curves)> = Vec::new();
     for (si, &seed) in base.seeds.iter().enumerate() {
         // Rollouts and timing use the same seed for every method of a run seed.
-        let eval_seed = Seeds::new(seed).child("avoiding-eval").root();
+        let eval_seed = EvalProtocol::seed(seed);
         let mut timed: Vec<(usize, Windowed<TrainedPolicy>)> = Vec::with_capacity(plan.len());
         for (pi, (label, method, cfg)) in plan.iter().enumerate() {
             let prep = &prepared[&dkeys[pi]];
             let tag = format!("{label} s{seed}");
-            let trained = match trained.remove(&(si, pi)) {
+            let mut trained = match trained.remove(&(si, pi)) {
                 Some(t) => t,
                 None => train_method(*method, cfg, prep, seed, &store, students, &tag)?,
             };
 
-            // Rollouts.
+            // Rollouts, on raw observations through the recipe's features and windows.
             let d = &cfg.data;
-            let mut wrapped = Windowed::new(
-                trained.policy.clone(),
-                d.obs_window,
-                d.action_chunk,
-                d.execute_steps,
-            )?;
-            if let Some(f) = d.features.map() {
-                wrapped = wrapped.with_features(f);
+            let spec = deploy_spec(d);
+            if let TrainedPolicy::Moe(moe) = &mut trained.policy {
+                moe.set_deploy_spec(spec.clone())?;
             }
-            let stepping = match cfg.eval.lockstep_batch {
-                0 => Stepping::PerEpisode,
-                b => Stepping::Lockstep { batch_size: b },
-            };
-            let ec = EvalConfig {
-                n_rollouts: cfg.eval.rollouts,
-                seed: eval_seed,
-                stepping,
-                record: si == 0 && cfg.plots.enabled,
-            };
+            let wrapped = Windowed::new(trained.policy.clone(), spec)?;
+            let protocol = cfg.eval.protocol();
+            let record = si == 0 && cfg.plots.enabled;
             let spin = crate::progress::spinner(&tag, &format!("{} rollouts", cfg.eval.rollouts));
             let t0 = Instant::now();
-            let ev = evaluate_cloned(&wrapped, threads, &ec)?;
+            let ev = protocol.evaluate(&wrapped, seed, threads, record)?;
             let eval_seconds = t0.elapsed().as_secs_f64();
             stages.add("rollouts", eval_seconds);
             spin.finish_and_clear();
 
-            // The distilled / fitted mixtures are saved for deployment (`Moe::load`); they
-            // expect the recipe's observation features (`data.features`).
+            // The distilled / fitted mixtures are saved for deployment with their spec
+            // (`vdd_moe::load_policy` gives a policy on raw observations).
             if let TrainedPolicy::Moe(moe) = &trained.policy {
                 let models = dir.join("models");
                 std::fs::create_dir_all(&models)?;
                 moe.save(&models.join(format!("{label}-s{seed}.safetensors")))?;
             }
-
-            // Timed below, with the seed's other methods.
-            timed.push((pi, wrapped));
 
             let m = &ev.metrics;
             crate::progress::log(format!(
@@ -993,15 +976,9 @@ pub fn run(ctx: &RunContext) -> crate::XResult {
             if si == 0 && cfg.plots.enabled {
                 let t0 = Instant::now();
                 let n = cfg.plots.trajectories;
-                let experts = match (&trained.policy, &trained.moe_norms) {
-                    (TrainedPolicy::Moe(moe), Some(norms))
-                        if d.obs_window == 1 && d.action_chunk == 1 =>
-                    {
-                        let mut moe = moe.as_ref().clone();
-                        Some((
-                            chosen_experts(&mut moe, norms, d.features, &ev, n)?,
-                            moe.num_experts(),
-                        ))
+                let experts = match &trained.policy {
+                    TrainedPolicy::Moe(moe) if d.obs_window == 1 && d.action_chunk == 1 => {
+                        Some((chosen_experts(&wrapped, protocol, seed, &ev, n)?, moe.num_experts()))
                     }
                     _ => None,
                 };
@@ -1016,6 +993,9 @@ pub fn run(ctx: &RunContext) -> crate::XResult {
                 curve_panels.push((label.clone(), trained.curves));
                 stages.add("plots", t0.elapsed().as_secs_f64());
             }
+
+            // Timed below, with the seed's other methods.
+            timed.push((pi, wrapped));
         }
 
         // Inference time, single-threaded, one observation per call, with nothing else running:
@@ -1133,17 +1113,6 @@ fn yes(b: bool) -> &'static str {
 #[cfg(test)]
 mod tests {
     use super::*;
-
-    #[test]
-    fn position_and_lag_features_are_position_and_desired_minus_current() {
-        let mut o = [0.5f32, -0.2, 0.49, -0.25];
-        ObsFeatures::PositionAndLag.map().unwrap()(&mut o);
-        assert_eq!(o, [0.49, -0.25, 0.5 - 0.49, -0.2 - -0.25]);
-        assert!(ObsFeatures::Raw.map().is_none());
-        let m = faer::mat![[1.0f32, 2.0, 0.5, 1.0], [0.0, 0.0, 0.0, 0.0]];
-        let f = map_rows(&m, position_and_lag);
-        assert_eq!(f, faer::mat![[0.5f32, 1.0, 0.5, 1.0], [0.0, 0.0, 0.0, 0.0]]);
-    }
 
     #[test]
     fn the_defaults_file_is_complete_and_valid() {

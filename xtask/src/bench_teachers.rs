@@ -36,11 +36,12 @@ use std::time::Instant;
 
 use faer::Mat;
 use rand::Rng as _;
+use vdd_core::gmm::{Gmm, GmmTeacher};
 use vdd_core::{Policy, ScoreModel, Seeds};
 use vdd_diffusion::metrics::{mean_cosine_similarity, mmd2_rbf, nearest_mode_counts};
 use vdd_diffusion::{
-    BesoConfig, DdpmConfig, DiffusionTeacher, Gmm, GmmTeacher, KarrasSampler, NetConfig,
-    SigmaDistribution, TeacherKind, TimeSampling, TrainConfig, VpSampler,
+    BesoConfig, DdpmConfig, DiffusionTeacher, KarrasSampler, NetConfig, SigmaDistribution,
+    TeacherKind, TimeSampling, TrainConfig, VpSampler,
 };
 
 use crate::teachers::{self, BesoTeacherConfig, DdpmTeacherConfig, TeachersConfig};

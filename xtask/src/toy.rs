@@ -24,8 +24,9 @@ use faer::Mat;
 use serde::{Deserialize, Serialize};
 use serde_json::{Value, json};
 use vdd::{DistillData, Vdd, VddConfig, eval};
+use vdd_core::gmm::{Gmm, GmmTeacher};
 use vdd_core::{Affine, ScoreModel, Seeds};
-use vdd_diffusion::{Gmm, GmmTeacher, TeacherKind};
+use vdd_diffusion::TeacherKind;
 use vdd_moe::{Moe, MoeConfig};
 
 use crate::avoiding::vdd_config_for;

@@ -5,6 +5,9 @@
 //! * [`ScoreModel`]: a teacher policy seen through its score `∇_a log π_σ(a|s)`;
 //! * [`Expert`]: a Gaussian expert family (raw network outputs ↔ mean and scale);
 //! * [`Policy`]: anything that acts, from demonstrators to the distilled mixture;
+//! * [`gmm`]: the exact Gaussian mixture ([`gmm::GmmTeacher`]), a `ScoreModel` known in closed
+//!   form at every noise level: the toys' teacher and the reference the learned teachers and
+//!   the trainers are tested against;
 //! * shared helpers: [`Seeds`] (independent ChaCha streams per purpose), Gaussian kernels in
 //!   [`gaussian`], element-wise [`lanes`] kernels for batched mixtures, shape and finiteness checks, and [`CoreError`].
 //!
@@ -14,6 +17,7 @@
 mod error;
 mod expert;
 pub mod gaussian;
+pub mod gmm;
 pub mod lanes;
 mod normalize;
 mod policy;

@@ -98,6 +98,27 @@ pub enum DataError {
     /// A serialised normalisation could not be parsed.
     #[error("malformed normalisation: {0}")]
     Json(String),
+    /// A feature map name and version the [registry](crate::features::registry) does not hold.
+    #[error("unknown feature map `{name}` version {version} (known: {known})")]
+    UnknownFeatureMap {
+        /// The name asked for.
+        name: String,
+        /// The version asked for.
+        version: u32,
+        /// The registered maps, comma-separated (`name vN`).
+        known: String,
+    },
+    /// A setting of a deployment spec ([`crate::DeploySpec`]) or a feature map that is out of
+    /// range or does not fit the policy: names the setting and its value.
+    #[error("`{key}` = {value}: {reason}")]
+    Spec {
+        /// The setting (`features`, `obs_window`, `action_chunk` or `execute_steps`).
+        key: &'static str,
+        /// Its value.
+        value: String,
+        /// What is wrong with it.
+        reason: String,
+    },
     /// An error from the core crate (e.g. an invalid `Affine`).
     #[error(transparent)]
     Core(#[from] CoreError),

@@ -12,6 +12,10 @@
 //!   a [`vdd_core::Affine`] for observations and one for actions, serialisable with serde;
 //! * [`SequenceDataset`]: observation windows and action chunks as BESO / D3IL use them (the
 //!   convention is documented in [`window`]);
+//! * [`features`]: named, versioned observation feature maps (`identity`, `position_and_lag`),
+//!   looked up by name and version;
+//! * [`DeploySpec`] and [`Windowed`]: how a policy trained on featured windows and chunks acts
+//!   on raw observations, one action per step (the spec is saved with models);
 //! * [`Batcher`]: a seeded, shuffling minibatch iterator over any [`BatchSource`] that fills
 //!   two reusable buffers instead of allocating per batch; [`MatrixDataset`] adapts plain
 //!   `(state, action)` matrices.
@@ -56,6 +60,7 @@
 mod batch;
 mod episodes;
 mod error;
+pub mod features;
 pub mod io;
 mod normalize;
 mod npy;
@@ -66,4 +71,4 @@ pub use episodes::{Episodes, TrainValSplit};
 pub use error::{DataError, Result};
 pub use io::{Layout, LoadOptions};
 pub use normalize::{Normalization, NormalizationKind};
-pub use window::{SamplePosition, SequenceDataset, WindowConfig};
+pub use window::{DeploySpec, SamplePosition, SequenceDataset, WindowConfig, Windowed};

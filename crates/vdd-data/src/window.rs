@@ -17,9 +17,20 @@
 //! the episode yields `max(0, T_i - C + 1)` samples. Actions are never padded.
 //!
 //! Samples are numbered episode by episode, `t` increasing.
+//!
+//! # Acting
+//!
+//! A policy trained on such samples predicts from a window and returns a chunk. [`Windowed`]
+//! turns it into a policy on raw observations, one action per step, by a [`DeploySpec`]
+//! (feature map, `W`, `C`, and how many actions of each chunk to execute): it keeps the last
+//! `W` observations, repeating the first at the start of an episode as `pad_start` does.
 
 use faer::{Mat, MatMut};
 use serde::{Deserialize, Serialize};
+
+mod deploy;
+
+pub use deploy::{DeploySpec, Windowed};
 
 use crate::batch::BatchSource;
 use crate::episodes::Episodes;

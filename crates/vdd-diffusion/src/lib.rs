@@ -12,7 +12,8 @@
 //!   log-logistic training `σ`, the Karras `σ` schedule and Euler / Heun / Euler-ancestral /
 //!   DDIM samplers with any number of steps (1: BESO-1). Score `(D(a; σ, s) − a)/σ²` (noise
 //!   convention `σ`).
-//! * [`GmmTeacher`]: an exact Gaussian mixture, state-conditioned or not.
+//! * [`GmmTeacher`]: an exact Gaussian mixture, state-conditioned or not (defined in
+//!   [`vdd_core::gmm`], re-exported here with the other teachers).
 //!
 //! Both learned teachers are [`LearnedTeacher`]s — one type holds what they share (normalisers,
 //! network and EMA weights, training, save / load, the `ScoreModel` and `Policy`
@@ -62,7 +63,6 @@ mod beso;
 mod common;
 mod ddpm;
 mod error;
-pub mod gmm;
 mod learned;
 pub mod metrics;
 mod net;
@@ -77,7 +77,6 @@ mod train;
 pub use beso::{Beso, BesoConfig, SigmaDistribution};
 pub use ddpm::{Ddpm, DdpmConfig, MIN_TIME, TimeSampling};
 pub use error::{DiffusionError, Result};
-pub use gmm::{Gmm, GmmTeacher};
 pub use learned::LearnedTeacher;
 pub use net::{DenoiserNet, NetConfig, NoiseEmbedding};
 pub use normalize::{NormalizerKind, fit_normalizer};
@@ -85,3 +84,4 @@ pub use sampling::{KarrasSampler, SamplerBuffers, VpSampler, heun_step, sample_k
 pub use schedule::{BetaSchedule, Preconditioning, VpSchedule, karras_sigmas, karras_sigmas_into};
 pub use teacher::{DiffusionTeacher, TeacherKind};
 pub use train::{TrainConfig, TrainProgress};
+pub use vdd_core::gmm::{self, Gmm, GmmTeacher};

@@ -16,6 +16,10 @@ pub enum MoeError {
     /// activation) than the one it is being loaded with.
     #[error("expert family mismatch: {0}")]
     FamilyMismatch(String),
+    /// A deployment spec that is invalid or does not fit the mixture (the source names the
+    /// setting and its value).
+    #[error("invalid deployment spec: {0}")]
+    Deploy(#[from] vdd_data::DataError),
     /// A backward pass was called before the forward pass whose outputs it differentiates.
     #[error("{0} called before the matching forward pass")]
     NoForward(&'static str),

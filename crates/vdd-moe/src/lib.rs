@@ -8,6 +8,11 @@
 //!
 //! Expert families: [`DiagonalExpert`], [`FullExpert`] (full Cholesky), or [`ExpertFamily`] to
 //! choose either by one config value ([`ExpertKind`]); any [`vdd_core::Expert`] works.
+//!
+//! Deployment: [`Moe::save`] writes one `safetensors` file with the weights, the normalisers,
+//! the act mode and the deployment spec ([`vdd_data::DeploySpec`]: observation feature map,
+//! window, chunk, executed steps); [`load_policy`] loads it as a [`DeployedPolicy`] that acts on
+//! raw environment observations.
 #![warn(missing_docs)]
 
 mod error;
@@ -16,4 +21,7 @@ mod moe;
 
 pub use error::MoeError;
 pub use experts::{DiagonalExpert, ExpertFamily, ExpertKind, FullExpert};
-pub use moe::{ActMode, ExpertNetworks, GatingKind, Moe, MoeConfig, MoeOutput, NetworkConfig};
+pub use moe::{
+    ActMode, DeployedPolicy, ExpertNetworks, GatingKind, Moe, MoeConfig, MoeOutput, NetworkConfig,
+    load_policy,
+};

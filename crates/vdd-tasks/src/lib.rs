@@ -7,7 +7,10 @@
 //! * [`avoiding`]: the planar Avoiding task (after D3IL): the environment ([`AvoidingEnv`]),
 //!   seeded single, batched (lockstep) and parallel rollouts of any [`vdd_core::Policy`] with
 //!   success rate, task entropy and mode histogram ([`avoiding::rollout`]), and a scripted
-//!   multimodal demonstrator with demonstration generation ([`avoiding::demonstrator`]).
+//!   multimodal demonstrator with demonstration generation ([`avoiding::demonstrator`]); the
+//!   recipes' evaluation protocol ([`avoiding::EvalProtocol`]) and observation features
+//!   ([`avoiding::ObsFeatures`], from the `vdd_data::features` registry);
+//! * [`timing`]: µs per action of policies timed together ([`timing::us_per_action`]).
 //!
 //! Errors are [`TaskError`]; shape and finiteness violations found by the `vdd_core` helpers are
 //! wrapped in [`TaskError::Core`].
@@ -31,6 +34,7 @@
 
 pub mod avoiding;
 mod error;
+pub mod timing;
 pub mod toy;
 
 pub use avoiding::demonstrator::{

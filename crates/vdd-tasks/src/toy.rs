@@ -99,7 +99,7 @@ impl CircleGmm {
         Self { n_modes: 4, radius: 2.0, std: 0.5, rotating: true }
     }
 
-    /// The task's exact teacher: the mixture itself as a [`vdd_diffusion::GmmTeacher`], whose
+    /// The task's exact teacher: the mixture itself as a [`vdd_core::gmm::GmmTeacher`], whose
     /// noise-smoothed score is exact at every noise level (1-D state, 2-D actions).
     ///
     /// ```
@@ -107,12 +107,12 @@ impl CircleGmm {
     /// let teacher = vdd_tasks::toy::CircleGmm::toy_gmm().teacher().unwrap();
     /// assert_eq!((teacher.state_dim(), teacher.action_dim()), (1, 2));
     /// ```
-    pub fn teacher(&self) -> Result<vdd_diffusion::GmmTeacher> {
+    pub fn teacher(&self) -> Result<vdd_core::gmm::GmmTeacher> {
         Ok(if self.rotating {
-            vdd_diffusion::GmmTeacher::rotating_toy(self.n_modes, self.radius, self.std)?
+            vdd_core::gmm::GmmTeacher::rotating_toy(self.n_modes, self.radius, self.std)?
         } else {
-            let gmm = vdd_diffusion::Gmm::circle(self.n_modes, self.radius, self.std, 0.0)?;
-            vdd_diffusion::GmmTeacher::fixed(gmm, 1)
+            let gmm = vdd_core::gmm::Gmm::circle(self.n_modes, self.radius, self.std, 0.0)?;
+            vdd_core::gmm::GmmTeacher::fixed(gmm, 1)
         })
     }
 

@@ -32,8 +32,10 @@
 //!   level's obstacle centres left of the crossing `x` (linearly interpolated within the step).
 //!   A collision-free crossing cannot be ambiguous, since it passes outside every disc.
 //!
-//! Rollouts of any [`vdd_core::Policy`] live in [`rollout`]; the scripted multimodal
-//! demonstrator and demonstration generation in [`demonstrator`].
+//! Rollouts of any [`vdd_core::Policy`] live in [`rollout`], and the recipes' evaluation of a
+//! run ([`EvalProtocol`]: episodes, seeds, lockstep batches) in [`protocol`]; the observation
+//! features the recipes' models see in [`ObsFeatures`]; the scripted multimodal demonstrator
+//! and demonstration generation in [`demonstrator`].
 //!
 //! ```
 //! use vdd_tasks::avoiding::{AvoidingEnv, Status, START};
@@ -54,7 +56,12 @@ use vdd_core::{CoreError, check_len};
 use crate::{Result, TaskError};
 
 pub mod demonstrator;
+mod features;
+pub mod protocol;
 pub mod rollout;
+
+pub use features::ObsFeatures;
+pub use protocol::EvalProtocol;
 
 /// Start position of the end effector (and of the desired position).
 pub const START: [f32; 2] = [0.525, -0.28];

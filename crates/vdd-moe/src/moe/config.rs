@@ -1,0 +1,109 @@
+//! The mixture's architecture and how it acts: [`MoeConfig`], [`NetworkConfig`],
+//! [`GatingKind`], [`ActMode`].
+
+use serde::{Deserialize, Serialize};
+use vdd_core::CoreError;
+use vdd_nn::Activation;
+
+use crate::experts::ExpertKind;
+
+/// Shape of one residual MLP (experts or gating).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct NetworkConfig {
+    /// Width of the residual stream.
+    pub hidden_dim: usize,
+    /// Number of two-layer residual blocks.
+    pub num_blocks: usize,
+    /// Nonlinearity.
+    pub activation: Activation,
+}
+
+impl Default for NetworkConfig {
+    /// The paper's toy network: Mish, 64 wide, one residual block (two hidden layers).
+    fn default() -> Self {
+        Self { hidden_dim: 64, num_blocks: 1, activation: Activation::Mish }
+    }
+}
+
+/// How the gating `q(z|s)` is represented.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, Default)]
+#[serde(rename_all = "snake_case")]
+pub enum GatingKind {
+    /// Fixed `q(z|s) = 1/Z` (higher diversity in the paper's ablation).
+    #[default]
+    Uniform,
+    /// A softmax over the logits of a network of the state.
+    Learned,
+}
+
+/// Everything that defines a mixture's architecture and initialisation.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct MoeConfig {
+    /// Dimension of the (normalised) state the networks see.
+    pub state_dim: usize,
+    /// Dimension of an action (a flattened chunk for chunked policies).
+    pub action_dim: usize,
+    /// Number of experts `Z`.
+    pub num_experts: usize,
+    /// Diagonal or full-covariance experts.
+    pub expert_kind: ExpertKind,
+    /// Standard deviation of every expert at initialisation.
+    pub init_std: f32,
+    /// Lower bound of every expert's standard deviations.
+    pub min_std: f32,
+    /// Network producing the experts' means and scales.
+    pub experts_network: NetworkConfig,
+    /// One trunk emitting all experts' outputs (`true`) or one network per expert (`false`).
+    pub shared_trunk: bool,
+    /// Gating representation.
+    pub gating: GatingKind,
+    /// Network producing the gating logits (when learned).
+    pub gating_network: NetworkConfig,
+    /// Mean output biases are initialised `U[−w, w]` with this half-width `w` (the official
+    /// code's `U[−0.5, 0.5]` spreads the experts at the start).
+    pub mean_bias_init: f32,
+}
+
+impl MoeConfig {
+    /// The paper's toy defaults for a `state_dim → action_dim` mixture of `num_experts`
+    /// diagonal experts with uniform gating.
+    pub fn toy(state_dim: usize, action_dim: usize, num_experts: usize) -> Self {
+        Self {
+            state_dim,
+            action_dim,
+            num_experts,
+            expert_kind: ExpertKind::Diagonal,
+            init_std: 1.0,
+            min_std: 1e-4,
+            experts_network: NetworkConfig::default(),
+            shared_trunk: true,
+            gating: GatingKind::Uniform,
+            gating_network: NetworkConfig::default(),
+            mean_bias_init: 0.5,
+        }
+    }
+
+    pub(super) fn validate(&self) -> Result<(), CoreError> {
+        if self.state_dim == 0 || self.action_dim == 0 || self.num_experts == 0 {
+            return Err(CoreError::Config(
+                "state_dim, action_dim and num_experts must be positive".into(),
+            ));
+        }
+        if !(self.mean_bias_init.is_finite() && self.mean_bias_init >= 0.0) {
+            return Err(CoreError::Config("mean_bias_init must be finite and >= 0".into()));
+        }
+        if !(self.init_std.is_finite() && self.min_std.is_finite()) {
+            return Err(CoreError::Config("init_std and min_std must be finite".into()));
+        }
+        Ok(())
+    }
+}
+
+/// How [`Policy::act`](vdd_core::Policy::act) turns the mixture into one action.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize)]
+pub struct ActMode {
+    /// Pick the most probable expert instead of sampling `z ~ q(z|s)`.
+    pub greedy_gating: bool,
+    /// Sample `a ~ N(μ_z, Σ_z)` instead of returning `μ_z` (the paper evaluates with `μ_z`).
+    pub sample_action: bool,
+}

@@ -1,0 +1,165 @@
+//! Saving and loading: one `safetensors` file with the weights, the configuration, the
+//! normalisers, the act mode, the deployment spec and a fingerprint of the expert family.
+
+use std::collections::BTreeMap;
+use std::path::Path;
+
+use serde::{Deserialize, Serialize};
+use vdd_core::{Affine, Expert};
+
+use super::{Moe, MoeConfig};
+use crate::error::MoeError;
+use crate::experts::ExpertFamily;
+
+impl Moe<ExpertFamily> {
+    /// Loads a mixture saved by [`Moe::save`] (family from the saved configuration).
+    pub fn load(path: &Path) -> Result<Self, MoeError> {
+        let (config, meta) = read_config(path)?;
+        let family = ExpertFamily::new(
+            config.expert_kind,
+            config.action_dim,
+            config.init_std,
+            config.min_std,
+        )?;
+        Self::load_with(path, family, Some((config, meta)))
+    }
+}
+
+/// The metadata key of the deployment spec.
+const DEPLOY_SPEC_KEY: &str = "deploy_spec";
+
+fn read_config(path: &Path) -> Result<(MoeConfig, BTreeMap<String, String>), MoeError> {
+    let meta = vdd_nn::io::read_metadata(path)?;
+    let cfg = meta
+        .get("config")
+        .ok_or_else(|| MoeError::Config(format!("{} has no `config` metadata", path.display())))?;
+    let config: MoeConfig =
+        serde_json::from_str(cfg).map_err(|e| MoeError::Config(e.to_string()))?;
+    Ok((config, meta))
+}
+
+impl<E: Expert> Moe<E> {
+    /// Saves weights, configuration, normalisers, act mode, deployment spec
+    /// ([`Moe::deploy_spec`]) and a fingerprint of the expert family to one `safetensors` file
+    /// (atomically), so a deployed policy needs nothing else ([`crate::load_policy`]).
+    pub fn save(&self, path: &Path) -> Result<(), MoeError> {
+        fn json<T: Serialize>(v: &T) -> Result<String, MoeError> {
+            serde_json::to_string(v).map_err(|e| MoeError::Config(e.to_string()))
+        }
+        let mut meta = BTreeMap::new();
+        meta.insert("config".to_owned(), json(&self.config)?);
+        meta.insert("obs_normalizer".to_owned(), json(&self.obs_normalizer)?);
+        meta.insert("action_normalizer".to_owned(), json(&self.action_normalizer)?);
+        meta.insert("act_mode".to_owned(), json(&self.act_mode)?);
+        meta.insert(DEPLOY_SPEC_KEY.to_owned(), json(&self.deploy_spec)?);
+        meta.insert("expert_family".to_owned(), json(&FamilyFingerprint::of(&self.expert))?);
+        vdd_nn::io::save_safetensors(path, self, &meta)?;
+        Ok(())
+    }
+
+    /// Loads a mixture saved by [`Moe::save`] with a custom expert family. An error
+    /// ([`MoeError::FamilyMismatch`]) if `expert` decodes raw outputs differently from the
+    /// family the file was saved with (other kind, dimension or scale activation).
+    pub fn load_with_family(path: &Path, expert: E) -> Result<Self, MoeError> {
+        Self::load_with(path, expert, None)
+    }
+
+    fn load_with(
+        path: &Path,
+        expert: E,
+        config: Option<(MoeConfig, BTreeMap<String, String>)>,
+    ) -> Result<Self, MoeError> {
+        let (config, meta) = match config {
+            Some(c) => c,
+            None => read_config(path)?,
+        };
+        let bad = |e: serde_json::Error| MoeError::Config(e.to_string());
+        if let Some(saved) = meta.get("expert_family") {
+            // Files written before the fingerprint existed load without this check.
+            let saved: FamilyFingerprint = serde_json::from_str(saved).map_err(bad)?;
+            let given = FamilyFingerprint::of(&expert);
+            if !saved.matches(&given) {
+                return Err(MoeError::FamilyMismatch(format!(
+                    "{} was saved with {saved}, loading with {given} ({:?}); a mixture built \
+                     with a custom family loads with `Moe::load_with_family`",
+                    path.display(),
+                    expert
+                )));
+            }
+        }
+        let mut moe = Self::new(config, expert, 0)?;
+        vdd_nn::io::load_safetensors(path, &mut moe)?;
+        let parse = |key: &str| -> Result<&str, MoeError> {
+            meta.get(key)
+                .map(String::as_str)
+                .ok_or_else(|| MoeError::Config(format!("missing `{key}` metadata")))
+        };
+        let obs: Option<Affine> = serde_json::from_str(parse("obs_normalizer")?).map_err(bad)?;
+        let act: Option<Affine> = serde_json::from_str(parse("action_normalizer")?).map_err(bad)?;
+        moe.act_mode = serde_json::from_str(parse("act_mode")?).map_err(bad)?;
+        moe.set_normalizers(obs, act)?;
+        // Files written before the spec existed act on raw observations (the identity spec).
+        if let Some(raw) = meta.get(DEPLOY_SPEC_KEY) {
+            let spec = serde_json::from_str(raw).map_err(|e| {
+                MoeError::Config(format!("metadata `{DEPLOY_SPEC_KEY}` = {raw}: {e}"))
+            })?;
+            moe.set_deploy_spec(spec)?;
+        }
+        Ok(moe)
+    }
+}
+
+/// What a saved mixture records of its expert family, so that loading it with another family
+/// is an error rather than silently different means and scales: the dimensions and the decoded
+/// `(μ, L)` of a few fixed raw vectors (which pins down the kind and the scale activation).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+struct FamilyFingerprint {
+    action_dim: usize,
+    raw_dim: usize,
+    is_diagonal: bool,
+    /// Per probe: `μ` (`d`) followed by `L` (`d·d`, row-major).
+    probes: Vec<Vec<f32>>,
+}
+
+impl FamilyFingerprint {
+    const PROBES: usize = 3;
+
+    fn of<E: Expert>(expert: &E) -> Self {
+        let (d, r) = (expert.action_dim(), expert.raw_dim());
+        let probes = (0..Self::PROBES)
+            .map(|k| {
+                // Probe 0 is the all-zero raw vector (the initial scale); the others spread over
+                // [−1, 1] so that means, diagonal and off-diagonal scale entries all differ.
+                let raw: Vec<f32> = (0..r)
+                    .map(|i| if k == 0 { 0.0 } else { ((i * 7 + k * 5) % 11) as f32 / 5.0 - 1.0 })
+                    .collect();
+                let mut decoded = vec![0.0; d + d * d];
+                let (mean, scale) = decoded.split_at_mut(d);
+                expert.decode(&raw, mean, scale);
+                decoded
+            })
+            .collect();
+        Self { action_dim: d, raw_dim: r, is_diagonal: expert.is_diagonal(), probes }
+    }
+
+    fn matches(&self, other: &Self) -> bool {
+        self.action_dim == other.action_dim
+            && self.raw_dim == other.raw_dim
+            && self.is_diagonal == other.is_diagonal
+            && self.probes.len() == other.probes.len()
+            && self.probes.iter().zip(&other.probes).all(|(a, b)| {
+                a.len() == b.len()
+                    && a.iter().zip(b).all(|(x, y)| (x - y).abs() <= 1e-5 * (1.0 + x.abs()))
+            })
+    }
+}
+
+impl std::fmt::Display for FamilyFingerprint {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        let kind = if self.is_diagonal { "a diagonal" } else { "a non-diagonal" };
+        let d = self.action_dim;
+        let std0: Vec<f32> =
+            self.probes.first().map_or(Vec::new(), |p| (0..d).map(|i| p[d + i * d + i]).collect());
+        write!(f, "{kind} family (action_dim {d}, raw_dim {}, initial stds {std0:?})", self.raw_dim)
+    }
+}

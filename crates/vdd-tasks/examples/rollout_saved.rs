@@ -1,0 +1,84 @@
+//! Rolls out a saved Avoiding policy on the environment's raw observations and prints one JSON
+//! line with its success rate and task entropy.
+//!
+//! ```text
+//! cargo run --release -p vdd-tasks --example rollout_saved -- MODEL [--seed S] [--rollouts N]
+//!     [--lockstep-batch B] [--threads T]
+//! ```
+//!
+//! `MODEL` is a mixture saved by `Moe::save`, e.g. a recipe's
+//! `results/avoiding/<run>/models/vdd-beso-s0.safetensors`. One call
+//! (`vdd_moe::load_policy`) loads it with everything it needs to act on raw observations: the
+//! normalisers, the act mode and the deployment spec (observation features, window, chunk). The
+//! evaluation is the recipe's ([`EvalProtocol`]): with the run seed `S` (default 0), `N`
+//! rollouts (default 500; `--quick` recipes use 200) and the recipe's lockstep batch (default
+//! 50) it prints the recipe's figures for that student bit for bit. Threads (default: every
+//! core) do not change the figures.
+
+use std::path::PathBuf;
+use std::process::ExitCode;
+
+use vdd_tasks::avoiding::EvalProtocol;
+
+/// The command line.
+struct Args {
+    model: PathBuf,
+    seed: u64,
+    protocol: EvalProtocol,
+    threads: usize,
+}
+
+const USAGE: &str =
+    "usage: rollout_saved MODEL [--seed S] [--rollouts N] [--lockstep-batch B] [--threads T]";
+
+fn parse() -> Result<Args, String> {
+    let mut model = None;
+    let mut seed = 0;
+    let mut protocol = EvalProtocol::default();
+    let mut threads = std::thread::available_parallelism().map_or(1, |n| n.get());
+    let mut args = std::env::args().skip(1);
+    while let Some(arg) = args.next() {
+        let mut value = |name: &str| -> Result<u64, String> {
+            let v = args.next().ok_or_else(|| format!("{name} needs a value"))?;
+            v.parse().map_err(|e| format!("{name} {v}: {e}"))
+        };
+        match arg.as_str() {
+            "--seed" => seed = value("--seed")?,
+            "--rollouts" => protocol.rollouts = value("--rollouts")? as usize,
+            "--lockstep-batch" => protocol.lockstep_batch = value("--lockstep-batch")? as usize,
+            "--threads" => threads = value("--threads")? as usize,
+            "-h" | "--help" => return Err(USAGE.into()),
+            flag if flag.starts_with('-') => return Err(format!("unknown option {flag}\n{USAGE}")),
+            path if model.is_none() => model = Some(PathBuf::from(path)),
+            extra => return Err(format!("unexpected argument {extra}\n{USAGE}")),
+        }
+    }
+    let model = model.ok_or_else(|| USAGE.to_owned())?;
+    Ok(Args { model, seed, protocol, threads })
+}
+
+fn run() -> Result<(), Box<dyn std::error::Error>> {
+    let args = parse()?;
+    let policy =
+        vdd_moe::load_policy(&args.model).map_err(|e| format!("{}: {e}", args.model.display()))?;
+    let eval = args.protocol.evaluate(&policy, args.seed, args.threads, false)?;
+    let m = &eval.metrics;
+    // Numbers as serde_json writes them (as in the recipe's metrics.json), keys in this order.
+    println!(
+        r#"{{"success_rate": {}, "task_entropy": {}, "rollouts": {}}}"#,
+        serde_json::to_string(&m.success_rate)?,
+        serde_json::to_string(&m.task_entropy)?,
+        m.rollouts
+    );
+    Ok(())
+}
+
+fn main() -> ExitCode {
+    match run() {
+        Ok(()) => ExitCode::SUCCESS,
+        Err(e) => {
+            eprintln!("rollout_saved: {e}");
+            ExitCode::FAILURE
+        }
+    }
+}
