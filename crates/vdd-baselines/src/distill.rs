@@ -29,7 +29,7 @@ use crate::consistency::{
 };
 use crate::dataset::Dataset;
 use crate::error::BaselineError;
-use crate::fit::{self, Minibatch, RowSampler};
+use crate::fit::{Minibatch, RowSampler};
 
 /// Per-row coefficients of a preconditioned evaluation
 /// `out_i = skip_i x_i + out_i F(c_in_i x_i, s_i, noise_i[, noise_to_i])`.
@@ -291,7 +291,8 @@ impl<T: ConsistencyTeacher> Distillation<T> {
         if !loss.total.is_finite() {
             return Err(BaselineError::NonFinite { iteration, quantity: O::QUANTITY });
         }
-        fit::clip_or_fail(&mut self.online, self.train.grad_clip, iteration, O::QUANTITY)?;
+        vdd_nn::clip_grad_norm_checked(&mut self.online, self.train.grad_clip)
+            .map_err(|_| BaselineError::NonFinite { iteration, quantity: O::QUANTITY })?;
         let lr = self.opt.apply(&mut self.online, &mut self.target, self.steps_done)?;
         self.steps_done += 1;
         Ok((loss, lr))

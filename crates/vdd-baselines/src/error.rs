@@ -22,3 +22,14 @@ pub enum BaselineError {
         quantity: &'static str,
     },
 }
+
+impl From<vdd_moe::step::StepError> for BaselineError {
+    fn from(e: vdd_moe::step::StepError) -> Self {
+        use vdd_moe::step::StepError;
+        match e {
+            StepError::NonFinite { iteration, quantity } => Self::NonFinite { iteration, quantity },
+            StepError::Core(e) => Self::Core(e),
+            StepError::Moe(e) => Self::Moe(e),
+        }
+    }
+}

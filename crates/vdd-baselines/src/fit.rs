@@ -22,14 +22,15 @@
 //!
 //! ## Gating
 //!
-//! [`soft_cross_entropy`] is `−Σ_b c_b Σ_z t_{bz} log q(z|s_b)` for per-row weights `c_b` and
+//! [`soft_cross_entropy`] ([`vdd_moe::step`], shared with VDD) is `−Σ_b c_b Σ_z t_{bz} log q(z|s_b)` for per-row weights `c_b` and
 //! targets `t_b` (responsibilities or curriculum posteriors); its gradient with respect to the
 //! gating logits is `c_b (q(z|s_b) Σ_k t_{bk} − t_{bz})`.
 
-use faer::{Mat, MatMut, MatRef};
+use faer::{Mat, MatRef};
 use rand::Rng as _;
 use vdd_core::gaussian::{self, solve_lower_in_place, solve_upper_t_in_place};
 use vdd_core::{CoreError, Expert, Rng, Seeds, check_finite_slice, check_len, check_shape};
+use vdd_moe::step::{clip_or_fail, soft_cross_entropy};
 use vdd_moe::{Moe, MoeOutput};
 use vdd_nn::{Adam, AdamConfig, LrSchedule, Parameters};
 
@@ -143,48 +144,6 @@ pub fn weighted_nll_gradients<E: Expert>(
             for x in g.iter_mut() {
                 *x *= w;
             }
-        }
-    }
-    Ok(loss)
-}
-
-/// Soft cross-entropy `−Σ_b c_b Σ_z t_{bz} log q(z|s_b)` of the gating towards `targets`, and
-/// its gradient with respect to the gating logits, `c_b (q(z|s_b) Σ_k t_{bk} − t_{bz})`,
-/// written into `grad_logits` (`n x Z`).
-///
-/// `log_gating` and `targets` are `n·Z` row-major, `row_weights` (`c_b`) has length `n`.
-///
-/// ```
-/// use vdd_baselines::fit::soft_cross_entropy;
-/// let log_q = [0.5f32.ln(), 0.5f32.ln()];
-/// let mut g = faer::Mat::<f32>::zeros(1, 2);
-/// let loss = soft_cross_entropy(&log_q, &[1.0, 0.0], &[1.0], g.as_mut()).unwrap();
-/// assert!((loss - 2.0f64.ln()).abs() < 1e-6);
-/// assert!((g[(0, 0)] + 0.5).abs() < 1e-6 && (g[(0, 1)] - 0.5).abs() < 1e-6);
-/// ```
-pub fn soft_cross_entropy(
-    log_gating: &[f32],
-    targets: &[f32],
-    row_weights: &[f32],
-    mut grad_logits: MatMut<'_, f32>,
-) -> Result<f64, CoreError> {
-    let (n, z_n) = (row_weights.len(), grad_logits.ncols());
-    check_shape("gating gradient", grad_logits.as_ref(), n, z_n)?;
-    check_len("log gating", log_gating.len(), n * z_n)?;
-    check_len("gating targets", targets.len(), n * z_n)?;
-    check_finite_slice("gating targets", targets)?;
-    check_finite_slice("gating row weights", row_weights)?;
-    let mut loss = 0.0f64;
-    for b in 0..n {
-        let c = row_weights[b];
-        let t = &targets[b * z_n..(b + 1) * z_n];
-        let lg = &log_gating[b * z_n..(b + 1) * z_n];
-        let t_sum: f32 = t.iter().sum();
-        for k in 0..z_n {
-            if t[k] != 0.0 {
-                loss -= f64::from(c * t[k]) * f64::from(lg[k]);
-            }
-            grad_logits[(b, k)] = c * (lg[k].exp() * t_sum - t[k]);
         }
     }
     Ok(loss)
@@ -320,27 +279,6 @@ pub fn gather_rows(src: MatRef<'_, f32>, idx: &[usize], dst: &mut Mat<f32>) {
     }
 }
 
-/// Global gradient norm of `params`: an error when it is NaN or infinite, clipped to
-/// `max_norm` when one is given.
-pub fn clip_or_fail(
-    params: &mut dyn Parameters,
-    max_norm: Option<f32>,
-    iteration: usize,
-    quantity: &'static str,
-) -> Result<(), BaselineError> {
-    let mut sq = 0.0f64;
-    params.visit_params("", &mut |_, p| {
-        sq += p.grad.iter().map(|g| f64::from(*g) * f64::from(*g)).sum::<f64>();
-    });
-    if !sq.is_finite() {
-        return Err(BaselineError::NonFinite { iteration, quantity });
-    }
-    if let Some(max) = max_norm {
-        vdd_nn::clip_grad_norm(params, max);
-    }
-    Ok(())
-}
-
 /// One optimiser step of the experts on the weighted NLL `Σ_{b,z} w_{bz} NLL_z(a_b|s_b)` of a
 /// batch (`states` `n x d_s`, `actions` `n x d`, `weights` `n·Z`). Returns the loss before the
 /// step. Nothing is updated when the loss or a gradient is not finite.
@@ -373,8 +311,9 @@ pub fn expert_step<E: Expert>(
 }
 
 /// One optimiser step of the gating on the soft cross-entropy towards `targets` (`n·Z`) with
-/// per-row weights `row_weights` (`n`). Returns the loss before the step, or `None` (and does
-/// nothing) when the mixture's gating is not learned. `grad_logits` is a reusable buffer.
+/// per-row weights `row_weights` (`n`): [`vdd_moe::step::gating_step`] with
+/// [`soft_cross_entropy`]. Returns the loss before the step, or `None` (and does nothing) when
+/// the mixture's gating is not learned. `grad_logits` is a reusable buffer.
 #[allow(clippy::too_many_arguments)]
 pub fn gating_step<E: Expert>(
     student: &mut Moe<E>,
@@ -387,32 +326,16 @@ pub fn gating_step<E: Expert>(
     iteration: usize,
     grad_logits: &mut Mat<f32>,
 ) -> Result<Option<f64>, BaselineError> {
-    if !student.has_learned_gating() {
-        return Ok(None);
-    }
-    let (n, z_n) = (states.nrows(), student.num_experts());
-    if grad_logits.nrows() != n || grad_logits.ncols() != z_n {
-        *grad_logits = Mat::zeros(n, z_n);
-    }
-    // Both passes, so that the output's batch size is the one `backward_gating` checks against.
-    student.forward(states)?;
-    let loss = soft_cross_entropy(
-        &student.output().log_gating,
-        targets,
-        row_weights,
-        grad_logits.as_mut(),
-    )?;
-    if !loss.is_finite() {
-        return Err(BaselineError::NonFinite { iteration, quantity: "gating loss" });
-    }
-    if let Some(net) = student.gating_network_mut() {
-        net.zero_grad();
-    }
-    student.backward_gating(grad_logits.as_ref())?;
-    let net = student.gating_network_mut().expect("learned gating has a network");
-    clip_or_fail(net, max_grad_norm, iteration, "gating gradient")?;
-    optimizer.step(net, lr_factor);
-    Ok(Some(loss))
+    Ok(vdd_moe::step::gating_step(
+        student,
+        states,
+        optimizer,
+        lr_factor,
+        max_grad_norm,
+        iteration,
+        grad_logits,
+        |out, grad| soft_cross_entropy(&out.log_gating, targets, row_weights, grad),
+    )?)
 }
 
 /// The settings of one phase of an EM / IMC iteration: its expert or its gating steps.
@@ -866,38 +789,6 @@ mod tests {
     fn network_gradients_of_the_weighted_nll_match_finite_differences() {
         check_network_gradient(ExpertKind::Diagonal, true);
         check_network_gradient(ExpertKind::Full, false);
-    }
-
-    #[test]
-    fn soft_cross_entropy_gradient_matches_finite_differences() {
-        let (n, z_n) = (3, 4);
-        let logits: Vec<f32> = (0..n * z_n).map(|i| ((i * 7 % 5) as f32 - 2.0) * 0.6).collect();
-        let log_softmax = |l: &[f32]| {
-            let mut out = l.to_vec();
-            for b in 0..n {
-                let row = &mut out[b * z_n..(b + 1) * z_n];
-                let lse = gaussian::log_sum_exp(row);
-                row.iter_mut().for_each(|x| *x -= lse);
-            }
-            out
-        };
-        // Targets need not be normalised (row 2 sums to 0.5).
-        let t = [0.1f32, 0.2, 0.3, 0.4, 1.0, 0.0, 0.0, 0.0, 0.25, 0.0, 0.25, 0.0];
-        let c = [0.5f32, 0.2, 0.3];
-        let mut g = Mat::zeros(n, z_n);
-        soft_cross_entropy(&log_softmax(&logits), &t, &c, g.as_mut()).unwrap();
-        let mut scratch = Mat::zeros(n, z_n);
-        for i in 0..n * z_n {
-            let h = 1e-2f32;
-            let mut p = logits.clone();
-            p[i] += h;
-            let mut m = logits.clone();
-            m[i] -= h;
-            let lp = soft_cross_entropy(&log_softmax(&p), &t, &c, scratch.as_mut()).unwrap();
-            let lm = soft_cross_entropy(&log_softmax(&m), &t, &c, scratch.as_mut()).unwrap();
-            let fd = (lp - lm) / (2.0 * f64::from(h));
-            assert_relative_eq!(f64::from(g[(i / z_n, i % z_n)]), fd, epsilon = 1e-4);
-        }
     }
 
     #[test]

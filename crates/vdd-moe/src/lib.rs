@@ -8,11 +8,15 @@
 //!
 //! Expert families: [`DiagonalExpert`], [`FullExpert`] (full Cholesky), or [`ExpertFamily`] to
 //! choose either by one config value ([`ExpertKind`]); any [`vdd_core::Expert`] works.
+//!
+//! [`step`] holds the optimiser steps every trainer of a mixture shares (the gating step, the
+//! checked gradient clipping).
 #![warn(missing_docs)]
 
 mod error;
 mod experts;
 mod moe;
+pub mod step;
 
 pub use error::MoeError;
 pub use experts::{DiagonalExpert, ExpertFamily, ExpertKind, FullExpert};
