@@ -15,16 +15,14 @@ use faer::Mat;
 use serde::{Deserialize, Serialize};
 use serde_json::{Value, json};
 use vdd::{DistillData, Vdd, VddConfig};
-use vdd_baselines::{
-    CdConfig, CdTrainer, ConsistencyProgress, CtmConfig, CtmTrainer, Dataset, Em, EmConfig, Imc,
-    ImcConfig,
-};
+use vdd_consistency::{CdConfig, CdTrainer, ConsistencyProgress, CtmConfig, CtmTrainer};
 use vdd_core::{Affine, Seeds};
 use vdd_data::{Episodes, Normalization, NormalizationKind, SequenceDataset, WindowConfig};
 use vdd_diffusion::{
     BesoConfig, DdpmConfig, DiffusionTeacher, KarrasSampler, NetConfig, SigmaDistribution,
     TeacherKind, TimeSampling, TrainConfig, VpSampler,
 };
+use vdd_mixture::{Dataset, Em, EmConfig, Imc, ImcConfig};
 use vdd_moe::{ActMode, GatingKind, Moe, MoeConfig, NetworkConfig};
 use vdd_nn::{AdamConfig, LrSchedule};
 use vdd_tasks::avoiding::rollout::{EvalConfig, Evaluation, Stepping, evaluate_cloned};

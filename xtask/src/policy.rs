@@ -5,7 +5,7 @@ use std::time::Instant;
 
 use faer::reborrow::ReborrowMut;
 use faer::{Mat, MatMut, MatRef};
-use vdd_baselines::{ConsistencyModel, TrajectoryModel};
+use vdd_consistency::{ConsistencyModel, TrajectoryModel};
 use vdd_core::{CoreError, Policy, check_act_args, check_shape};
 use vdd_diffusion::DiffusionTeacher;
 use vdd_moe::Moe;
