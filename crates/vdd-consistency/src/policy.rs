@@ -327,14 +327,3 @@ impl<P: Sampling> Policy for DistilledPolicy<P> {
         Ok(())
     }
 }
-
-#[cfg(test)]
-mod tests {
-    /// The distilled policies can move to evaluation threads.
-    #[test]
-    fn distilled_policies_are_send_and_clone() {
-        fn check<P: vdd_core::Policy + Send + Clone>() {}
-        check::<crate::ConsistencyModel>();
-        check::<crate::TrajectoryModel>();
-    }
-}

@@ -54,7 +54,7 @@ pub trait ConsistencyTeacher {
     }
 
     /// The BESO configuration the teacher was built with, when it is one (its levels and
-    /// architecture are the students' defaults, see [`ConsistencyConfig::for_teacher`]).
+    /// architecture are the students' defaults, see [`crate::ConsistencyConfig::for_teacher`]).
     /// `None` by default.
     fn beso_config(&self) -> Option<&BesoConfig> {
         None

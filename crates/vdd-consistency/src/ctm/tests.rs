@@ -194,3 +194,11 @@ fn bad_configs_are_errors() {
     assert!(m.jump(x.as_ref(), &[1.0, 1.0], &[0.5], st.as_ref(), out.as_mut()).is_err());
     assert!(m.denoise(x.as_ref(), &[1.0, -1.0], st.as_ref(), out.as_mut()).is_err());
 }
+
+/// The distilled policies (this one and CD's) can move to evaluation threads.
+#[test]
+fn distilled_policies_are_send_and_clone() {
+    fn check<P: Policy + Send + Clone>() {}
+    check::<crate::ConsistencyModel>();
+    check::<TrajectoryModel>();
+}
