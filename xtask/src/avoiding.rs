@@ -15,15 +15,13 @@ use faer::Mat;
 use serde::{Deserialize, Serialize};
 use serde_json::{Value, json};
 use vdd::{DistillData, Vdd, VddConfig};
-use vdd_baselines::{
-    CdConfig, CdTrainer, ConsistencyProgress, CtmConfig, CtmTrainer, Dataset, Em, EmConfig, Imc,
-    ImcConfig,
-};
+use vdd_consistency::{CdConfig, CdTrainer, ConsistencyProgress, CtmConfig, CtmTrainer};
 use vdd_core::{Affine, Policy};
 use vdd_data::{
     DeploySpec, Episodes, Normalization, NormalizationKind, SequenceDataset, WindowConfig, Windowed,
 };
 use vdd_diffusion::{BesoConfig, DiffusionTeacher, TeacherKind};
+use vdd_mixture::{Dataset, Em, EmConfig, Imc, ImcConfig};
 use vdd_moe::{ActMode, GatingKind, Moe, MoeConfig};
 use vdd_nn::LrSchedule;
 use vdd_tasks::avoiding::rollout::Evaluation;

@@ -3,7 +3,7 @@
 //! `vdd_tasks::timing`.)
 
 use faer::{MatMut, MatRef};
-use vdd_baselines::{ConsistencyModel, TrajectoryModel};
+use vdd_consistency::{ConsistencyModel, TrajectoryModel};
 use vdd_core::Policy;
 use vdd_diffusion::DiffusionTeacher;
 use vdd_moe::Moe;

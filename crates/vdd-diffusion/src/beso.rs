@@ -2,14 +2,14 @@
 //! policy with a preconditioned state-conditioned denoiser `D(x; σ, s)`.
 
 use faer::reborrow::Reborrow;
-use faer::{Mat, MatMut, MatRef};
+use faer::{MatMut, MatRef};
 use rand::{Rng as _, RngCore};
 use serde::{Deserialize, Serialize};
 use vdd_core::{CoreError, NoiseConvention};
 
 use crate::error::{DiffusionError, Result};
 use crate::learned::{LearnedTeacher, Process};
-use crate::net::{DenoiserNet, NetConfig};
+use crate::net::{DenoiserNet, NetConfig, RowCoefficients};
 use crate::normalize::NormalizerKind;
 use crate::sampling::{self, KarrasSampler, SamplerBuffers};
 use crate::schedule::{Preconditioning, check_sigma_range, karras_sigmas_into};
@@ -140,41 +140,22 @@ pub struct BesoProcess {
     config: BesoConfig,
     pre: Preconditioning,
     sigmas: Vec<f32>,
-    x_in: Mat<f32>,
-    c_noise: Vec<f32>,
+    coef: RowCoefficients,
 }
 
-/// `D(x; σ, s) = c_skip x + c_out F(c_in x, s, c_noise)` without argument checks.
-#[allow(clippy::too_many_arguments)]
+/// `D(x; σ, s) = c_skip x + c_out F(c_in x, s, c_noise)` without argument checks (`coef` is
+/// scratch).
 fn denoise_unchecked(
     net: &mut DenoiserNet,
     pre: &Preconditioning,
-    x_in: &mut Mat<f32>,
-    c_noise: &mut Vec<f32>,
+    coef: &mut RowCoefficients,
     x: MatRef<'_, f32>,
     sigma: &[f32],
     states: MatRef<'_, f32>,
-    mut out: MatMut<'_, f32>,
+    out: MatMut<'_, f32>,
 ) {
-    let (n, d) = (x.nrows(), x.ncols());
-    if x_in.nrows() != n || x_in.ncols() != d {
-        *x_in = Mat::zeros(n, d);
-    }
-    c_noise.clear();
-    c_noise.extend(sigma.iter().map(|&s| pre.c_noise(s)));
-    for j in 0..d {
-        let col = x_in.col_as_slice_mut(j);
-        for i in 0..n {
-            col[i] = pre.c_in(sigma[i]) * x[(i, j)];
-        }
-    }
-    let f = net.forward(x_in.as_ref(), states, c_noise);
-    for j in 0..d {
-        for i in 0..n {
-            let s = sigma[i];
-            out[(i, j)] = pre.c_skip(s) * x[(i, j)] + pre.c_out(s) * f[(i, j)];
-        }
-    }
+    pre.write_coefficients(sigma, coef);
+    net.forward_preconditioned(x, states, coef, out);
 }
 
 impl DsmNoise for BesoProcess {
@@ -231,8 +212,7 @@ impl Process for BesoProcess {
             pre: Preconditioning::new(config.sigma_data)?,
             config,
             sigmas,
-            x_in: Mat::zeros(0, 0),
-            c_noise: Vec::new(),
+            coef: RowCoefficients::default(),
         })
     }
 
@@ -268,8 +248,8 @@ impl Process for BesoProcess {
         states: MatRef<'_, f32>,
         out: MatMut<'_, f32>,
     ) {
-        let Self { pre, x_in, c_noise, .. } = self;
-        denoise_unchecked(net, pre, x_in, c_noise, x, sigma, states, out);
+        let Self { pre, coef, .. } = self;
+        denoise_unchecked(net, pre, coef, x, sigma, states, out);
     }
 
     /// `(D(x; σ, s) − x)/σ²`.
@@ -291,7 +271,7 @@ impl Process for BesoProcess {
         rng: &mut dyn RngCore,
         mut out: MatMut<'_, f32>,
     ) -> Result<(), CoreError> {
-        let Self { config, pre, sigmas, x_in, c_noise } = self;
+        let Self { config, pre, sigmas, coef } = self;
         let mut grid = Vec::new();
         let (sampler, grid) = match how {
             None => (config.sampler, &sigmas[..]),
@@ -308,7 +288,7 @@ impl Process for BesoProcess {
             }
         }
         let mut f = |x: MatRef<'_, f32>, s: &[f32], o: MatMut<'_, f32>| {
-            denoise_unchecked(net, pre, x_in, c_noise, x, s, states, o);
+            denoise_unchecked(net, pre, coef, x, s, states, o);
             Ok(())
         };
         sampling::sample_karras(&mut f, sampler, grid, out.as_mut(), rng, buf)
@@ -392,9 +372,9 @@ impl LearnedTeacher<BesoProcess> {
     ) -> Result<(), CoreError> {
         self.check_query(x, sigma_from, states, out.rb(), false)?;
         let Self { net, process, sampler_buf, .. } = self;
-        let BesoProcess { pre, x_in, c_noise, .. } = process;
+        let BesoProcess { pre, coef, .. } = process;
         let mut f = |x: MatRef<'_, f32>, s: &[f32], out: MatMut<'_, f32>| {
-            denoise_unchecked(net, pre, x_in, c_noise, x, s, states, out);
+            denoise_unchecked(net, pre, coef, x, s, states, out);
             Ok(())
         };
         sampling::heun_step(&mut f, x, sigma_from, sigma_to, out, sampler_buf)

@@ -78,7 +78,7 @@ pub use beso::{Beso, BesoConfig, SigmaDistribution};
 pub use ddpm::{Ddpm, DdpmConfig, MIN_TIME, TimeSampling};
 pub use error::{DiffusionError, Result};
 pub use learned::LearnedTeacher;
-pub use net::{DenoiserNet, NetConfig, NoiseEmbedding};
+pub use net::{DenoiserNet, NetConfig, NoiseEmbedding, RowCoefficients};
 pub use normalize::{NormalizerKind, fit_normalizer};
 pub use sampling::{KarrasSampler, SamplerBuffers, VpSampler, heun_step, sample_karras, sample_vp};
 pub use schedule::{BetaSchedule, Preconditioning, VpSchedule, karras_sigmas, karras_sigmas_into};

@@ -58,9 +58,8 @@ impl NetConfig {
 
     /// The architecture of the residual MLP of a network over
     /// `[noisy action (action_dim) | state (state_dim) | levels noise-level embeddings]` with
-    /// `action_dim` outputs and no layer normalisation: [`DenoiserNet`]'s with `levels = 1`
-    /// (networks conditioned on more than one noise level, e.g. a consistency trajectory
-    /// model's `g(x, t, u)`, use more).
+    /// `action_dim` outputs and no layer normalisation: a [`DenoiserNet`] with `levels` noise
+    /// conditions (the teachers use one; a consistency trajectory model's `g(x, t, u)` two).
     pub fn mlp_config(
         &self,
         action_dim: usize,
@@ -128,12 +127,12 @@ impl NoiseEmbedding {
     ///
     /// # Panics
     /// On mismatched shapes (callers check them first).
-    pub fn write_input(
+    pub fn write_input<C: AsRef<[f32]>>(
         &self,
         input: &mut Mat<f32>,
         x: MatRef<'_, f32>,
         states: MatRef<'_, f32>,
-        conditions: &[&[f32]],
+        conditions: &[C],
     ) {
         let (n, da, ds, e) = (x.nrows(), x.ncols(), states.ncols(), self.dim());
         let width = da + ds + conditions.len() * e;
@@ -143,7 +142,7 @@ impl NoiseEmbedding {
         input.as_mut().subcols_mut(0, da).copy_from(x);
         input.as_mut().subcols_mut(da, ds).copy_from(states);
         for (level, c) in conditions.iter().enumerate() {
-            self.write_columns(c, input.as_mut(), da + ds + level * e);
+            self.write_columns(c.as_ref(), input.as_mut(), da + ds + level * e);
         }
     }
 
@@ -160,6 +159,80 @@ impl NoiseEmbedding {
     }
 }
 
+/// Per-row coefficients of a preconditioned evaluation of a [`DenoiserNet`] `F`
+/// ([`DenoiserNet::forward_preconditioned`]):
+///
+/// `out_i = c_skip_i x_i + c_out_i F(c_in_i x_i, s_i, c_noise_i^(1), …, c_noise_i^(L))`.
+///
+/// EDM's denoiser `D(x; σ) = c_skip(σ) x + c_out(σ) F(c_in(σ) x, c_noise(σ))` is the case of one
+/// noise condition with [`Preconditioning`](crate::Preconditioning)'s coefficients
+/// ([`Preconditioning::write_coefficients`](crate::Preconditioning::write_coefficients)); other
+/// preconditionings (a consistency model's boundary condition at `σ_min`, a trajectory model's
+/// jump from `t` to `u` with two conditions) write their own coefficients and reuse the same
+/// network and evaluation.
+///
+/// ```
+/// use vdd_diffusion::RowCoefficients;
+/// let mut coef = RowCoefficients::default();
+/// coef.clear(2);
+/// coef.push(0.5, &[0.1, -0.2], 1.0, 0.0);
+/// assert_eq!((coef.len(), coef.levels()), (1, 2));
+/// assert_eq!(coef.c_noise[1], vec![-0.2]);
+/// ```
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct RowCoefficients {
+    /// Input scaling `c_in` per row.
+    pub c_in: Vec<f32>,
+    /// The noise conditions: one vector per condition of the network, each with one entry per
+    /// row.
+    pub c_noise: Vec<Vec<f32>>,
+    /// Skip-connection weight `c_skip` per row.
+    pub c_skip: Vec<f32>,
+    /// Output scaling `c_out` per row.
+    pub c_out: Vec<f32>,
+}
+
+impl RowCoefficients {
+    /// Removes every row and sets the number of noise conditions to `levels` (buffers are
+    /// kept).
+    pub fn clear(&mut self, levels: usize) {
+        self.c_in.clear();
+        self.c_noise.resize_with(levels, Vec::new);
+        self.c_noise.iter_mut().for_each(Vec::clear);
+        self.c_skip.clear();
+        self.c_out.clear();
+    }
+
+    /// Appends a row: `c_noise` has one entry per noise condition.
+    ///
+    /// # Panics
+    /// When `c_noise` does not have [`RowCoefficients::levels`] entries.
+    pub fn push(&mut self, c_in: f32, c_noise: &[f32], c_skip: f32, c_out: f32) {
+        assert_eq!(c_noise.len(), self.c_noise.len(), "RowCoefficients: noise conditions");
+        self.c_in.push(c_in);
+        for (v, &c) in self.c_noise.iter_mut().zip(c_noise) {
+            v.push(c);
+        }
+        self.c_skip.push(c_skip);
+        self.c_out.push(c_out);
+    }
+
+    /// Number of rows.
+    pub fn len(&self) -> usize {
+        self.c_in.len()
+    }
+
+    /// Whether there are no rows.
+    pub fn is_empty(&self) -> bool {
+        self.c_in.is_empty()
+    }
+
+    /// Number of noise conditions.
+    pub fn levels(&self) -> usize {
+        self.c_noise.len()
+    }
+}
+
 /// A denoiser network `F(x, s, c_noise)` mapping `n x action_dim` noisy (and, for EDM,
 /// `c_in`-scaled) actions, `n x state_dim` states and `n` noise conditions to `n x action_dim`
 /// outputs (the `ε` prediction for DDPM, the preconditioned `F` for EDM).
@@ -167,36 +240,75 @@ impl NoiseEmbedding {
 /// The noise condition is embedded as `[sin(ω_k c), cos(ω_k c)]_k` with `ω_k` geometric in
 /// `[1, max_frequency]` (a fixed sinusoidal embedding, [`NoiseEmbedding`]; no parameters). Parameters are named
 /// `net.layers.*` after BESO's `ResidualMLPNetwork`.
+///
+/// The teachers' networks take one noise condition ([`DenoiserNet::new`]); a network may take
+/// several ([`DenoiserNet::with_levels`], each embedded in its own block after the first), as
+/// the students of consistency distillation do (one level for a consistency model, two for a
+/// trajectory model's jump `g(x, t, u)`). [`DenoiserNet::forward_preconditioned`] evaluates
+/// `c_skip x + c_out F(c_in x, …)` with per-row coefficients ([`RowCoefficients`]).
 #[derive(Debug, Clone)]
 pub struct DenoiserNet {
     config: NetConfig,
     action_dim: usize,
     state_dim: usize,
+    levels: usize,
     mlp: ResidualMlp,
     embedding: NoiseEmbedding,
     input: Mat<f32>,
+    x_in: Mat<f32>,
 }
 
 impl DenoiserNet {
-    /// A freshly initialised network (PyTorch's default initialisation).
+    /// A freshly initialised network with one noise condition (PyTorch's default
+    /// initialisation).
     pub fn new(
         config: &NetConfig,
         action_dim: usize,
         state_dim: usize,
         rng: &mut vdd_core::Rng,
     ) -> Result<Self> {
+        Self::with_levels(config, action_dim, state_dim, 1, rng)
+    }
+
+    /// A freshly initialised network conditioned on `levels ≥ 1` noise levels (PyTorch's
+    /// default initialisation; the weights are drawn from `rng` exactly as for one level, only
+    /// the input layer is wider).
+    ///
+    /// ```
+    /// use vdd_diffusion::{DenoiserNet, NetConfig};
+    /// let cfg = NetConfig { hidden_dim: 16, num_blocks: 1, ..Default::default() };
+    /// let mut rng = vdd_core::Seeds::new(0).stream("init");
+    /// let mut net = DenoiserNet::with_levels(&cfg, 2, 1, 2, &mut rng).unwrap();
+    /// let (x, s) = (faer::Mat::<f32>::zeros(3, 2), faer::Mat::<f32>::zeros(3, 1));
+    /// let (t, u) = ([0.1f32, 0.2, 0.3], [0.0f32, 0.0, 0.1]);
+    /// let y = net.forward_conditioned(x.as_ref(), s.as_ref(), &[&t[..], &u[..]]);
+    /// assert_eq!((y.nrows(), y.ncols()), (3, 2));
+    /// assert_eq!(net.levels(), 2);
+    /// ```
+    pub fn with_levels(
+        config: &NetConfig,
+        action_dim: usize,
+        state_dim: usize,
+        levels: usize,
+        rng: &mut vdd_core::Rng,
+    ) -> Result<Self> {
         config.validate()?;
         if action_dim == 0 {
             return Err(DiffusionError::Config("action_dim must be positive".into()));
         }
-        let mlp = ResidualMlp::new(&config.mlp_config(action_dim, state_dim, 1), rng)?;
+        if levels == 0 {
+            return Err(DiffusionError::Config("a denoiser network needs a noise level".into()));
+        }
+        let mlp = ResidualMlp::new(&config.mlp_config(action_dim, state_dim, levels), rng)?;
         Ok(Self {
             config: config.clone(),
             action_dim,
             state_dim,
+            levels,
             mlp,
             embedding: NoiseEmbedding::new(config),
             input: Mat::zeros(0, 0),
+            x_in: Mat::zeros(0, 0),
         })
     }
 
@@ -215,13 +327,19 @@ impl DenoiserNet {
         self.state_dim
     }
 
+    /// Number of noise conditions (1 for the teachers).
+    pub fn levels(&self) -> usize {
+        self.levels
+    }
+
     /// Writes the embedding of `c` into `out` (`embed_dim` long).
     pub fn embed(&self, c: f32, out: &mut [f32]) {
         self.embedding.embed(c, out);
     }
 
-    /// Forward pass. `x` is `n x action_dim`, `states` `n x state_dim`, `c_noise` has `n`
-    /// entries. Returns a view into the network's output buffer.
+    /// Forward pass of a network with one noise condition. `x` is `n x action_dim`, `states`
+    /// `n x state_dim`, `c_noise` has `n` entries. Returns a view into the network's output
+    /// buffer.
     ///
     /// # Panics
     /// On mismatched shapes (callers validate user data first).
@@ -231,22 +349,82 @@ impl DenoiserNet {
         states: MatRef<'_, f32>,
         c_noise: &[f32],
     ) -> MatRef<'_, f32> {
+        self.forward_conditioned(x, states, &[c_noise])
+    }
+
+    /// Forward pass with one noise condition per level: `x` is `n x action_dim`, `states`
+    /// `n x state_dim`, `conditions` has [`DenoiserNet::levels`] entries of `n` each. Returns a
+    /// view into the network's output buffer.
+    ///
+    /// # Panics
+    /// On mismatched shapes (callers validate user data first).
+    pub fn forward_conditioned<C: AsRef<[f32]>>(
+        &mut self,
+        x: MatRef<'_, f32>,
+        states: MatRef<'_, f32>,
+        conditions: &[C],
+    ) -> MatRef<'_, f32> {
         let n = x.nrows();
         assert!(
             x.ncols() == self.action_dim
                 && states.nrows() == n
                 && states.ncols() == self.state_dim
-                && c_noise.len() == n,
+                && conditions.len() == self.levels
+                && conditions.iter().all(|c| c.as_ref().len() == n),
             "DenoiserNet: input shapes"
         );
-        self.embedding.write_input(&mut self.input, x, states, &[c_noise]);
+        self.embedding.write_input(&mut self.input, x, states, conditions);
         self.mlp.forward(self.input.as_ref())
     }
 
+    /// The preconditioned evaluation `out_i = c_skip_i x_i + c_out_i F(c_in_i x_i, s_i, c_noise_i)`
+    /// for every row of `x` (`n x action_dim`), with the per-row coefficients `coef` (`n` rows,
+    /// [`DenoiserNet::levels`] noise conditions); `out` is `n x action_dim`. EDM's denoiser
+    /// `D(x; σ, s)` with [`Preconditioning::write_coefficients`](crate::Preconditioning::write_coefficients).
+    ///
+    /// # Panics
+    /// On mismatched shapes (callers validate user data first).
+    pub fn forward_preconditioned(
+        &mut self,
+        x: MatRef<'_, f32>,
+        states: MatRef<'_, f32>,
+        coef: &RowCoefficients,
+        mut out: MatMut<'_, f32>,
+    ) {
+        let (n, d) = (x.nrows(), x.ncols());
+        assert!(
+            coef.len() == n
+                && coef.c_skip.len() == n
+                && coef.c_out.len() == n
+                && out.nrows() == n
+                && out.ncols() == d,
+            "DenoiserNet: preconditioned shapes"
+        );
+        let mut x_in = std::mem::replace(&mut self.x_in, Mat::zeros(0, 0));
+        if x_in.nrows() != n || x_in.ncols() != d {
+            x_in = Mat::zeros(n, d);
+        }
+        for j in 0..d {
+            let col = x_in.col_as_slice_mut(j);
+            for i in 0..n {
+                col[i] = coef.c_in[i] * x[(i, j)];
+            }
+        }
+        let f = self.forward_conditioned(x_in.as_ref(), states, &coef.c_noise[..]);
+        for j in 0..d {
+            for i in 0..n {
+                out[(i, j)] = coef.c_skip[i] * x[(i, j)] + coef.c_out[i] * f[(i, j)];
+            }
+        }
+        self.x_in = x_in;
+    }
+
     /// Backward pass for the last forward: accumulates parameter gradients for `grad_out`
-    /// (`n x action_dim`).
-    pub fn backward(&mut self, grad_out: MatRef<'_, f32>) {
-        self.mlp.backward(grad_out);
+    /// (`n x action_dim`) and returns the gradient with respect to the `x` input of that
+    /// forward (`n x action_dim`; the state and embedding columns are not differentiated).
+    pub fn backward(&mut self, grad_out: MatRef<'_, f32>) -> MatRef<'_, f32> {
+        let da = self.action_dim;
+        self.mlp.backward(grad_out).subcols(0, da)
     }
 
     /// The underlying residual MLP.

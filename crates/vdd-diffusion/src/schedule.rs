@@ -4,6 +4,7 @@
 use serde::{Deserialize, Serialize};
 
 use crate::error::{DiffusionError, Result};
+use crate::net::RowCoefficients;
 
 /// The `β` schedule of a variance-preserving (DDPM) diffusion with `N` discrete steps.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
@@ -316,19 +317,46 @@ impl Preconditioning {
     /// `σ σ_d / sqrt(σ² + σ_d²)`.
     #[inline]
     pub fn c_out(&self, sigma: f32) -> f32 {
-        sigma * self.sigma_data / (sigma * sigma + self.sigma_data * self.sigma_data).sqrt()
+        sigma * self.sigma_data / self.noisy_std(sigma)
     }
 
     /// `1 / sqrt(σ² + σ_d²)`.
     #[inline]
     pub fn c_in(&self, sigma: f32) -> f32 {
-        1.0 / (sigma * sigma + self.sigma_data * self.sigma_data).sqrt()
+        1.0 / self.noisy_std(sigma)
     }
 
     /// `ln(σ) / 4`.
     #[inline]
     pub fn c_noise(&self, sigma: f32) -> f32 {
         0.25 * sigma.ln()
+    }
+
+    /// `sqrt(σ² + σ_d²)`: the standard deviation of noisy data `a + σ ε` (the denominator of
+    /// `c_in` and `c_out`; preconditionings derived from EDM's, e.g. a consistency model's
+    /// boundary-shifted `c_out`, share it).
+    #[inline]
+    pub fn noisy_std(&self, sigma: f32) -> f32 {
+        (sigma * sigma + self.sigma_data * self.sigma_data).sqrt()
+    }
+
+    /// Writes EDM's coefficients of every level of `sigma` into `coef` (cleared first, one noise
+    /// condition): the denoiser `D(x; σ) = c_skip(σ) x + c_out(σ) F(c_in(σ) x, c_noise(σ))` as
+    /// [`DenoiserNet::forward_preconditioned`](crate::DenoiserNet::forward_preconditioned).
+    ///
+    /// ```
+    /// use vdd_diffusion::{Preconditioning, RowCoefficients};
+    /// let p = Preconditioning::new(0.5).unwrap();
+    /// let mut coef = RowCoefficients::default();
+    /// p.write_coefficients(&[0.1, 2.0], &mut coef);
+    /// assert_eq!(coef.len(), 2);
+    /// assert_eq!((coef.c_skip[1], coef.c_noise[0][0]), (p.c_skip(2.0), p.c_noise(0.1)));
+    /// ```
+    pub fn write_coefficients(&self, sigma: &[f32], coef: &mut RowCoefficients) {
+        coef.clear(1);
+        for &s in sigma {
+            coef.push(self.c_in(s), &[self.c_noise(s)], self.c_skip(s), self.c_out(s));
+        }
     }
 
     /// The EDM loss weight `λ(σ) = 1 / c_out(σ)²`, which makes the denoiser loss

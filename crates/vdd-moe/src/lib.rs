@@ -13,11 +13,15 @@
 //! the act mode and the deployment spec ([`vdd_data::DeploySpec`]: observation feature map,
 //! window, chunk, executed steps); [`load_policy`] loads it as a [`DeployedPolicy`] that acts on
 //! raw environment observations.
+//!
+//! [`step`] holds the optimiser steps every trainer of a mixture shares (the gating step, the
+//! checked gradient clipping).
 #![warn(missing_docs)]
 
 mod error;
 mod experts;
 mod moe;
+pub mod step;
 
 pub use error::MoeError;
 pub use experts::{DiagonalExpert, ExpertFamily, ExpertKind, FullExpert};

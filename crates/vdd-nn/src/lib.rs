@@ -36,6 +36,6 @@ pub use linear::Linear;
 pub use mlp::{Mlp, MlpConfig, ResidualBlock, ResidualMlp, ResidualMlpConfig};
 pub use module::Module;
 pub use norm::{LAYER_NORM_EPS, LayerNorm};
-pub use optim::{Adam, AdamConfig, clip_grad_norm};
+pub use optim::{Adam, AdamConfig, NonFiniteGradient, clip_grad_norm, clip_grad_norm_checked};
 pub use param::{Param, Parameters, join_name};
 pub use schedule::LrSchedule;

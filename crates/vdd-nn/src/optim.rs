@@ -151,6 +151,47 @@ pub fn clip_grad_norm(model: &mut dyn Parameters, max_norm: f32) -> f32 {
     norm
 }
 
+/// The global gradient norm of a model was NaN or infinite (see [`clip_grad_norm_checked`]).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, thiserror::Error)]
+#[error("the global gradient norm is not finite")]
+pub struct NonFiniteGradient;
+
+/// Checks that the global gradient norm of `model` (over every parameter, trainable or not) is
+/// finite, then, when `max_norm` is given, clips it with [`clip_grad_norm`]. A non-finite norm is
+/// an error and leaves the gradients untouched, so the caller can skip the update: the checked
+/// clipping every trainer applies before an optimiser step.
+///
+/// ```
+/// use vdd_nn::{clip_grad_norm_checked, Param, Parameters};
+/// struct One(Param);
+/// impl Parameters for One {
+///     fn visit_params(&self, p: &str, f: &mut dyn FnMut(&str, &Param)) { f(p, &self.0) }
+///     fn visit_params_mut(&mut self, p: &str, f: &mut dyn FnMut(&str, &mut Param)) { f(p, &mut self.0) }
+/// }
+/// let mut m = One(Param::zeros(&[2]));
+/// m.0.grad = vec![3.0, 4.0];
+/// clip_grad_norm_checked(&mut m, Some(1.0)).unwrap();
+/// assert!((m.0.grad[0] - 0.6).abs() < 1e-6);
+/// m.0.grad[1] = f32::NAN;
+/// assert!(clip_grad_norm_checked(&mut m, None).is_err());
+/// ```
+pub fn clip_grad_norm_checked(
+    model: &mut dyn Parameters,
+    max_norm: Option<f32>,
+) -> Result<(), NonFiniteGradient> {
+    let mut sq = 0.0f64;
+    model.visit_params("", &mut |_, p| {
+        sq += p.grad.iter().map(|g| f64::from(*g) * f64::from(*g)).sum::<f64>();
+    });
+    if !sq.is_finite() {
+        return Err(NonFiniteGradient);
+    }
+    if let Some(max) = max_norm {
+        clip_grad_norm(model, max);
+    }
+    Ok(())
+}
+
 #[cfg(test)]
 mod tests {
     use faer::Mat;

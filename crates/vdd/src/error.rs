@@ -30,3 +30,16 @@ pub enum VddError {
         reason: String,
     },
 }
+
+impl From<vdd_moe::step::StepError> for VddError {
+    /// A failed shared step ([`vdd_moe::step`]) as the trainer's error: a non-finite loss or
+    /// gradient stays [`VddError::NonFinite`].
+    fn from(e: vdd_moe::step::StepError) -> Self {
+        use vdd_moe::step::StepError;
+        match e {
+            StepError::NonFinite { iteration, quantity } => Self::NonFinite { iteration, quantity },
+            StepError::Core(e) => Self::Core(e),
+            StepError::Moe(e) => Self::Moe(e),
+        }
+    }
+}

@@ -6,6 +6,7 @@ use faer::{Mat, MatRef};
 use rand::Rng as _;
 use serde::{Deserialize, Serialize};
 use vdd_core::{CoreError, Expert, ScoreModel, Seeds, check_finite, check_len};
+use vdd_moe::step::clip_or_fail;
 use vdd_moe::{ExpertFamily, Moe, MoeOutput};
 use vdd_nn::{Adam, Ema, Parameters};
 
@@ -317,12 +318,9 @@ impl<S: ScoreModel, E: Expert> Vdd<S, E> {
         if self.student.has_learned_gating() && !frozen {
             for k in 0..self.config.gating_steps_per_iter {
                 let stream = (it * self.config.gating_steps_per_iter + k) as u64;
-                gating_loss = Some(self.gating_step(it, stream)?);
                 let factor = self.config.gating_lr_schedule.factor(self.gating_optimizer.steps());
                 gating_lr = self.config.gating_optimizer.lr * factor;
-                let net = self.student.gating_network_mut().expect("learned gating has a network");
-                clip_or_fail(net, self.config.max_grad_norm, it, "gating gradient")?;
-                self.gating_optimizer.step(net, factor);
+                gating_loss = self.gating_step(it, stream, factor)?;
             }
         }
 
@@ -340,10 +338,15 @@ impl<S: ScoreModel, E: Expert> Vdd<S, E> {
         })
     }
 
-    /// Soft cross-entropy `−mean Σ_z q̃(z|a,s) log q(z|s)` towards the current student's
-    /// responsibilities of dataset actions (or teacher samples); leaves its gradient in the
-    /// gating network and returns the loss.
-    fn gating_step(&mut self, it: usize, stream: u64) -> Result<f32, VddError> {
+    /// One gating step ([`vdd_moe::step::gating_step`] with learning-rate factor `factor`) on
+    /// the soft cross-entropy `−mean Σ_z q̃(z|a,s) log q(z|s)` towards the current student's
+    /// responsibilities of dataset actions (or teacher samples); returns the loss.
+    fn gating_step(
+        &mut self,
+        it: usize,
+        stream: u64,
+        factor: f32,
+    ) -> Result<Option<f32>, VddError> {
         let n = self.config.gating_batch_size;
         let mut rng = self.seeds.stream_indexed("gating-batch", stream);
         let n_data = self.data.states.nrows();
@@ -376,33 +379,33 @@ impl<S: ScoreModel, E: Expert> Vdd<S, E> {
                 })?;
             }
         }
-        self.student.forward(self.gating_states.as_ref())?;
-        let out = self.student.output();
-        let z_n = out.num_experts;
-        let mut loss = 0.0f64;
-        for b in 0..n {
-            for (j, v) in self.action.iter_mut().enumerate() {
-                *v = self.gating_actions[(b, j)];
-            }
-            out.log_density_and_responsibilities(b, &self.action, &mut self.resp, &mut self.work);
-            let lg = out.log_gating_row(b);
-            for z in 0..z_n {
-                loss -= f64::from(self.resp[z] * lg[z]);
-                self.grad_logits[(b, z)] = (lg[z].exp() - self.resp[z]) / n as f32;
-            }
-        }
-        let loss = (loss / n as f64) as f32;
-        if !loss.is_finite() {
-            return Err(VddError::NonFinite { iteration: it, quantity: "gating loss" });
-        }
-        if let Some(net) = self.student.gating_network_mut() {
-            net.zero_grad();
-        }
-        let grad = std::mem::replace(&mut self.grad_logits, Mat::zeros(0, 0));
-        let r = self.student.backward_gating(grad.as_ref());
-        self.grad_logits = grad;
-        r?;
-        Ok(loss)
+        let (actions, action, resp, work) =
+            (&self.gating_actions, &mut self.action, &mut self.resp, &mut self.work);
+        let loss = vdd_moe::step::gating_step(
+            &mut self.student,
+            self.gating_states.as_ref(),
+            &mut self.gating_optimizer,
+            factor,
+            self.config.max_grad_norm,
+            it,
+            &mut self.grad_logits,
+            |out, mut grad| {
+                let mut loss = 0.0f64;
+                for b in 0..n {
+                    for (j, v) in action.iter_mut().enumerate() {
+                        *v = actions[(b, j)];
+                    }
+                    out.log_density_and_responsibilities(b, action, resp, work);
+                    let lg = out.log_gating_row(b);
+                    for z in 0..out.num_experts {
+                        loss -= f64::from(resp[z] * lg[z]);
+                        grad[(b, z)] = (lg[z].exp() - resp[z]) / n as f32;
+                    }
+                }
+                Ok(f64::from((loss / n as f64) as f32))
+            },
+        )?;
+        Ok(loss.map(|l| l as f32))
     }
 
     /// Writes a checkpoint directory (`student.safetensors` + `trainer.json`) atomically: the
@@ -482,26 +485,6 @@ impl<S: ScoreModel> Vdd<S, ExpertFamily> {
 fn sibling(dir: &Path, tag: &str) -> PathBuf {
     let name = dir.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
     dir.with_file_name(format!(".{name}.{tag}"))
-}
-
-/// Global gradient norm; errors on NaN/inf, clips when configured.
-fn clip_or_fail(
-    params: &mut dyn Parameters,
-    max_norm: Option<f32>,
-    iteration: usize,
-    quantity: &'static str,
-) -> Result<(), VddError> {
-    let mut sq = 0.0f64;
-    params.visit_params("", &mut |_, p| {
-        sq += p.grad.iter().map(|g| f64::from(*g) * f64::from(*g)).sum::<f64>();
-    });
-    if !sq.is_finite() {
-        return Err(VddError::NonFinite { iteration, quantity });
-    }
-    if let Some(max) = max_norm {
-        vdd_nn::clip_grad_norm(params, max);
-    }
-    Ok(())
 }
 
 #[cfg(test)]

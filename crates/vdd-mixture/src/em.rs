@@ -19,12 +19,12 @@
 //! batch.
 
 use serde::{Deserialize, Serialize};
-use vdd_core::{CoreError, Expert};
+use vdd_core::{CoreError, Expert, Trainer};
 use vdd_moe::{ExpertFamily, Moe};
 use vdd_nn::{AdamConfig, LrSchedule};
 
 use crate::dataset::Dataset;
-use crate::error::BaselineError;
+use crate::error::MixtureError;
 use crate::fit::{self, MixtureFit};
 
 /// Hyper-parameters of [`Em`]. [`EmConfig::toy`] is the one default used on every task.
@@ -114,7 +114,7 @@ pub struct EmMetrics {
 ///
 /// ```
 /// use faer::Mat;
-/// use vdd_baselines::{Dataset, Em, EmConfig};
+/// use vdd_mixture::{Dataset, Em, EmConfig};
 /// use vdd_moe::{GatingKind, Moe, MoeConfig};
 /// // Two clusters of 1-D actions at ±2 (state constant).
 /// let actions = Mat::from_fn(64, 1, |i, _| if i % 2 == 0 { 2.0 } else { -2.0 } + 0.01 * (i % 5) as f32);
@@ -140,7 +140,7 @@ pub struct Em<E: Expert = ExpertFamily> {
 
 impl<E: Expert> Em<E> {
     /// Sets up a run; checks the configuration and that the data fit the mixture's dimensions.
-    pub fn new(config: EmConfig, student: Moe<E>, data: Dataset) -> Result<Self, BaselineError> {
+    pub fn new(config: EmConfig, student: Moe<E>, data: Dataset) -> Result<Self, MixtureError> {
         config.validate()?;
         let fit = MixtureFit::new(&fit::loop_settings!(&config), config.seed, student, data)?;
         let resp = vec![0.0; fit.data.len() * fit.student.num_experts()];
@@ -148,7 +148,7 @@ impl<E: Expert> Em<E> {
     }
 
     /// Trains a fresh run to the end and returns the fitted mixture.
-    pub fn fit(config: EmConfig, student: Moe<E>, data: Dataset) -> Result<Moe<E>, BaselineError> {
+    pub fn fit(config: EmConfig, student: Moe<E>, data: Dataset) -> Result<Moe<E>, MixtureError> {
         let mut em = Self::new(config, student, data)?;
         em.train(|_| {})?;
         Ok(em.into_student())
@@ -157,11 +157,6 @@ impl<E: Expert> Em<E> {
     /// The configuration.
     pub fn config(&self) -> &EmConfig {
         &self.config
-    }
-
-    /// Iterations done so far.
-    pub fn iteration(&self) -> usize {
-        self.fit.iteration
     }
 
     /// The data being fitted.
@@ -191,29 +186,33 @@ impl<E: Expert> Em<E> {
     }
 
     /// Mean dataset log-likelihood `(1/N) Σ_o log q(a_o|s_o)` of the current model.
-    pub fn log_likelihood(&mut self) -> Result<f64, BaselineError> {
+    pub fn log_likelihood(&mut self) -> Result<f64, MixtureError> {
         self.fit.evaluate(None, None)
     }
 
-    /// Runs the remaining iterations, calling `callback` after each.
-    pub fn train(&mut self, mut callback: impl FnMut(&EmMetrics)) -> Result<(), BaselineError> {
-        while self.fit.iteration < self.config.iterations {
-            let m = self.step()?;
-            callback(&m);
-        }
-        Ok(())
+    /// Runs the remaining iterations, calling `callback` after each ([`Trainer::run`]).
+    pub fn train(&mut self, callback: impl FnMut(&EmMetrics)) -> Result<(), MixtureError> {
+        self.run(callback)
     }
+}
+
+/// One iteration per [`Trainer::step`], reported as [`EmMetrics`]; the output is the fitted
+/// mixture.
+impl<E: Expert> Trainer for Em<E> {
+    type Report = EmMetrics;
+    type Output = Moe<E>;
+    type Error = MixtureError;
 
     /// One EM iteration. On error the steps already taken stay applied and the iteration
     /// counter does not advance.
-    pub fn step(&mut self) -> Result<EmMetrics, BaselineError> {
+    fn step(&mut self) -> Result<EmMetrics, MixtureError> {
         let it = self.fit.iteration;
         let (n, z_n) = (self.fit.data.len(), self.fit.student.num_experts());
 
         // E-step: responsibilities of the dataset actions under the frozen current model.
         let log_likelihood = self.fit.evaluate(None, Some(&mut self.resp))?;
         if !log_likelihood.is_finite() {
-            return Err(BaselineError::NonFinite { iteration: it, quantity: "log-likelihood" });
+            return Err(MixtureError::NonFinite { iteration: it, quantity: "log-likelihood" });
         }
         let responsibility_entropy = -self
             .resp
@@ -253,129 +252,19 @@ impl<E: Expert> Em<E> {
             gating_lr,
         })
     }
+
+    fn iteration(&self) -> usize {
+        self.fit.iteration
+    }
+
+    fn iterations(&self) -> usize {
+        self.config.iterations
+    }
+
+    fn finish(self) -> Result<Moe<E>, MixtureError> {
+        Ok(self.into_student())
+    }
 }
 
 #[cfg(test)]
-mod tests {
-    use super::*;
-    use crate::test_support::{CLUSTER_MEANS, clusters, full_batch_config, small_moe};
-    use faer::Mat;
-    use vdd_core::Policy;
-    use vdd_moe::{ExpertKind, MoeConfig};
-    use vdd_nn::Parameters;
-
-    #[test]
-    fn log_likelihood_never_decreases_on_a_full_batch() {
-        for kind in [ExpertKind::Diagonal, ExpertKind::Full] {
-            let (data, _) = clusters([40, 40, 40], 0.35, 1);
-            let student = small_moe(kind, 3, 5);
-            let config = full_batch_config(25, 30, 3e-3);
-            let mut em = Em::new(config, student, data).unwrap();
-            let mut lls = Vec::new();
-            em.train(|m| lls.push(m.log_likelihood)).unwrap();
-            lls.push(em.log_likelihood().unwrap());
-            for w in lls.windows(2) {
-                assert!(w[1] >= w[0] - 1e-4, "{kind:?}: log-likelihood decreased: {lls:?}");
-            }
-            assert!(lls[lls.len() - 1] > lls[0] + 1.0, "{kind:?}: EM did not improve: {lls:?}");
-        }
-    }
-
-    #[test]
-    fn finds_the_means_of_three_separated_clusters() {
-        // Unequal clusters, so that the gating must learn unequal weights.
-        let sizes = [60, 120, 180];
-        let (data, _) = clusters(sizes, 0.3, 2);
-        let student = small_moe(ExpertKind::Diagonal, 3, 0);
-        let config = EmConfig {
-            iterations: 60,
-            expert_steps_per_iter: 10,
-            gating_steps_per_iter: 10,
-            batch_size: Some(128),
-            gating_batch_size: Some(128),
-            expert_optimizer: AdamConfig { lr: 1e-2, ..AdamConfig::default() },
-            gating_optimizer: AdamConfig { lr: 1e-2, ..AdamConfig::default() },
-            expert_lr_schedule: LrSchedule::LinearDecay { total_steps: 600, final_factor: 0.05 },
-            gating_lr_schedule: LrSchedule::LinearDecay { total_steps: 600, final_factor: 0.05 },
-            ..EmConfig::toy()
-        };
-        let mut student = Em::fit(config, student, data).unwrap();
-        student.forward(Mat::zeros(1, 1).as_ref()).unwrap();
-        let out = student.output();
-        let mut found = [false; 3];
-        for z in 0..3 {
-            let m = out.mean(0, z);
-            let (c, dist) = CLUSTER_MEANS
-                .iter()
-                .enumerate()
-                .map(|(c, mu)| (c, ((m[0] - mu[0]).powi(2) + (m[1] - mu[1]).powi(2)).sqrt()))
-                .min_by(|a, b| a.1.total_cmp(&b.1))
-                .unwrap();
-            assert!(dist < 0.15, "expert {z} mean {m:?} is {dist} from cluster {c}");
-            found[c] = true;
-            let w = out.log_gating_row(0)[z].exp();
-            let expect = sizes[c] as f32 / 360.0;
-            assert!((w - expect).abs() < 0.04, "expert {z} weight {w}, cluster share {expect}");
-            let std = out.scale(0, z)[0];
-            assert!((std - 0.3).abs() < 0.06, "expert {z} std {std}");
-        }
-        assert_eq!(found, [true; 3], "two experts share a cluster");
-    }
-
-    #[test]
-    fn same_seed_same_run_and_other_seed_other_run() {
-        let run = |seed: u64| {
-            let (data, _) = clusters([10, 10, 10], 0.3, 3);
-            let config = EmConfig { iterations: 3, seed, ..EmConfig::toy() };
-            let config = EmConfig { batch_size: Some(16), gating_batch_size: Some(16), ..config };
-            let mut em = Em::new(config, small_moe(ExpertKind::Full, 3, 1), data).unwrap();
-            let mut metrics = Vec::new();
-            em.train(|m| metrics.push(*m)).unwrap();
-            let mut params = Vec::new();
-            em.student().visit_params("", &mut |_, p| params.push(p.value.clone()));
-            (metrics, params)
-        };
-        let (a, b, c) = (run(7), run(7), run(8));
-        assert_eq!(a, b);
-        assert_ne!(a.1, c.1);
-    }
-
-    #[test]
-    fn bad_inputs_are_rejected() {
-        let (data, _) = clusters([4, 3, 3], 0.3, 0);
-        let student = small_moe(ExpertKind::Diagonal, 2, 0);
-        let bad = [
-            EmConfig { iterations: 0, ..EmConfig::toy() },
-            EmConfig { expert_steps_per_iter: 0, ..EmConfig::toy() },
-            EmConfig { batch_size: Some(0), ..EmConfig::toy() },
-            EmConfig { max_grad_norm: Some(-1.0), ..EmConfig::toy() },
-            EmConfig {
-                expert_optimizer: AdamConfig { lr: f32::NAN, ..AdamConfig::default() },
-                ..EmConfig::toy()
-            },
-        ];
-        for config in bad {
-            assert!(Em::new(config, student.clone(), data.clone()).is_err());
-        }
-        let wrong_dims = Moe::from_config(MoeConfig::toy(1, 3, 2), 0).unwrap();
-        assert!(Em::new(EmConfig::toy(), wrong_dims, data.clone()).is_err());
-        let wrong_state = Moe::from_config(MoeConfig::toy(2, 2, 2), 0).unwrap();
-        assert!(Em::new(EmConfig::toy(), wrong_state, data).is_err());
-    }
-
-    #[test]
-    fn uniform_gating_stays_uniform() {
-        let (data, _) = clusters([7, 7, 6], 0.3, 0);
-        let mut mc = MoeConfig::toy(1, 2, 3);
-        mc.experts_network.hidden_dim = 8;
-        let student = Moe::from_config(mc, 0).unwrap();
-        let config = EmConfig { iterations: 2, ..full_batch_config(2, 3, 1e-3) };
-        let mut em = Em::new(config, student, data).unwrap();
-        let mut gating_losses = Vec::new();
-        em.train(|m| gating_losses.push(m.gating_loss)).unwrap();
-        assert_eq!(gating_losses, vec![None, None]);
-        let mut student = em.into_student();
-        let a = student.act(&[0.0]).unwrap();
-        assert!(a.iter().all(|x| x.is_finite()));
-    }
-}
+mod tests;

@@ -8,8 +8,9 @@ use vdd_core::{Policy, Seeds};
 use vdd_diffusion::{GmmTeacher, NetConfig};
 use vdd_nn::Parameters;
 
-use crate::consistency::{ConsistencyConfig, ConsistencyTeacher, ScoreTeacher};
-use crate::distill::Distillation;
+use crate::config::ConsistencyConfig;
+use crate::teacher::{ConsistencyTeacher, ScoreTeacher};
+use crate::trainer::Distillation;
 
 /// The four modes (unit circle, 90° apart).
 pub const FOUR_MODES: [[f32; 2]; 4] = [[1.0, 0.0], [0.0, 1.0], [-1.0, 0.0], [0.0, -1.0]];

@@ -8,7 +8,7 @@ use vdd_core::{CoreError, check_finite, check_len};
 ///
 /// ```
 /// use faer::Mat;
-/// use vdd_baselines::Dataset;
+/// use vdd_mixture::Dataset;
 /// let data = Dataset::new(Mat::zeros(4, 1), Mat::from_fn(4, 2, |i, j| (i + j) as f32)).unwrap();
 /// assert_eq!((data.len(), data.state_dim(), data.action_dim()), (4, 1, 2));
 /// assert!(Dataset::new(Mat::zeros(4, 1), Mat::zeros(3, 2)).is_err());

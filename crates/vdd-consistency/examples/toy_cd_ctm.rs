@@ -26,13 +26,13 @@
 //! * µs per action (`Policy::act_into`, one observation at a time) and training seconds.
 //!
 //! ```sh
-//! cargo run --release -p vdd-baselines --example toy_cd_ctm -- [--seed N] [--teacher beso|exact|both]
+//! cargo run --release -p vdd-consistency --example toy_cd_ctm -- [--seed N] [--teacher beso|exact|both]
 //! ```
 
 use std::time::Instant;
 
 use faer::{Mat, MatRef};
-use vdd_baselines::{
+use vdd_consistency::{
     CdConfig, CdTrainer, ConsistencyProgress, ConsistencyTeacher, CtmConfig, CtmTrainer,
     ScoreTeacher,
 };

@@ -1,8 +1,6 @@
-//! The paper's 2-D toy shared by the baseline examples: 8 modes on a circle of radius 2,
+//! The paper's 2-D toy of the consistency examples: 8 modes on a circle of radius 2,
 //! isotropic std 0.5, equal weights, 5000 samples, one constant state `s = 0` (1-D) — its
 //! exact density, samples, and the exact-density metrics of samplers without a density.
-
-#![allow(dead_code)] // each example uses part of it
 
 use faer::{Mat, MatRef};
 use rand::Rng as _;

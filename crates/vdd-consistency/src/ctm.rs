@@ -8,8 +8,9 @@
 //! `G_θ(x, t, u, s) = (u/t) x + (1 − u/t) g_θ(x, t, u, s)`,
 //! `g_θ(x, t, u, s) = c_skip(t) x + c_out(t) F_θ(c_in(t) x, s, c_noise(t), c_noise(u))`
 //!
-//! with the teacher's EDM preconditioning ([`vdd_diffusion::Preconditioning`]) and a network
-//! that embeds both levels ([`ConditionedNet`] with two levels). `G(x, t, t) = x` exactly, and
+//! with the teacher's EDM preconditioning ([`vdd_diffusion::Preconditioning`]) and the
+//! teacher's network embedding both levels ([`DenoiserNet`] with two noise conditions).
+//! `G(x, t, t) = x` exactly, and
 //! `g(x, t, t)` is a denoiser `D(x; t)`.
 //!
 //! **Training.** On the Karras grid `σ_max = σ_0 > … > σ_{N−1} = σ_min`, per minibatch: a
@@ -45,15 +46,15 @@ use faer::{Mat, MatMut, MatRef};
 use rand::Rng as _;
 use serde::{Deserialize, Serialize};
 use vdd_core::CoreError;
-use vdd_diffusion::{BesoConfig, Preconditioning, SigmaDistribution};
+use vdd_diffusion::{BesoConfig, DenoiserNet, Preconditioning, RowCoefficients, SigmaDistribution};
 use vdd_nn::Parameters;
 
-use crate::consistency::{ConditionedNet, ConsistencyConfig, ConsistencyTeacher};
-use crate::distill::{
-    Coefficients, ConsistencyTrainer, Distillation, DistilledPolicy, LossTerms, Objective,
-    Sampling, ensure,
-};
-use crate::error::BaselineError;
+use crate::config::ConsistencyConfig;
+use crate::error::ConsistencyError;
+use crate::network::ensure;
+use crate::policy::{DistilledPolicy, Sampling};
+use crate::teacher::ConsistencyTeacher;
+use crate::trainer::{ConsistencyTrainer, Distillation, LossTerms, Objective};
 
 /// Consistency Trajectory Model distillation of a [`ConsistencyTeacher`] (see the
 /// [module docs](self)).
@@ -63,7 +64,7 @@ use crate::error::BaselineError;
 ///
 /// ```
 /// use faer::Mat;
-/// use vdd_baselines::{CtmConfig, CtmTrainer};
+/// use vdd_consistency::{CtmConfig, CtmTrainer};
 /// use vdd_core::Policy;
 /// use vdd_diffusion::{Beso, BesoConfig, DiffusionTeacher, NetConfig, TrainConfig};
 ///
@@ -183,43 +184,37 @@ impl CtmConfig {
     }
 
     /// Checks the numbers.
-    pub fn validate(&self) -> Result<(), CoreError> {
+    pub fn validate(&self) -> Result<(), ConsistencyError> {
         self.base.validate()?;
         if self.max_teacher_steps == 0 {
-            return Err(CoreError::Config("max_teacher_steps must be >= 1".into()));
+            return Err(CoreError::Config("max_teacher_steps must be >= 1".into()).into());
         }
         if !(self.dsm_weight.is_finite() && self.dsm_weight >= 0.0) {
             return Err(CoreError::Config(format!(
                 "dsm_weight must be finite and >= 0, got {}",
                 self.dsm_weight
-            )));
+            ))
+            .into());
         }
-        self.dsm_sigma.validate().map_err(CoreError::from)
+        Ok(self.dsm_sigma.validate()?)
     }
 }
 
 /// Appends the coefficients of `G(x, t, u)` per row: `skip = u/t + (1 − u/t) c_skip(t)`,
 /// `out = (1 − u/t) c_out(t)`.
-fn push_jump(coef: &mut Coefficients, pre: &Preconditioning, t: &[f32], u: &[f32]) {
+fn push_jump(coef: &mut RowCoefficients, pre: &Preconditioning, t: &[f32], u: &[f32]) {
     for (&t, &u) in t.iter().zip(u) {
         let r = u / t;
-        coef.c_in.push(pre.c_in(t));
-        coef.noise.push(pre.c_noise(t));
-        coef.noise_to.push(pre.c_noise(u));
-        coef.skip.push(r + (1.0 - r) * pre.c_skip(t));
-        coef.out.push((1.0 - r) * pre.c_out(t));
+        let (skip, out) = (r + (1.0 - r) * pre.c_skip(t), (1.0 - r) * pre.c_out(t));
+        coef.push(pre.c_in(t), &[pre.c_noise(t), pre.c_noise(u)], skip, out);
     }
 }
 
 /// Appends the coefficients of the student's denoiser `g(x, τ, τ) = c_skip(τ) x +
 /// c_out(τ) F(c_in(τ) x, s, c_noise(τ), c_noise(τ))` per row.
-fn push_denoiser(coef: &mut Coefficients, pre: &Preconditioning, tau: &[f32]) {
+fn push_denoiser(coef: &mut RowCoefficients, pre: &Preconditioning, tau: &[f32]) {
     for &t in tau {
-        coef.c_in.push(pre.c_in(t));
-        coef.noise.push(pre.c_noise(t));
-        coef.noise_to.push(pre.c_noise(t));
-        coef.skip.push(pre.c_skip(t));
-        coef.out.push(pre.c_out(t));
+        coef.push(pre.c_in(t), &[pre.c_noise(t), pre.c_noise(t)], pre.c_skip(t), pre.c_out(t));
     }
 }
 
@@ -250,14 +245,14 @@ pub struct CtmObjective {
     target: Mat<f32>,
     online_out: Mat<f32>,
     grad: Mat<f32>,
-    coef: Coefficients,
+    coef: RowCoefficients,
     /// `ω(τ)` of the DSM rows.
     dsm_row_weight: Vec<f32>,
     /// [`CtmMatching::AtBoundary`]: the stop-gradient copy of the online network (its weights
     /// refreshed at every draw), its coefficients `G(·, u, σ_min)`, its outputs and
     /// output gradients, and a parameter buffer.
-    frozen: Option<ConditionedNet>,
-    boundary_coef: Coefficients,
+    frozen: Option<DenoiserNet>,
+    boundary_coef: RowCoefficients,
     sigma_min_rows: Vec<f32>,
     mapped: Mat<f32>,
     mapped_grad: Mat<f32>,
@@ -278,7 +273,7 @@ impl<T: ConsistencyTeacher> Objective<T> for CtmObjective {
     const POLICY_STREAM: &'static str = "ctm-policy";
     const NOISE_STREAM: &'static str = "ctm-noise";
 
-    fn new(config: CtmConfig) -> Result<Self, BaselineError> {
+    fn new(config: CtmConfig) -> Result<Self, ConsistencyError> {
         config.validate()?;
         let z = || Mat::zeros(0, 0);
         Ok(Self {
@@ -301,10 +296,10 @@ impl<T: ConsistencyTeacher> Objective<T> for CtmObjective {
             target: z(),
             online_out: z(),
             grad: z(),
-            coef: Coefficients::default(),
+            coef: RowCoefficients::default(),
             dsm_row_weight: Vec::new(),
             frozen: None,
-            boundary_coef: Coefficients::default(),
+            boundary_coef: RowCoefficients::default(),
             sigma_min_rows: Vec::new(),
             mapped: z(),
             mapped_grad: z(),
@@ -326,7 +321,7 @@ impl<T: ConsistencyTeacher> Objective<T> for CtmObjective {
 
     /// A minibatch, levels and noise; the teacher from `t` to `v`; the target
     /// `G_{θ⁻}(x̂, v, u)`; the DSM inputs and targets; the stacked online batch.
-    fn draw(&mut self, core: &mut Distillation<T>) -> Result<(), BaselineError> {
+    fn draw(&mut self, core: &mut Distillation<T>) -> Result<(), ConsistencyError> {
         core.draw_batch();
         let (n, d) = (core.batch.actions.nrows(), core.batch.actions.ncols());
         let ds = core.batch.states.ncols();
@@ -475,7 +470,7 @@ impl<T: ConsistencyTeacher> Objective<T> for CtmObjective {
                 for j in 0..d {
                     let (g, mg) = (self.grad.col_as_slice(j), self.mapped_grad.col_as_slice_mut(j));
                     for i in 0..n {
-                        mg[i] = bc.out[i] * g[i];
+                        mg[i] = bc.c_out[i] * g[i];
                     }
                 }
                 frozen.zero_grad();
@@ -483,7 +478,7 @@ impl<T: ConsistencyTeacher> Objective<T> for CtmObjective {
                 for j in 0..d {
                     for i in 0..n {
                         self.grad[(i, j)] =
-                            bc.skip[i] * self.grad[(i, j)] + bc.c_in[i] * gx[(i, j)];
+                            bc.c_skip[i] * self.grad[(i, j)] + bc.c_in[i] * gx[(i, j)];
                     }
                 }
             }
@@ -491,7 +486,7 @@ impl<T: ConsistencyTeacher> Objective<T> for CtmObjective {
             for j in 0..d {
                 let g = self.grad.col_as_slice_mut(j);
                 for i in 0..rows {
-                    g[i] *= self.coef.out[i];
+                    g[i] *= self.coef.c_out[i];
                 }
             }
             core.online.backward(self.grad.as_ref());
@@ -502,7 +497,7 @@ impl<T: ConsistencyTeacher> Objective<T> for CtmObjective {
 }
 
 /// Copies the parameter values of `src` into `dst` (same architecture) through `buf`.
-fn copy_params(src: &ConditionedNet, dst: &mut ConditionedNet, buf: &mut Vec<f32>) {
+fn copy_params(src: &DenoiserNet, dst: &mut DenoiserNet, buf: &mut Vec<f32>) {
     buf.clear();
     src.visit_params("", &mut |_, p| buf.extend_from_slice(&p.value));
     let mut at = 0;
@@ -518,8 +513,8 @@ impl Sampling for Preconditioning {
     const LEVELS: usize = 2;
 
     /// The jump `G(·, t, u)` per row.
-    fn coefficients(&self, coef: &mut Coefficients, t: &[f32], u: &[f32]) {
-        coef.clear();
+    fn coefficients(&self, coef: &mut RowCoefficients, t: &[f32], u: &[f32]) {
+        coef.clear(2);
         push_jump(coef, self, t, u);
     }
 
@@ -559,7 +554,7 @@ impl TrajectoryModel {
     ) -> Result<(), CoreError> {
         self.check_model_batch(x, states, &[t], out.rb())?;
         self.forward_with(x, states, out, |pre, coef| {
-            coef.clear();
+            coef.clear(2);
             push_denoiser(coef, pre, t);
         });
         Ok(())
@@ -567,200 +562,4 @@ impl TrajectoryModel {
 }
 
 #[cfg(test)]
-mod tests {
-    use super::*;
-    use crate::test_consistency::{
-        distils_the_modes, four_mode_teacher, gradient_error, tiny_net, uniform_actions,
-    };
-    use vdd_core::{Affine, Policy};
-    use vdd_diffusion::{Beso, NetConfig};
-
-    fn tiny_config() -> CtmConfig {
-        let mut c = CtmConfig {
-            base: ConsistencyConfig {
-                net: tiny_net(),
-                num_scales: 6,
-                sigma_max: 10.0,
-                ..Default::default()
-            },
-            max_teacher_steps: 3,
-            ..Default::default()
-        };
-        c.base.train.batch_size = 5;
-        c
-    }
-
-    #[test]
-    fn jump_to_the_same_level_is_the_identity() {
-        let (s, a) = uniform_actions(16, 0);
-        let mut t =
-            CtmTrainer::new(tiny_config(), four_mode_teacher(), s.as_ref(), a.as_ref()).unwrap();
-        for _ in 0..3 {
-            t.step().unwrap();
-        }
-        let mut model = t.model().unwrap();
-        let x = Mat::from_fn(6, 2, |i, j| 2.0 * (i as f32 - 2.5) - 0.3 * j as f32);
-        let states = Mat::from_fn(6, 1, |i, _| i as f32);
-        let levels = [0.002f32, 0.01, 0.3, 1.0, 7.0, 80.0];
-        let mut out = Mat::zeros(6, 2);
-        model.jump(x.as_ref(), &levels, &levels, states.as_ref(), out.as_mut()).unwrap();
-        assert_eq!(out, x, "G(x, t, t) must be exactly x");
-        let lower = levels.map(|l| 0.5 * l);
-        model.jump(x.as_ref(), &levels, &lower, states.as_ref(), out.as_mut()).unwrap();
-        assert_ne!(out, x);
-        // u > t is rejected.
-        assert!(model.jump(x.as_ref(), &lower, &levels, states.as_ref(), out.as_mut()).is_err());
-    }
-
-    /// The analytic gradient of the CTM loss (consistency and DSM terms in one stacked batch,
-    /// the consistency term compared at `u` or through the stop-gradient student at `σ_min`)
-    /// matches central finite differences; so does the consistency term alone.
-    #[test]
-    fn ctm_loss_gradient_matches_finite_differences() {
-        for (matching, dsm_weight, dsm_weighting) in [
-            (CtmMatching::AtTarget, 0.7f32, DsmWeighting::Edm),
-            (CtmMatching::AtBoundary, 0.7, DsmWeighting::Uniform),
-            (CtmMatching::AtBoundary, 0.0, DsmWeighting::Uniform),
-        ] {
-            {
-                let (s, a) = uniform_actions(16, 1);
-                let c = CtmConfig { dsm_weight, dsm_weighting, matching, ..tiny_config() };
-                let mut t =
-                    CtmTrainer::new(c, four_mode_teacher(), s.as_ref(), a.as_ref()).unwrap();
-                for _ in 0..5 {
-                    t.step().unwrap();
-                }
-                t.objective.draw(&mut t.core).unwrap();
-                let CtmTrainer { core, objective, .. } = &mut t;
-                let probe = objective.loss(core, false);
-                assert!(probe.consistency > 1e-5, "{probe:?}");
-                assert_eq!(probe.dsm > 1e-4, dsm_weight > 0.0, "{probe:?}");
-                let (_, worst, checked) =
-                    gradient_error(core, |core, backward| objective.loss(core, backward).total);
-                assert!(checked > 50);
-                assert!(worst < 2e-2, "{matching:?}, λ_DSM {dsm_weight}: worst error {worst}");
-            }
-        }
-    }
-
-    /// Mapped to `σ_min`, rows whose target level is `σ_min` compare exactly what the direct
-    /// comparison does (`G(·, σ_min, σ_min)` is the identity), and the others differ.
-    #[test]
-    fn boundary_matching_agrees_with_direct_matching_at_sigma_min() {
-        let (s, a) = uniform_actions(16, 4);
-        let run = |matching| {
-            let c = CtmConfig { dsm_weight: 0.0, matching, ..tiny_config() };
-            // Untrained, so that both runs have the same networks and draws.
-            let mut t = CtmTrainer::new(c, four_mode_teacher(), s.as_ref(), a.as_ref()).unwrap();
-            t.objective.draw(&mut t.core).unwrap();
-            let CtmTrainer { core, objective, .. } = &mut t;
-            objective.loss(core, false);
-            (objective.u.clone(), objective.target.clone())
-        };
-        let ((u, direct), (u2, mapped)) =
-            (run(CtmMatching::AtTarget), run(CtmMatching::AtBoundary));
-        assert_eq!(u, u2);
-        let sigma_min = tiny_config().base.sigma_min;
-        let (mut same, mut different) = (0, 0);
-        for (i, &ui) in u.iter().enumerate() {
-            let equal = (0..2).all(|j| direct[(i, j)] == mapped[(i, j)]);
-            if ui == sigma_min {
-                assert!(equal, "row {i} at σ_min");
-                same += 1;
-            } else if !equal {
-                different += 1;
-            }
-        }
-        assert!(same > 0 && different > 0, "{same} rows at σ_min, {different} mapped rows");
-    }
-
-    /// Started from a BESO teacher, `G(x, t, u)` is the teacher's DDIM jump
-    /// `(u/t) x + (1 − u/t) D(x; t)` for every `u`.
-    #[test]
-    fn student_from_a_beso_teacher_starts_as_its_ddim_jump() {
-        let net = NetConfig { hidden_dim: 8, num_blocks: 1, ..Default::default() };
-        let bc = BesoConfig { net, ..Default::default() };
-        let mut beso = Beso::new(&bc, Affine::identity(1), Affine::identity(2), 0).unwrap();
-        let (s, a) = uniform_actions(16, 3);
-        let mut c = CtmConfig::for_teacher(&beso);
-        c.base.train.batch_size = 4;
-        let mut model =
-            CtmTrainer::new(c.clone(), &mut beso, s.as_ref(), a.as_ref()).unwrap().model().unwrap();
-        let x = Mat::from_fn(3, 2, |i, j| i as f32 - j as f32);
-        let st = Mat::<f32>::zeros(3, 1);
-        let (t, u) = ([5.0f32, 1.0, 0.3], [0.002f32, 0.5, 0.3]);
-        let (mut g, mut dn, mut own) = (Mat::zeros(3, 2), Mat::zeros(3, 2), Mat::zeros(3, 2));
-        model.jump(x.as_ref(), &t, &u, st.as_ref(), g.as_mut()).unwrap();
-        model.denoise(x.as_ref(), &t, st.as_ref(), own.as_mut()).unwrap();
-        beso.denoise(x.as_ref(), &t, st.as_ref(), dn.as_mut()).unwrap();
-        for i in 0..3 {
-            let r = u[i] / t[i];
-            for j in 0..2 {
-                let want = r * x[(i, j)] + (1.0 - r) * dn[(i, j)];
-                assert!((g[(i, j)] - want).abs() < 1e-5, "{g:?} vs {want}");
-                assert!((own[(i, j)] - dn[(i, j)]).abs() < 1e-5, "{own:?} vs {dn:?}");
-            }
-        }
-        model.set_sampling_steps(3).unwrap();
-        assert_eq!(model.sampling_levels().len(), 4);
-        assert!(model.act(&[0.0]).unwrap().iter().all(|v| v.is_finite()));
-        let mut other = c;
-        other.base.net.embed_dim = 8;
-        assert!(CtmTrainer::new(other, &mut beso, s.as_ref(), a.as_ref()).is_err());
-    }
-
-    /// A CTM student of the exact four-mode denoiser puts its one-step samples on the modes.
-    #[test]
-    fn ctm_student_of_an_exact_gmm_teacher_samples_near_the_modes() {
-        distils_the_modes(|base, states, actions| {
-            let config = CtmConfig { base, ..Default::default() };
-            let mut t = CtmTrainer::new(config, four_mode_teacher(), states, actions).unwrap();
-            let untrained = t.model().unwrap();
-            (Box::new(untrained), Box::new(t.train(&mut |_| {}).unwrap()))
-        });
-    }
-
-    #[test]
-    fn training_is_deterministic_for_a_seed() {
-        let (s, a) = uniform_actions(32, 2);
-        let run = |seed: u64| {
-            let mut c = tiny_config().with_seed(seed);
-            c.base.train.steps = 5;
-            let mut t = CtmTrainer::new(c, four_mode_teacher(), s.as_ref(), a.as_ref()).unwrap();
-            let mut reports = Vec::new();
-            let mut m = t.train(&mut |p| reports.push((p.loss, p.dsm_loss))).unwrap();
-            (reports, m.act(&[0.0]).unwrap())
-        };
-        assert_eq!(run(7), run(7));
-        assert_ne!(run(7).1, run(8).1);
-    }
-
-    #[test]
-    fn bad_configs_are_errors() {
-        let (s, a) = uniform_actions(8, 0);
-        let mut c = tiny_config();
-        c.base.init_from_teacher = true;
-        for c in [
-            CtmConfig { max_teacher_steps: 0, ..tiny_config() },
-            CtmConfig { dsm_weight: -1.0, ..tiny_config() },
-            CtmConfig {
-                dsm_sigma: SigmaDistribution::LogNormal { mean: 0.0, std: 0.0 },
-                ..tiny_config()
-            },
-            c,
-        ] {
-            assert!(CtmTrainer::new(c, four_mode_teacher(), s.as_ref(), a.as_ref()).is_err());
-        }
-        let mut m = CtmTrainer::new(tiny_config(), four_mode_teacher(), s.as_ref(), a.as_ref())
-            .unwrap()
-            .model()
-            .unwrap();
-        assert!(m.act(&[1.0, 2.0]).is_err());
-        assert!(m.set_sampling_steps(0).is_err());
-        let x = Mat::<f32>::zeros(2, 2);
-        let mut out = Mat::zeros(2, 2);
-        let st = Mat::<f32>::zeros(2, 1);
-        assert!(m.jump(x.as_ref(), &[1.0, 1.0], &[0.5], st.as_ref(), out.as_mut()).is_err());
-        assert!(m.denoise(x.as_ref(), &[1.0, -1.0], st.as_ref(), out.as_mut()).is_err());
-    }
-}
+mod tests;

@@ -22,19 +22,20 @@
 //!
 //! ## Gating
 //!
-//! [`soft_cross_entropy`] is `−Σ_b c_b Σ_z t_{bz} log q(z|s_b)` for per-row weights `c_b` and
+//! [`soft_cross_entropy`] ([`vdd_moe::step`], shared with VDD) is `−Σ_b c_b Σ_z t_{bz} log q(z|s_b)` for per-row weights `c_b` and
 //! targets `t_b` (responsibilities or curriculum posteriors); its gradient with respect to the
 //! gating logits is `c_b (q(z|s_b) Σ_k t_{bk} − t_{bz})`.
 
-use faer::{Mat, MatMut, MatRef};
+use faer::{Mat, MatRef};
 use rand::Rng as _;
 use vdd_core::gaussian::{self, solve_lower_in_place, solve_upper_t_in_place};
 use vdd_core::{CoreError, Expert, Rng, Seeds, check_finite_slice, check_len, check_shape};
+use vdd_moe::step::{clip_or_fail, soft_cross_entropy};
 use vdd_moe::{Moe, MoeOutput};
 use vdd_nn::{Adam, AdamConfig, LrSchedule, Parameters};
 
 use crate::dataset::Dataset;
-use crate::error::BaselineError;
+use crate::error::MixtureError;
 
 /// Rows per forward pass when a whole dataset is evaluated.
 pub const EVAL_CHUNK: usize = 2048;
@@ -43,7 +44,7 @@ pub const EVAL_CHUNK: usize = 2048;
 /// (`d·d`, row-major, zero above the diagonal). `work` is scratch of length `d`.
 ///
 /// ```
-/// use vdd_baselines::fit::gaussian_nll_and_grad;
+/// use vdd_mixture::fit::gaussian_nll_and_grad;
 /// let (mut dm, mut dl, mut w) = ([0.0f32; 1], [0.0f32; 1], [0.0f32; 1]);
 /// // N(0, 2²) at a = 2: u = 1, v = 1/2.
 /// let nll = gaussian_nll_and_grad(&[2.0], &[0.0], &[2.0], &mut dm, &mut dl, &mut w);
@@ -148,48 +149,6 @@ pub fn weighted_nll_gradients<E: Expert>(
     Ok(loss)
 }
 
-/// Soft cross-entropy `−Σ_b c_b Σ_z t_{bz} log q(z|s_b)` of the gating towards `targets`, and
-/// its gradient with respect to the gating logits, `c_b (q(z|s_b) Σ_k t_{bk} − t_{bz})`,
-/// written into `grad_logits` (`n x Z`).
-///
-/// `log_gating` and `targets` are `n·Z` row-major, `row_weights` (`c_b`) has length `n`.
-///
-/// ```
-/// use vdd_baselines::fit::soft_cross_entropy;
-/// let log_q = [0.5f32.ln(), 0.5f32.ln()];
-/// let mut g = faer::Mat::<f32>::zeros(1, 2);
-/// let loss = soft_cross_entropy(&log_q, &[1.0, 0.0], &[1.0], g.as_mut()).unwrap();
-/// assert!((loss - 2.0f64.ln()).abs() < 1e-6);
-/// assert!((g[(0, 0)] + 0.5).abs() < 1e-6 && (g[(0, 1)] - 0.5).abs() < 1e-6);
-/// ```
-pub fn soft_cross_entropy(
-    log_gating: &[f32],
-    targets: &[f32],
-    row_weights: &[f32],
-    mut grad_logits: MatMut<'_, f32>,
-) -> Result<f64, CoreError> {
-    let (n, z_n) = (row_weights.len(), grad_logits.ncols());
-    check_shape("gating gradient", grad_logits.as_ref(), n, z_n)?;
-    check_len("log gating", log_gating.len(), n * z_n)?;
-    check_len("gating targets", targets.len(), n * z_n)?;
-    check_finite_slice("gating targets", targets)?;
-    check_finite_slice("gating row weights", row_weights)?;
-    let mut loss = 0.0f64;
-    for b in 0..n {
-        let c = row_weights[b];
-        let t = &targets[b * z_n..(b + 1) * z_n];
-        let lg = &log_gating[b * z_n..(b + 1) * z_n];
-        let t_sum: f32 = t.iter().sum();
-        for k in 0..z_n {
-            if t[k] != 0.0 {
-                loss -= f64::from(c * t[k]) * f64::from(lg[k]);
-            }
-            grad_logits[(b, k)] = c * (lg[k].exp() * t_sum - t[k]);
-        }
-    }
-    Ok(loss)
-}
-
 /// Evaluates the mixture on every pair of `data` (in chunks of [`EVAL_CHUNK`] rows) and returns
 /// the mean log-likelihood `(1/n) Σ_o log q(a_o|s_o)`.
 ///
@@ -201,7 +160,7 @@ pub fn evaluate_dataset<E: Expert>(
     data: &Dataset,
     mut expert_log_lik: Option<&mut [f32]>,
     mut responsibilities: Option<&mut [f32]>,
-) -> Result<f64, BaselineError> {
+) -> Result<f64, MixtureError> {
     let (n, z_n, d) = (data.len(), student.num_experts(), student.config().action_dim);
     data.check_dims(student.config().state_dim, d)?;
     if let Some(e) = expert_log_lik.as_deref() {
@@ -244,7 +203,7 @@ pub fn evaluate_dataset<E: Expert>(
 /// Draws dataset row indices for minibatches: uniformly, or in proportion to weights.
 ///
 /// ```
-/// use vdd_baselines::fit::RowSampler;
+/// use vdd_mixture::fit::RowSampler;
 /// let s = RowSampler::weighted(&[0.0, 1.0, 0.0]).unwrap();
 /// let mut idx = Vec::new();
 /// s.draw(&mut vdd_core::Seeds::new(0).stream("batch"), 5, &mut idx);
@@ -320,27 +279,6 @@ pub fn gather_rows(src: MatRef<'_, f32>, idx: &[usize], dst: &mut Mat<f32>) {
     }
 }
 
-/// Global gradient norm of `params`: an error when it is NaN or infinite, clipped to
-/// `max_norm` when one is given.
-pub fn clip_or_fail(
-    params: &mut dyn Parameters,
-    max_norm: Option<f32>,
-    iteration: usize,
-    quantity: &'static str,
-) -> Result<(), BaselineError> {
-    let mut sq = 0.0f64;
-    params.visit_params("", &mut |_, p| {
-        sq += p.grad.iter().map(|g| f64::from(*g) * f64::from(*g)).sum::<f64>();
-    });
-    if !sq.is_finite() {
-        return Err(BaselineError::NonFinite { iteration, quantity });
-    }
-    if let Some(max) = max_norm {
-        vdd_nn::clip_grad_norm(params, max);
-    }
-    Ok(())
-}
-
 /// One optimiser step of the experts on the weighted NLL `Σ_{b,z} w_{bz} NLL_z(a_b|s_b)` of a
 /// batch (`states` `n x d_s`, `actions` `n x d`, `weights` `n·Z`). Returns the loss before the
 /// step. Nothing is updated when the loss or a gradient is not finite.
@@ -355,11 +293,11 @@ pub fn expert_step<E: Expert>(
     max_grad_norm: Option<f32>,
     iteration: usize,
     buf: &mut FitBuffers,
-) -> Result<f64, BaselineError> {
+) -> Result<f64, MixtureError> {
     student.forward_experts(states)?;
     let loss = weighted_nll_gradients(student.expert(), student.output(), actions, weights, buf)?;
     if !loss.is_finite() {
-        return Err(BaselineError::NonFinite { iteration, quantity: "expert loss" });
+        return Err(MixtureError::NonFinite { iteration, quantity: "expert loss" });
     }
     student.expert_networks_mut().zero_grad();
     let grad_raw = std::mem::take(&mut buf.grad_raw);
@@ -373,8 +311,9 @@ pub fn expert_step<E: Expert>(
 }
 
 /// One optimiser step of the gating on the soft cross-entropy towards `targets` (`n·Z`) with
-/// per-row weights `row_weights` (`n`). Returns the loss before the step, or `None` (and does
-/// nothing) when the mixture's gating is not learned. `grad_logits` is a reusable buffer.
+/// per-row weights `row_weights` (`n`): [`vdd_moe::step::gating_step`] with
+/// [`soft_cross_entropy`]. Returns the loss before the step, or `None` (and does nothing) when
+/// the mixture's gating is not learned. `grad_logits` is a reusable buffer.
 #[allow(clippy::too_many_arguments)]
 pub fn gating_step<E: Expert>(
     student: &mut Moe<E>,
@@ -386,33 +325,17 @@ pub fn gating_step<E: Expert>(
     max_grad_norm: Option<f32>,
     iteration: usize,
     grad_logits: &mut Mat<f32>,
-) -> Result<Option<f64>, BaselineError> {
-    if !student.has_learned_gating() {
-        return Ok(None);
-    }
-    let (n, z_n) = (states.nrows(), student.num_experts());
-    if grad_logits.nrows() != n || grad_logits.ncols() != z_n {
-        *grad_logits = Mat::zeros(n, z_n);
-    }
-    // Both passes, so that the output's batch size is the one `backward_gating` checks against.
-    student.forward(states)?;
-    let loss = soft_cross_entropy(
-        &student.output().log_gating,
-        targets,
-        row_weights,
-        grad_logits.as_mut(),
-    )?;
-    if !loss.is_finite() {
-        return Err(BaselineError::NonFinite { iteration, quantity: "gating loss" });
-    }
-    if let Some(net) = student.gating_network_mut() {
-        net.zero_grad();
-    }
-    student.backward_gating(grad_logits.as_ref())?;
-    let net = student.gating_network_mut().expect("learned gating has a network");
-    clip_or_fail(net, max_grad_norm, iteration, "gating gradient")?;
-    optimizer.step(net, lr_factor);
-    Ok(Some(loss))
+) -> Result<Option<f64>, MixtureError> {
+    Ok(vdd_moe::step::gating_step(
+        student,
+        states,
+        optimizer,
+        lr_factor,
+        max_grad_norm,
+        iteration,
+        grad_logits,
+        |out, grad| soft_cross_entropy(&out.log_gating, targets, row_weights, grad),
+    )?)
 }
 
 /// The settings of one phase of an EM / IMC iteration: its expert or its gating steps.
@@ -573,7 +496,7 @@ impl<E: Expert> MixtureFit<E> {
         seed: u64,
         student: Moe<E>,
         data: Dataset,
-    ) -> Result<Self, BaselineError> {
+    ) -> Result<Self, MixtureError> {
         let mc = student.config();
         data.check_dims(mc.state_dim, mc.action_dim)?;
         Ok(Self {
@@ -597,7 +520,7 @@ impl<E: Expert> MixtureFit<E> {
         &mut self,
         expert_log_lik: Option<&mut [f32]>,
         responsibilities: Option<&mut [f32]>,
-    ) -> Result<f64, BaselineError> {
+    ) -> Result<f64, MixtureError> {
         evaluate_dataset(&mut self.student, &self.data, expert_log_lik, responsibilities)
     }
 
@@ -610,7 +533,7 @@ impl<E: Expert> MixtureFit<E> {
         settings: &LoopSettings<'_>,
         sampler: Option<&RowSampler>,
         mut weights: impl FnMut(BatchRow, &mut [f32]),
-    ) -> Result<(f64, f32), BaselineError> {
+    ) -> Result<(f64, f32), MixtureError> {
         let (phase, z_n) = (&settings.expert, self.student.num_experts());
         let (mut loss, mut lr) = (0.0, 0.0);
         for k in 0..phase.steps_per_iter {
@@ -647,7 +570,7 @@ impl<E: Expert> MixtureFit<E> {
         settings: &LoopSettings<'_>,
         sampler: Option<&RowSampler>,
         mut targets: impl FnMut(BatchRow, &mut [f32]) -> f32,
-    ) -> Result<(Option<f64>, f32), BaselineError> {
+    ) -> Result<(Option<f64>, f32), MixtureError> {
         let (phase, z_n) = (&settings.gating, self.student.num_experts());
         let (mut loss, mut lr) = (None, 0.0);
         for k in 0..phase.steps_per_iter {
@@ -718,231 +641,4 @@ fn rows<'a>(
 }
 
 #[cfg(test)]
-mod tests {
-    use super::*;
-    use approx::assert_relative_eq;
-    use vdd_core::Seeds;
-    use vdd_moe::{DiagonalExpert, ExpertKind, FullExpert, GatingKind, MoeConfig};
-
-    /// An output for `n` rows and `Z` experts decoded from given raw rows.
-    fn output<E: Expert>(expert: &E, raw: &[f32], n: usize, z_n: usize) -> MoeOutput {
-        let (d, r) = (expert.action_dim(), expert.raw_dim());
-        let mut out = MoeOutput {
-            n,
-            num_experts: z_n,
-            action_dim: d,
-            raw: raw.to_vec(),
-            means: vec![0.0; n * z_n * d],
-            scales: vec![0.0; n * z_n * d * d],
-            log_gating: vec![-(z_n as f32).ln(); n * z_n],
-        };
-        for k in 0..n * z_n {
-            expert.decode(
-                &raw[k * r..(k + 1) * r],
-                &mut out.means[k * d..(k + 1) * d],
-                &mut out.scales[k * d * d..(k + 1) * d * d],
-            );
-        }
-        out
-    }
-
-    fn weighted_nll(
-        expert: &impl Expert,
-        raw: &[f32],
-        n: usize,
-        z_n: usize,
-        a: &Mat<f32>,
-        w: &[f32],
-    ) -> f64 {
-        let out = output(expert, raw, n, z_n);
-        let d = expert.action_dim();
-        let mut work = vec![0.0; d];
-        let mut s = 0.0f64;
-        for b in 0..n {
-            let row: Vec<f32> = (0..d).map(|j| a[(b, j)]).collect();
-            for k in 0..z_n {
-                let lp = gaussian::log_density(&row, out.mean(b, k), out.scale(b, k), &mut work);
-                s -= f64::from(w[b * z_n + k]) * f64::from(lp);
-            }
-        }
-        s
-    }
-
-    fn check_raw_gradient<E: Expert>(expert: E) {
-        let (n, z_n, d, r) = (3, 2, expert.action_dim(), expert.raw_dim());
-        let raw: Vec<f32> =
-            (0..n * z_n * r).map(|i| ((i * 37 % 13) as f32 / 13.0 - 0.5) * 0.8).collect();
-        let a = Mat::from_fn(n, d, |i, j| ((i * 3 + j * 5) % 7) as f32 * 0.4 - 1.1);
-        let w = [0.7f32, 0.3, 0.0, 1.0, 0.25, 0.5];
-        let out = output(&expert, &raw, n, z_n);
-        let mut buf = FitBuffers::default();
-        let loss = weighted_nll_gradients(&expert, &out, a.as_ref(), &w, &mut buf).unwrap();
-        assert_relative_eq!(loss, weighted_nll(&expert, &raw, n, z_n, &a, &w), epsilon = 1e-4);
-        for i in 0..raw.len() {
-            let h = 1e-3f32;
-            let mut p = raw.clone();
-            p[i] += h;
-            let mut m = raw.clone();
-            m[i] -= h;
-            let fd = (weighted_nll(&expert, &p, n, z_n, &a, &w)
-                - weighted_nll(&expert, &m, n, z_n, &a, &w))
-                / (2.0 * f64::from(h));
-            assert_relative_eq!(
-                f64::from(buf.grad_raw[i]),
-                fd,
-                epsilon = 3e-3,
-                max_relative = 3e-3
-            );
-        }
-    }
-
-    #[test]
-    fn weighted_nll_gradient_matches_finite_differences_diagonal() {
-        check_raw_gradient(DiagonalExpert::new(3, 0.8, 1e-3).unwrap());
-    }
-
-    #[test]
-    fn weighted_nll_gradient_matches_finite_differences_full() {
-        check_raw_gradient(FullExpert::new(3, 0.8, 1e-3).unwrap());
-    }
-
-    /// The same loss through the networks: parameter gradients from `backward_experts` against
-    /// central differences of the parameters.
-    fn check_network_gradient(kind: ExpertKind, shared_trunk: bool) {
-        let mut mc = MoeConfig::toy(2, 2, 2);
-        mc.expert_kind = kind;
-        mc.shared_trunk = shared_trunk;
-        mc.experts_network.hidden_dim = 8;
-        mc.init_std = 0.7;
-        let mut moe = Moe::from_config(mc, 4).unwrap();
-        let n = 5;
-        let states = Mat::from_fn(n, 2, |i, j| (i as f32 - 2.0) * 0.3 + j as f32 * 0.2);
-        let actions = Mat::from_fn(n, 2, |i, j| ((i * 2 + j) % 5) as f32 * 0.3 - 0.6);
-        let w: Vec<f32> = (0..n * 2).map(|i| 0.1 + (i % 3) as f32 * 0.2).collect();
-        let mut buf = FitBuffers::default();
-        let loss_at = |moe: &mut Moe, buf: &mut FitBuffers| {
-            moe.forward_experts(states.as_ref()).unwrap();
-            weighted_nll_gradients(moe.expert(), moe.output(), actions.as_ref(), &w, buf).unwrap()
-        };
-        loss_at(&mut moe, &mut buf);
-        moe.expert_networks_mut().zero_grad();
-        let g = buf.grad_raw.clone();
-        moe.backward_experts(&g).unwrap();
-        let mut analytic = Vec::new();
-        moe.expert_networks_mut().visit_params("", &mut |_, p| analytic.push(p.grad.clone()));
-        let mut worst = 0.0f64;
-        for (pi, grads) in analytic.iter().enumerate() {
-            for e in (0..grads.len()).step_by(3) {
-                let h = 2e-3f32;
-                let mut value = 0.0;
-                set(&mut moe, pi, e, |v| {
-                    value = *v;
-                    *v += h;
-                });
-                let lp = loss_at(&mut moe, &mut buf);
-                set(&mut moe, pi, e, |v| *v = value - h);
-                let lm = loss_at(&mut moe, &mut buf);
-                set(&mut moe, pi, e, |v| *v = value);
-                let fd = (lp - lm) / (2.0 * f64::from(h));
-                let err = (f64::from(grads[e]) - fd).abs() / fd.abs().max(1e-2);
-                worst = worst.max(err);
-            }
-        }
-        assert!(worst < 2e-2, "{kind:?} shared={shared_trunk}: worst relative error {worst}");
-    }
-
-    fn set(moe: &mut Moe, index: usize, entry: usize, f: impl FnOnce(&mut f32)) {
-        let mut k = 0;
-        let mut f = Some(f);
-        moe.expert_networks_mut().visit_params_mut("", &mut |_, p| {
-            if k == index {
-                (f.take().expect("visited once"))(&mut p.value[entry]);
-            }
-            k += 1;
-        });
-    }
-
-    #[test]
-    fn network_gradients_of_the_weighted_nll_match_finite_differences() {
-        check_network_gradient(ExpertKind::Diagonal, true);
-        check_network_gradient(ExpertKind::Full, false);
-    }
-
-    #[test]
-    fn soft_cross_entropy_gradient_matches_finite_differences() {
-        let (n, z_n) = (3, 4);
-        let logits: Vec<f32> = (0..n * z_n).map(|i| ((i * 7 % 5) as f32 - 2.0) * 0.6).collect();
-        let log_softmax = |l: &[f32]| {
-            let mut out = l.to_vec();
-            for b in 0..n {
-                let row = &mut out[b * z_n..(b + 1) * z_n];
-                let lse = gaussian::log_sum_exp(row);
-                row.iter_mut().for_each(|x| *x -= lse);
-            }
-            out
-        };
-        // Targets need not be normalised (row 2 sums to 0.5).
-        let t = [0.1f32, 0.2, 0.3, 0.4, 1.0, 0.0, 0.0, 0.0, 0.25, 0.0, 0.25, 0.0];
-        let c = [0.5f32, 0.2, 0.3];
-        let mut g = Mat::zeros(n, z_n);
-        soft_cross_entropy(&log_softmax(&logits), &t, &c, g.as_mut()).unwrap();
-        let mut scratch = Mat::zeros(n, z_n);
-        for i in 0..n * z_n {
-            let h = 1e-2f32;
-            let mut p = logits.clone();
-            p[i] += h;
-            let mut m = logits.clone();
-            m[i] -= h;
-            let lp = soft_cross_entropy(&log_softmax(&p), &t, &c, scratch.as_mut()).unwrap();
-            let lm = soft_cross_entropy(&log_softmax(&m), &t, &c, scratch.as_mut()).unwrap();
-            let fd = (lp - lm) / (2.0 * f64::from(h));
-            assert_relative_eq!(f64::from(g[(i / z_n, i % z_n)]), fd, epsilon = 1e-4);
-        }
-    }
-
-    #[test]
-    fn weighted_sampler_follows_its_weights() {
-        let w = [1.0, 0.0, 3.0, 6.0];
-        let s = RowSampler::weighted(&w).unwrap();
-        let mut idx = Vec::new();
-        s.draw(&mut Seeds::new(1).stream("t"), 20_000, &mut idx);
-        let mut counts = [0usize; 4];
-        idx.iter().for_each(|&i| counts[i] += 1);
-        assert_eq!(counts[1], 0);
-        for (c, w) in counts.iter().zip(w) {
-            assert!((*c as f64 / 20_000.0 - w / 10.0).abs() < 0.01, "{counts:?}");
-        }
-        assert!(RowSampler::weighted(&[0.0, 0.0]).is_err());
-        assert!(RowSampler::weighted(&[1.0, -1.0]).is_err());
-        assert!(RowSampler::uniform(0).is_err());
-    }
-
-    #[test]
-    fn dataset_evaluation_matches_the_policy_likelihood() {
-        use vdd_core::Policy;
-        let mut mc = MoeConfig::toy(1, 2, 3);
-        mc.gating = GatingKind::Learned;
-        mc.experts_network.hidden_dim = 8;
-        mc.gating_network.hidden_dim = 8;
-        let mut moe = Moe::from_config(mc, 2).unwrap();
-        let n = EVAL_CHUNK + 5; // two chunks
-        let states = Mat::from_fn(n, 1, |i, _| (i % 17) as f32 * 0.1);
-        let actions = Mat::from_fn(n, 2, |i, j| ((i * 3 + j) % 11) as f32 * 0.2 - 1.0);
-        let data = Dataset::new(states.clone(), actions.clone()).unwrap();
-        let mut resp = vec![0.0; n * 3];
-        let mut ell = vec![0.0; n * 3];
-        let mean = evaluate_dataset(&mut moe, &data, Some(&mut ell), Some(&mut resp)).unwrap();
-        let mut ll = vec![0.0; n];
-        moe.log_likelihood(states.as_ref(), actions.as_ref(), &mut ll).unwrap();
-        let expect = ll.iter().map(|&x| f64::from(x)).sum::<f64>() / n as f64;
-        assert_relative_eq!(mean, expect, epsilon = 1e-4);
-        for o in [0, n - 1] {
-            assert_relative_eq!(resp[o * 3..o * 3 + 3].iter().sum::<f32>(), 1.0, epsilon = 1e-5);
-            // log q = logsumexp_z (log q(z|s) + log N_z): rebuild it from the experts' values.
-            moe.forward(states.as_ref().subrows(o, 1)).unwrap();
-            let lg = moe.output().log_gating_row(0).to_vec();
-            let joint: Vec<f32> = (0..3).map(|z| lg[z] + ell[o * 3 + z]).collect();
-            assert_relative_eq!(gaussian::log_sum_exp(&joint), ll[o], epsilon = 1e-4);
-        }
-    }
-}
+mod tests;

@@ -9,7 +9,7 @@
 //! * experts "between modes" (weight ≥ 0.01, mean farther than 0.3 from every mode).
 //!
 //! ```sh
-//! cargo run --release -p vdd-baselines --example toy_em_imc -- [--seed N] [--eta X] [--mc N]
+//! cargo run --release -p vdd-mixture --example toy_em_imc -- [--seed N] [--eta X] [--mc N]
 //!     [--only em|imc] [--iters N (N iterations of 3000/N steps instead of the default)]
 //! ```
 
@@ -17,8 +17,8 @@ use std::time::Instant;
 
 use faer::{Mat, MatRef};
 use rand::Rng as _;
-use vdd_baselines::{Dataset, Em, EmConfig, Imc, ImcConfig};
 use vdd_core::{Seeds, gaussian};
+use vdd_mixture::{Dataset, Em, EmConfig, Imc, ImcConfig};
 use vdd_moe::{GatingKind, Moe, MoeConfig};
 
 mod toy_common;
