@@ -19,7 +19,7 @@ use vdd_baselines::{
     CdConfig, CdTrainer, ConsistencyProgress, CtmConfig, CtmTrainer, Dataset, Em, EmConfig, Imc,
     ImcConfig,
 };
-use vdd_core::{Affine, Seeds};
+use vdd_core::{Affine, ClampedDenoiser, Seeds};
 use vdd_data::{Episodes, Normalization, NormalizationKind, SequenceDataset, WindowConfig};
 use vdd_diffusion::{
     BesoConfig, DdpmConfig, DiffusionTeacher, KarrasSampler, NetConfig, SigmaDistribution,
@@ -37,9 +37,7 @@ use crate::policy::{Timing, TrainedPolicy, Windowed, us_per_action};
 use crate::recipe;
 use crate::report::{self, Row};
 use crate::student_cache::{CachedStudent, StudentCache};
-use crate::teachers::{
-    self, BesoTeacherConfig, ClippedTeacher, DdpmTeacherConfig, TeachersConfig, TrainedTeacher,
-};
+use crate::teachers::{self, BesoTeacherConfig, DdpmTeacherConfig, TeachersConfig, TrainedTeacher};
 
 /// A recipe of the Avoiding task (see `recipes/avoiding.toml`).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -139,7 +137,7 @@ pub struct VddMethods {
     pub ddpm: VddConfig,
     /// Clamp the teacher's denoised estimate to the training actions' bounding box (normalised
     /// units) widened by this margin before forming the score VDD distils
-    /// ([`teachers::ClippedTeacher`]); `None`: the raw score. Without it the learned teachers'
+    /// ([`vdd_core::ClampedDenoiser`]); `None`: the raw score. Without it the learned teachers'
     /// scores far from the data (where they extrapolate) make experts' variances run away.
     pub clip_margin: Option<f32>,
     /// VDD-BESO's student gating when it differs from `student.gating` (the mixture EM, IMC
@@ -839,8 +837,10 @@ fn distill(
 ) -> crate::XResult<CachedStudent> {
     let mut curves = Curves::default();
     let student = Moe::from_config(mc, seed)?;
-    let bounds = clip_margin.map(|m| ClippedTeacher::data_box(actions.as_ref(), m));
-    let teacher = ClippedTeacher::new(teacher, bounds)?;
+    let teacher = match clip_margin {
+        Some(m) => ClampedDenoiser::around_data(teacher, actions.as_ref(), m)?,
+        None => ClampedDenoiser::unclamped(teacher),
+    };
     let data = DistillData::new(states, Some(actions))?;
     let iterations = vc.iterations;
     let mut vdd = Vdd::new(vc, teacher, student, data)?;

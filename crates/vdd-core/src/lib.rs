@@ -5,12 +5,15 @@
 //! * [`ScoreModel`]: a teacher policy seen through its score `∇_a log π_σ(a|s)`;
 //! * [`Expert`]: a Gaussian expert family (raw network outputs ↔ mean and scale);
 //! * [`Policy`]: anything that acts, from demonstrators to the distilled mixture;
+//! * [`ClampedDenoiser`]: a teacher whose denoised estimate is clamped to a box (a deviation
+//!   from the paper, for learned teachers that extrapolate far from their data);
 //! * shared helpers: [`Seeds`] (independent ChaCha streams per purpose), Gaussian kernels in
 //!   [`gaussian`], element-wise [`lanes`] kernels for batched mixtures, shape and finiteness checks, and [`CoreError`].
 //!
 //! Batches are `faer` matrices with one row per sample (`n x dim`), `f32` throughout.
 #![warn(missing_docs)]
 
+mod denoiser;
 mod error;
 mod expert;
 pub mod gaussian;
@@ -21,6 +24,7 @@ mod score;
 mod seed;
 mod trainer;
 
+pub use denoiser::{ClampedDenoiser, DenoiserForm, data_box};
 pub use error::{CoreError, Result, check_finite, check_finite_slice, check_len, check_shape};
 pub use expert::{Expert, ScaleActivation, sigmoid, softplus};
 pub use normalize::Affine;

@@ -22,7 +22,9 @@ use faer::{Mat, MatMut, MatRef};
 use rand::{Rng as _, RngCore};
 use vdd_core::gaussian::{self, LN_2PI};
 use vdd_core::lanes;
-use vdd_core::{CoreError, Result, ScoreModel, check_finite, check_score_args, check_shape};
+use vdd_core::{
+    CoreError, DenoiserForm, Result, ScoreModel, check_finite, check_score_args, check_shape,
+};
 
 /// A Gaussian mixture in `dim` dimensions at one state.
 #[derive(Debug, Clone, PartialEq)]
@@ -702,6 +704,11 @@ impl ScoreModel for GmmTeacher {
             }
         }
         Ok(())
+    }
+
+    /// `D = a + σ² s` (the mixture smoothed by `N(0, σ² I)` is a VE marginal).
+    fn denoiser_form(&self, sigma: f32) -> Option<DenoiserForm> {
+        Some(DenoiserForm::ve(sigma))
     }
 }
 

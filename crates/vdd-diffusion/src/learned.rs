@@ -13,8 +13,8 @@ use rand::RngCore;
 use serde::Serialize;
 use serde::de::DeserializeOwned;
 use vdd_core::{
-    Affine, CoreError, NoiseConvention, NoiseSchedule, Policy, ScoreModel, Seeds, check_act_args,
-    check_len, check_score_args, check_shape,
+    Affine, CoreError, DenoiserForm, NoiseConvention, NoiseSchedule, Policy, ScoreModel, Seeds,
+    check_act_args, check_len, check_score_args, check_shape,
 };
 
 use crate::common::{self, PolicyIo, SavedShape, check_batch};
@@ -83,6 +83,9 @@ pub trait Process: DsmNoise + Clone + Debug + Send + Sized {
     ) -> Result<(), CoreError>;
     /// Maps a level drawn from a distillation noise schedule onto a valid query level.
     fn valid_level(&self, drawn: f32) -> f32;
+    /// How the score at `level` relates to the denoised estimate (VE: `D = a + σ² s`; VP:
+    /// `x̂₀ = (a + (1 − ᾱ) s)/√ᾱ`).
+    fn denoiser_form(&self, level: f32) -> DenoiserForm;
 }
 
 /// A learned diffusion teacher: a [`DenoiserNet`] trained by denoising score matching on
@@ -377,6 +380,11 @@ impl<P: Process> ScoreModel for LearnedTeacher<P> {
         for x in out {
             *x = self.process.valid_level(schedule.draw(progress, rng));
         }
+    }
+
+    /// VE (BESO): `D = a + σ² s`; VP (DDPM): `x̂₀ = (a + (1 − ᾱ(t)) s)/√ᾱ(t)`.
+    fn denoiser_form(&self, level: f32) -> Option<DenoiserForm> {
+        Some(self.process.denoiser_form(level))
     }
 }
 

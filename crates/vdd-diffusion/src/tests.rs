@@ -264,6 +264,13 @@ fn beso_heun_step_and_one_step_sampling_use_the_denoiser() {
     assert!(
         (&score - &Mat::from_fn(3, 2, |i, j| (d[(i, j)] - x[(i, j)]) / 0.49)).norm_max() < 1e-4
     );
+    // The denoiser form recovers D from the score.
+    let form = beso.denoiser_form(0.7).unwrap();
+    for i in 0..3 {
+        for j in 0..2 {
+            assert!((form.denoise(x[(i, j)], score[(i, j)]) - d[(i, j)]).abs() < 1e-4);
+        }
+    }
     // BESO-1 with Euler: D(σ_max z; σ_max).
     beso.set_sampler(KarrasSampler::Euler, 1).unwrap();
     assert_eq!(beso.sigmas(), &[80.0, 0.0]);
@@ -314,6 +321,14 @@ fn ddpm_conversions_and_one_step() {
             );
         }
     }
+    // The denoiser form recovers x̂₀ from the score.
+    for i in 0..3 {
+        let form = ddpm.denoiser_form(t[i]).unwrap();
+        for j in 0..2 {
+            let d = form.denoise(x[(i, j)], score[(i, j)]);
+            assert!((d - x0[(i, j)]).abs() < 1e-3 * (1.0 + d.abs()), "{d} vs {}", x0[(i, j)]);
+        }
+    }
     // DDPM-1 without clipping = x0 prediction from x_N = z.
     let cfg1 =
         DdpmConfig { clip_denoised: None, sampling_steps: 1, sampler: VpSampler::Ddim, ..cfg };
@@ -330,6 +345,43 @@ fn ddpm_conversions_and_one_step() {
     }
     one.ddim_step(z.as_ref(), &[16.0; 3], &[0.0; 3], s.as_ref(), x0.as_mut()).unwrap();
     assert!((&out - &x0).norm_max() < 1e-3 * (1.0 + x0.norm_max()));
+}
+
+/// `vdd_core::ClampedDenoiser` over both learned teachers: a box wide enough leaves the score
+/// bit for bit, a unit box puts every denoised estimate in it and pulls far points back.
+#[test]
+fn clamped_denoisers_of_both_teachers_stay_in_their_box() {
+    let (sn, an) = (Affine::identity(1), Affine::identity(2));
+    let b = BesoConfig { net: tiny_net(), ..Default::default() };
+    let d = DdpmConfig { net: tiny_net(), ..Default::default() };
+    let teachers: Vec<DiffusionTeacher> = vec![
+        Beso::new(&b, sn.clone(), an.clone(), 3).unwrap().into(),
+        Ddpm::new(&d, sn, an, 3).unwrap().into(),
+    ];
+    for teacher in teachers {
+        let level = if teacher.kind() == TeacherKind::Beso { 0.3 } else { 2.0 };
+        let actions = faer::mat![[0.1f32, -0.2], [30.0, -40.0], [0.0, 0.0]];
+        let states = Mat::<f32>::zeros(3, 1);
+        let levels = [level; 3];
+        let mut raw = Mat::<f32>::zeros(3, 2);
+        teacher.clone().score(actions.as_ref(), states.as_ref(), &levels, raw.as_mut()).unwrap();
+        let mut wide =
+            vdd_core::ClampedDenoiser::new(teacher.clone(), vec![-1e6; 2], vec![1e6; 2]).unwrap();
+        let mut out = Mat::<f32>::zeros(3, 2);
+        wide.score(actions.as_ref(), states.as_ref(), &levels, out.as_mut()).unwrap();
+        assert_eq!(out, raw);
+        let form = teacher.denoiser_form(level).unwrap();
+        let mut unit =
+            vdd_core::ClampedDenoiser::new(teacher, vec![-1.0; 2], vec![1.0; 2]).unwrap();
+        unit.score(actions.as_ref(), states.as_ref(), &levels, out.as_mut()).unwrap();
+        for i in 0..3 {
+            for j in 0..2 {
+                let d = form.denoise(actions[(i, j)], out[(i, j)]);
+                assert!((-1.0 - 1e-3..=1.0 + 1e-3).contains(&d), "row {i}: D = {d}");
+            }
+        }
+        assert!(out[(1, 0)] < 0.0 && out[(1, 1)] > 0.0, "far points are pulled back: {out:?}");
+    }
 }
 
 #[test]
