@@ -663,16 +663,7 @@ fn train_method(
                     c
                 }
                 None => {
-                    let c = distill(
-                        vc,
-                        teacher,
-                        mc,
-                        states,
-                        actions,
-                        cfg.vdd.clip_margin,
-                        seed,
-                        label,
-                    )?;
+                    let c = distill(vc, teacher, mc, states, actions, cfg.vdd.clip_margin, label)?;
                     let path = students.store(name, &hash, &c)?;
                     crate::progress::log(format!(
                         "[{label}] trained in {:.1} s; cached as {}",
@@ -823,7 +814,8 @@ fn train_method(
 /// For each step of each recorded rollout, the expert whose mean (denormalised) is nearest to
 /// the applied action: the expert the mixture chose (it acts with the chosen expert's mean).
 /// Distils `teacher` into a new mixture of configuration `mc` with VDD (the states and actions
-/// normalised by the teacher's normalisers), with a progress bar and learning curves.
+/// normalised by the teacher's normalisers; the student initialised from the run seed
+/// `vc.seed`), with a progress bar and learning curves.
 #[allow(clippy::too_many_arguments)]
 fn distill(
     vc: VddConfig,
@@ -832,18 +824,16 @@ fn distill(
     states: Mat<f32>,
     actions: Mat<f32>,
     clip_margin: Option<f32>,
-    seed: u64,
     label: &str,
 ) -> crate::XResult<CachedStudent> {
     let mut curves = Curves::default();
-    let student = Moe::from_config(mc, seed)?;
     let teacher = match clip_margin {
         Some(m) => ClampedDenoiser::around_data(teacher, actions.as_ref(), m)?,
         None => ClampedDenoiser::unclamped(teacher),
     };
     let data = DistillData::new(states, Some(actions))?;
     let iterations = vc.iterations;
-    let mut vdd = Vdd::new(vc, teacher, student, data)?;
+    let mut vdd = Vdd::from_config(vc, teacher, mc, data)?;
     let bar = crate::progress::bar(iterations as u64, label);
     let every = (iterations / 200).max(1);
     let t0 = Instant::now();

@@ -345,8 +345,7 @@ fn distil(
     let mut student_cfg = cfg.student.clone();
     student_cfg.state_dim = 1;
     student_cfg.action_dim = 2;
-    let student = Moe::from_config(student_cfg, seed)?;
-    let data = if student.has_learned_gating() {
+    let data = if student_cfg.gating == GatingKind::Learned {
         DistillData::new(norm(&states, &state_norm), Some(norm(&actions, &action_norm)))?
     } else {
         DistillData::from_states(norm(&states, &state_norm))?
@@ -367,12 +366,12 @@ fn distil(
     let t0 = Instant::now();
     let (student, teacher) = match teacher {
         ToyTeacher::Exact(mut t) => {
-            let mut vdd = Vdd::new(vc, t.as_mut(), student, data)?;
+            let mut vdd = Vdd::from_config(vc, t.as_mut(), student_cfg, data)?;
             vdd.train(&mut callback)?;
             (vdd.into_student(), ToyTeacher::Exact(t))
         }
         ToyTeacher::Learned(mut t) => {
-            let mut vdd = Vdd::new(vc, &mut t.teacher, student, data)?;
+            let mut vdd = Vdd::from_config(vc, &mut t.teacher, student_cfg, data)?;
             vdd.train(&mut callback)?;
             (vdd.into_student(), ToyTeacher::Learned(t))
         }

@@ -52,7 +52,8 @@ pub struct VddConfig {
     /// `None` (the default) returns the last iterate.
     #[serde(default)]
     pub student_ema: Option<f32>,
-    /// Root seed of every random draw of the run.
+    /// Root seed of every random draw of the run, including the student's initialisation
+    /// when the trainer builds the student ([`crate::Vdd::from_config`]).
     pub seed: u64,
 }
 
