@@ -149,9 +149,6 @@ pub struct VddMethods {
     pub greedy_gating: bool,
     /// Acting: sample `a ~ N(μ_z, Σ_z)` instead of returning `μ_z` (the paper uses `μ_z`).
     pub sample_action: bool,
-    /// Rescale decaying LR schedules to end at the last step (so `--set ...iterations=N` alone
-    /// keeps the schedule's shape).
-    pub schedules_follow_iterations: bool,
 }
 
 /// The baselines: EM and IMC on the same mixture of experts, CD and CTM distilled from the
@@ -171,8 +168,6 @@ pub struct Baselines {
     /// network architecture and the levels (`σ_data`, `σ_min`, `σ_max`, `ρ`) from the BESO
     /// teacher's configuration, so `--set teachers.beso...` changes need no matching change here.
     pub consistency_follows_teacher: bool,
-    /// As [`VddMethods::schedules_follow_iterations`] (EM and IMC).
-    pub schedules_follow_iterations: bool,
 }
 
 /// Evaluation.
@@ -282,14 +277,8 @@ impl Default for AvoidingRecipe {
             noise: vdd_core::NoiseSchedule::Uniform { min: 0.02, max: 0.2 },
             expert_optimizer: AdamConfig { lr: 1e-3, ..Default::default() },
             gating_optimizer: AdamConfig { lr: 1e-3, ..Default::default() },
-            expert_lr_schedule: LrSchedule::LinearDecay {
-                total_steps: iterations as u64,
-                final_factor: 0.0,
-            },
-            gating_lr_schedule: LrSchedule::LinearDecay {
-                total_steps: iterations as u64,
-                final_factor: 0.0,
-            },
+            expert_lr_schedule: LrSchedule::LinearDecay { final_factor: 0.0 },
+            gating_lr_schedule: LrSchedule::LinearDecay { final_factor: 0.0 },
             gating_batch_size: 256,
             ..VddConfig::toy()
         };
@@ -346,7 +335,6 @@ impl Default for AvoidingRecipe {
                 ddpm_gating: None,
                 greedy_gating: false,
                 sample_action: false,
-                schedules_follow_iterations: true,
             },
             baselines: Baselines {
                 em: EmConfig { iterations: MIXTURE_ITERATIONS, ..EmConfig::toy() },
@@ -357,7 +345,6 @@ impl Default for AvoidingRecipe {
                     ..CtmConfig::for_beso(&teachers_beso)
                 },
                 consistency_follows_teacher: true,
-                schedules_follow_iterations: true,
             },
             eval: AvoidingEval {
                 rollouts: 500,
@@ -405,41 +392,10 @@ pub fn consistency_config_for(
     c
 }
 
-/// Sets the length of decaying schedules to `total` steps (warm-ups keep their length).
-pub fn fit_schedule(s: &mut LrSchedule, total: u64) {
-    match s {
-        LrSchedule::Constant => {}
-        LrSchedule::LinearDecay { total_steps, .. } | LrSchedule::Cosine { total_steps, .. } => {
-            *total_steps = total.max(1)
-        }
-        LrSchedule::Warmup { warmup_steps, then } => {
-            fit_schedule(then, total.saturating_sub(*warmup_steps))
-        }
-    }
-}
-
-/// [`fit_schedule`] for the experts' and the gating's schedules of EM or IMC, which take
-/// `steps.0` expert and `steps.1` gating steps per iteration.
-fn fit_mixture_schedules(
-    schedules: (&mut LrSchedule, &mut LrSchedule),
-    iterations: usize,
-    steps: (usize, usize),
-) {
-    fit_schedule(schedules.0, (iterations * steps.0) as u64);
-    fit_schedule(schedules.1, (iterations * steps.1) as u64);
-}
-
-/// The VDD config for a run: seed and (optionally) schedule lengths.
-pub fn vdd_config_for(c: &VddConfig, seed: u64, follow: bool) -> VddConfig {
-    let mut c = c.clone();
-    c.seed = seed;
-    if follow {
-        let it = c.iterations as u64;
-        fit_schedule(&mut c.expert_lr_schedule, it * c.expert_steps_per_iter as u64);
-        let g_it = c.freeze_gating_after.map_or(it, |f| (f as u64).min(it));
-        fit_schedule(&mut c.gating_lr_schedule, g_it * c.gating_steps_per_iter as u64);
-    }
-    c
+/// The VDD config for a run: the run's seed (learning-rate schedules follow the run's length
+/// by construction).
+pub fn vdd_config_for(c: &VddConfig, seed: u64) -> VddConfig {
+    VddConfig { seed, ..c.clone() }
 }
 
 /// Demonstrations turned into training matrices.
@@ -625,7 +581,7 @@ fn train_method(
                 TeacherKind::Beso => &cfg.vdd.beso,
                 TeacherKind::Ddpm => &cfg.vdd.ddpm,
             };
-            let vc = vdd_config_for(vc, seed, cfg.vdd.schedules_follow_iterations);
+            let vc = vdd_config_for(vc, seed);
             let t = store.get(kind, cfg, prep, seed)?;
             let teacher = t.teacher.clone();
             let teacher_seconds = t.train_seconds;
@@ -696,16 +652,10 @@ fn train_method(
             mc.state_dim = prep.states_n.ncols();
             mc.action_dim = prep.actions_n.ncols();
             let student = Moe::from_config(mc, seed)?;
-            let follow = cfg.baselines.schedules_follow_iterations;
             let t0 = Instant::now();
             let mut student = if method == Method::Em {
                 let mut ec = cfg.baselines.em.clone();
                 ec.seed = seed;
-                if follow {
-                    let steps = (ec.expert_steps_per_iter, ec.gating_steps_per_iter);
-                    let schedules = (&mut ec.expert_lr_schedule, &mut ec.gating_lr_schedule);
-                    fit_mixture_schedules(schedules, ec.iterations, steps);
-                }
                 let bar = crate::progress::bar(ec.iterations as u64, label);
                 let mut em = Em::new(ec, student, data)?;
                 em.train(|m| {
@@ -721,11 +671,6 @@ fn train_method(
             } else {
                 let mut ic = cfg.baselines.imc.clone();
                 ic.seed = seed;
-                if follow {
-                    let steps = (ic.expert_steps_per_iter, ic.gating_steps_per_iter);
-                    let schedules = (&mut ic.expert_lr_schedule, &mut ic.gating_lr_schedule);
-                    fit_mixture_schedules(schedules, ic.iterations, steps);
-                }
                 let bar = crate::progress::bar(ic.iterations as u64, label);
                 let mut imc = Imc::new(ic, student, data)?;
                 imc.train(|m| {
@@ -1315,30 +1260,5 @@ mod tests {
                 }
             }
         }
-    }
-
-    #[test]
-    fn schedules_follow_iterations() {
-        let c = VddConfig { iterations: 50, ..VddConfig::toy() };
-        let f = vdd_config_for(&c, 3, true);
-        assert_eq!(f.seed, 3);
-        assert_eq!(
-            f.expert_lr_schedule,
-            LrSchedule::LinearDecay { total_steps: 50, final_factor: 0.0 }
-        );
-        let mut w = LrSchedule::Warmup {
-            warmup_steps: 10,
-            then: Box::new(LrSchedule::Cosine { total_steps: 1, final_factor: 0.1 }),
-        };
-        fit_schedule(&mut w, 100);
-        assert_eq!(
-            w,
-            LrSchedule::Warmup {
-                warmup_steps: 10,
-                then: Box::new(LrSchedule::Cosine { total_steps: 90, final_factor: 0.1 })
-            }
-        );
-        let kept = vdd_config_for(&c, 3, false);
-        assert_eq!(kept.expert_lr_schedule, c.expert_lr_schedule);
     }
 }

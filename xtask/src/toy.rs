@@ -86,8 +86,6 @@ pub struct ToyVdd {
     pub beso: VddConfig,
     /// Learned DDPM teacher (noise levels in time `t`).
     pub ddpm: VddConfig,
-    /// Rescale decaying LR schedules to end at the last iteration.
-    pub schedules_follow_iterations: bool,
 }
 
 /// Evaluation of a toy recipe.
@@ -180,7 +178,6 @@ impl ToyRecipe {
                 exact,
                 beso: learned(NoiseSchedule::Fixed { level: 0.1 }),
                 ddpm: learned(NoiseSchedule::Fixed { level: 0.833 }),
-                schedules_follow_iterations: true,
             },
             eval: ToyEval {
                 kl_samples: 100_000,
@@ -201,9 +198,9 @@ impl ToyRecipe {
             r.description =
                 "rotating modes (mode k at angle s + 2πk/8) with a learned gating".into();
             let it = 3000;
-            let sched = LrSchedule::LinearDecay { total_steps: it, final_factor: 0.0 };
+            let sched = LrSchedule::LinearDecay { final_factor: 0.0 };
             r.vdd.exact = VddConfig {
-                iterations: it as usize,
+                iterations: it,
                 expert_optimizer: AdamConfig { lr: 1e-2, ..Default::default() },
                 gating_optimizer: AdamConfig { lr: 1e-2, ..Default::default() },
                 expert_lr_schedule: sched.clone(),
@@ -331,7 +328,7 @@ fn distil(
             return Err(format!("method `{}` is not available on toy tasks", other.name()).into());
         }
     };
-    let vc: VddConfig = vdd_config_for(vc, seed, cfg.vdd.schedules_follow_iterations);
+    let vc: VddConfig = vdd_config_for(vc, seed);
     let (state_norm, action_norm) = match &teacher {
         ToyTeacher::Exact(_) => (Affine::identity(1), Affine::identity(2)),
         ToyTeacher::Learned(t) => {

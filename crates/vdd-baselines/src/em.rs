@@ -60,8 +60,7 @@ impl EmConfig {
     /// linearly to 0 over the run.
     pub fn toy() -> Self {
         let (iterations, steps) = (100, 30);
-        let total = (iterations * steps) as u64;
-        let schedule = LrSchedule::LinearDecay { total_steps: total, final_factor: 0.0 };
+        let schedule = LrSchedule::LinearDecay { final_factor: 0.0 };
         Self {
             iterations,
             expert_steps_per_iter: steps,
@@ -295,8 +294,8 @@ mod tests {
             gating_batch_size: Some(128),
             expert_optimizer: AdamConfig { lr: 1e-2, ..AdamConfig::default() },
             gating_optimizer: AdamConfig { lr: 1e-2, ..AdamConfig::default() },
-            expert_lr_schedule: LrSchedule::LinearDecay { total_steps: 600, final_factor: 0.05 },
-            gating_lr_schedule: LrSchedule::LinearDecay { total_steps: 600, final_factor: 0.05 },
+            expert_lr_schedule: LrSchedule::LinearDecay { final_factor: 0.05 },
+            gating_lr_schedule: LrSchedule::LinearDecay { final_factor: 0.05 },
             ..EmConfig::toy()
         };
         let mut student = Em::fit(config, student, data).unwrap();

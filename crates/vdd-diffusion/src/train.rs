@@ -73,11 +73,9 @@ impl TrainConfig {
         }
     }
 
+    /// The learning-rate schedule over the run of [`TrainConfig::steps`] steps.
     fn lr_schedule(&self) -> LrSchedule {
-        let cosine = LrSchedule::Cosine {
-            total_steps: self.steps.saturating_sub(self.warmup_steps).max(1),
-            final_factor: self.final_lr_factor,
-        };
+        let cosine = LrSchedule::Cosine { final_factor: self.final_lr_factor };
         if self.warmup_steps > 0 {
             LrSchedule::Warmup { warmup_steps: self.warmup_steps, then: Box::new(cosine) }
         } else {
@@ -327,7 +325,7 @@ pub(crate) fn train_dsm(
                 return Err(DiffusionError::Diverged { step: step + 1, loss: norm });
             }
         }
-        let factor = schedule.factor(step);
+        let factor = schedule.factor(step, config.steps);
         adam.step(&mut net, factor);
         ema.update(&mut ema_net, &net);
         loss_sum += f64::from(loss);

@@ -335,9 +335,10 @@ impl<S: ScoreModel, E: Expert> Vdd<S, E> {
             r?;
             let nets = self.student.expert_networks_mut();
             clip_or_fail(nets, self.config.max_grad_norm, it, "expert gradient")?;
-            expert_lr = self.config.expert_optimizer.lr
-                * self.config.expert_lr_schedule.factor(self.expert_optimizer.steps());
-            let factor = self.config.expert_lr_schedule.factor(self.expert_optimizer.steps());
+            let total = self.config.expert_steps();
+            let factor =
+                self.config.expert_lr_schedule.factor(self.expert_optimizer.steps(), total);
+            expert_lr = self.config.expert_optimizer.lr * factor;
             self.expert_optimizer.step(nets, factor);
         }
 
@@ -349,7 +350,9 @@ impl<S: ScoreModel, E: Expert> Vdd<S, E> {
             for k in 0..self.config.gating_steps_per_iter {
                 let stream = (it * self.config.gating_steps_per_iter + k) as u64;
                 gating_loss = Some(self.gating_step(it, stream)?);
-                let factor = self.config.gating_lr_schedule.factor(self.gating_optimizer.steps());
+                let total = self.config.gating_steps();
+                let factor =
+                    self.config.gating_lr_schedule.factor(self.gating_optimizer.steps(), total);
                 gating_lr = self.config.gating_optimizer.lr * factor;
                 let net = self.student.gating_network_mut().expect("learned gating has a network");
                 clip_or_fail(net, self.config.max_grad_norm, it, "gating gradient")?;

@@ -278,3 +278,30 @@ fn the_run_seed_initialises_the_student() {
     assert_eq!(params(a.student()), params(b.student()));
     assert_ne!(params(a.student()), params(&Moe::from_config(mc, 12).unwrap()));
 }
+
+/// Learning-rate schedules are relative to the run: the toy's linear decay spans whatever
+/// number of iterations the run has (it never trains at learning rate 0 before the end), and
+/// a frozen gating's decay ends at the freeze.
+#[test]
+fn learning_rates_decay_over_the_run_whatever_its_length() {
+    for iterations in [6, 20] {
+        let (mut config, teacher, student, data) = small_run(iterations);
+        config.expert_optimizer.lr = 5e-4;
+        config.gating_optimizer.lr = 5e-4;
+        config.freeze_gating_after = Some(iterations / 2);
+        let mut vdd = Vdd::new(config, teacher, student, data).unwrap();
+        let mut lrs = Vec::new();
+        vdd.train(|m| lrs.push((m.expert_lr, m.gating_lr))).unwrap();
+        for (i, (e, g)) in lrs.into_iter().enumerate() {
+            let want = 5e-4 * (1.0 - i as f32 / iterations as f32);
+            assert!((e - want).abs() < 1e-9, "{iterations}: expert lr {e} at {i}, want {want}");
+            assert!(e > 0.0);
+            if i < iterations / 2 {
+                let want = 5e-4 * (1.0 - i as f32 / (iterations / 2) as f32);
+                assert!((g - want).abs() < 1e-9, "{iterations}: gating lr {g} at {i}");
+            } else {
+                assert_eq!(g, 0.0, "frozen");
+            }
+        }
+    }
+}
