@@ -234,6 +234,35 @@ fn training_is_deterministic_for_a_seed() {
     assert_ne!(run(1), run(2));
 }
 
+/// `train` is the trainer run to the end: stepping a `TeacherTrainer` by hand gives the same
+/// teacher, and its reports come every `log_every` steps and after the last.
+#[test]
+fn stepping_the_teacher_trainer_is_training() {
+    use vdd_core::Trainer;
+    let (s, a) = gmm_data(&mut two_modes(), 200, 5);
+    let train = TrainConfig { steps: 25, batch_size: 64, log_every: 10, ..Default::default() };
+    let cfg = DdpmConfig { net: tiny_net(), ..Default::default() };
+    let mut reports = Vec::new();
+    let trained =
+        Ddpm::train(&cfg, &train, s.as_ref(), a.as_ref(), 3, &mut |p| reports.push(p)).unwrap();
+    let mut trainer = TeacherTrainer::new(&cfg, &train, s.as_ref(), a.as_ref(), 3).unwrap();
+    assert_eq!((trainer.iteration(), trainer.iterations()), (0, 25));
+    let mut stepped = Vec::new();
+    while !trainer.done() {
+        stepped.extend(trainer.step().unwrap());
+    }
+    let by_hand: Ddpm = trainer.finish().unwrap();
+    let steps = |r: &[TrainProgress]| r.iter().map(|p| (p.step, p.loss, p.lr)).collect::<Vec<_>>();
+    assert_eq!(steps(&stepped), steps(&reports));
+    assert_eq!(reports.iter().map(|p| p.step).collect::<Vec<_>>(), [10, 20, 25]);
+    let weights = |t: &Ddpm| {
+        let mut w = Vec::new();
+        t.net().visit_params("", &mut |_, p| w.push(p.value.clone()));
+        w
+    };
+    assert_eq!(weights(&by_hand), weights(&trained));
+}
+
 #[test]
 fn beso_heun_step_and_one_step_sampling_use_the_denoiser() {
     let cfg = BesoConfig { net: tiny_net(), ..Default::default() };

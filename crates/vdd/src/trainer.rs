@@ -5,7 +5,7 @@ use std::path::{Path, PathBuf};
 use faer::{Mat, MatRef};
 use rand::Rng as _;
 use serde::{Deserialize, Serialize};
-use vdd_core::{CoreError, Expert, ScoreModel, Seeds, check_finite, check_len};
+use vdd_core::{CoreError, Expert, ScoreModel, Seeds, Trainer, check_finite, check_len};
 use vdd_moe::{ExpertFamily, Moe, MoeConfig, MoeOutput};
 use vdd_nn::{Adam, Ema, Parameters};
 
@@ -256,13 +256,9 @@ impl<S: ScoreModel, E: Expert> Vdd<S, E> {
         self.student
     }
 
-    /// Runs the remaining iterations, calling `callback` after each.
-    pub fn train(&mut self, mut callback: impl FnMut(&IterationMetrics)) -> Result<(), VddError> {
-        while self.iteration < self.config.iterations {
-            let m = self.step()?;
-            callback(&m);
-        }
-        Ok(())
+    /// Runs the remaining iterations, calling `callback` after each ([`Trainer::run`]).
+    pub fn train(&mut self, callback: impl FnMut(&IterationMetrics)) -> Result<(), VddError> {
+        Trainer::run(self, callback)
     }
 
     /// One EM iteration: E-step snapshot, `expert_steps_per_iter` expert steps, then
@@ -510,6 +506,33 @@ impl<S: ScoreModel> Vdd<S, ExpertFamily> {
     pub fn resume(dir: &Path, teacher: S, data: DistillData) -> Result<Self, VddError> {
         let student = Moe::load(&dir.join("student.safetensors"))?;
         Self::resume_inner(dir, teacher, student, data)
+    }
+}
+
+/// VDD as a [`Trainer`]: a step is one EM iteration ([`Vdd::step`]), and
+/// [`Trainer::finish`] returns the student ([`Vdd::into_student`]).
+impl<S: ScoreModel, E: Expert> Trainer for Vdd<S, E> {
+    type Report = IterationMetrics;
+    type Output = Moe<E>;
+    type Error = VddError;
+
+    fn step(&mut self) -> Result<IterationMetrics, VddError> {
+        Vdd::step(self)
+    }
+
+    fn iteration(&self) -> usize {
+        self.iteration
+    }
+
+    fn iterations(&self) -> usize {
+        self.config.iterations
+    }
+
+    fn finish(mut self) -> Result<Moe<E>, VddError> {
+        if let Some(ema) = &self.student_ema {
+            ema.copy_to(&mut self.student)?;
+        }
+        Ok(self.student)
     }
 }
 

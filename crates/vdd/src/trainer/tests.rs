@@ -305,3 +305,23 @@ fn learning_rates_decay_over_the_run_whatever_its_length() {
         }
     }
 }
+
+/// VDD is a `vdd_core::Trainer`: code written against the trait drives it, and `finish` returns
+/// the student `into_student` would (the moving average when configured).
+#[test]
+fn vdd_runs_through_the_trainer_trait() {
+    fn drive<T: Trainer>(mut t: T) -> (usize, T::Output) {
+        let mut reports = 0;
+        t.run(|_| reports += 1).unwrap();
+        assert!(t.done() && t.progress() == 1.0);
+        (reports, t.finish().unwrap())
+    }
+    let (mut config, teacher, student, data) = small_run(4);
+    config.student_ema = Some(0.5);
+    let direct = Vdd::new(config.clone(), teacher.clone(), student.clone(), data.clone()).unwrap();
+    let (reports, finished) = drive(direct);
+    assert_eq!(reports, 4);
+    let mut vdd = Vdd::new(config, teacher, student, data).unwrap();
+    vdd.train(|_| {}).unwrap();
+    assert_eq!(params(&finished), params(&vdd.into_student()));
+}
