@@ -10,6 +10,7 @@
 //!   closed-form gradients for means and scales;
 //! * [`trainer`]: the EM loop ([`Vdd`]): E-step snapshot, expert step, gating step
 //!   (soft cross-entropy to responsibilities), checkpoints and resume;
+//! * [`spaces`]: the raw, student's and teacher's spaces, and [`TeacherSpace`];
 //! * [`config`]: [`VddConfig`] with the paper's toy defaults;
 //! * [`eval`]: Monte-Carlo reverse/forward KL and mode coverage for toy problems.
 #![warn(missing_docs)]
@@ -18,6 +19,7 @@ pub mod config;
 mod error;
 pub mod eval;
 pub mod expert_step;
+pub mod spaces;
 pub mod trainer;
 
 #[cfg(test)]
@@ -25,4 +27,5 @@ mod test_support;
 
 pub use config::{ExpertWeighting, VddConfig};
 pub use error::VddError;
+pub use spaces::TeacherSpace;
 pub use trainer::{DistillData, IterationMetrics, Vdd};

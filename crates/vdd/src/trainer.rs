@@ -14,12 +14,20 @@ use crate::error::VddError;
 use crate::expert_step::{
     ExpertStepBuffers, ExpertStepStats, corrected_score_moments, raw_gradients,
 };
+use crate::spaces::{ActionMap, MappedTeacher, TeacherSpace, normalize_rows, same_map};
 
-/// The states to distil on, and optionally the dataset's actions for the gating step.
+/// The states to distil on, optionally the dataset's actions for the gating step, both in the
+/// raw (environment) space, and the space the teacher works in ([`TeacherSpace`]; see
+/// [`crate::spaces`]).
+///
+/// The trainer maps the data into the student's space with the student's normalisers, and
+/// queries the teacher in its own space: a teacher written for raw actions and a student that
+/// normalises its actions agree without further ado.
 #[derive(Debug, Clone)]
 pub struct DistillData {
     states: Mat<f32>,
     actions: Option<Mat<f32>>,
+    teacher_space: TeacherSpace,
 }
 
 impl DistillData {
@@ -39,12 +47,23 @@ impl DistillData {
             check_len("dataset actions (rows)", a.nrows(), states.nrows())?;
             check_finite("dataset actions", a.as_ref())?;
         }
-        Ok(Self { states, actions })
+        Ok(Self { states, actions, teacher_space: TeacherSpace::raw() })
     }
 
-    /// The states.
+    /// Declares the space the teacher takes states and actions in (default: the raw space).
+    pub fn with_teacher_space(mut self, space: TeacherSpace) -> Self {
+        self.teacher_space = space;
+        self
+    }
+
+    /// The raw states.
     pub fn states(&self) -> MatRef<'_, f32> {
         self.states.as_ref()
+    }
+
+    /// The space the teacher works in.
+    pub fn teacher_space(&self) -> &TeacherSpace {
+        &self.teacher_space
     }
 }
 
@@ -136,6 +155,14 @@ pub struct Vdd<S: ScoreModel, E: Expert = ExpertFamily> {
     resp: Vec<f32>,
     action: Vec<f32>,
     work: Vec<f32>,
+    /// The data's states in the teacher's space, when it differs from the student's.
+    teacher_states: Option<Mat<f32>>,
+    /// The student → teacher action map, when not the identity.
+    action_map: Option<ActionMap>,
+    /// The state batches in the teacher's space (with `teacher_states`).
+    teacher_batch: Mat<f32>,
+    teacher_gating_states: Mat<f32>,
+    map_scratch: Vec<f32>,
 }
 
 impl<S: ScoreModel> Vdd<S, ExpertFamily> {
@@ -171,32 +198,65 @@ impl<S: ScoreModel, E: Expert> Vdd<S, E> {
     /// its own; [`Vdd::from_config`] initialises it from the run's seed). Checks that teacher,
     /// student and data agree on dimensions, and that the gating step has actions to learn
     /// from (dataset actions or a teacher that samples).
+    ///
+    /// The data are raw; the student's normalisers ([`Moe::normalizers`], as set now) map them
+    /// into the student's space, and the data's [`TeacherSpace`] says what the teacher sees.
     pub fn new(
         config: VddConfig,
         mut teacher: S,
         student: Moe<E>,
-        data: DistillData,
+        mut data: DistillData,
     ) -> Result<Self, VddError> {
         config.validate()?;
         let mc = student.config();
-        check_len("teacher action_dim vs student", teacher.action_dim(), mc.action_dim)?;
-        check_len("teacher state_dim vs student", teacher.state_dim(), mc.state_dim)?;
-        check_len("data state columns", data.states.ncols(), mc.state_dim)?;
+        let (ds, d) = (mc.state_dim, mc.action_dim);
+        check_len("teacher action_dim vs student", teacher.action_dim(), d)?;
+        check_len("teacher state_dim vs student", teacher.state_dim(), ds)?;
+        check_len("data state columns", data.states.ncols(), ds)?;
         if let Some(a) = &data.actions {
-            check_len("data action columns", a.ncols(), mc.action_dim)?;
+            check_len("data action columns", a.ncols(), d)?;
+        }
+        // Spaces: the teacher's states from the raw ones, then the data into the student's.
+        let space = data.teacher_space.clone();
+        if let Some(m) = &space.states {
+            check_len("teacher state map", m.dim(), ds)?;
+        }
+        if let Some(m) = &space.actions {
+            check_len("teacher action map", m.dim(), d)?;
+        }
+        let (obs_norm, act_norm) = student.normalizers();
+        let teacher_states = (!same_map(obs_norm, space.states.as_ref(), ds)).then(|| {
+            let mut t = data.states.clone();
+            if let Some(m) = &space.states {
+                normalize_rows(&mut t, m);
+            }
+            t
+        });
+        let action_map = ActionMap::between(act_norm, space.actions.as_ref(), d)?;
+        if let Some(m) = obs_norm {
+            normalize_rows(&mut data.states, m);
+            check_finite("states in the student's space", data.states.as_ref())?;
+        }
+        if let (Some(m), Some(a)) = (act_norm, data.actions.as_mut()) {
+            normalize_rows(a, m);
+            check_finite("dataset actions in the student's space", a.as_ref())?;
+        }
+        if let Some(t) = &teacher_states {
+            check_finite("states in the teacher's space", t.as_ref())?;
         }
         if student.has_learned_gating() && data.actions.is_none() {
             let mut probe = Mat::zeros(1, mc.action_dim);
             let mut rng = Seeds::new(config.seed).stream("probe");
+            let states = teacher_states.as_ref().unwrap_or(&data.states);
             teacher
-                .sample_actions(data.states.as_ref().subrows(0, 1), &mut rng, probe.as_mut())
+                .sample_actions(states.as_ref().subrows(0, 1), &mut rng, probe.as_mut())
                 .map_err(|e| {
                     CoreError::Config(format!(
                         "a learned gating needs dataset actions or a teacher that samples: {e}"
                     ))
                 })?;
         }
-        let (z, d) = (mc.num_experts, mc.action_dim);
+        let z = mc.num_experts;
         let student_ema = config.student_ema.map(|decay| Ema::new(&student, decay)).transpose()?;
         Ok(Self {
             expert_optimizer: Adam::new(config.expert_optimizer),
@@ -214,6 +274,17 @@ impl<S: ScoreModel, E: Expert> Vdd<S, E> {
             resp: vec![0.0; z],
             action: vec![0.0; d],
             work: vec![0.0; d],
+            teacher_batch: Mat::zeros(
+                if teacher_states.is_some() { config.batch_size } else { 0 },
+                ds,
+            ),
+            teacher_gating_states: Mat::zeros(
+                if teacher_states.is_some() { config.gating_batch_size } else { 0 },
+                ds,
+            ),
+            teacher_states,
+            action_map,
+            map_scratch: Vec::new(),
             config,
             teacher,
             student,
@@ -276,6 +347,11 @@ impl<S: ScoreModel, E: Expert> Vdd<S, E> {
             for j in 0..self.data.states.ncols() {
                 self.batch[(b, j)] = self.data.states[(idx, j)];
             }
+            if let Some(t) = &self.teacher_states {
+                for j in 0..t.ncols() {
+                    self.teacher_batch[(b, j)] = t[(idx, j)];
+                }
+            }
         }
 
         // E-step: freeze a copy of the student on this batch.
@@ -300,18 +376,42 @@ impl<S: ScoreModel, E: Expert> Vdd<S, E> {
             if k > 0 {
                 self.student.forward_experts(self.batch.as_ref())?;
             }
-            stats = corrected_score_moments(
-                &mut self.teacher,
-                self.student.output(),
-                &self.snapshot,
-                self.batch.as_ref(),
-                &self.config.noise,
-                progress,
-                self.config.vi_samples,
-                &mut rng,
-                &mut self.buf,
-            )
-            .map_err(|e| match e {
+            // The teacher sees the states (and, through the map, the actions) in its space.
+            let states = match &self.teacher_states {
+                Some(_) => self.teacher_batch.as_ref(),
+                None => self.batch.as_ref(),
+            };
+            let (c, snapshot, v) = (&self.config, &self.snapshot, self.config.vi_samples);
+            let out = self.student.output();
+            let moments = match &self.action_map {
+                None => corrected_score_moments(
+                    &mut self.teacher,
+                    out,
+                    snapshot,
+                    states,
+                    &c.noise,
+                    progress,
+                    v,
+                    &mut rng,
+                    &mut self.buf,
+                ),
+                Some(map) => corrected_score_moments(
+                    &mut MappedTeacher {
+                        teacher: &mut self.teacher,
+                        map,
+                        scratch: &mut self.map_scratch,
+                    },
+                    out,
+                    snapshot,
+                    states,
+                    &c.noise,
+                    progress,
+                    v,
+                    &mut rng,
+                    &mut self.buf,
+                ),
+            };
+            stats = moments.map_err(|e| match e {
                 CoreError::NonFinite { what } => {
                     VddError::NonFinite { iteration: it, quantity: what }
                 }
@@ -385,6 +485,11 @@ impl<S: ScoreModel, E: Expert> Vdd<S, E> {
             for j in 0..ds {
                 self.gating_states[(b, j)] = self.data.states[(i, j)];
             }
+            if let Some(t) = &self.teacher_states {
+                for j in 0..ds {
+                    self.teacher_gating_states[(b, j)] = t[(i, j)];
+                }
+            }
         }
         match &self.data.actions {
             Some(actions) => {
@@ -396,11 +501,21 @@ impl<S: ScoreModel, E: Expert> Vdd<S, E> {
             }
             None => {
                 let mut rng = self.seeds.stream_indexed("teacher-samples", stream);
-                self.teacher.sample_actions(
-                    self.gating_states.as_ref(),
-                    &mut rng,
-                    self.gating_actions.as_mut(),
-                )?;
+                // Sampled in the teacher's space, returned in the student's.
+                let states = match &self.teacher_states {
+                    Some(_) => self.teacher_gating_states.as_ref(),
+                    None => self.gating_states.as_ref(),
+                };
+                let out = self.gating_actions.as_mut();
+                match &self.action_map {
+                    None => self.teacher.sample_actions(states, &mut rng, out)?,
+                    Some(map) => MappedTeacher {
+                        teacher: &mut self.teacher,
+                        map,
+                        scratch: &mut self.map_scratch,
+                    }
+                    .sample_actions(states, &mut rng, out)?,
+                }
                 check_finite("teacher samples", self.gating_actions.as_ref()).map_err(|_| {
                     VddError::NonFinite { iteration: it, quantity: "teacher samples" }
                 })?;
@@ -563,3 +678,5 @@ fn clip_or_fail(
 
 #[cfg(test)]
 mod tests;
+#[cfg(test)]
+mod tests_spaces;
