@@ -534,6 +534,18 @@ fn save_load_round_trips_and_reports_clear_errors() {
     vdd_nn::io::save_safetensors(&bare, beso.net(), &Default::default()).unwrap();
     assert!(matches!(Beso::load(&bare, 0), Err(DiffusionError::Format { .. })));
     assert!(matches!(DiffusionTeacher::load(&bare, 0), Err(DiffusionError::Format { .. })));
+    // Unreadable metadata keeps the JSON error as its source.
+    let bad = tmp("bad-meta");
+    let meta = std::collections::BTreeMap::from([
+        ("vdd_diffusion.kind".to_owned(), "beso".to_owned()),
+        ("vdd_diffusion.version".to_owned(), "1".to_owned()),
+        ("vdd_diffusion.config".to_owned(), "{not json".to_owned()),
+    ]);
+    vdd_nn::io::save_safetensors(&bad, beso.net(), &meta).unwrap();
+    let err = Beso::load(&bad, 0).unwrap_err();
+    assert!(matches!(err, DiffusionError::BadMetadata { key: "vdd_diffusion.config", .. }));
+    let source = std::error::Error::source(&err).unwrap();
+    assert!(source.downcast_ref::<serde_json::Error>().is_some(), "{source:?}");
     let missing = path.with_file_name("absent.safetensors");
     assert!(matches!(Beso::load(&missing, 0), Err(DiffusionError::Nn(vdd_nn::NnError::Io { .. }))));
     let bytes = std::fs::read(&path).unwrap();

@@ -250,11 +250,7 @@ impl<S: ScoreModel, E: Expert> Vdd<S, E> {
             let states = teacher_states.as_ref().unwrap_or(&data.states);
             teacher
                 .sample_actions(states.as_ref().subrows(0, 1), &mut rng, probe.as_mut())
-                .map_err(|e| {
-                    CoreError::Config(format!(
-                        "a learned gating needs dataset actions or a teacher that samples: {e}"
-                    ))
-                })?;
+                .map_err(|source| VddError::NoGatingActions { source })?;
         }
         let z = mc.num_experts;
         let student_ema = config.student_ema.map(|decay| Ema::new(&student, decay)).transpose()?;
@@ -553,12 +549,15 @@ impl<S: ScoreModel, E: Expert> Vdd<S, E> {
     /// Writes a checkpoint directory (`student.safetensors` + `trainer.json`) atomically: the
     /// files go to a temporary sibling directory that replaces `dir` only when complete.
     pub fn save_checkpoint(&self, dir: &Path) -> Result<(), VddError> {
-        let err = |reason: String| VddError::Checkpoint { path: dir.to_owned(), reason };
+        let err = |path: &Path| {
+            let path = path.to_owned();
+            move |source| VddError::CheckpointIo { path, source }
+        };
         let tmp = sibling(dir, "tmp");
         if tmp.exists() {
-            std::fs::remove_dir_all(&tmp).map_err(|e| err(e.to_string()))?;
+            std::fs::remove_dir_all(&tmp).map_err(err(&tmp))?;
         }
-        std::fs::create_dir_all(&tmp).map_err(|e| err(e.to_string()))?;
+        std::fs::create_dir_all(&tmp).map_err(err(&tmp))?;
         self.student.save(&tmp.join("student.safetensors"))?;
         let state = TrainerState {
             config: self.config.clone(),
@@ -567,18 +566,21 @@ impl<S: ScoreModel, E: Expert> Vdd<S, E> {
             gating_optimizer: self.gating_optimizer.clone(),
             student_ema: self.student_ema.clone(),
         };
-        let json = serde_json::to_vec(&state).map_err(|e| err(e.to_string()))?;
+        let json = serde_json::to_vec(&state).map_err(|source| VddError::CheckpointFormat {
+            path: tmp.join("trainer.json"),
+            source,
+        })?;
         vdd_nn::io::write_atomic(&tmp.join("trainer.json"), &json)?;
         let old = sibling(dir, "old");
         if dir.exists() {
             if old.exists() {
-                std::fs::remove_dir_all(&old).map_err(|e| err(e.to_string()))?;
+                std::fs::remove_dir_all(&old).map_err(err(&old))?;
             }
-            std::fs::rename(dir, &old).map_err(|e| err(e.to_string()))?;
+            std::fs::rename(dir, &old).map_err(err(dir))?;
         }
-        std::fs::rename(&tmp, dir).map_err(|e| err(e.to_string()))?;
+        std::fs::rename(&tmp, dir).map_err(err(&tmp))?;
         if old.exists() {
-            std::fs::remove_dir_all(&old).map_err(|e| err(e.to_string()))?;
+            std::fs::remove_dir_all(&old).map_err(err(&old))?;
         }
         Ok(())
     }
@@ -603,9 +605,9 @@ impl<S: ScoreModel, E: Expert> Vdd<S, E> {
     ) -> Result<Self, VddError> {
         let path = dir.join("trainer.json");
         let bytes = std::fs::read(&path)
-            .map_err(|e| VddError::Checkpoint { path: path.clone(), reason: e.to_string() })?;
+            .map_err(|source| VddError::CheckpointIo { path: path.clone(), source })?;
         let state: TrainerState = serde_json::from_slice(&bytes)
-            .map_err(|e| VddError::Checkpoint { path, reason: e.to_string() })?;
+            .map_err(|source| VddError::CheckpointFormat { path, source })?;
         let mut vdd = Self::new(state.config, teacher, student, data)?;
         vdd.iteration = state.iteration;
         vdd.expert_optimizer = state.expert_optimizer;

@@ -325,3 +325,82 @@ fn vdd_runs_through_the_trainer_trait() {
     vdd.train(|_| {}).unwrap();
     assert_eq!(params(&finished), params(&vdd.into_student()));
 }
+
+/// A user's teacher fails in its own way (here: a file it reads is missing). Its error comes
+/// back through `Vdd::step` with the source chain intact: the user's error, then its cause.
+#[test]
+fn a_teachers_own_error_keeps_its_source_chain() {
+    #[derive(Debug, thiserror::Error)]
+    #[error("cannot read the teacher's lookup table")]
+    struct TableError(#[source] std::io::Error);
+
+    struct FileTeacher;
+    impl ScoreModel for FileTeacher {
+        fn action_dim(&self) -> usize {
+            2
+        }
+        fn state_dim(&self) -> usize {
+            1
+        }
+        fn score(
+            &mut self,
+            _: MatRef<'_, f32>,
+            _: MatRef<'_, f32>,
+            _: &[f32],
+            _: MatMut<'_, f32>,
+        ) -> Result<(), CoreError> {
+            let io = std::io::Error::new(std::io::ErrorKind::NotFound, "table.bin");
+            Err(CoreError::implementor(TableError(io)))
+        }
+    }
+
+    let (config, _, _, data) = small_run(3);
+    let student = Moe::from_config(MoeConfig::toy(1, 2, 2), 0).unwrap();
+    let mut vdd = Vdd::new(config, FileTeacher, student, data).unwrap();
+    let err = vdd.step().unwrap_err();
+    assert!(matches!(err, VddError::Core(CoreError::Implementor(_))), "{err:?}");
+    assert_eq!(vdd.iteration(), 0);
+    let mut chain = Vec::new();
+    let mut e: Option<&(dyn std::error::Error + 'static)> = Some(&err);
+    while let Some(x) = e {
+        chain.push(x);
+        e = x.source();
+    }
+    let table = chain.iter().find_map(|x| x.downcast_ref::<TableError>());
+    assert!(table.is_some(), "the user's error is in the chain: {chain:?}");
+    let io = chain.iter().find_map(|x| x.downcast_ref::<std::io::Error>()).expect("its cause too");
+    assert_eq!(io.kind(), std::io::ErrorKind::NotFound);
+}
+
+/// A learned gating without dataset actions needs a teacher that samples; the teacher's
+/// refusal is the error's source.
+#[test]
+fn a_learned_gating_without_actions_keeps_the_teachers_refusal() {
+    let (config, _, student, data) = small_run(1);
+    let teacher = IsoGmmNoSampling(IsoGmm::circle(4, 2.0, 0.5));
+    let err = Vdd::new(config, teacher, student, data).err().expect("no gating actions");
+    match &err {
+        VddError::NoGatingActions { source: CoreError::Unsupported(_) } => {}
+        other => panic!("unexpected {other:?}"),
+    }
+    assert!(std::error::Error::source(&err).is_some());
+}
+
+struct IsoGmmNoSampling(IsoGmm);
+impl ScoreModel for IsoGmmNoSampling {
+    fn action_dim(&self) -> usize {
+        self.0.action_dim()
+    }
+    fn state_dim(&self) -> usize {
+        self.0.state_dim()
+    }
+    fn score(
+        &mut self,
+        a: MatRef<'_, f32>,
+        s: MatRef<'_, f32>,
+        l: &[f32],
+        out: MatMut<'_, f32>,
+    ) -> Result<(), CoreError> {
+        self.0.score(a, s, l, out)
+    }
+}
