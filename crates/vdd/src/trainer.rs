@@ -101,10 +101,8 @@ struct TrainerState {
 /// two experts; switching to full-covariance experts is the one config value `expert_kind`.
 ///
 /// ```
-/// use faer::{Mat, MatMut, MatRef};
-/// use vdd::{DistillData, Vdd, VddConfig};
-/// use vdd_core::{check_score_args, CoreError, ScoreModel};
-/// use vdd_moe::{ExpertKind, MoeConfig};
+/// use vdd::faer::{Mat, MatMut, MatRef};
+/// use vdd::{check_score_args, CoreError, DistillData, ExpertKind, MoeConfig, ScoreModel, Vdd, VddConfig};
 ///
 /// struct MyTeacher;
 /// impl ScoreModel for MyTeacher {
