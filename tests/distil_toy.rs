@@ -10,18 +10,14 @@ use vdd::{DistillData, Vdd, VddConfig, eval};
 use vdd_core::Seeds;
 use vdd_core::gmm::{Gmm, GmmTeacher};
 use vdd_moe::{ExpertKind, Moe, MoeConfig};
-use vdd_nn::LrSchedule;
 
 fn distil(kind: ExpertKind, seed: u64, iterations: usize) -> Moe {
-    let student =
-        Moe::from_config(MoeConfig { expert_kind: kind, ..MoeConfig::toy(1, 2, 8) }, seed).unwrap();
-    let schedule = LrSchedule::LinearDecay { total_steps: iterations as u64, final_factor: 0.0 };
+    let student = MoeConfig { expert_kind: kind, ..MoeConfig::toy(1, 2, 8) };
+    // The toy's learning rate decays linearly to 0 over the run, whatever its length.
     let mut config = VddConfig { iterations, seed, ..VddConfig::toy() };
     config.expert_optimizer.lr = 1e-2;
-    config.expert_lr_schedule = schedule.clone();
-    config.gating_lr_schedule = schedule;
     let data = DistillData::from_states(Mat::zeros(32, 1)).unwrap();
-    let mut vdd = Vdd::new(config, GmmTeacher::circle_toy(), student, data).unwrap();
+    let mut vdd = Vdd::from_config(config, GmmTeacher::circle_toy(), student, data).unwrap();
     let mut last = None;
     vdd.train(|m| last = Some(*m)).unwrap();
     let last = last.expect("metrics reported every iteration");

@@ -16,14 +16,13 @@ use serde::{Deserialize, Serialize};
 use serde_json::{Value, json};
 use vdd::{DistillData, Vdd, VddConfig};
 use vdd_consistency::{CdConfig, CdTrainer, ConsistencyProgress, CtmConfig, CtmTrainer};
-use vdd_core::{Affine, Policy};
+use vdd_core::{Affine, ClampedDenoiser, Policy};
 use vdd_data::{
     DeploySpec, Episodes, Normalization, NormalizationKind, SequenceDataset, WindowConfig, Windowed,
 };
 use vdd_diffusion::{BesoConfig, DiffusionTeacher, TeacherKind};
 use vdd_mixture::{Dataset, Em, EmConfig, Imc, ImcConfig};
 use vdd_moe::{ActMode, GatingKind, Moe, MoeConfig};
-use vdd_nn::LrSchedule;
 use vdd_tasks::avoiding::rollout::Evaluation;
 use vdd_tasks::avoiding::{EvalProtocol, ObsFeatures};
 use vdd_tasks::timing::{Timing, us_per_action};
@@ -36,7 +35,7 @@ use crate::policy::TrainedPolicy;
 use crate::recipe;
 use crate::report::{self, Row};
 use crate::student_cache::{CachedStudent, StudentCache};
-use crate::teachers::{self, ClippedTeacher, TeachersConfig, TrainedTeacher};
+use crate::teachers::{self, TeachersConfig, TrainedTeacher};
 
 /// A recipe of the Avoiding task (see `recipes/avoiding.toml`): the schema of the recipe files;
 /// the values not given there come from `recipes/defaults/avoiding.toml` ([`Self::defaults`]).
@@ -107,7 +106,7 @@ pub struct VddMethods {
     pub ddpm: VddConfig,
     /// Clamp the teacher's denoised estimate to the training actions' bounding box (normalised
     /// units) widened by this margin before forming the score VDD distils
-    /// ([`teachers::ClippedTeacher`]); `None`: the raw score. Without it the learned teachers'
+    /// ([`vdd_core::ClampedDenoiser`]); `None`: the raw score. Without it the learned teachers'
     /// scores far from the data (where they extrapolate) make experts' variances run away.
     pub clip_margin: Option<f32>,
     /// VDD-BESO's student gating when it differs from `student.gating` (the mixture EM, IMC
@@ -119,9 +118,6 @@ pub struct VddMethods {
     pub greedy_gating: bool,
     /// Acting: sample `a ~ N(μ_z, Σ_z)` instead of returning `μ_z` (the paper uses `μ_z`).
     pub sample_action: bool,
-    /// Rescale decaying LR schedules to end at the last step (so `--set ...iterations=N` alone
-    /// keeps the schedule's shape).
-    pub schedules_follow_iterations: bool,
 }
 
 /// The baselines: EM and IMC on the same mixture of experts, CD and CTM distilled from the
@@ -141,8 +137,6 @@ pub struct Baselines {
     /// network architecture and the levels (`σ_data`, `σ_min`, `σ_max`, `ρ`) from the BESO
     /// teacher's configuration, so `--set teachers.beso...` changes need no matching change here.
     pub consistency_follows_teacher: bool,
-    /// As [`VddMethods::schedules_follow_iterations`] (EM and IMC).
-    pub schedules_follow_iterations: bool,
 }
 
 /// Evaluation.
@@ -223,41 +217,10 @@ pub fn consistency_config_for(
     c
 }
 
-/// Sets the length of decaying schedules to `total` steps (warm-ups keep their length).
-pub fn fit_schedule(s: &mut LrSchedule, total: u64) {
-    match s {
-        LrSchedule::Constant => {}
-        LrSchedule::LinearDecay { total_steps, .. } | LrSchedule::Cosine { total_steps, .. } => {
-            *total_steps = total.max(1)
-        }
-        LrSchedule::Warmup { warmup_steps, then } => {
-            fit_schedule(then, total.saturating_sub(*warmup_steps))
-        }
-    }
-}
-
-/// [`fit_schedule`] for the experts' and the gating's schedules of EM or IMC, which take
-/// `steps.0` expert and `steps.1` gating steps per iteration.
-fn fit_mixture_schedules(
-    schedules: (&mut LrSchedule, &mut LrSchedule),
-    iterations: usize,
-    steps: (usize, usize),
-) {
-    fit_schedule(schedules.0, (iterations * steps.0) as u64);
-    fit_schedule(schedules.1, (iterations * steps.1) as u64);
-}
-
-/// The VDD config for a run: seed and (optionally) schedule lengths.
-pub fn vdd_config_for(c: &VddConfig, seed: u64, follow: bool) -> VddConfig {
-    let mut c = c.clone();
-    c.seed = seed;
-    if follow {
-        let it = c.iterations as u64;
-        fit_schedule(&mut c.expert_lr_schedule, it * c.expert_steps_per_iter as u64);
-        let g_it = c.freeze_gating_after.map_or(it, |f| (f as u64).min(it));
-        fit_schedule(&mut c.gating_lr_schedule, g_it * c.gating_steps_per_iter as u64);
-    }
-    c
+/// The VDD config for a run: the run's seed (learning-rate schedules follow the run's length
+/// by construction).
+pub fn vdd_config_for(c: &VddConfig, seed: u64) -> VddConfig {
+    VddConfig { seed, ..c.clone() }
 }
 
 /// How the models of a recipe act on raw observations: saved with the mixtures, applied to
@@ -437,7 +400,7 @@ fn train_method(
                 TeacherKind::Beso => &cfg.vdd.beso,
                 TeacherKind::Ddpm => &cfg.vdd.ddpm,
             };
-            let vc = vdd_config_for(vc, seed, cfg.vdd.schedules_follow_iterations);
+            let vc = vdd_config_for(vc, seed);
             let t = store.get(kind, cfg, prep, seed)?;
             let teacher = t.teacher.clone();
             let teacher_seconds = t.train_seconds;
@@ -475,16 +438,7 @@ fn train_method(
                     c
                 }
                 None => {
-                    let c = distill(
-                        vc,
-                        teacher,
-                        mc,
-                        states,
-                        actions,
-                        cfg.vdd.clip_margin,
-                        seed,
-                        label,
-                    )?;
+                    let c = distill(vc, teacher, mc, states, actions, cfg.vdd.clip_margin, label)?;
                     let path = students.store(name, &hash, &c)?;
                     crate::progress::log(format!(
                         "[{label}] trained in {:.1} s; cached as {}",
@@ -516,16 +470,10 @@ fn train_method(
             mc.state_dim = prep.states_n.ncols();
             mc.action_dim = prep.actions_n.ncols();
             let student = Moe::from_config(mc, seed)?;
-            let follow = cfg.baselines.schedules_follow_iterations;
             let t0 = Instant::now();
             let mut student = if method == Method::Em {
                 let mut ec = cfg.baselines.em.clone();
                 ec.seed = seed;
-                if follow {
-                    let steps = (ec.expert_steps_per_iter, ec.gating_steps_per_iter);
-                    let schedules = (&mut ec.expert_lr_schedule, &mut ec.gating_lr_schedule);
-                    fit_mixture_schedules(schedules, ec.iterations, steps);
-                }
                 let bar = crate::progress::bar(ec.iterations as u64, label);
                 let mut em = Em::new(ec, student, data)?;
                 em.train(|m| {
@@ -541,11 +489,6 @@ fn train_method(
             } else {
                 let mut ic = cfg.baselines.imc.clone();
                 ic.seed = seed;
-                if follow {
-                    let steps = (ic.expert_steps_per_iter, ic.gating_steps_per_iter);
-                    let schedules = (&mut ic.expert_lr_schedule, &mut ic.gating_lr_schedule);
-                    fit_mixture_schedules(schedules, ic.iterations, steps);
-                }
                 let bar = crate::progress::bar(ic.iterations as u64, label);
                 let mut imc = Imc::new(ic, student, data)?;
                 imc.train(|m| {
@@ -630,7 +573,8 @@ fn train_method(
 }
 
 /// Distils `teacher` into a new mixture of configuration `mc` with VDD (the states and actions
-/// normalised by the teacher's normalisers), with a progress bar and learning curves.
+/// normalised by the teacher's normalisers; the student initialised from the run seed
+/// `vc.seed`), with a progress bar and learning curves.
 #[allow(clippy::too_many_arguments)]
 fn distill(
     vc: VddConfig,
@@ -639,16 +583,16 @@ fn distill(
     states: Mat<f32>,
     actions: Mat<f32>,
     clip_margin: Option<f32>,
-    seed: u64,
     label: &str,
 ) -> crate::XResult<CachedStudent> {
     let mut curves = Curves::default();
-    let student = Moe::from_config(mc, seed)?;
-    let bounds = clip_margin.map(|m| ClippedTeacher::data_box(actions.as_ref(), m));
-    let teacher = ClippedTeacher::new(teacher, bounds)?;
+    let teacher = match clip_margin {
+        Some(m) => ClampedDenoiser::around_data(teacher, actions.as_ref(), m)?,
+        None => ClampedDenoiser::unclamped(teacher),
+    };
     let data = DistillData::new(states, Some(actions))?;
     let iterations = vc.iterations;
-    let mut vdd = Vdd::new(vc, teacher, student, data)?;
+    let mut vdd = Vdd::from_config(vc, teacher, mc, data)?;
     let bar = crate::progress::bar(iterations as u64, label);
     let every = (iterations / 200).max(1);
     let t0 = Instant::now();
@@ -1139,30 +1083,5 @@ mod tests {
                 }
             }
         }
-    }
-
-    #[test]
-    fn schedules_follow_iterations() {
-        let c = VddConfig { iterations: 50, ..VddConfig::toy() };
-        let f = vdd_config_for(&c, 3, true);
-        assert_eq!(f.seed, 3);
-        assert_eq!(
-            f.expert_lr_schedule,
-            LrSchedule::LinearDecay { total_steps: 50, final_factor: 0.0 }
-        );
-        let mut w = LrSchedule::Warmup {
-            warmup_steps: 10,
-            then: Box::new(LrSchedule::Cosine { total_steps: 1, final_factor: 0.1 }),
-        };
-        fit_schedule(&mut w, 100);
-        assert_eq!(
-            w,
-            LrSchedule::Warmup {
-                warmup_steps: 10,
-                then: Box::new(LrSchedule::Cosine { total_steps: 90, final_factor: 0.1 })
-            }
-        );
-        let kept = vdd_config_for(&c, 3, false);
-        assert_eq!(kept.expert_lr_schedule, c.expert_lr_schedule);
     }
 }

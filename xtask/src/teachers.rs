@@ -250,181 +250,15 @@ pub fn rel(path: &Path) -> String {
         .to_string()
 }
 
-/// A learned teacher whose score is formed from a denoised estimate clamped to a box: the
-/// posterior mean `E[a | x]` of clean actions lies in the data's bounding box, so clamping the
-/// teacher's estimate there can only move it closer. Far from the data, where a network trained
-/// at small noise levels extrapolates (its score there can point away from the data and make a
-/// distilled expert's variance run away), the clamped score points back into the box. Inside
-/// the box it is the teacher's score unchanged. (DDPM's samplers clip their `x̂₀` the same way.)
-///
-/// With the VE convention (BESO) the denoised estimate is `D = a + σ² s`; with the VP
-/// convention (DDPM, `a` fed as `x_t`) it is `x̂₀ = (a + (1 − ᾱ) s) / √ᾱ`. The clamped score is
-/// `(D_c − a)/σ²`, respectively `(√ᾱ x̂₀_c − a)/(1 − ᾱ)`.
-#[derive(Debug, Clone)]
-pub struct ClippedTeacher {
-    teacher: DiffusionTeacher,
-    /// Per-dimension lower and upper bounds of the denoised estimate (normalised units).
-    bounds: Option<(Vec<f32>, Vec<f32>)>,
-}
-
-impl ClippedTeacher {
-    /// Wraps `teacher`; `bounds` `(lo, hi)` per action dimension, `None` for the plain score.
-    pub fn new(
-        teacher: DiffusionTeacher,
-        bounds: Option<(Vec<f32>, Vec<f32>)>,
-    ) -> Result<Self, String> {
-        if let Some((lo, hi)) = &bounds {
-            let d = teacher.action_dim();
-            if lo.len() != d
-                || hi.len() != d
-                || lo.iter().zip(hi).any(|(l, h)| l.partial_cmp(h).is_none_or(|o| o.is_gt()))
-            {
-                return Err(format!("clip bounds must be {d} ordered pairs"));
-            }
-        }
-        Ok(Self { teacher, bounds })
-    }
-
-    /// The bounding box of the rows of `actions` widened by `margin` on each side.
-    pub fn data_box(actions: MatRef<'_, f32>, margin: f32) -> (Vec<f32>, Vec<f32>) {
-        (0..actions.ncols())
-            .map(|j| {
-                let (mut lo, mut hi) = (f32::INFINITY, f32::NEG_INFINITY);
-                for i in 0..actions.nrows() {
-                    lo = lo.min(actions[(i, j)]);
-                    hi = hi.max(actions[(i, j)]);
-                }
-                (lo - margin, hi + margin)
-            })
-            .unzip()
-    }
-
-    /// `(k, v)` with `D = (a + v s) / k` for a noise level (see the type's docs).
-    fn scale_and_variance(&self, level: f32) -> (f32, f32) {
-        match &self.teacher {
-            DiffusionTeacher::Beso(_) => (1.0, level * level),
-            DiffusionTeacher::Ddpm(d) => {
-                let ab = d.schedule().alpha_bar(level);
-                (ab.sqrt(), 1.0 - ab)
-            }
-        }
-    }
-}
-
-impl vdd_core::ScoreModel for ClippedTeacher {
-    fn action_dim(&self) -> usize {
-        vdd_core::ScoreModel::action_dim(&self.teacher)
-    }
-    fn state_dim(&self) -> usize {
-        vdd_core::ScoreModel::state_dim(&self.teacher)
-    }
-    fn noise_convention(&self) -> vdd_core::NoiseConvention {
-        self.teacher.noise_convention()
-    }
-    fn score(
-        &mut self,
-        actions: MatRef<'_, f32>,
-        states: MatRef<'_, f32>,
-        noise_levels: &[f32],
-        mut out: faer::MatMut<'_, f32>,
-    ) -> vdd_core::Result<()> {
-        use faer::reborrow::ReborrowMut;
-        self.teacher.score(actions, states, noise_levels, out.rb_mut())?;
-        let Some((lo, hi)) = &self.bounds else { return Ok(()) };
-        for (i, &level) in noise_levels.iter().enumerate() {
-            let (k, v) = self.scale_and_variance(level);
-            if !(v > 0.0 && k > 0.0) {
-                continue;
-            }
-            for j in 0..actions.ncols() {
-                let a = actions[(i, j)];
-                let d = (a + v * out[(i, j)]) / k;
-                let dc = d.clamp(lo[j], hi[j]);
-                if dc != d {
-                    out[(i, j)] = (k * dc - a) / v;
-                }
-            }
-        }
-        Ok(())
-    }
-    fn sample_actions(
-        &mut self,
-        states: MatRef<'_, f32>,
-        rng: &mut dyn rand::RngCore,
-        out: faer::MatMut<'_, f32>,
-    ) -> vdd_core::Result<()> {
-        self.teacher.sample_actions(states, rng, out)
-    }
-    fn draw_noise_levels(
-        &self,
-        schedule: &vdd_core::NoiseSchedule,
-        progress: f32,
-        rng: &mut dyn rand::RngCore,
-        out: &mut [f32],
-    ) {
-        self.teacher.draw_noise_levels(schedule, progress, rng, out)
-    }
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
     use faer::Mat;
-    use vdd_core::{Affine, ScoreModel};
-    use vdd_diffusion::{Beso, Ddpm, NetConfig};
+    use vdd_core::ScoreModel;
+    use vdd_diffusion::NetConfig;
 
     fn tiny_net() -> NetConfig {
         NetConfig { hidden_dim: 8, num_blocks: 1, ..Default::default() }
-    }
-
-    fn teachers() -> Vec<DiffusionTeacher> {
-        let (sn, an) = (Affine::identity(1), Affine::identity(2));
-        let b = BesoConfig { net: tiny_net(), ..Default::default() };
-        let d = DdpmConfig { net: tiny_net(), ..Default::default() };
-        vec![
-            Beso::new(&b, sn.clone(), an.clone(), 3).unwrap().into(),
-            Ddpm::new(&d, sn, an, 3).unwrap().into(),
-        ]
-    }
-
-    /// The denoised estimate `D` behind a score (see `ClippedTeacher`).
-    fn denoised(t: &ClippedTeacher, a: f32, s: f32, level: f32) -> f32 {
-        let (k, v) = t.scale_and_variance(level);
-        (a + v * s) / k
-    }
-
-    #[test]
-    fn clipped_scores_equal_the_teachers_inside_the_box_and_point_back_outside() {
-        for teacher in teachers() {
-            let level = if teacher.kind() == TeacherKind::Beso { 0.3 } else { 2.0 };
-            let actions = faer::mat![[0.1f32, -0.2], [30.0, -40.0], [0.0, 0.0]];
-            let states = Mat::<f32>::zeros(3, 1);
-            let levels = [level; 3];
-            let mut raw = Mat::<f32>::zeros(3, 2);
-            let mut plain = ClippedTeacher::new(teacher.clone(), None).unwrap();
-            plain.score(actions.as_ref(), states.as_ref(), &levels, raw.as_mut()).unwrap();
-            // A box wide enough never clips: the score is the teacher's, bit for bit.
-            let wide = (vec![-1e6; 2], vec![1e6; 2]);
-            let mut clipped = ClippedTeacher::new(teacher.clone(), Some(wide)).unwrap();
-            let mut out = Mat::<f32>::zeros(3, 2);
-            clipped.score(actions.as_ref(), states.as_ref(), &levels, out.as_mut()).unwrap();
-            assert_eq!(out, raw);
-            // A unit box: every denoised estimate lands in it, and far points are pulled back.
-            let unit = (vec![-1.0; 2], vec![1.0; 2]);
-            let mut clipped = ClippedTeacher::new(teacher, Some(unit)).unwrap();
-            clipped.score(actions.as_ref(), states.as_ref(), &levels, out.as_mut()).unwrap();
-            for i in 0..3 {
-                for j in 0..2 {
-                    let d = denoised(&clipped, actions[(i, j)], out[(i, j)], level);
-                    assert!((-1.0 - 1e-3..=1.0 + 1e-3).contains(&d), "row {i}: D = {d}");
-                    let rd = denoised(&clipped, actions[(i, j)], raw[(i, j)], level);
-                    if (-1.0..=1.0).contains(&rd) {
-                        assert_eq!(out[(i, j)], raw[(i, j)], "unclipped entries are unchanged");
-                    }
-                }
-            }
-            assert!(out[(1, 0)] < 0.0 && out[(1, 1)] > 0.0, "far points are pulled back: {out:?}");
-        }
     }
 
     #[test]
@@ -461,15 +295,5 @@ mod tests {
         assert_eq!(x, y, "a cached teacher scores bit-identically");
         assert!(!go(true).cached, "--fresh retrains");
         std::fs::remove_dir_all(&dir).unwrap();
-    }
-
-    #[test]
-    fn clip_boxes_come_from_the_data() {
-        let a = faer::mat![[0.0f32, 5.0], [2.0, -1.0], [1.0, 0.0]];
-        let (lo, hi) = ClippedTeacher::data_box(a.as_ref(), 0.5);
-        assert_eq!((lo, hi), (vec![-0.5, -1.5], vec![2.5, 5.5]));
-        let t = teachers().remove(0);
-        assert!(ClippedTeacher::new(t.clone(), Some((vec![1.0, 0.0], vec![0.0, 1.0]))).is_err());
-        assert!(ClippedTeacher::new(t, Some((vec![0.0], vec![1.0]))).is_err());
     }
 }

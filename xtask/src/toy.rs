@@ -27,7 +27,7 @@ use vdd::{DistillData, Vdd, VddConfig, eval};
 use vdd_core::gmm::{Gmm, GmmTeacher};
 use vdd_core::{Affine, ScoreModel, Seeds};
 use vdd_diffusion::TeacherKind;
-use vdd_moe::{Moe, MoeConfig};
+use vdd_moe::{GatingKind, Moe, MoeConfig};
 
 use crate::avoiding::vdd_config_for;
 use crate::context::RunContext;
@@ -84,8 +84,6 @@ pub struct ToyVdd {
     pub beso: VddConfig,
     /// Learned DDPM teacher (noise levels in time `t`).
     pub ddpm: VddConfig,
-    /// Rescale decaying LR schedules to end at the last iteration.
-    pub schedules_follow_iterations: bool,
 }
 
 /// Evaluation of a toy recipe.
@@ -253,7 +251,7 @@ fn distil(
             return Err(format!("method `{}` is not available on toy tasks", other.name()).into());
         }
     };
-    let vc: VddConfig = vdd_config_for(vc, seed, cfg.vdd.schedules_follow_iterations);
+    let vc: VddConfig = vdd_config_for(vc, seed);
     let (state_norm, action_norm) = match &teacher {
         ToyTeacher::Exact(_) => (Affine::identity(1), Affine::identity(2)),
         ToyTeacher::Learned(t) => {
@@ -267,8 +265,7 @@ fn distil(
     let mut student_cfg = cfg.student.clone();
     student_cfg.state_dim = 1;
     student_cfg.action_dim = 2;
-    let student = Moe::from_config(student_cfg, seed)?;
-    let data = if student.has_learned_gating() {
+    let data = if student_cfg.gating == GatingKind::Learned {
         DistillData::new(norm(&states, &state_norm), Some(norm(&actions, &action_norm)))?
     } else {
         DistillData::from_states(norm(&states, &state_norm))?
@@ -289,12 +286,12 @@ fn distil(
     let t0 = Instant::now();
     let (student, teacher) = match teacher {
         ToyTeacher::Exact(mut t) => {
-            let mut vdd = Vdd::new(vc, t.as_mut(), student, data)?;
+            let mut vdd = Vdd::from_config(vc, t.as_mut(), student_cfg, data)?;
             vdd.train(&mut callback)?;
             (vdd.into_student(), ToyTeacher::Exact(t))
         }
         ToyTeacher::Learned(mut t) => {
-            let mut vdd = Vdd::new(vc, &mut t.teacher, student, data)?;
+            let mut vdd = Vdd::from_config(vc, &mut t.teacher, student_cfg, data)?;
             vdd.train(&mut callback)?;
             (vdd.into_student(), ToyTeacher::Learned(t))
         }

@@ -20,7 +20,9 @@ use std::sync::Arc;
 
 use crate::gaussian::{self, LN_2PI};
 use crate::lanes;
-use crate::{CoreError, Result, ScoreModel, check_finite, check_score_args, check_shape};
+use crate::{
+    CoreError, DenoiserForm, Result, ScoreModel, check_finite, check_score_args, check_shape,
+};
 use faer::{Mat, MatMut, MatRef};
 use rand::{Rng as _, RngCore};
 
@@ -702,6 +704,11 @@ impl ScoreModel for GmmTeacher {
             }
         }
         Ok(())
+    }
+
+    /// `D = a + σ² s` (the mixture smoothed by `N(0, σ² I)` is a VE marginal).
+    fn denoiser_form(&self, sigma: f32) -> Option<DenoiserForm> {
+        Some(DenoiserForm::ve(sigma))
     }
 }
 

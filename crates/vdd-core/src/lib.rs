@@ -8,12 +8,15 @@
 //! * [`gmm`]: the exact Gaussian mixture ([`gmm::GmmTeacher`]), a `ScoreModel` known in closed
 //!   form at every noise level: the toys' teacher and the reference the learned teachers and
 //!   the trainers are tested against;
+//! * [`ClampedDenoiser`]: a teacher whose denoised estimate is clamped to a box (a deviation
+//!   from the paper, for learned teachers that extrapolate far from their data);
 //! * shared helpers: [`Seeds`] (independent ChaCha streams per purpose), Gaussian kernels in
 //!   [`gaussian`], element-wise [`lanes`] kernels for batched mixtures, shape and finiteness checks, and [`CoreError`].
 //!
 //! Batches are `faer` matrices with one row per sample (`n x dim`), `f32` throughout.
 #![warn(missing_docs)]
 
+mod denoiser;
 mod error;
 mod expert;
 pub mod gaussian;
@@ -25,6 +28,7 @@ mod score;
 mod seed;
 mod trainer;
 
+pub use denoiser::{ClampedDenoiser, DenoiserForm, data_box};
 pub use error::{CoreError, Result, check_finite, check_finite_slice, check_len, check_shape};
 pub use expert::{Expert, ScaleActivation, sigmoid, softplus};
 pub use normalize::Affine;

@@ -4,6 +4,7 @@ use faer::{MatMut, MatRef};
 use rand::{Rng as _, RngCore};
 use serde::{Deserialize, Serialize};
 
+use crate::denoiser::DenoiserForm;
 use crate::error::{CoreError, Result, check_len, check_shape};
 
 /// How a teacher names its noise levels.
@@ -179,6 +180,14 @@ pub trait ScoreModel {
             *x = schedule.draw(progress, rng);
         }
     }
+
+    /// How the score at `level` relates to the teacher's denoised estimate of the clean action
+    /// (VE: `D = a + σ² s`; VP: `x̂₀ = (a + (1 − ᾱ) s)/√ᾱ`), for teachers that have one.
+    ///
+    /// [`crate::ClampedDenoiser`] needs it. The default is `None`.
+    fn denoiser_form(&self, _level: f32) -> Option<DenoiserForm> {
+        None
+    }
 }
 
 impl<T: ScoreModel + ?Sized> ScoreModel for &mut T {
@@ -216,6 +225,9 @@ impl<T: ScoreModel + ?Sized> ScoreModel for &mut T {
         out: MatMut<'_, f32>,
     ) -> Result<()> {
         (**self).sample_actions(states, rng, out)
+    }
+    fn denoiser_form(&self, level: f32) -> Option<DenoiserForm> {
+        (**self).denoiser_form(level)
     }
 }
 

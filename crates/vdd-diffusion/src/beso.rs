@@ -5,7 +5,7 @@ use faer::reborrow::Reborrow;
 use faer::{MatMut, MatRef};
 use rand::{Rng as _, RngCore};
 use serde::{Deserialize, Serialize};
-use vdd_core::{CoreError, NoiseConvention};
+use vdd_core::{CoreError, DenoiserForm, NoiseConvention};
 
 use crate::error::{DiffusionError, Result};
 use crate::learned::{LearnedTeacher, Process};
@@ -298,6 +298,11 @@ impl Process for BesoProcess {
     /// Clamped to `[σ_min, σ_max]` (a VE score needs `σ > 0`).
     fn valid_level(&self, drawn: f32) -> f32 {
         drawn.clamp(self.config.sigma_min, self.config.sigma_max)
+    }
+
+    /// `D = a + σ² s`.
+    fn denoiser_form(&self, sigma: f32) -> DenoiserForm {
+        DenoiserForm::ve(sigma)
     }
 }
 

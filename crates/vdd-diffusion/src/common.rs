@@ -87,9 +87,16 @@ pub(crate) fn format_err(path: &Path, reason: impl ToString) -> DiffusionError {
     DiffusionError::Format { path: path.to_owned(), reason: reason.to_string() }
 }
 
-fn to_json<T: Serialize>(v: &T) -> Result<String> {
-    serde_json::to_string(v)
-        .map_err(|e| DiffusionError::Config(format!("cannot serialise metadata: {e}")))
+fn to_json<T: Serialize>(key: &'static str, v: &T) -> Result<String> {
+    serde_json::to_string(v).map_err(|source| DiffusionError::SerializeMetadata { key, source })
+}
+
+fn bad_metadata(
+    path: &Path,
+    key: &'static str,
+) -> impl FnOnce(serde_json::Error) -> DiffusionError {
+    let path = path.to_owned();
+    move |e| DiffusionError::BadMetadata { path, key, source: Box::new(e) }
 }
 
 /// Builds the metadata of a checkpoint.
@@ -102,10 +109,10 @@ pub(crate) fn metadata<C: Serialize, T: Serialize>(
     let mut m = BTreeMap::new();
     m.insert(KIND_KEY.to_owned(), kind.to_owned());
     m.insert(VERSION_KEY.to_owned(), FORMAT_VERSION.to_owned());
-    m.insert(CONFIG_KEY.to_owned(), to_json(config)?);
-    m.insert(SHAPE_KEY.to_owned(), to_json(shape)?);
+    m.insert(CONFIG_KEY.to_owned(), to_json(CONFIG_KEY, config)?);
+    m.insert(SHAPE_KEY.to_owned(), to_json(SHAPE_KEY, shape)?);
     if let Some(t) = train {
-        m.insert(TRAIN_KEY.to_owned(), to_json(t)?);
+        m.insert(TRAIN_KEY.to_owned(), to_json(TRAIN_KEY, t)?);
     }
     Ok(m)
 }
@@ -135,10 +142,10 @@ pub(crate) fn parse_metadata<C: DeserializeOwned, T: DeserializeOwned>(
     let get = |key: &str| {
         meta.get(key).ok_or_else(|| format_err(path, format!("missing `{key}` metadata")))
     };
-    let config: C = serde_json::from_str(get(CONFIG_KEY)?)
-        .map_err(|e| format_err(path, format!("bad `{CONFIG_KEY}`: {e}")))?;
-    let shape: SavedShape = serde_json::from_str(get(SHAPE_KEY)?)
-        .map_err(|e| format_err(path, format!("bad `{SHAPE_KEY}`: {e}")))?;
+    let config: C =
+        serde_json::from_str(get(CONFIG_KEY)?).map_err(bad_metadata(path, CONFIG_KEY))?;
+    let shape: SavedShape =
+        serde_json::from_str(get(SHAPE_KEY)?).map_err(bad_metadata(path, SHAPE_KEY))?;
     if shape.state_normalizer.dim() != shape.state_dim
         || shape.action_normalizer.dim() != shape.action_dim
         || shape.action_dim == 0
@@ -146,14 +153,17 @@ pub(crate) fn parse_metadata<C: DeserializeOwned, T: DeserializeOwned>(
         return Err(format_err(path, "normaliser dimensions do not match the teacher's"));
     }
     for n in [&shape.state_normalizer, &shape.action_normalizer] {
-        Affine::new(n.offset.clone(), n.scale.clone()).map_err(|e| format_err(path, e))?;
+        Affine::new(n.offset.clone(), n.scale.clone()).map_err(|e| {
+            DiffusionError::BadMetadata {
+                path: path.to_owned(),
+                key: SHAPE_KEY,
+                source: Box::new(e),
+            }
+        })?;
     }
     let train = match meta.get(TRAIN_KEY) {
         None => None,
-        Some(s) => Some(
-            serde_json::from_str(s)
-                .map_err(|e| format_err(path, format!("bad `{TRAIN_KEY}`: {e}")))?,
-        ),
+        Some(s) => Some(serde_json::from_str(s).map_err(bad_metadata(path, TRAIN_KEY))?),
     };
     Ok((config, shape, train))
 }

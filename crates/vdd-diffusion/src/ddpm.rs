@@ -5,7 +5,7 @@ use faer::reborrow::Reborrow;
 use faer::{Mat, MatMut, MatRef};
 use rand::{Rng as _, RngCore};
 use serde::{Deserialize, Serialize};
-use vdd_core::{CoreError, NoiseConvention, check_len, check_shape};
+use vdd_core::{CoreError, DenoiserForm, NoiseConvention, check_len, check_shape};
 
 use crate::error::{DiffusionError, Result};
 use crate::learned::{LearnedTeacher, Process};
@@ -288,6 +288,11 @@ impl Process for DdpmProcess {
             TimeSampling::Discrete => t.round().clamp(1.0, n),
             _ => t.clamp(MIN_TIME, n),
         }
+    }
+
+    /// `x̂₀ = (a + (1 − ᾱ(t)) s)/√ᾱ(t)`, `a` fed as `x_t`.
+    fn denoiser_form(&self, t: f32) -> DenoiserForm {
+        DenoiserForm::vp(self.schedule.alpha_bar(t))
     }
 }
 

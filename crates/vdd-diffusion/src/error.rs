@@ -36,17 +36,56 @@ pub enum DiffusionError {
         /// What is wrong.
         reason: String,
     },
+    /// A metadata entry of a saved teacher cannot be read.
+    #[error("cannot load teacher from {path}: bad `{key}` metadata: {source}")]
+    BadMetadata {
+        /// The file.
+        path: PathBuf,
+        /// The metadata key.
+        key: &'static str,
+        /// Why it cannot be read.
+        #[source]
+        source: Box<dyn std::error::Error + Send + Sync + 'static>,
+    },
+    /// The teacher's metadata cannot be written as JSON.
+    #[error("cannot serialise the teacher's `{key}` metadata: {source}")]
+    SerializeMetadata {
+        /// The metadata key.
+        key: &'static str,
+        /// The JSON error.
+        #[source]
+        source: serde_json::Error,
+    },
 }
 
 /// Result alias for this crate.
 pub type Result<T, E = DiffusionError> = std::result::Result<T, E>;
 
 impl From<DiffusionError> for CoreError {
-    /// Maps any diffusion error onto the core error type, for the trait implementations.
+    /// Maps a diffusion error onto the core error type, for the trait implementations: core
+    /// errors stay what they are, the others become [`CoreError::Implementor`] with the
+    /// diffusion error as the source.
     fn from(e: DiffusionError) -> Self {
         match e {
             DiffusionError::Core(c) => c,
-            other => CoreError::Config(other.to_string()),
+            other => CoreError::implementor(other),
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use std::error::Error as _;
+
+    /// Through the core traits a diffusion error stays the source of the core error.
+    #[test]
+    fn diffusion_errors_stay_the_source_of_core_errors() {
+        let core = CoreError::from(DiffusionError::Diverged { step: 3, loss: f32::NAN });
+        assert!(matches!(core, CoreError::Implementor(_)));
+        let source = core.source().unwrap().downcast_ref::<DiffusionError>().unwrap();
+        assert!(matches!(source, DiffusionError::Diverged { step: 3, .. }));
+        let shape = CoreError::NonFinite { what: "x" };
+        assert_eq!(CoreError::from(DiffusionError::Core(shape.clone())), shape);
     }
 }

@@ -13,12 +13,12 @@ use rand::RngCore;
 use serde::Serialize;
 use serde::de::DeserializeOwned;
 use vdd_core::{
-    Affine, CoreError, NoiseConvention, NoiseSchedule, Policy, ScoreModel, Seeds, check_act_args,
-    check_len, check_score_args, check_shape,
+    Affine, CoreError, DenoiserForm, NoiseConvention, NoiseSchedule, Policy, ScoreModel, Seeds,
+    Trainer, check_act_args, check_len, check_score_args, check_shape,
 };
 
 use crate::common::{self, PolicyIo, SavedShape, check_batch};
-use crate::error::Result;
+use crate::error::{DiffusionError, Result};
 use crate::net::{DenoiserNet, NetConfig};
 use crate::normalize::NormalizerKind;
 use crate::sampling::SamplerBuffers;
@@ -83,6 +83,9 @@ pub trait Process: DsmNoise + Clone + Debug + Send + Sized {
     ) -> Result<(), CoreError>;
     /// Maps a level drawn from a distillation noise schedule onto a valid query level.
     fn valid_level(&self, drawn: f32) -> f32;
+    /// How the score at `level` relates to the denoised estimate (VE: `D = a + σ² s`; VP:
+    /// `x̂₀ = (a + (1 − ᾱ) s)/√ᾱ`).
+    fn denoiser_form(&self, level: f32) -> DenoiserForm;
 }
 
 /// A learned diffusion teacher: a [`DenoiserNet`] trained by denoising score matching on
@@ -147,6 +150,8 @@ impl<P: Process> LearnedTeacher<P> {
     /// flattened) by seeded minibatch denoising score matching with Adam; the returned teacher
     /// samples with the EMA weights. `progress` receives a report every `train.log_every`
     /// steps (nothing is printed).
+    ///
+    /// This is [`TeacherTrainer`] run to the end; use the trainer to step training yourself.
     pub fn train(
         config: &P::Config,
         train: &TrainConfig,
@@ -155,27 +160,13 @@ impl<P: Process> LearnedTeacher<P> {
         seed: u64,
         progress: &mut dyn FnMut(TrainProgress),
     ) -> Result<Self> {
-        P::validate(config)?;
-        train.validate()?;
-        let (state_kind, action_kind) = P::normalizer_kinds(config);
-        let data = train::prepare_data(states, actions, state_kind, action_kind)?;
-        let seeds = Seeds::new(seed);
-        let net = DenoiserNet::new(
-            P::net_config(config),
-            actions.ncols(),
-            states.ncols(),
-            &mut seeds.stream("init"),
-        )?;
-        let process = P::build(config.clone())?;
-        let ema = train::train_dsm(&process, net, train, &data, &seeds, progress)?;
-        Self::from_parts(
-            config.clone(),
-            Some(train.clone()),
-            data.state_norm,
-            data.action_norm,
-            ema,
-            seed,
-        )
+        let mut trainer = TeacherTrainer::new(config, train, states, actions, seed)?;
+        trainer.run(|report| {
+            if let Some(p) = report {
+                progress(*p);
+            }
+        })?;
+        trainer.finish()
     }
 
     /// Dimension of one (flattened) action; the same for the score model and the policy.
@@ -326,6 +317,95 @@ impl<P: Process> LearnedTeacher<P> {
     }
 }
 
+/// Denoising-score-matching training of a [`LearnedTeacher`] as a [`Trainer`]: one seeded
+/// minibatch Adam step per [`Trainer::step`], which reports a [`TrainProgress`] every
+/// `train.log_every` steps and after the last (`None` otherwise); [`Trainer::finish`] returns
+/// the teacher with the EMA weights. One seed determines the run: the network's
+/// initialisation (`"init"`), the minibatches (`"minibatch"`) and the training noise
+/// (`"dsm-noise"`) are its streams.
+///
+/// ```
+/// use faer::Mat;
+/// use vdd_core::Trainer;
+/// use vdd_diffusion::{Beso, BesoConfig, NetConfig, TeacherTrainer, TrainConfig};
+///
+/// let states = Mat::<f32>::zeros(64, 1);
+/// let actions = Mat::from_fn(64, 2, |i, _| if i % 2 == 0 { 1.0 } else { -1.0 });
+/// let config = BesoConfig { net: NetConfig { hidden_dim: 16, ..Default::default() }, ..Default::default() };
+/// let train = TrainConfig { steps: 20, log_every: 10, ..Default::default() };
+/// let mut trainer = TeacherTrainer::new(&config, &train, states.as_ref(), actions.as_ref(), 0)?;
+/// let mut reports = Vec::new();
+/// trainer.run(|r| reports.extend(*r))?;
+/// assert_eq!(reports.iter().map(|p| p.step).collect::<Vec<_>>(), [10, 20]);
+/// let teacher: Beso = trainer.finish()?;
+/// # Ok::<(), vdd_diffusion::DiffusionError>(())
+/// ```
+pub struct TeacherTrainer<P: Process> {
+    config: P::Config,
+    train: TrainConfig,
+    seed: u64,
+    process: P,
+    run: train::DsmLoop,
+}
+
+impl<P: Process> TeacherTrainer<P> {
+    /// Prepares training on raw `states` (`n x d_s`) and `actions` (`n x d_a`): validates the
+    /// configurations and data, fits the normalisers and initialises the network from `seed`.
+    pub fn new(
+        config: &P::Config,
+        train: &TrainConfig,
+        states: MatRef<'_, f32>,
+        actions: MatRef<'_, f32>,
+        seed: u64,
+    ) -> Result<Self> {
+        P::validate(config)?;
+        train.validate()?;
+        let (state_kind, action_kind) = P::normalizer_kinds(config);
+        let data = train::prepare_data(states, actions, state_kind, action_kind)?;
+        let seeds = Seeds::new(seed);
+        let net = DenoiserNet::new(
+            P::net_config(config),
+            actions.ncols(),
+            states.ncols(),
+            &mut seeds.stream("init"),
+        )?;
+        let process = P::build(config.clone())?;
+        let run = train::DsmLoop::new(net, train, data, &seeds)?;
+        Ok(Self { config: config.clone(), train: train.clone(), seed, process, run })
+    }
+}
+
+impl<P: Process> Trainer for TeacherTrainer<P> {
+    type Report = Option<TrainProgress>;
+    type Output = LearnedTeacher<P>;
+    type Error = DiffusionError;
+
+    fn step(&mut self) -> Result<Option<TrainProgress>> {
+        self.run.step(&self.process)
+    }
+
+    fn iteration(&self) -> usize {
+        self.run.steps_done() as usize
+    }
+
+    fn iterations(&self) -> usize {
+        self.train.steps as usize
+    }
+
+    /// The teacher with the EMA weights, its normalisers and its training configuration.
+    fn finish(self) -> Result<LearnedTeacher<P>> {
+        let (ema, data) = self.run.finish();
+        LearnedTeacher::from_parts(
+            self.config,
+            Some(self.train),
+            data.state_norm,
+            data.action_norm,
+            ema,
+            self.seed,
+        )
+    }
+}
+
 impl<P: Process> ScoreModel for LearnedTeacher<P> {
     fn action_dim(&self) -> usize {
         self.action_norm.dim()
@@ -377,6 +457,11 @@ impl<P: Process> ScoreModel for LearnedTeacher<P> {
         for x in out {
             *x = self.process.valid_level(schedule.draw(progress, rng));
         }
+    }
+
+    /// VE (BESO): `D = a + σ² s`; VP (DDPM): `x̂₀ = (a + (1 − ᾱ(t)) s)/√ᾱ(t)`.
+    fn denoiser_form(&self, level: f32) -> Option<DenoiserForm> {
+        Some(self.process.denoiser_form(level))
     }
 }
 

@@ -77,7 +77,7 @@ mod train;
 pub use beso::{Beso, BesoConfig, SigmaDistribution};
 pub use ddpm::{Ddpm, DdpmConfig, MIN_TIME, TimeSampling};
 pub use error::{DiffusionError, Result};
-pub use learned::LearnedTeacher;
+pub use learned::{LearnedTeacher, TeacherTrainer};
 pub use net::{DenoiserNet, NetConfig, NoiseEmbedding, RowCoefficients};
 pub use normalize::{NormalizerKind, fit_normalizer};
 pub use sampling::{KarrasSampler, SamplerBuffers, VpSampler, heun_step, sample_karras, sample_vp};

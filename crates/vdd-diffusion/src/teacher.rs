@@ -6,7 +6,9 @@ use std::path::Path;
 use faer::{MatMut, MatRef};
 use rand::RngCore;
 use serde::{Deserialize, Serialize};
-use vdd_core::{Affine, CoreError, NoiseConvention, NoiseSchedule, Policy, ScoreModel};
+use vdd_core::{
+    Affine, CoreError, DenoiserForm, NoiseConvention, NoiseSchedule, Policy, ScoreModel,
+};
 
 use crate::beso::Beso;
 use crate::common::{KIND_KEY, format_err};
@@ -166,6 +168,9 @@ impl ScoreModel for DiffusionTeacher {
         out: &mut [f32],
     ) {
         delegate!(self, t => t.draw_noise_levels(schedule, progress, rng, out))
+    }
+    fn denoiser_form(&self, level: f32) -> Option<DenoiserForm> {
+        delegate!(self, t => t.denoiser_form(level))
     }
 }
 

@@ -234,6 +234,35 @@ fn training_is_deterministic_for_a_seed() {
     assert_ne!(run(1), run(2));
 }
 
+/// `train` is the trainer run to the end: stepping a `TeacherTrainer` by hand gives the same
+/// teacher, and its reports come every `log_every` steps and after the last.
+#[test]
+fn stepping_the_teacher_trainer_is_training() {
+    use vdd_core::Trainer;
+    let (s, a) = gmm_data(&mut two_modes(), 200, 5);
+    let train = TrainConfig { steps: 25, batch_size: 64, log_every: 10, ..Default::default() };
+    let cfg = DdpmConfig { net: tiny_net(), ..Default::default() };
+    let mut reports = Vec::new();
+    let trained =
+        Ddpm::train(&cfg, &train, s.as_ref(), a.as_ref(), 3, &mut |p| reports.push(p)).unwrap();
+    let mut trainer = TeacherTrainer::new(&cfg, &train, s.as_ref(), a.as_ref(), 3).unwrap();
+    assert_eq!((trainer.iteration(), trainer.iterations()), (0, 25));
+    let mut stepped = Vec::new();
+    while !trainer.done() {
+        stepped.extend(trainer.step().unwrap());
+    }
+    let by_hand: Ddpm = trainer.finish().unwrap();
+    let steps = |r: &[TrainProgress]| r.iter().map(|p| (p.step, p.loss, p.lr)).collect::<Vec<_>>();
+    assert_eq!(steps(&stepped), steps(&reports));
+    assert_eq!(reports.iter().map(|p| p.step).collect::<Vec<_>>(), [10, 20, 25]);
+    let weights = |t: &Ddpm| {
+        let mut w = Vec::new();
+        t.net().visit_params("", &mut |_, p| w.push(p.value.clone()));
+        w
+    };
+    assert_eq!(weights(&by_hand), weights(&trained));
+}
+
 #[test]
 fn beso_heun_step_and_one_step_sampling_use_the_denoiser() {
     let cfg = BesoConfig { net: tiny_net(), ..Default::default() };
@@ -264,6 +293,13 @@ fn beso_heun_step_and_one_step_sampling_use_the_denoiser() {
     assert!(
         (&score - &Mat::from_fn(3, 2, |i, j| (d[(i, j)] - x[(i, j)]) / 0.49)).norm_max() < 1e-4
     );
+    // The denoiser form recovers D from the score.
+    let form = beso.denoiser_form(0.7).unwrap();
+    for i in 0..3 {
+        for j in 0..2 {
+            assert!((form.denoise(x[(i, j)], score[(i, j)]) - d[(i, j)]).abs() < 1e-4);
+        }
+    }
     // BESO-1 with Euler: D(σ_max z; σ_max).
     beso.set_sampler(KarrasSampler::Euler, 1).unwrap();
     assert_eq!(beso.sigmas(), &[80.0, 0.0]);
@@ -314,6 +350,14 @@ fn ddpm_conversions_and_one_step() {
             );
         }
     }
+    // The denoiser form recovers x̂₀ from the score.
+    for i in 0..3 {
+        let form = ddpm.denoiser_form(t[i]).unwrap();
+        for j in 0..2 {
+            let d = form.denoise(x[(i, j)], score[(i, j)]);
+            assert!((d - x0[(i, j)]).abs() < 1e-3 * (1.0 + d.abs()), "{d} vs {}", x0[(i, j)]);
+        }
+    }
     // DDPM-1 without clipping = x0 prediction from x_N = z.
     let cfg1 =
         DdpmConfig { clip_denoised: None, sampling_steps: 1, sampler: VpSampler::Ddim, ..cfg };
@@ -330,6 +374,43 @@ fn ddpm_conversions_and_one_step() {
     }
     one.ddim_step(z.as_ref(), &[16.0; 3], &[0.0; 3], s.as_ref(), x0.as_mut()).unwrap();
     assert!((&out - &x0).norm_max() < 1e-3 * (1.0 + x0.norm_max()));
+}
+
+/// `vdd_core::ClampedDenoiser` over both learned teachers: a box wide enough leaves the score
+/// bit for bit, a unit box puts every denoised estimate in it and pulls far points back.
+#[test]
+fn clamped_denoisers_of_both_teachers_stay_in_their_box() {
+    let (sn, an) = (Affine::identity(1), Affine::identity(2));
+    let b = BesoConfig { net: tiny_net(), ..Default::default() };
+    let d = DdpmConfig { net: tiny_net(), ..Default::default() };
+    let teachers: Vec<DiffusionTeacher> = vec![
+        Beso::new(&b, sn.clone(), an.clone(), 3).unwrap().into(),
+        Ddpm::new(&d, sn, an, 3).unwrap().into(),
+    ];
+    for teacher in teachers {
+        let level = if teacher.kind() == TeacherKind::Beso { 0.3 } else { 2.0 };
+        let actions = faer::mat![[0.1f32, -0.2], [30.0, -40.0], [0.0, 0.0]];
+        let states = Mat::<f32>::zeros(3, 1);
+        let levels = [level; 3];
+        let mut raw = Mat::<f32>::zeros(3, 2);
+        teacher.clone().score(actions.as_ref(), states.as_ref(), &levels, raw.as_mut()).unwrap();
+        let mut wide =
+            vdd_core::ClampedDenoiser::new(teacher.clone(), vec![-1e6; 2], vec![1e6; 2]).unwrap();
+        let mut out = Mat::<f32>::zeros(3, 2);
+        wide.score(actions.as_ref(), states.as_ref(), &levels, out.as_mut()).unwrap();
+        assert_eq!(out, raw);
+        let form = teacher.denoiser_form(level).unwrap();
+        let mut unit =
+            vdd_core::ClampedDenoiser::new(teacher, vec![-1.0; 2], vec![1.0; 2]).unwrap();
+        unit.score(actions.as_ref(), states.as_ref(), &levels, out.as_mut()).unwrap();
+        for i in 0..3 {
+            for j in 0..2 {
+                let d = form.denoise(actions[(i, j)], out[(i, j)]);
+                assert!((-1.0 - 1e-3..=1.0 + 1e-3).contains(&d), "row {i}: D = {d}");
+            }
+        }
+        assert!(out[(1, 0)] < 0.0 && out[(1, 1)] > 0.0, "far points are pulled back: {out:?}");
+    }
 }
 
 #[test]
@@ -453,6 +534,18 @@ fn save_load_round_trips_and_reports_clear_errors() {
     vdd_nn::io::save_safetensors(&bare, beso.net(), &Default::default()).unwrap();
     assert!(matches!(Beso::load(&bare, 0), Err(DiffusionError::Format { .. })));
     assert!(matches!(DiffusionTeacher::load(&bare, 0), Err(DiffusionError::Format { .. })));
+    // Unreadable metadata keeps the JSON error as its source.
+    let bad = tmp("bad-meta");
+    let meta = std::collections::BTreeMap::from([
+        ("vdd_diffusion.kind".to_owned(), "beso".to_owned()),
+        ("vdd_diffusion.version".to_owned(), "1".to_owned()),
+        ("vdd_diffusion.config".to_owned(), "{not json".to_owned()),
+    ]);
+    vdd_nn::io::save_safetensors(&bad, beso.net(), &meta).unwrap();
+    let err = Beso::load(&bad, 0).unwrap_err();
+    assert!(matches!(err, DiffusionError::BadMetadata { key: "vdd_diffusion.config", .. }));
+    let source = std::error::Error::source(&err).unwrap();
+    assert!(source.downcast_ref::<serde_json::Error>().is_some(), "{source:?}");
     let missing = path.with_file_name("absent.safetensors");
     assert!(matches!(Beso::load(&missing, 0), Err(DiffusionError::Nn(vdd_nn::NnError::Io { .. }))));
     let bytes = std::fs::read(&path).unwrap();

@@ -73,11 +73,9 @@ impl TrainConfig {
         }
     }
 
+    /// The learning-rate schedule over the run of [`TrainConfig::steps`] steps.
     fn lr_schedule(&self) -> LrSchedule {
-        let cosine = LrSchedule::Cosine {
-            total_steps: self.steps.saturating_sub(self.warmup_steps).max(1),
-            final_factor: self.final_lr_factor,
-        };
+        let cosine = LrSchedule::Cosine { final_factor: self.final_lr_factor };
         if self.warmup_steps > 0 {
             LrSchedule::Warmup { warmup_steps: self.warmup_steps, then: Box::new(cosine) }
         } else {
@@ -274,78 +272,128 @@ fn gather_rows(src: &Mat<f32>, idx: &[usize], dst: &mut Mat<f32>) {
     }
 }
 
-/// Trains `net` on the normalised data; returns the EMA network.
-pub(crate) fn train_dsm(
-    noise: &impl DsmNoise,
-    mut net: DenoiserNet,
-    config: &TrainConfig,
-    data: &PreparedData,
-    seeds: &Seeds,
-    progress: &mut dyn FnMut(TrainProgress),
-) -> Result<DenoiserNet> {
-    config.validate()?;
-    let n = data.actions.nrows();
-    let (da, ds) = (data.actions.ncols(), data.states.ncols());
-    let b = config.batch_size.min(n);
-    let mut ema_net = net.clone();
-    let mut ema = Ema::new(config.ema_decay);
-    let mut dsm = Dsm::default();
-    let mut adam = Adam::new(config.adam);
-    let schedule = config.lr_schedule();
-    let mut batch_rng = seeds.stream("minibatch");
-    let mut noise_rng = seeds.stream("dsm-noise");
-    let mut order: Vec<usize> = (0..n).collect();
-    let mut cursor = n; // forces a shuffle before the first batch
-    let mut idx = vec![0usize; b];
-    let mut a_batch = Mat::<f32>::zeros(b, da);
-    let mut s_batch = Mat::<f32>::zeros(b, ds);
-    let (mut loss_sum, mut loss_count) = (0.0f64, 0u64);
-    let start = Instant::now();
-    for step in 0..config.steps {
-        for slot in idx.iter_mut() {
-            if cursor == n {
+/// The denoising-score-matching loop on normalised data, one optimiser step at a time: Adam
+/// on the live network, the EMA network for sampling.
+pub(crate) struct DsmLoop {
+    config: TrainConfig,
+    data: PreparedData,
+    net: DenoiserNet,
+    ema_net: DenoiserNet,
+    ema: Ema,
+    dsm: Dsm,
+    adam: Adam,
+    schedule: LrSchedule,
+    batch_rng: vdd_core::Rng,
+    noise_rng: vdd_core::Rng,
+    order: Vec<usize>,
+    cursor: usize,
+    idx: Vec<usize>,
+    a_batch: Mat<f32>,
+    s_batch: Mat<f32>,
+    loss_sum: f64,
+    loss_count: u64,
+    start: Instant,
+    step: u64,
+}
+
+impl DsmLoop {
+    /// Starts training `net` on `data` with the `"minibatch"` and `"dsm-noise"` streams of
+    /// `seeds`.
+    pub(crate) fn new(
+        net: DenoiserNet,
+        config: &TrainConfig,
+        data: PreparedData,
+        seeds: &Seeds,
+    ) -> Result<Self> {
+        config.validate()?;
+        let n = data.actions.nrows();
+        let (da, ds) = (data.actions.ncols(), data.states.ncols());
+        let b = config.batch_size.min(n);
+        Ok(Self {
+            ema_net: net.clone(),
+            net,
+            ema: Ema::new(config.ema_decay),
+            dsm: Dsm::default(),
+            adam: Adam::new(config.adam),
+            schedule: config.lr_schedule(),
+            batch_rng: seeds.stream("minibatch"),
+            noise_rng: seeds.stream("dsm-noise"),
+            order: (0..n).collect(),
+            cursor: n, // forces a shuffle before the first batch
+            idx: vec![0usize; b],
+            a_batch: Mat::<f32>::zeros(b, da),
+            s_batch: Mat::<f32>::zeros(b, ds),
+            loss_sum: 0.0,
+            loss_count: 0,
+            start: Instant::now(),
+            step: 0,
+            config: config.clone(),
+            data,
+        })
+    }
+
+    /// Steps done so far.
+    pub(crate) fn steps_done(&self) -> u64 {
+        self.step
+    }
+
+    /// One optimiser step with the training noise of `noise`; returns a progress report every
+    /// `log_every` steps and after the last. On error the step counter does not advance.
+    pub(crate) fn step(&mut self, noise: &impl DsmNoise) -> Result<Option<TrainProgress>> {
+        let (n, step) = (self.data.actions.nrows(), self.step);
+        let da = self.data.actions.ncols();
+        for slot in self.idx.iter_mut() {
+            if self.cursor == n {
                 // Fisher–Yates: one pass over the data per epoch, in a seeded order.
                 for i in (1..n).rev() {
-                    order.swap(i, batch_rng.random_range(0..=i));
+                    self.order.swap(i, self.batch_rng.random_range(0..=i));
                 }
-                cursor = 0;
+                self.cursor = 0;
             }
-            *slot = order[cursor];
-            cursor += 1;
+            *slot = self.order[self.cursor];
+            self.cursor += 1;
         }
-        gather_rows(&data.actions, &idx, &mut a_batch);
-        gather_rows(&data.states, &idx, &mut s_batch);
-        net.zero_grad();
-        dsm.draw(noise, b, da, &mut noise_rng);
-        let loss = dsm.loss(&mut net, a_batch.as_ref(), s_batch.as_ref(), true);
+        gather_rows(&self.data.actions, &self.idx, &mut self.a_batch);
+        gather_rows(&self.data.states, &self.idx, &mut self.s_batch);
+        let b = self.idx.len();
+        self.net.zero_grad();
+        self.dsm.draw(noise, b, da, &mut self.noise_rng);
+        let loss = self.dsm.loss(&mut self.net, self.a_batch.as_ref(), self.s_batch.as_ref(), true);
         if !loss.is_finite() {
             return Err(DiffusionError::Diverged { step: step + 1, loss });
         }
-        if let Some(max) = config.grad_clip {
-            let norm = clip_grad_norm(&mut net, max);
+        if let Some(max) = self.config.grad_clip {
+            let norm = clip_grad_norm(&mut self.net, max);
             if !norm.is_finite() {
                 return Err(DiffusionError::Diverged { step: step + 1, loss: norm });
             }
         }
-        let factor = schedule.factor(step);
-        adam.step(&mut net, factor);
-        ema.update(&mut ema_net, &net);
-        loss_sum += f64::from(loss);
-        loss_count += 1;
+        let factor = self.schedule.factor(step, self.config.steps);
+        self.adam.step(&mut self.net, factor);
+        self.ema.update(&mut self.ema_net, &self.net);
+        self.loss_sum += f64::from(loss);
+        self.loss_count += 1;
         let done = step + 1;
-        if done % config.log_every == 0 || done == config.steps {
-            progress(TrainProgress {
+        self.step = done;
+        if done % self.config.log_every == 0 || done == self.config.steps {
+            let report = TrainProgress {
                 step: done,
-                total_steps: config.steps,
-                loss: (loss_sum / loss_count as f64) as f32,
-                lr: config.adam.lr * factor,
-                elapsed_secs: start.elapsed().as_secs_f64(),
-            });
-            loss_sum = 0.0;
-            loss_count = 0;
+                total_steps: self.config.steps,
+                loss: (self.loss_sum / self.loss_count as f64) as f32,
+                lr: self.config.adam.lr * factor,
+                elapsed_secs: self.start.elapsed().as_secs_f64(),
+            };
+            self.loss_sum = 0.0;
+            self.loss_count = 0;
+            return Ok(Some(report));
         }
+        Ok(None)
     }
-    Ok(ema_net)
+
+    /// Ends training: the EMA network and the data (with its normalisers).
+    pub(crate) fn finish(self) -> (DenoiserNet, PreparedData) {
+        (self.ema_net, self.data)
+    }
 }
 
 #[cfg(test)]

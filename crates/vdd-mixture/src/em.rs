@@ -60,8 +60,7 @@ impl EmConfig {
     /// linearly to 0 over the run.
     pub fn toy() -> Self {
         let (iterations, steps) = (100, 30);
-        let total = (iterations * steps) as u64;
-        let schedule = LrSchedule::LinearDecay { total_steps: total, final_factor: 0.0 };
+        let schedule = LrSchedule::LinearDecay { final_factor: 0.0 };
         Self {
             iterations,
             expert_steps_per_iter: steps,

@@ -346,7 +346,8 @@ pub(crate) struct PhaseSettings<'a> {
     pub batch_size: Option<usize>,
     /// Adam's settings (`lr` is the base learning rate).
     pub optimizer: &'a AdamConfig,
-    /// The learning-rate schedule, over the phase's optimiser steps.
+    /// The learning-rate schedule, over the phase's optimiser steps of the run
+    /// (`iterations · steps_per_iter`).
     pub schedule: &'a LrSchedule,
 }
 
@@ -543,7 +544,8 @@ impl<E: Expert> MixtureFit<E> {
             for (b, &o) in self.batch.idx.iter().enumerate() {
                 weights(BatchRow { o, full, len }, &mut self.weights[b * z_n..(b + 1) * z_n]);
             }
-            let factor = phase.schedule.factor(self.expert_optimizer.steps());
+            let total = (settings.iterations * phase.steps_per_iter) as u64;
+            let factor = phase.schedule.factor(self.expert_optimizer.steps(), total);
             lr = phase.optimizer.lr * factor;
             let (states, actions) = rows(&self.batch, &self.data, full);
             loss = expert_step(
@@ -582,7 +584,8 @@ impl<E: Expert> MixtureFit<E> {
                 let t = &mut self.weights[b * z_n..(b + 1) * z_n];
                 self.row_weights[b] = targets(BatchRow { o, full, len }, t);
             }
-            let factor = phase.schedule.factor(self.gating_optimizer.steps());
+            let total = (settings.iterations * phase.steps_per_iter) as u64;
+            let factor = phase.schedule.factor(self.gating_optimizer.steps(), total);
             lr = phase.optimizer.lr * factor;
             loss = gating_step(
                 &mut self.student,

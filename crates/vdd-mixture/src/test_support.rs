@@ -45,8 +45,7 @@ pub fn small_moe(kind: ExpertKind, num_experts: usize, seed: u64) -> Moe {
 /// expert and gating steps per iteration with Adam at `lr`, decaying along a cosine so that
 /// Adam's jitter near the M-step optimum cannot undo an ascent.
 pub fn full_batch_config(iterations: usize, steps: usize, lr: f32) -> EmConfig {
-    let total = (iterations * steps) as u64;
-    let schedule = LrSchedule::Cosine { total_steps: total, final_factor: 0.05 };
+    let schedule = LrSchedule::Cosine { final_factor: 0.05 };
     EmConfig {
         iterations,
         expert_steps_per_iter: steps,

@@ -25,6 +25,24 @@ pub enum NnError {
         /// What is wrong.
         reason: String,
     },
+    /// A file is not valid safetensors, as the `safetensors` crate reports it.
+    #[error("malformed weights file {path}: {source}")]
+    Malformed {
+        /// The file.
+        path: PathBuf,
+        /// The parser's error.
+        #[source]
+        source: safetensors::SafeTensorError,
+    },
+    /// Tensors could not be serialised to safetensors.
+    #[error("cannot serialise {what}: {source}")]
+    Serialize {
+        /// What was being serialised (a tensor's name, or the file).
+        what: String,
+        /// The serialiser's error.
+        #[source]
+        source: safetensors::SafeTensorError,
+    },
     /// A tensor the model needs is absent from the file.
     #[error("tensor `{name}` is missing from {path}")]
     MissingTensor {

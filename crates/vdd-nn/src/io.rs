@@ -35,6 +35,10 @@ fn format_err(path: &Path, reason: impl ToString) -> NnError {
     NnError::Format { path: path.to_owned(), reason: reason.to_string() }
 }
 
+fn malformed(path: &Path) -> impl FnOnce(safetensors::SafeTensorError) -> NnError + '_ {
+    move |source| NnError::Malformed { path: path.to_owned(), source }
+}
+
 /// Writes `bytes` to `path` atomically: a temporary sibling file is written and fsynced, then
 /// renamed over `path`. Readers see either the old file or the complete new one.
 pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<(), NnError> {
@@ -79,12 +83,13 @@ pub fn to_safetensors_bytes(
     let mut views = Vec::with_capacity(tensors.len());
     for (name, shape, bytes) in &tensors {
         let view = TensorView::new(Dtype::F32, shape.clone(), bytes)
-            .map_err(|e| NnError::Config(format!("tensor `{name}`: {e}")))?;
+            .map_err(|source| NnError::Serialize { what: format!("tensor `{name}`"), source })?;
         views.push((name.clone(), view));
     }
     let meta: HashMap<String, String> =
         metadata.iter().map(|(k, v)| (k.clone(), v.clone())).collect();
-    safetensors::serialize(views, Some(meta)).map_err(|e| NnError::Config(e.to_string()))
+    safetensors::serialize(views, Some(meta))
+        .map_err(|source| NnError::Serialize { what: "the safetensors file".into(), source })
 }
 
 /// Saves `model`'s parameters and `metadata` to `path` atomically.
@@ -100,7 +105,7 @@ pub fn save_safetensors(
 /// build the model before loading its weights).
 pub fn read_metadata(path: &Path) -> Result<BTreeMap<String, String>, NnError> {
     let bytes = std::fs::read(path).map_err(io_err(path))?;
-    let (_, meta) = SafeTensors::read_metadata(&bytes).map_err(|e| format_err(path, e))?;
+    let (_, meta) = SafeTensors::read_metadata(&bytes).map_err(malformed(path))?;
     Ok(meta.metadata().clone().unwrap_or_default().into_iter().collect())
 }
 
@@ -123,8 +128,8 @@ pub fn load_safetensors_bytes(
     bytes: &[u8],
     model: &mut dyn Parameters,
 ) -> Result<BTreeMap<String, String>, NnError> {
-    let file = SafeTensors::deserialize(bytes).map_err(|e| format_err(path, e))?;
-    let (_, meta) = SafeTensors::read_metadata(bytes).map_err(|e| format_err(path, e))?;
+    let file = SafeTensors::deserialize(bytes).map_err(malformed(path))?;
+    let (_, meta) = SafeTensors::read_metadata(bytes).map_err(malformed(path))?;
     let mut staged: Vec<Vec<f32>> = Vec::new();
     let mut first_error: Option<NnError> = None;
     model.visit_params("", &mut |name, p: &Param| {
@@ -280,7 +285,9 @@ mod tests {
         let mut m = net(3);
         let before = m.output_layer_mut().weight.value.clone();
         let err = load_safetensors_bytes(&path, &bytes[..bytes.len() - 7], &mut m).unwrap_err();
-        assert!(matches!(err, NnError::Format { .. }), "{err}");
+        assert!(matches!(err, NnError::Malformed { .. }), "{err}");
+        let source = std::error::Error::source(&err).expect("the parser's error is kept");
+        assert!(source.downcast_ref::<safetensors::SafeTensorError>().is_some());
         assert_eq!(m.output_layer_mut().weight.value, before, "model changed on error");
 
         let mut wider = ResidualMlp::new(

@@ -224,14 +224,14 @@ mod tests {
         let y = Mat::from_fn(n, 1, |i, _| x[(i, 0)].sin());
         let mut g = Mat::zeros(n, 1);
         let steps = 800;
-        let schedule = LrSchedule::Cosine { total_steps: steps, final_factor: 0.05 };
+        let schedule = LrSchedule::Cosine { final_factor: 0.05 };
         let mut opt = Adam::new(AdamConfig { lr: 1e-2, ..Default::default() });
         let initial = mse(&mut net, &x, &y, &mut g);
         for step in 0..steps {
             net.zero_grad();
             mse(&mut net, &x, &y, &mut g);
             net.backward(g.as_ref());
-            opt.step(&mut net, schedule.factor(step));
+            opt.step(&mut net, schedule.factor(step, steps));
         }
         let last = mse(&mut net, &x, &y, &mut g);
         // Measured: initial MSE ≈ 0.29, final ≈ 6e-6 after 800 full-batch steps.

@@ -39,11 +39,13 @@ pub struct VddConfig {
     pub freeze_gating_after: Option<usize>,
     /// Adam for the experts.
     pub expert_optimizer: AdamConfig,
-    /// Learning-rate schedule for the experts (over expert steps).
+    /// Learning-rate schedule for the experts, over the run's expert steps
+    /// (`iterations · expert_steps_per_iter`).
     pub expert_lr_schedule: LrSchedule,
     /// Adam for the gating.
     pub gating_optimizer: AdamConfig,
-    /// Learning-rate schedule for the gating (over gating steps).
+    /// Learning-rate schedule for the gating, over the run's gating steps
+    /// (`gating_steps_per_iter` per iteration until `freeze_gating_after`, or `iterations`).
     pub gating_lr_schedule: LrSchedule,
     /// Clip each network's gradient to this global norm.
     pub max_grad_norm: Option<f32>,
@@ -52,17 +54,18 @@ pub struct VddConfig {
     /// `None` (the default) returns the last iterate.
     #[serde(default)]
     pub student_ema: Option<f32>,
-    /// Root seed of every random draw of the run.
+    /// Root seed of every random draw of the run, including the student's initialisation
+    /// when the trainer builds the student ([`crate::Vdd::from_config`]).
     pub seed: u64,
 }
 
 impl VddConfig {
     /// The paper's toy defaults: 600 iterations, 32 states, 64 samples per expert, Adam
-    /// `5e-4` decaying linearly to 0, exact score (`σ = 0`), gating-weighted objectives.
+    /// `5e-4` decaying linearly to 0 over the run (whatever its length), exact score
+    /// (`σ = 0`), gating-weighted objectives.
     pub fn toy() -> Self {
-        let iterations = 600;
         Self {
-            iterations,
+            iterations: 600,
             batch_size: 32,
             vi_samples: 64,
             noise: NoiseSchedule::Fixed { level: 0.0 },
@@ -72,19 +75,26 @@ impl VddConfig {
             gating_batch_size: 256,
             freeze_gating_after: None,
             expert_optimizer: AdamConfig { lr: 5e-4, ..AdamConfig::default() },
-            expert_lr_schedule: LrSchedule::LinearDecay {
-                total_steps: iterations as u64,
-                final_factor: 0.0,
-            },
+            expert_lr_schedule: LrSchedule::LinearDecay { final_factor: 0.0 },
             gating_optimizer: AdamConfig { lr: 5e-4, ..AdamConfig::default() },
-            gating_lr_schedule: LrSchedule::LinearDecay {
-                total_steps: iterations as u64,
-                final_factor: 0.0,
-            },
+            gating_lr_schedule: LrSchedule::LinearDecay { final_factor: 0.0 },
             max_grad_norm: None,
             student_ema: None,
             seed: 0,
         }
+    }
+
+    /// Expert optimiser steps of the whole run, the length of `expert_lr_schedule`.
+    pub fn expert_steps(&self) -> u64 {
+        (self.iterations * self.expert_steps_per_iter) as u64
+    }
+
+    /// Gating optimiser steps of the whole run (until `freeze_gating_after`), the length of
+    /// `gating_lr_schedule`.
+    pub fn gating_steps(&self) -> u64 {
+        let it = self.iterations as u64;
+        let g_it = self.freeze_gating_after.map_or(it, |f| (f as u64).min(it));
+        g_it * self.gating_steps_per_iter as u64
     }
 
     /// Checks ranges.

@@ -21,13 +21,31 @@ pub enum VddError {
         /// Which quantity.
         quantity: &'static str,
     },
-    /// Checkpoint files could not be written or read.
-    #[error("checkpoint {path}: {reason}")]
-    Checkpoint {
-        /// The checkpoint directory.
+    /// Checkpoint files or directories could not be written or read.
+    #[error("checkpoint {path}: {source}")]
+    CheckpointIo {
+        /// The file or directory.
         path: std::path::PathBuf,
-        /// What went wrong.
-        reason: String,
+        /// The I/O error.
+        #[source]
+        source: std::io::Error,
+    },
+    /// The trainer's state in a checkpoint could not be written or parsed as JSON.
+    #[error("checkpoint {path}: trainer state: {source}")]
+    CheckpointFormat {
+        /// The file.
+        path: std::path::PathBuf,
+        /// The JSON error.
+        #[source]
+        source: serde_json::Error,
+    },
+    /// A learned gating has no actions to learn from: no dataset actions, and the teacher
+    /// cannot sample (its error is the source).
+    #[error("a learned gating needs dataset actions or a teacher that samples: {source}")]
+    NoGatingActions {
+        /// Why the teacher could not sample.
+        #[source]
+        source: vdd_core::CoreError,
     },
 }
 

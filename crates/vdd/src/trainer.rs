@@ -5,9 +5,9 @@ use std::path::{Path, PathBuf};
 use faer::{Mat, MatRef};
 use rand::Rng as _;
 use serde::{Deserialize, Serialize};
-use vdd_core::{CoreError, Expert, ScoreModel, Seeds, check_finite, check_len};
+use vdd_core::{CoreError, Expert, ScoreModel, Seeds, Trainer, check_finite, check_len};
 use vdd_moe::step::clip_or_fail;
-use vdd_moe::{ExpertFamily, Moe, MoeOutput};
+use vdd_moe::{ExpertFamily, Moe, MoeConfig, MoeOutput};
 use vdd_nn::{Adam, Ema, Parameters};
 
 use crate::config::{ExpertWeighting, VddConfig};
@@ -15,12 +15,20 @@ use crate::error::VddError;
 use crate::expert_step::{
     ExpertStepBuffers, ExpertStepStats, corrected_score_moments, raw_gradients,
 };
+use crate::spaces::{ActionMap, MappedTeacher, TeacherSpace, normalize_rows, same_map};
 
-/// The states to distil on, and optionally the dataset's actions for the gating step.
+/// The states to distil on, optionally the dataset's actions for the gating step, both in the
+/// raw (environment) space, and the space the teacher works in ([`TeacherSpace`]; see
+/// [`crate::spaces`]).
+///
+/// The trainer maps the data into the student's space with the student's normalisers, and
+/// queries the teacher in its own space: a teacher written for raw actions and a student that
+/// normalises its actions agree without further ado.
 #[derive(Debug, Clone)]
 pub struct DistillData {
     states: Mat<f32>,
     actions: Option<Mat<f32>>,
+    teacher_space: TeacherSpace,
 }
 
 impl DistillData {
@@ -40,12 +48,23 @@ impl DistillData {
             check_len("dataset actions (rows)", a.nrows(), states.nrows())?;
             check_finite("dataset actions", a.as_ref())?;
         }
-        Ok(Self { states, actions })
+        Ok(Self { states, actions, teacher_space: TeacherSpace::raw() })
     }
 
-    /// The states.
+    /// Declares the space the teacher takes states and actions in (default: the raw space).
+    pub fn with_teacher_space(mut self, space: TeacherSpace) -> Self {
+        self.teacher_space = space;
+        self
+    }
+
+    /// The raw states.
     pub fn states(&self) -> MatRef<'_, f32> {
         self.states.as_ref()
+    }
+
+    /// The space the teacher works in.
+    pub fn teacher_space(&self) -> &TeacherSpace {
+        &self.teacher_space
     }
 }
 
@@ -83,10 +102,8 @@ struct TrainerState {
 /// two experts; switching to full-covariance experts is the one config value `expert_kind`.
 ///
 /// ```
-/// use faer::{Mat, MatMut, MatRef};
-/// use vdd::{DistillData, Vdd, VddConfig};
-/// use vdd_core::{check_score_args, CoreError, ScoreModel};
-/// use vdd_moe::{ExpertKind, Moe, MoeConfig};
+/// use vdd::faer::{Mat, MatMut, MatRef};
+/// use vdd::{check_score_args, CoreError, DistillData, ExpertKind, MoeConfig, ScoreModel, Vdd, VddConfig};
 ///
 /// struct MyTeacher;
 /// impl ScoreModel for MyTeacher {
@@ -106,10 +123,11 @@ struct TrainerState {
 /// }
 ///
 /// for kind in [ExpertKind::Diagonal, ExpertKind::Full] {
-///     let student = Moe::from_config(MoeConfig { expert_kind: kind, ..MoeConfig::toy(1, 2, 2) }, 0)?;
+///     let student = MoeConfig { expert_kind: kind, ..MoeConfig::toy(1, 2, 2) };
 ///     let data = DistillData::from_states(Mat::zeros(16, 1))?;
-///     let config = VddConfig { iterations: 300, ..VddConfig::toy() };
-///     let mut vdd = Vdd::new(config, MyTeacher, student, data)?;
+///     let config = VddConfig { iterations: 300, seed: 0, ..VddConfig::toy() };
+///     // One seed for the run: the student is initialised from `config.seed` too.
+///     let mut vdd = Vdd::from_config(config, MyTeacher, student, data)?;
 ///     vdd.train(|_metrics| {})?;
 ///     let student = vdd.into_student();
 ///     assert!((student.output().mean(0, 0)[0] - 1.0).abs() < 0.3);
@@ -136,37 +154,104 @@ pub struct Vdd<S: ScoreModel, E: Expert = ExpertFamily> {
     resp: Vec<f32>,
     action: Vec<f32>,
     work: Vec<f32>,
+    /// The data's states in the teacher's space, when it differs from the student's.
+    teacher_states: Option<Mat<f32>>,
+    /// The student → teacher action map, when not the identity.
+    action_map: Option<ActionMap>,
+    /// The state batches in the teacher's space (with `teacher_states`).
+    teacher_batch: Mat<f32>,
+    teacher_gating_states: Mat<f32>,
+    map_scratch: Vec<f32>,
+}
+
+impl<S: ScoreModel> Vdd<S, ExpertFamily> {
+    /// Sets up a run with a fresh student of configuration `student`, initialised from the
+    /// run's seed ([`VddConfig::seed`]; the student draws from its own `"moe-init"` stream, so
+    /// one seed determines the whole run).
+    pub fn from_config(
+        config: VddConfig,
+        teacher: S,
+        student: MoeConfig,
+        data: DistillData,
+    ) -> Result<Self, VddError> {
+        let student = Moe::from_config(student, config.seed)?;
+        Self::new(config, teacher, student, data)
+    }
 }
 
 impl<S: ScoreModel, E: Expert> Vdd<S, E> {
-    /// Sets up a run. Checks that teacher, student and data agree on dimensions, and that the
-    /// gating step has actions to learn from (dataset actions or a teacher that samples).
+    /// As [`Vdd::from_config`] with a custom expert family: the student is
+    /// `Moe::new(student, expert, config.seed)`.
+    pub fn with_family(
+        config: VddConfig,
+        teacher: S,
+        student: MoeConfig,
+        expert: E,
+        data: DistillData,
+    ) -> Result<Self, VddError> {
+        let student = Moe::new(student, expert, config.seed)?;
+        Self::new(config, teacher, student, data)
+    }
+
+    /// Sets up a run with a student built elsewhere (pretrained, or initialised with a seed of
+    /// its own; [`Vdd::from_config`] initialises it from the run's seed). Checks that teacher,
+    /// student and data agree on dimensions, and that the gating step has actions to learn
+    /// from (dataset actions or a teacher that samples).
+    ///
+    /// The data are raw; the student's normalisers ([`Moe::normalizers`], as set now) map them
+    /// into the student's space, and the data's [`TeacherSpace`] says what the teacher sees.
     pub fn new(
         config: VddConfig,
         mut teacher: S,
         student: Moe<E>,
-        data: DistillData,
+        mut data: DistillData,
     ) -> Result<Self, VddError> {
         config.validate()?;
         let mc = student.config();
-        check_len("teacher action_dim vs student", teacher.action_dim(), mc.action_dim)?;
-        check_len("teacher state_dim vs student", teacher.state_dim(), mc.state_dim)?;
-        check_len("data state columns", data.states.ncols(), mc.state_dim)?;
+        let (ds, d) = (mc.state_dim, mc.action_dim);
+        check_len("teacher action_dim vs student", teacher.action_dim(), d)?;
+        check_len("teacher state_dim vs student", teacher.state_dim(), ds)?;
+        check_len("data state columns", data.states.ncols(), ds)?;
         if let Some(a) = &data.actions {
-            check_len("data action columns", a.ncols(), mc.action_dim)?;
+            check_len("data action columns", a.ncols(), d)?;
+        }
+        // Spaces: the teacher's states from the raw ones, then the data into the student's.
+        let space = data.teacher_space.clone();
+        if let Some(m) = &space.states {
+            check_len("teacher state map", m.dim(), ds)?;
+        }
+        if let Some(m) = &space.actions {
+            check_len("teacher action map", m.dim(), d)?;
+        }
+        let (obs_norm, act_norm) = student.normalizers();
+        let teacher_states = (!same_map(obs_norm, space.states.as_ref(), ds)).then(|| {
+            let mut t = data.states.clone();
+            if let Some(m) = &space.states {
+                normalize_rows(&mut t, m);
+            }
+            t
+        });
+        let action_map = ActionMap::between(act_norm, space.actions.as_ref(), d)?;
+        if let Some(m) = obs_norm {
+            normalize_rows(&mut data.states, m);
+            check_finite("states in the student's space", data.states.as_ref())?;
+        }
+        if let (Some(m), Some(a)) = (act_norm, data.actions.as_mut()) {
+            normalize_rows(a, m);
+            check_finite("dataset actions in the student's space", a.as_ref())?;
+        }
+        if let Some(t) = &teacher_states {
+            check_finite("states in the teacher's space", t.as_ref())?;
         }
         if student.has_learned_gating() && data.actions.is_none() {
             let mut probe = Mat::zeros(1, mc.action_dim);
             let mut rng = Seeds::new(config.seed).stream("probe");
+            let states = teacher_states.as_ref().unwrap_or(&data.states);
             teacher
-                .sample_actions(data.states.as_ref().subrows(0, 1), &mut rng, probe.as_mut())
-                .map_err(|e| {
-                    CoreError::Config(format!(
-                        "a learned gating needs dataset actions or a teacher that samples: {e}"
-                    ))
-                })?;
+                .sample_actions(states.as_ref().subrows(0, 1), &mut rng, probe.as_mut())
+                .map_err(|source| VddError::NoGatingActions { source })?;
         }
-        let (z, d) = (mc.num_experts, mc.action_dim);
+        let z = mc.num_experts;
         let student_ema = config.student_ema.map(|decay| Ema::new(&student, decay)).transpose()?;
         Ok(Self {
             expert_optimizer: Adam::new(config.expert_optimizer),
@@ -184,6 +269,17 @@ impl<S: ScoreModel, E: Expert> Vdd<S, E> {
             resp: vec![0.0; z],
             action: vec![0.0; d],
             work: vec![0.0; d],
+            teacher_batch: Mat::zeros(
+                if teacher_states.is_some() { config.batch_size } else { 0 },
+                ds,
+            ),
+            teacher_gating_states: Mat::zeros(
+                if teacher_states.is_some() { config.gating_batch_size } else { 0 },
+                ds,
+            ),
+            teacher_states,
+            action_map,
+            map_scratch: Vec::new(),
             config,
             teacher,
             student,
@@ -226,13 +322,9 @@ impl<S: ScoreModel, E: Expert> Vdd<S, E> {
         self.student
     }
 
-    /// Runs the remaining iterations, calling `callback` after each.
-    pub fn train(&mut self, mut callback: impl FnMut(&IterationMetrics)) -> Result<(), VddError> {
-        while self.iteration < self.config.iterations {
-            let m = self.step()?;
-            callback(&m);
-        }
-        Ok(())
+    /// Runs the remaining iterations, calling `callback` after each ([`Trainer::run`]).
+    pub fn train(&mut self, callback: impl FnMut(&IterationMetrics)) -> Result<(), VddError> {
+        Trainer::run(self, callback)
     }
 
     /// One EM iteration: E-step snapshot, `expert_steps_per_iter` expert steps, then
@@ -249,6 +341,11 @@ impl<S: ScoreModel, E: Expert> Vdd<S, E> {
             let idx = rng.random_range(0..n_data);
             for j in 0..self.data.states.ncols() {
                 self.batch[(b, j)] = self.data.states[(idx, j)];
+            }
+            if let Some(t) = &self.teacher_states {
+                for j in 0..t.ncols() {
+                    self.teacher_batch[(b, j)] = t[(idx, j)];
+                }
             }
         }
 
@@ -274,18 +371,42 @@ impl<S: ScoreModel, E: Expert> Vdd<S, E> {
             if k > 0 {
                 self.student.forward_experts(self.batch.as_ref())?;
             }
-            stats = corrected_score_moments(
-                &mut self.teacher,
-                self.student.output(),
-                &self.snapshot,
-                self.batch.as_ref(),
-                &self.config.noise,
-                progress,
-                self.config.vi_samples,
-                &mut rng,
-                &mut self.buf,
-            )
-            .map_err(|e| match e {
+            // The teacher sees the states (and, through the map, the actions) in its space.
+            let states = match &self.teacher_states {
+                Some(_) => self.teacher_batch.as_ref(),
+                None => self.batch.as_ref(),
+            };
+            let (c, snapshot, v) = (&self.config, &self.snapshot, self.config.vi_samples);
+            let out = self.student.output();
+            let moments = match &self.action_map {
+                None => corrected_score_moments(
+                    &mut self.teacher,
+                    out,
+                    snapshot,
+                    states,
+                    &c.noise,
+                    progress,
+                    v,
+                    &mut rng,
+                    &mut self.buf,
+                ),
+                Some(map) => corrected_score_moments(
+                    &mut MappedTeacher {
+                        teacher: &mut self.teacher,
+                        map,
+                        scratch: &mut self.map_scratch,
+                    },
+                    out,
+                    snapshot,
+                    states,
+                    &c.noise,
+                    progress,
+                    v,
+                    &mut rng,
+                    &mut self.buf,
+                ),
+            };
+            stats = moments.map_err(|e| match e {
                 CoreError::NonFinite { what } => {
                     VddError::NonFinite { iteration: it, quantity: what }
                 }
@@ -305,9 +426,10 @@ impl<S: ScoreModel, E: Expert> Vdd<S, E> {
             r?;
             let nets = self.student.expert_networks_mut();
             clip_or_fail(nets, self.config.max_grad_norm, it, "expert gradient")?;
-            expert_lr = self.config.expert_optimizer.lr
-                * self.config.expert_lr_schedule.factor(self.expert_optimizer.steps());
-            let factor = self.config.expert_lr_schedule.factor(self.expert_optimizer.steps());
+            let total = self.config.expert_steps();
+            let factor =
+                self.config.expert_lr_schedule.factor(self.expert_optimizer.steps(), total);
+            expert_lr = self.config.expert_optimizer.lr * factor;
             self.expert_optimizer.step(nets, factor);
         }
 
@@ -318,7 +440,9 @@ impl<S: ScoreModel, E: Expert> Vdd<S, E> {
         if self.student.has_learned_gating() && !frozen {
             for k in 0..self.config.gating_steps_per_iter {
                 let stream = (it * self.config.gating_steps_per_iter + k) as u64;
-                let factor = self.config.gating_lr_schedule.factor(self.gating_optimizer.steps());
+                let total = self.config.gating_steps();
+                let factor =
+                    self.config.gating_lr_schedule.factor(self.gating_optimizer.steps(), total);
                 gating_lr = self.config.gating_optimizer.lr * factor;
                 gating_loss = self.gating_step(it, stream, factor)?;
             }
@@ -358,6 +482,11 @@ impl<S: ScoreModel, E: Expert> Vdd<S, E> {
             for j in 0..ds {
                 self.gating_states[(b, j)] = self.data.states[(i, j)];
             }
+            if let Some(t) = &self.teacher_states {
+                for j in 0..ds {
+                    self.teacher_gating_states[(b, j)] = t[(i, j)];
+                }
+            }
         }
         match &self.data.actions {
             Some(actions) => {
@@ -369,11 +498,21 @@ impl<S: ScoreModel, E: Expert> Vdd<S, E> {
             }
             None => {
                 let mut rng = self.seeds.stream_indexed("teacher-samples", stream);
-                self.teacher.sample_actions(
-                    self.gating_states.as_ref(),
-                    &mut rng,
-                    self.gating_actions.as_mut(),
-                )?;
+                // Sampled in the teacher's space, returned in the student's.
+                let states = match &self.teacher_states {
+                    Some(_) => self.teacher_gating_states.as_ref(),
+                    None => self.gating_states.as_ref(),
+                };
+                let out = self.gating_actions.as_mut();
+                match &self.action_map {
+                    None => self.teacher.sample_actions(states, &mut rng, out)?,
+                    Some(map) => MappedTeacher {
+                        teacher: &mut self.teacher,
+                        map,
+                        scratch: &mut self.map_scratch,
+                    }
+                    .sample_actions(states, &mut rng, out)?,
+                }
                 check_finite("teacher samples", self.gating_actions.as_ref()).map_err(|_| {
                     VddError::NonFinite { iteration: it, quantity: "teacher samples" }
                 })?;
@@ -411,12 +550,15 @@ impl<S: ScoreModel, E: Expert> Vdd<S, E> {
     /// Writes a checkpoint directory (`student.safetensors` + `trainer.json`) atomically: the
     /// files go to a temporary sibling directory that replaces `dir` only when complete.
     pub fn save_checkpoint(&self, dir: &Path) -> Result<(), VddError> {
-        let err = |reason: String| VddError::Checkpoint { path: dir.to_owned(), reason };
+        let err = |path: &Path| {
+            let path = path.to_owned();
+            move |source| VddError::CheckpointIo { path, source }
+        };
         let tmp = sibling(dir, "tmp");
         if tmp.exists() {
-            std::fs::remove_dir_all(&tmp).map_err(|e| err(e.to_string()))?;
+            std::fs::remove_dir_all(&tmp).map_err(err(&tmp))?;
         }
-        std::fs::create_dir_all(&tmp).map_err(|e| err(e.to_string()))?;
+        std::fs::create_dir_all(&tmp).map_err(err(&tmp))?;
         self.student.save(&tmp.join("student.safetensors"))?;
         let state = TrainerState {
             config: self.config.clone(),
@@ -425,18 +567,21 @@ impl<S: ScoreModel, E: Expert> Vdd<S, E> {
             gating_optimizer: self.gating_optimizer.clone(),
             student_ema: self.student_ema.clone(),
         };
-        let json = serde_json::to_vec(&state).map_err(|e| err(e.to_string()))?;
+        let json = serde_json::to_vec(&state).map_err(|source| VddError::CheckpointFormat {
+            path: tmp.join("trainer.json"),
+            source,
+        })?;
         vdd_nn::io::write_atomic(&tmp.join("trainer.json"), &json)?;
         let old = sibling(dir, "old");
         if dir.exists() {
             if old.exists() {
-                std::fs::remove_dir_all(&old).map_err(|e| err(e.to_string()))?;
+                std::fs::remove_dir_all(&old).map_err(err(&old))?;
             }
-            std::fs::rename(dir, &old).map_err(|e| err(e.to_string()))?;
+            std::fs::rename(dir, &old).map_err(err(dir))?;
         }
-        std::fs::rename(&tmp, dir).map_err(|e| err(e.to_string()))?;
+        std::fs::rename(&tmp, dir).map_err(err(&tmp))?;
         if old.exists() {
-            std::fs::remove_dir_all(&old).map_err(|e| err(e.to_string()))?;
+            std::fs::remove_dir_all(&old).map_err(err(&old))?;
         }
         Ok(())
     }
@@ -461,9 +606,9 @@ impl<S: ScoreModel, E: Expert> Vdd<S, E> {
     ) -> Result<Self, VddError> {
         let path = dir.join("trainer.json");
         let bytes = std::fs::read(&path)
-            .map_err(|e| VddError::Checkpoint { path: path.clone(), reason: e.to_string() })?;
+            .map_err(|source| VddError::CheckpointIo { path: path.clone(), source })?;
         let state: TrainerState = serde_json::from_slice(&bytes)
-            .map_err(|e| VddError::Checkpoint { path, reason: e.to_string() })?;
+            .map_err(|source| VddError::CheckpointFormat { path, source })?;
         let mut vdd = Self::new(state.config, teacher, student, data)?;
         vdd.iteration = state.iteration;
         vdd.expert_optimizer = state.expert_optimizer;
@@ -482,273 +627,39 @@ impl<S: ScoreModel> Vdd<S, ExpertFamily> {
     }
 }
 
+/// VDD as a [`Trainer`]: a step is one EM iteration ([`Vdd::step`]), and
+/// [`Trainer::finish`] returns the student ([`Vdd::into_student`]).
+impl<S: ScoreModel, E: Expert> Trainer for Vdd<S, E> {
+    type Report = IterationMetrics;
+    type Output = Moe<E>;
+    type Error = VddError;
+
+    fn step(&mut self) -> Result<IterationMetrics, VddError> {
+        Vdd::step(self)
+    }
+
+    fn iteration(&self) -> usize {
+        self.iteration
+    }
+
+    fn iterations(&self) -> usize {
+        self.config.iterations
+    }
+
+    fn finish(mut self) -> Result<Moe<E>, VddError> {
+        if let Some(ema) = &self.student_ema {
+            ema.copy_to(&mut self.student)?;
+        }
+        Ok(self.student)
+    }
+}
+
 fn sibling(dir: &Path, tag: &str) -> PathBuf {
     let name = dir.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
     dir.with_file_name(format!(".{name}.{tag}"))
 }
 
 #[cfg(test)]
-mod tests {
-    use super::*;
-    use crate::eval::{modes_covered, reverse_kl};
-    use crate::test_support::IsoGmm;
-    use faer::MatMut;
-    use vdd_core::NoiseSchedule;
-    use vdd_moe::{GatingKind, MoeConfig};
-
-    fn small_run(iterations: usize) -> (VddConfig, IsoGmm, Moe, DistillData) {
-        let teacher = IsoGmm::circle(4, 2.0, 0.5);
-        let mut mc = MoeConfig::toy(1, 2, 4);
-        mc.experts_network.hidden_dim = 16;
-        mc.gating = GatingKind::Learned;
-        mc.gating_network.hidden_dim = 16;
-        let student = Moe::from_config(mc, 3).unwrap();
-        let config = VddConfig {
-            iterations,
-            batch_size: 8,
-            vi_samples: 16,
-            gating_batch_size: 32,
-            expert_optimizer: vdd_nn::AdamConfig { lr: 1e-2, ..Default::default() },
-            ..VddConfig::toy()
-        };
-        let data = DistillData::from_states(Mat::zeros(8, 1)).unwrap();
-        (config, teacher, student, data)
-    }
-
-    #[test]
-    fn distils_a_four_mode_mixture() {
-        let (config, teacher, student, data) = small_run(300);
-        let mut vdd = Vdd::new(config, teacher.clone(), student, data).unwrap();
-        vdd.train(|_| {}).unwrap();
-        let mut student = vdd.into_student();
-        let modes = teacher.means.clone();
-        assert_eq!(modes_covered(&mut student, &[0.0], &modes, 0.3, 0.05).unwrap(), 4);
-        let mut rng = Seeds::new(9).stream("eval");
-        let kl =
-            reverse_kl(&mut student, &[0.0], |a| teacher.log_density(a, 0.0), 20_000, &mut rng)
-                .unwrap();
-        assert!(kl < 0.05, "reverse KL {kl}");
-    }
-
-    #[test]
-    fn resuming_from_a_checkpoint_reproduces_an_uninterrupted_run() {
-        let dir = std::env::temp_dir().join(format!("vdd-resume-{}", std::process::id()));
-        let (mut config, teacher, student, data) = small_run(12);
-        config.student_ema = Some(0.9);
-        let mut straight =
-            Vdd::new(config.clone(), teacher.clone(), student.clone(), data.clone()).unwrap();
-        straight.train(|_| {}).unwrap();
-
-        let mut first = Vdd::new(config, teacher.clone(), student, data.clone()).unwrap();
-        for _ in 0..5 {
-            first.step().unwrap();
-        }
-        first.save_checkpoint(&dir).unwrap();
-        drop(first);
-        let mut resumed = Vdd::resume(&dir, teacher, data).unwrap();
-        assert_eq!(resumed.iteration(), 5);
-        resumed.train(|_| {}).unwrap();
-        assert_eq!(params(straight.student()), params(resumed.student()));
-        // The moving average is part of the checkpoint too.
-        assert_eq!(params(&straight.into_student()), params(&resumed.into_student()));
-        std::fs::remove_dir_all(&dir).ok();
-    }
-
-    fn params(student: &Moe) -> Vec<(String, Vec<f32>)> {
-        let mut out = Vec::new();
-        student.visit_params("", &mut |n, p| out.push((n.to_owned(), p.value.clone())));
-        out
-    }
-
-    #[test]
-    fn the_returned_student_is_the_moving_average_of_the_iterates() {
-        let (mut config, teacher, student, data) = small_run(6);
-        let decay = 0.7;
-        config.student_ema = Some(decay);
-        let mut average = params(&student);
-        let mut vdd = Vdd::new(config, teacher, student, data).unwrap();
-        let mut trainable = Vec::new();
-        vdd.student().visit_params("", &mut |_, p| trainable.push(p.trainable));
-        for _ in 0..6 {
-            vdd.step().unwrap();
-            for ((avg, (_, now)), &t) in
-                average.iter_mut().zip(params(vdd.student())).zip(&trainable)
-            {
-                for (a, v) in avg.1.iter_mut().zip(now) {
-                    *a = if t { *a + (1.0 - decay) * (v - *a) } else { v };
-                }
-            }
-        }
-        let last = params(vdd.student());
-        let averaged = params(&vdd.into_student());
-        assert_ne!(averaged, last);
-        for ((name, got), (_, want)) in averaged.iter().zip(&average) {
-            for (g, w) in got.iter().zip(want) {
-                assert!((g - w).abs() < 1e-6, "{name}: {g} vs {w}");
-            }
-        }
-    }
-
-    #[test]
-    fn an_ema_decay_outside_zero_to_one_is_rejected() {
-        let (mut config, teacher, student, data) = small_run(2);
-        config.student_ema = Some(1.0);
-        assert!(Vdd::new(config, teacher, student, data).is_err());
-    }
-
-    struct NanAfter(IsoGmm, usize);
-    impl ScoreModel for NanAfter {
-        fn action_dim(&self) -> usize {
-            2
-        }
-        fn state_dim(&self) -> usize {
-            1
-        }
-        fn score(
-            &mut self,
-            a: MatRef<'_, f32>,
-            s: MatRef<'_, f32>,
-            l: &[f32],
-            mut out: MatMut<'_, f32>,
-        ) -> Result<(), CoreError> {
-            self.0.score(a, s, l, out.as_mut())?;
-            if self.1 == 0 {
-                out[(0, 0)] = f32::NAN;
-            } else {
-                self.1 -= 1;
-            }
-            Ok(())
-        }
-        fn sample_actions(
-            &mut self,
-            s: MatRef<'_, f32>,
-            rng: &mut dyn rand::RngCore,
-            out: MatMut<'_, f32>,
-        ) -> Result<(), CoreError> {
-            self.0.sample_actions(s, rng, out)
-        }
-    }
-
-    #[test]
-    fn a_non_finite_score_stops_training_with_the_iteration() {
-        let (config, teacher, student, data) = small_run(10);
-        let before = student.clone();
-        let mut vdd = Vdd::new(config, NanAfter(teacher, 3), student, data).unwrap();
-        let err = vdd.train(|_| {}).unwrap_err();
-        match err {
-            VddError::NonFinite { iteration, quantity } => {
-                assert_eq!(iteration, 3);
-                assert_eq!(quantity, "teacher score");
-            }
-            other => panic!("unexpected error {other}"),
-        }
-        assert_eq!(vdd.iteration(), 3);
-        let mut changed = false;
-        let mut old = Vec::new();
-        before.visit_params("", &mut |_, p| old.push(p.value.clone()));
-        let mut k = 0;
-        vdd.student().visit_params("", &mut |_, p| {
-            changed |= p.value != old[k];
-            k += 1;
-        });
-        assert!(changed, "three iterations should have trained");
-        assert!(vdd.student().clone().act(&[0.0]).unwrap().iter().all(|x| x.is_finite()));
-    }
-
-    /// Gating weights of the student at state 0.
-    fn gating_at_zero(student: &mut Moe) -> Vec<f32> {
-        student.forward(Mat::<f32>::zeros(1, 1).as_ref()).unwrap();
-        student.output().log_gating_row(0).iter().map(|l| l.exp()).collect()
-    }
-
-    /// With a dataset, the gating step learns the responsibilities of the dataset's actions:
-    /// a teacher with equal modes but data that visits one mode 3x as often gives a gating
-    /// that follows the data, not the teacher.
-    #[test]
-    fn the_gating_follows_the_responsibilities_of_dataset_actions() {
-        let teacher =
-            IsoGmm { means: vec![vec![2.0, 0.0], vec![-2.0, 0.0]], std: 0.3, state_dim: 1 };
-        let mut mc = MoeConfig::toy(1, 2, 2);
-        mc.experts_network.hidden_dim = 16;
-        mc.gating = GatingKind::Learned;
-        mc.gating_network.hidden_dim = 16;
-        let student = Moe::from_config(mc, 1).unwrap();
-        let n = 400;
-        let actions = Mat::from_fn(n, 2, |i, j| match (i % 4, j) {
-            (3, 0) => -2.0,
-            (_, 0) => 2.0,
-            _ => 0.0,
-        });
-        let data = DistillData::new(Mat::zeros(n, 1), Some(actions)).unwrap();
-        let config = VddConfig {
-            iterations: 300,
-            batch_size: 4,
-            vi_samples: 16,
-            gating_batch_size: 64,
-            expert_optimizer: vdd_nn::AdamConfig { lr: 1e-2, ..Default::default() },
-            gating_optimizer: vdd_nn::AdamConfig { lr: 1e-2, ..Default::default() },
-            ..VddConfig::toy()
-        };
-        let mut vdd = Vdd::new(config, teacher, student, data).unwrap();
-        vdd.train(|_| {}).unwrap();
-        let mut student = vdd.into_student();
-        let w = gating_at_zero(&mut student);
-        let out = student.output();
-        // The expert at +2 carries 3/4 of the weight.
-        let right = if out.mean(0, 0)[0] > out.mean(0, 1)[0] { 0 } else { 1 };
-        assert!((out.mean(0, right)[0] - 2.0).abs() < 0.2, "means {:?}", out.means);
-        assert!((w[right] - 0.75).abs() < 0.05, "gating {w:?}");
-    }
-
-    /// `freeze_gating_after: Some(n)` stops gating updates from iteration n on.
-    #[test]
-    fn a_frozen_gating_stops_changing() {
-        let (mut config, teacher, student, data) = small_run(8);
-        config.freeze_gating_after = Some(4);
-        config.gating_optimizer.lr = 1e-2;
-        let mut vdd = Vdd::new(config, teacher, student, data).unwrap();
-        let mut gating = Vec::new();
-        let mut losses = Vec::new();
-        for _ in 0..8 {
-            losses.push(vdd.step().unwrap().gating_loss);
-            let mut student = vdd.student().clone();
-            gating.push(gating_at_zero(&mut student));
-        }
-        assert!(losses[..4].iter().all(Option::is_some));
-        assert!(losses[4..].iter().all(Option::is_none));
-        assert_ne!(gating[2], gating[3], "the gating trains before the freeze");
-        assert!(gating[3..].windows(2).all(|w| w[0] == w[1]), "{gating:?}");
-    }
-
-    /// The expert step queries the teacher at the configured noise levels: fixed, uniform in a
-    /// range, or annealed from start to end over the run.
-    #[test]
-    fn noise_levels_follow_the_configured_schedule() {
-        let levels = |noise: NoiseSchedule| {
-            let (mut config, teacher, student, data) = small_run(10);
-            config.noise = noise;
-            let mut vdd = Vdd::new(config, teacher, student, data).unwrap();
-            let mut out = Vec::new();
-            vdd.train(|m| out.push(m.expert.noise_level)).unwrap();
-            out
-        };
-        let fixed = levels(NoiseSchedule::Fixed { level: 0.3 });
-        assert!(fixed.iter().all(|&l| (l - 0.3).abs() < 1e-6), "{fixed:?}");
-        let uniform = levels(NoiseSchedule::Uniform { min: 0.2, max: 0.6 });
-        // Means over 8·4·16 draws: close to 0.4, never at the ends.
-        assert!(uniform.iter().all(|&l| (l - 0.4).abs() < 0.03), "{uniform:?}");
-        let annealed = levels(NoiseSchedule::Annealed { start: 1.0, end: 0.1 });
-        assert!((annealed[0] - 1.0).abs() < 1e-6, "{annealed:?}");
-        assert!(annealed.windows(2).all(|w| w[1] < w[0]), "{annealed:?}");
-        assert!(annealed[9] < 0.2 && annealed[9] > 0.1, "{annealed:?}");
-    }
-
-    #[test]
-    fn mismatched_dimensions_are_rejected() {
-        let (config, teacher, _, data) = small_run(1);
-        let student = Moe::from_config(MoeConfig::toy(1, 3, 2), 0).unwrap();
-        assert!(Vdd::new(config, teacher, student, data).is_err());
-    }
-
-    use vdd_core::Policy;
-}
+mod tests;
+#[cfg(test)]
+mod tests_spaces;

@@ -38,8 +38,8 @@ fn finds_the_means_of_three_separated_clusters() {
         gating_batch_size: Some(128),
         expert_optimizer: AdamConfig { lr: 1e-2, ..AdamConfig::default() },
         gating_optimizer: AdamConfig { lr: 1e-2, ..AdamConfig::default() },
-        expert_lr_schedule: LrSchedule::LinearDecay { total_steps: 600, final_factor: 0.05 },
-        gating_lr_schedule: LrSchedule::LinearDecay { total_steps: 600, final_factor: 0.05 },
+        expert_lr_schedule: LrSchedule::LinearDecay { final_factor: 0.05 },
+        gating_lr_schedule: LrSchedule::LinearDecay { final_factor: 0.05 },
         ..EmConfig::toy()
     };
     let mut student = Em::fit(config, student, data).unwrap();
