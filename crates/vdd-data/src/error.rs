@@ -27,6 +27,18 @@ pub enum DataError {
         /// What is wrong.
         reason: String,
     },
+    /// An `.npz` archive (a zip file) cannot be read or written: not a zip archive, a corrupt
+    /// entry, a failed write.
+    #[error("npz archive {path}{}: {source}", in_array(.array.as_deref()))]
+    Archive {
+        /// The archive.
+        path: PathBuf,
+        /// The array being read or written, if any.
+        array: Option<String>,
+        /// The zip reader's or writer's error.
+        #[source]
+        source: Box<dyn std::error::Error + Send + Sync + 'static>,
+    },
     /// An array has a dtype this crate cannot read for its role.
     #[error("array `{array}` in {path} has dtype `{found}`, expected {expected}")]
     Dtype {
@@ -95,9 +107,9 @@ pub enum DataError {
     /// A configuration value is out of range (zero batch size, split fraction outside (0, 1), ...).
     #[error("invalid configuration: {0}")]
     Config(String),
-    /// A serialised normalisation could not be parsed.
+    /// A normalisation could not be written as JSON or parsed from it.
     #[error("malformed normalisation: {0}")]
-    Json(String),
+    Json(#[source] serde_json::Error),
     /// A feature map name and version the [registry](crate::features::registry) does not hold.
     #[error("unknown feature map `{name}` version {version} (known: {known})")]
     UnknownFeatureMap {
@@ -129,6 +141,21 @@ pub type Result<T, E = DataError> = std::result::Result<T, E>;
 
 pub(crate) fn io_err(path: &std::path::Path) -> impl FnOnce(std::io::Error) -> DataError + '_ {
     move |source| DataError::Io { path: path.to_owned(), source }
+}
+
+fn in_array(array: Option<&str>) -> String {
+    array.map_or(String::new(), |a| format!(", array `{a}`"))
+}
+
+pub(crate) fn archive_err<'a, E: std::error::Error + Send + Sync + 'static>(
+    path: &'a std::path::Path,
+    array: Option<&'a str>,
+) -> impl FnOnce(E) -> DataError + 'a {
+    move |e| DataError::Archive {
+        path: path.to_owned(),
+        array: array.map(str::to_owned),
+        source: Box::new(e),
+    }
 }
 
 pub(crate) fn format_err(path: &std::path::Path, reason: impl ToString) -> DataError {

@@ -26,7 +26,7 @@ use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicU64, Ordering};
 
 use crate::episodes::Episodes;
-use crate::error::{DataError, Result, format_err, io_err};
+use crate::error::{DataError, Result, archive_err, format_err, io_err};
 use crate::npy::{NpyArray, encode_f32};
 
 /// Axis order of the stored arrays.
@@ -104,7 +104,8 @@ impl Episodes {
     /// [`Episodes::save_npz`] writes). See the [`io`](crate::io) module docs for the format and
     /// [`Episodes::load_npz_with`] for other layouts.
     ///
-    /// Errors: [`DataError::Io`], [`DataError::Format`] (not a zip / not an npy entry / truncated),
+    /// Errors: [`DataError::Io`], [`DataError::Archive`] (not a zip, a corrupt entry),
+    /// [`DataError::Format`] (not an npy entry, truncated),
     /// [`DataError::MissingKey`], [`DataError::Dtype`], [`DataError::Shape`],
     /// [`DataError::Empty`], [`DataError::Mask`], [`DataError::NonFinite`].
     pub fn load_npz(path: &Path) -> Result<Self> {
@@ -114,8 +115,7 @@ impl Episodes {
     /// Loads an `.npz` archive with the given keys and layout.
     pub fn load_npz_with(path: &Path, options: &LoadOptions) -> Result<Self> {
         let bytes = std::fs::read(path).map_err(io_err(path))?;
-        let mut zip = zip::ZipArchive::new(Cursor::new(bytes))
-            .map_err(|e| format_err(path, format!("not an .npz (zip) archive: {e}")))?;
+        let mut zip = zip::ZipArchive::new(Cursor::new(bytes)).map_err(archive_err(path, None))?;
         let present: Vec<String> =
             zip.file_names().filter_map(|f| f.strip_suffix(".npy")).map(str::to_owned).collect();
         let mut read = |key: &str| -> Result<Vec<u8>> {
@@ -126,14 +126,11 @@ impl Episodes {
                     present: present.join(", "),
                 });
             }
-            let mut entry = zip
-                .by_name(&format!("{key}.npy"))
-                .map_err(|e| format_err(path, format!("array `{key}`: {e}")))?;
+            let mut entry =
+                zip.by_name(&format!("{key}.npy")).map_err(archive_err(path, Some(key)))?;
             let mut out =
                 Vec::with_capacity(usize::try_from(entry.size()).unwrap_or(0).min(1 << 26));
-            entry
-                .read_to_end(&mut out)
-                .map_err(|e| format_err(path, format!("array `{key}`: {e}")))?;
+            entry.read_to_end(&mut out).map_err(archive_err(path, Some(key)))?;
             Ok(out)
         };
         let obs = read(&options.observations_key)?;
@@ -195,11 +192,11 @@ impl Episodes {
     /// `existence_mask`), atomically. [`Episodes::load_npz`] gives back an equal value, every
     /// float bit-identical, and `np.load` reads it.
     ///
-    /// Errors: [`DataError::Io`].
+    /// Errors: [`DataError::Io`], [`DataError::Archive`].
     pub fn save_npz(&self, path: &Path) -> Result<()> {
         let mut zip = zip::ZipWriter::new(Cursor::new(Vec::new()));
         let io = |e: std::io::Error| io_err(path)(e);
-        let zip_err = |e: zip::result::ZipError| format_err(path, format!("writing zip: {e}"));
+        let zip_err = |e: zip::result::ZipError| archive_err(path, None)(e);
         for (name, bytes) in self.npy_arrays().map_err(io)? {
             let options = zip::write::FileOptions::default()
                 .compression_method(zip::CompressionMethod::Stored)

@@ -115,14 +115,13 @@ impl Normalization {
 
     /// JSON text of this normalisation (to store beside a model).
     pub fn to_json(&self) -> Result<String> {
-        serde_json::to_string_pretty(self).map_err(|e| DataError::Json(e.to_string()))
+        serde_json::to_string_pretty(self).map_err(DataError::Json)
     }
 
     /// Parses [`Normalization::to_json`] output, re-validating both maps (finite offsets,
     /// positive finite scales, matching lengths).
     pub fn from_json(text: &str) -> Result<Self> {
-        let parsed: Self =
-            serde_json::from_str(text).map_err(|e| DataError::Json(e.to_string()))?;
+        let parsed: Self = serde_json::from_str(text).map_err(DataError::Json)?;
         let observations =
             Affine::new(parsed.observations.offset.clone(), parsed.observations.scale.clone())?;
         let actions = Affine::new(parsed.actions.offset.clone(), parsed.actions.scale.clone())?;

@@ -186,7 +186,13 @@ fn missing_arrays_and_broken_files_are_rejected() {
         DataError::MissingKey { key, .. } => assert_eq!(key, "actions_seq"),
         e => panic!("expected MissingKey, got {e}"),
     }
-    assert!(matches!(load_err("bad_not_a_zip.npz"), DataError::Format { .. }));
+    match load_err("bad_not_a_zip.npz") {
+        e @ DataError::Archive { .. } => {
+            let source = std::error::Error::source(&e).expect("the zip error is the source");
+            assert!(source.downcast_ref::<zip::result::ZipError>().is_some(), "{e}");
+        }
+        e => panic!("expected Archive, got {e}"),
+    }
     assert!(matches!(load_err("bad_truncated_npy_dir"), DataError::Format { .. }));
     // The right files under the wrong preset: keys absent.
     assert!(matches!(

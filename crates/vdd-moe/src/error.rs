@@ -9,9 +9,34 @@ pub enum MoeError {
     /// Network construction or checkpoint I/O failed.
     #[error(transparent)]
     Nn(#[from] vdd_nn::NnError),
-    /// A saved model's configuration could not be read.
-    #[error("invalid saved model configuration: {0}")]
-    Config(String),
+    /// A saved model lacks a metadata entry it needs.
+    #[error("{path} has no `{key}` metadata (not a model saved by `Moe::save`?)")]
+    MissingMetadata {
+        /// The file.
+        path: std::path::PathBuf,
+        /// The metadata key.
+        key: String,
+    },
+    /// A metadata entry of a saved model cannot be parsed.
+    #[error("{path}: bad `{key}` metadata: {source}")]
+    BadMetadata {
+        /// The file.
+        path: std::path::PathBuf,
+        /// The metadata key.
+        key: String,
+        /// The JSON error.
+        #[source]
+        source: serde_json::Error,
+    },
+    /// A metadata entry cannot be written as JSON.
+    #[error("cannot serialise the `{key}` metadata: {source}")]
+    SerializeMetadata {
+        /// The metadata key.
+        key: &'static str,
+        /// The JSON error.
+        #[source]
+        source: serde_json::Error,
+    },
     /// A saved model was written with a different expert family (kind, dimension or scale
     /// activation) than the one it is being loaded with.
     #[error("expert family mismatch: {0}")]

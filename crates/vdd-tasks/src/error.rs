@@ -43,6 +43,19 @@ pub enum TaskError {
     /// [`crate::avoiding::AvoidingEnv::step`] was called after the episode had ended.
     #[error("the episode has ended ({0}); call reset before stepping again")]
     EpisodeOver(&'static str),
+    /// The demonstrator was asked for a batch of another size in the middle of an episode
+    /// (reported through the `Policy` trait as the source of a
+    /// [`CoreError::Implementor`]).
+    #[error(
+        "the demonstrator is driving {driving} environments in this episode but got {got}; \
+         call reset() before changing the batch"
+    )]
+    DemonstratorBatch {
+        /// Environments of the current episode.
+        driving: usize,
+        /// Batch size of the call.
+        got: usize,
+    },
     /// A rollout worker thread panicked.
     #[error("a rollout worker thread panicked")]
     WorkerPanicked,

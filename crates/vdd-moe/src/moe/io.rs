@@ -30,12 +30,24 @@ const DEPLOY_SPEC_KEY: &str = "deploy_spec";
 
 fn read_config(path: &Path) -> Result<(MoeConfig, BTreeMap<String, String>), MoeError> {
     let meta = vdd_nn::io::read_metadata(path)?;
-    let cfg = meta
-        .get("config")
-        .ok_or_else(|| MoeError::Config(format!("{} has no `config` metadata", path.display())))?;
-    let config: MoeConfig =
-        serde_json::from_str(cfg).map_err(|e| MoeError::Config(e.to_string()))?;
+    let config: MoeConfig = parse_meta(path, &meta, "config")?;
     Ok((config, meta))
+}
+
+/// Parses the JSON metadata entry `key` of the file `path`.
+fn parse_meta<T: serde::de::DeserializeOwned>(
+    path: &Path,
+    meta: &BTreeMap<String, String>,
+    key: &str,
+) -> Result<T, MoeError> {
+    let raw = meta
+        .get(key)
+        .ok_or_else(|| MoeError::MissingMetadata { path: path.to_owned(), key: key.to_owned() })?;
+    serde_json::from_str(raw).map_err(|source| MoeError::BadMetadata {
+        path: path.to_owned(),
+        key: key.to_owned(),
+        source,
+    })
 }
 
 impl<E: Expert> Moe<E> {
@@ -43,16 +55,23 @@ impl<E: Expert> Moe<E> {
     /// ([`Moe::deploy_spec`]) and a fingerprint of the expert family to one `safetensors` file
     /// (atomically), so a deployed policy needs nothing else ([`crate::load_policy`]).
     pub fn save(&self, path: &Path) -> Result<(), MoeError> {
-        fn json<T: Serialize>(v: &T) -> Result<String, MoeError> {
-            serde_json::to_string(v).map_err(|e| MoeError::Config(e.to_string()))
+        fn put<T: Serialize>(
+            meta: &mut BTreeMap<String, String>,
+            key: &'static str,
+            v: &T,
+        ) -> Result<(), MoeError> {
+            let text = serde_json::to_string(v)
+                .map_err(|source| MoeError::SerializeMetadata { key, source })?;
+            meta.insert(key.to_owned(), text);
+            Ok(())
         }
         let mut meta = BTreeMap::new();
-        meta.insert("config".to_owned(), json(&self.config)?);
-        meta.insert("obs_normalizer".to_owned(), json(&self.obs_normalizer)?);
-        meta.insert("action_normalizer".to_owned(), json(&self.action_normalizer)?);
-        meta.insert("act_mode".to_owned(), json(&self.act_mode)?);
-        meta.insert(DEPLOY_SPEC_KEY.to_owned(), json(&self.deploy_spec)?);
-        meta.insert("expert_family".to_owned(), json(&FamilyFingerprint::of(&self.expert))?);
+        put(&mut meta, "config", &self.config)?;
+        put(&mut meta, "obs_normalizer", &self.obs_normalizer)?;
+        put(&mut meta, "action_normalizer", &self.action_normalizer)?;
+        put(&mut meta, "act_mode", &self.act_mode)?;
+        put(&mut meta, DEPLOY_SPEC_KEY, &self.deploy_spec)?;
+        put(&mut meta, "expert_family", &FamilyFingerprint::of(&self.expert))?;
         vdd_nn::io::save_safetensors(path, self, &meta)?;
         Ok(())
     }
@@ -73,10 +92,9 @@ impl<E: Expert> Moe<E> {
             Some(c) => c,
             None => read_config(path)?,
         };
-        let bad = |e: serde_json::Error| MoeError::Config(e.to_string());
-        if let Some(saved) = meta.get("expert_family") {
+        if meta.contains_key("expert_family") {
             // Files written before the fingerprint existed load without this check.
-            let saved: FamilyFingerprint = serde_json::from_str(saved).map_err(bad)?;
+            let saved: FamilyFingerprint = parse_meta(path, &meta, "expert_family")?;
             let given = FamilyFingerprint::of(&expert);
             if !saved.matches(&given) {
                 return Err(MoeError::FamilyMismatch(format!(
@@ -89,21 +107,13 @@ impl<E: Expert> Moe<E> {
         }
         let mut moe = Self::new(config, expert, 0)?;
         vdd_nn::io::load_safetensors(path, &mut moe)?;
-        let parse = |key: &str| -> Result<&str, MoeError> {
-            meta.get(key)
-                .map(String::as_str)
-                .ok_or_else(|| MoeError::Config(format!("missing `{key}` metadata")))
-        };
-        let obs: Option<Affine> = serde_json::from_str(parse("obs_normalizer")?).map_err(bad)?;
-        let act: Option<Affine> = serde_json::from_str(parse("action_normalizer")?).map_err(bad)?;
-        moe.act_mode = serde_json::from_str(parse("act_mode")?).map_err(bad)?;
+        let obs: Option<Affine> = parse_meta(path, &meta, "obs_normalizer")?;
+        let act: Option<Affine> = parse_meta(path, &meta, "action_normalizer")?;
+        moe.act_mode = parse_meta(path, &meta, "act_mode")?;
         moe.set_normalizers(obs, act)?;
         // Files written before the spec existed act on raw observations (the identity spec).
-        if let Some(raw) = meta.get(DEPLOY_SPEC_KEY) {
-            let spec = serde_json::from_str(raw).map_err(|e| {
-                MoeError::Config(format!("metadata `{DEPLOY_SPEC_KEY}` = {raw}: {e}"))
-            })?;
-            moe.set_deploy_spec(spec)?;
+        if meta.contains_key(DEPLOY_SPEC_KEY) {
+            moe.set_deploy_spec(parse_meta(path, &meta, DEPLOY_SPEC_KEY)?)?;
         }
         Ok(moe)
     }

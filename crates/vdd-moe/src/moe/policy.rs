@@ -229,10 +229,11 @@ impl<E: Expert> Moe<E> {
     }
 }
 
-/// A mixture error as the [`Policy`] trait's error.
+/// A mixture error as the [`Policy`] trait's error: core errors stay what they are, the
+/// others become [`CoreError::Implementor`] with the mixture error as the source.
 fn to_core(e: MoeError) -> CoreError {
     match e {
         MoeError::Core(c) => c,
-        other => CoreError::Config(other.to_string()),
+        other => CoreError::implementor(other),
     }
 }

@@ -201,11 +201,10 @@ impl AvoidingDemonstrator {
                 self.plans.push(plan);
             }
         } else if self.plans.len() != n {
-            return Err(CoreError::Config(format!(
-                "the demonstrator is driving {} environments in this episode but got {n}; \
-                 call reset() before changing the batch",
-                self.plans.len()
-            )));
+            return Err(CoreError::implementor(TaskError::DemonstratorBatch {
+                driving: self.plans.len(),
+                got: n,
+            }));
         }
         Ok(())
     }

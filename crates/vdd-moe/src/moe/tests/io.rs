@@ -238,11 +238,27 @@ fn bad_specs_are_refused_naming_the_setting_and_its_value() {
         (spec(pal, 2, 3, 4), "`execute_steps` = 4: must be between 1 and action_chunk = 3"),
         (spec(pal, 2, 2, 1), "`action_chunk` = 2: the policy's action dimension 3"),
         (spec(pal, 4, 3, 1), "`features` = position_and_lag v1: needs"),
-        ("{not json".to_owned(), "metadata `deploy_spec` = {not json"),
+        ("{not json".to_owned(), "bad `deploy_spec` metadata"),
         (spec(pal, 2, 3, 2).replace("obs_window", "window"), "unknown field `window`"),
     ];
     for (bad, want) in &cases {
         let e = load(bad);
         assert!(e.contains(want), "{bad}: {e}");
     }
+    // A metadata entry that is not JSON keeps the parser's error as the source.
+    let mut m = meta.clone();
+    m.insert("act_mode".to_owned(), "{not json".to_owned());
+    let p = scratch("spec-bad-act-mode.safetensors");
+    vdd_nn::io::save_safetensors(&p, &moe, &m).unwrap();
+    match Moe::load(&p) {
+        Err(e @ MoeError::BadMetadata { .. }) => {
+            let source = std::error::Error::source(&e).unwrap();
+            assert!(source.downcast_ref::<serde_json::Error>().is_some(), "{e}");
+            assert!(e.to_string().contains("`act_mode`"), "{e}");
+        }
+        other => panic!("expected BadMetadata, got {:?}", other.map(|_| ())),
+    }
+    m.remove("act_mode");
+    vdd_nn::io::save_safetensors(&p, &moe, &m).unwrap();
+    assert!(matches!(Moe::load(&p), Err(MoeError::MissingMetadata { .. })));
 }
