@@ -36,12 +36,16 @@ use std::time::Instant;
 
 use faer::Mat;
 use rand::Rng as _;
-use vdd_core::gmm::{Gmm, GmmTeacher};
-use vdd_core::{Policy, ScoreModel, Seeds};
-use vdd_diffusion::metrics::{mean_cosine_similarity, mmd2_rbf, nearest_mode_counts};
+use vdd_core::Seeds;
+use vdd_core::gmm::GmmTeacher;
+use vdd_diffusion::acceptance::{
+    Measures, MixtureParams, SamplerSetting, ScoreCosine, Thresholds, act_batch_latency_us,
+    mode_shares, samples_at, score_cosine,
+};
+use vdd_diffusion::metrics::mmd2_rbf;
 use vdd_diffusion::{
     BesoConfig, DdpmConfig, DiffusionTeacher, KarrasSampler, NetConfig, SigmaDistribution,
-    TeacherKind, TimeSampling, TrainConfig, VpSampler,
+    TeacherKind, TimeSampling, TrainConfig,
 };
 
 use crate::teachers::{self, BesoTeacherConfig, DdpmTeacherConfig, TeachersConfig};
@@ -282,141 +286,9 @@ fn circle_data(n: usize, stream: &str, seed: u64) -> crate::XResult<(Mat<f32>, M
     Ok((states, actions))
 }
 
-fn circle_means(offset: f32) -> Vec<Vec<f32>> {
-    (0..8)
-        .map(|k| {
-            let a = offset + std::f32::consts::TAU * k as f32 / 8.0;
-            vec![2.0 * a.cos(), 2.0 * a.sin()]
-        })
-        .collect()
-}
-
-/// The exact circle mixture in a teacher's normalised action space: `N(μ, 0.5² I)` becomes
-/// `N((μ − o)/c, diag(0.25/c²))`.
-fn normalized_circle(t: &DiffusionTeacher) -> crate::XResult<GmmTeacher> {
-    let (_, an) = t.normalizers();
-    let means: Vec<Vec<f32>> = circle_means(0.0)
-        .iter()
-        .map(|m| m.iter().enumerate().map(|(j, v)| (v - an.offset[j]) / an.scale[j]).collect())
-        .collect();
-    let cov =
-        vec![0.25 / (an.scale[0] * an.scale[0]), 0.0, 0.0, 0.25 / (an.scale[1] * an.scale[1])];
-    let gmm = Gmm::new(&[1.0; 8], &means, &vec![cov; 8])?;
-    Ok(GmmTeacher::fixed(gmm, 1))
-}
-
-/// Mean cosine similarity of the teacher's score and the exact smoothed score at normalised
-/// noise level `sigma` (VP: at the matching `t`, where the exact score of `x_t` at `a` is the
-/// smoothed score at `a / sqrt(ᾱ_t)`, up to a positive factor), on raw `actions` (state 0).
-/// Returns the cosine and the level the teacher was queried at.
-fn score_cosine(
-    t: &mut DiffusionTeacher,
-    actions: &Mat<f32>,
-    sigma: f32,
-) -> crate::XResult<(f32, f32)> {
-    let mut exact = normalized_circle(t)?;
-    let n = actions.nrows();
-    let (sn, an) = {
-        let (s, a) = t.normalizers();
-        (s.clone(), a.clone())
-    };
-    let a = Mat::from_fn(n, 2, |i, j| (actions[(i, j)] - an.offset[j]) / an.scale[j]);
-    let s = Mat::from_fn(n, 1, |_, _| -sn.offset[0] / sn.scale[0]);
-    let (level, x_scale) = match t {
-        DiffusionTeacher::Ddpm(d) => {
-            let time = d.schedule().time_for_sigma(sigma);
-            (time, 1.0 / d.schedule().alpha_bar(time).sqrt())
-        }
-        DiffusionTeacher::Beso(_) => (sigma, 1.0),
-    };
-    let mut learned = Mat::zeros(n, 2);
-    t.score(a.as_ref(), s.as_ref(), &vec![level; n], learned.as_mut())?;
-    let y = Mat::from_fn(n, 2, |i, j| a[(i, j)] * x_scale);
-    let mut truth = Mat::zeros(n, 2);
-    exact.score(y.as_ref(), Mat::<f32>::zeros(n, 1).as_ref(), &vec![sigma; n], truth.as_mut())?;
-    Ok((mean_cosine_similarity(learned.as_ref(), truth.as_ref()), level))
-}
-
-/// A sampler setting of either teacher.
-#[derive(Debug, Clone, Copy)]
-enum AnySampler {
-    Vp(VpSampler, usize),
-    Ve(KarrasSampler, usize),
-}
-
-impl AnySampler {
-    /// The sampler's name.
-    fn name(self) -> String {
-        match self {
-            AnySampler::Vp(v, _) => format!("{v:?}"),
-            AnySampler::Ve(v, _) => format!("{v:?}"),
-        }
-    }
-
-    /// Name and steps.
-    fn label(self) -> String {
-        format!("{} {}", self.name(), self.steps())
-    }
-
-    fn steps(self) -> usize {
-        match self {
-            AnySampler::Vp(_, k) | AnySampler::Ve(_, k) => k,
-        }
-    }
-
-    /// The same sampler with `k` steps.
-    fn with_steps(self, k: usize) -> Self {
-        match self {
-            AnySampler::Vp(v, _) => AnySampler::Vp(v, k),
-            AnySampler::Ve(v, _) => AnySampler::Ve(v, k),
-        }
-    }
-
-    /// Network evaluations per sample.
-    fn nfe(self) -> usize {
-        match self {
-            AnySampler::Vp(_, k) => k,
-            AnySampler::Ve(v, k) => v.evaluations(k),
-        }
-    }
-}
-
-/// The teacher's current sampler.
-fn current_sampler(t: &DiffusionTeacher) -> AnySampler {
-    match t {
-        DiffusionTeacher::Ddpm(d) => AnySampler::Vp(d.sampler().0, d.sampler().1),
-        DiffusionTeacher::Beso(b) => AnySampler::Ve(b.sampler().0, b.sampler().1),
-    }
-}
-
-/// Sets the sampler; returns the previous one.
-fn set_sampler(t: &mut DiffusionTeacher, s: AnySampler) -> crate::XResult<AnySampler> {
-    let old = current_sampler(t);
-    match (t, s) {
-        (DiffusionTeacher::Ddpm(d), AnySampler::Vp(v, k)) => d.set_sampler(v, k)?,
-        (DiffusionTeacher::Beso(b), AnySampler::Ve(v, k)) => b.set_sampler(v, k)?,
-        _ => return Err("sampler of the other teacher kind".into()),
-    }
-    Ok(old)
-}
-
-/// Every sampler of the teacher's kind.
-fn samplers(t: &DiffusionTeacher, steps: usize) -> Vec<AnySampler> {
-    match t {
-        DiffusionTeacher::Ddpm(_) => {
-            [VpSampler::AncestralLarge, VpSampler::Ancestral, VpSampler::Ddim]
-                .map(|v| AnySampler::Vp(v, steps))
-                .to_vec()
-        }
-        DiffusionTeacher::Beso(_) => [
-            KarrasSampler::Euler,
-            KarrasSampler::Heun,
-            KarrasSampler::EulerAncestral,
-            KarrasSampler::Ddim,
-        ]
-        .map(|v| AnySampler::Ve(v, steps))
-        .to_vec(),
-    }
+/// The circle toy's true distribution, mode `k` at angle `offset + 2πk/8`.
+fn circle(offset: f32) -> MixtureParams {
+    MixtureParams::circle(8, 2.0, 0.5, offset)
 }
 
 fn teacher_name(t: &DiffusionTeacher) -> &'static str {
@@ -428,18 +300,7 @@ fn teacher_name(t: &DiffusionTeacher) -> &'static str {
 
 /// `n` teacher samples at raw state `s` with the teacher's policy stream seeded by `seed`.
 fn sample_at(t: &mut DiffusionTeacher, s: f32, n: usize, seed: u64) -> crate::XResult<Mat<f32>> {
-    t.seed(seed);
-    let obs = Mat::from_fn(n, 1, |_, _| s);
-    let mut out = Mat::<f32>::zeros(n, 2);
-    t.act_batch(obs.as_ref(), out.as_mut())?;
-    Ok(out)
-}
-
-fn min_share(samples: &Mat<f32>, means: &[Vec<f32>]) -> (f32, Vec<f32>) {
-    let counts = nearest_mode_counts(samples.as_ref(), means);
-    let n = samples.nrows() as f32;
-    let shares: Vec<f32> = counts.iter().map(|&c| c as f32 / n).collect();
-    (shares.iter().copied().fold(f32::INFINITY, f32::min), shares)
+    Ok(samples_at(t, &[s], n, seed)?)
 }
 
 fn fmt_shares(shares: &[f32]) -> String {
@@ -456,11 +317,13 @@ fn circle_acceptance(
     sigma: f32,
 ) -> crate::XResult<Vec<String>> {
     let seed = setup.seed;
+    let thresholds = Thresholds::default();
     let (_, true_a) = circle_data(2000, "fresh-true-a", seed)?;
     let (_, true_b) = circle_data(2000, "fresh-true-b", seed)?;
     let baseline = mmd2_rbf(true_a.as_ref(), true_b.as_ref(), 1.0);
-    let bar = 3.0 * baseline;
-    let means = circle_means(0.0);
+    let bar = thresholds.mmd2_bar(baseline);
+    let exact = circle(0.0);
+    let means = &exact.means;
     let mut failures = Vec::new();
     println!("\n== acceptance: 2-D toy (8 modes on a circle of radius 2, std 0.5; 5000 pairs) ==");
     println!(
@@ -479,34 +342,33 @@ fn circle_acceptance(
     );
     for t in ts.iter_mut() {
         let name = teacher_name(t);
-        let default = current_sampler(t);
+        let default = SamplerSetting::of(t);
         let samples = sample_at(t, 0.0, 10_000, seed)?;
-        let (share, shares) = min_share(&samples, &means);
+        let (share, shares) = mode_shares(samples.as_ref(), means);
         let mmd = mmd2_rbf(samples.as_ref().subrows(0, 2000), true_a.as_ref(), 1.0);
-        let (cos, level) = score_cosine(t, &true_b, sigma)?;
+        let ScoreCosine { cosine: cos, level } =
+            score_cosine(t, &exact, &[0.0], true_b.as_ref(), sigma)?;
         let at = match t.kind() {
             TeacherKind::Ddpm => format!("{cos:.4} (t = {level:.3})"),
             TeacherKind::Beso => format!("{cos:.4}"),
         };
-        let ok = share >= 0.06 && mmd <= bar && cos >= 0.9;
+        let measures = Measures {
+            min_mode_share: share,
+            mmd2: mmd,
+            mmd2_baseline: baseline,
+            score_cosine: cos,
+        };
+        let failed = thresholds.check(&measures, sigma);
         println!(
             "{name:<6} {:<18} {:>4} {share:>10.3} {mmd:>9.5} {:>8.2}x {at:>22} {:>6}",
             default.label(),
             default.nfe(),
             mmd / baseline,
-            pass(ok)
+            pass(failed.is_empty())
         );
-        if share < 0.06 {
-            failures.push(format!("{name}: min mode share {share:.3} < 0.06"));
-        }
-        if mmd > bar {
-            failures.push(format!("{name}: MMD² {mmd:.5} > 3 x {baseline:.5}"));
-        }
-        if cos < 0.9 {
-            failures.push(format!("{name}: score cosine {cos:.4} < 0.9 at σ = {sigma}"));
-        }
+        failures.extend(failed.iter().map(|f| format!("{name}: {f}")));
         println!("       mode shares: {}", fmt_shares(&shares));
-        let (half, _) = score_cosine(t, &true_b, 0.5 * sigma)?;
+        let half = score_cosine(t, &exact, &[0.0], true_b.as_ref(), 0.5 * sigma)?.cosine;
         println!("       (info) score cosine at σ = {}: {half:.4}", 0.5 * sigma);
     }
     println!("(info) other samplers, 2000 samples each (not part of the acceptance):");
@@ -517,12 +379,12 @@ fn circle_acceptance(
     for t in ts.iter_mut() {
         let name = teacher_name(t);
         for steps in [16usize, 8, 1] {
-            for s in samplers(t, steps) {
-                let saved = set_sampler(t, s)?;
+            for s in SamplerSetting::all(t.kind(), steps) {
+                let saved = s.apply(t)?;
                 let x = sample_at(t, 0.0, 2000, seed);
-                set_sampler(t, saved)?;
+                saved.apply(t)?;
                 let x = x?;
-                let (share, _) = min_share(&x, &means);
+                let (share, _) = mode_shares(x.as_ref(), means);
                 let mmd = mmd2_rbf(x.as_ref(), true_a.as_ref(), 1.0);
                 println!(
                     "{name:<6} {:<18} {:>4} {share:>10.3} {mmd:>9.5} {:>8.2}x",
@@ -551,6 +413,7 @@ fn rotating_acceptance(setup: &Setup, cache: &Cache) -> crate::XResult<Vec<Strin
     let mut ts = teachers(&task, setup, cache)?;
     println!("min share of 2000 samples over the 8 modes at state s (MMD² to 1000 true samples):");
     println!("{:>7} {:>22} {:>22}", "s", "DDPM", "BESO");
+    let thresholds = Thresholds::default();
     let mut worst = [f32::INFINITY; 2];
     let mut covered = [0usize; 2];
     for i in 0..8 {
@@ -561,10 +424,10 @@ fn rotating_acceptance(setup: &Setup, cache: &Cache) -> crate::XResult<Vec<Strin
         let mut cells = Vec::new();
         for (k, t) in ts.iter_mut().enumerate() {
             let x = sample_at(t, s, 2000, seed + i)?;
-            let (share, _) = min_share(&x, &circle_means(s));
+            let (share, _) = mode_shares(x.as_ref(), &circle(s).means);
             let mmd = mmd2_rbf(x.as_ref().subrows(0, 1000), truth.as_ref(), 1.0);
             worst[k] = worst[k].min(share);
-            covered[k] += usize::from(share >= 0.06);
+            covered[k] += usize::from(thresholds.covers(share));
             cells.push(format!("{share:.3} ({mmd:.4})"));
         }
         println!("{s:>7.3} {:>22} {:>22}", cells[0], cells[1]);
@@ -585,24 +448,9 @@ fn rotating_acceptance(setup: &Setup, cache: &Cache) -> crate::XResult<Vec<Strin
     Ok(failures)
 }
 
-/// Wall-clock µs per action of `act_batch` at batch size `n`: the best of 5 rounds of at least
-/// `min_secs / 5` each (the best round is the least disturbed by other jobs).
+/// µs per action of `act_batch` at batch size `n` ([`act_batch_latency_us`]).
 fn latency(t: &mut DiffusionTeacher, n: usize, min_secs: f64) -> crate::XResult<f64> {
-    let obs = Mat::<f32>::zeros(n, 1);
-    let mut out = Mat::<f32>::zeros(n, 2);
-    for _ in 0..3 {
-        t.act_batch(obs.as_ref(), out.as_mut())?;
-    }
-    let mut best = f64::INFINITY;
-    for _ in 0..5 {
-        let (start, mut calls) = (Instant::now(), 0u32);
-        while calls < 2 || start.elapsed().as_secs_f64() < min_secs / 5.0 {
-            t.act_batch(obs.as_ref(), out.as_mut())?;
-            calls += 1;
-        }
-        best = best.min(start.elapsed().as_secs_f64() / f64::from(calls));
-    }
-    Ok(best * 1e6 / n as f64)
+    Ok(act_batch_latency_us(t, n, min_secs)?)
 }
 
 fn latency_tables(ts: &mut [DiffusionTeacher; 2], min_secs: f64) -> crate::XResult {
@@ -619,22 +467,22 @@ fn latency_tables(ts: &mut [DiffusionTeacher; 2], min_secs: f64) -> crate::XResu
         println!("{:<6} {:<16}{head} {:>16}", "", "sampler", "default");
         for t in ts.iter_mut() {
             let name = teacher_name(t);
-            let default = current_sampler(t);
-            for s in samplers(t, 1) {
+            let default = SamplerSetting::of(t);
+            for s in SamplerSetting::all(t.kind(), 1) {
                 let mut row = String::new();
                 for &k in &steps {
-                    set_sampler(t, s.with_steps(k))?;
+                    s.with_steps(k).apply(t)?;
                     row.push_str(&format!("{:>9.1}", latency(t, batch, min_secs)?));
                 }
                 let def = if s.name() == default.name() {
-                    set_sampler(t, default)?;
+                    default.apply(t)?;
                     format!("{:.1} ({} st)", latency(t, batch, min_secs)?, default.steps())
                 } else {
                     String::new()
                 };
                 println!("{name:<6} {:<16}{row} {def:>16}", s.name());
             }
-            set_sampler(t, default)?;
+            default.apply(t)?;
         }
     }
     Ok(())

@@ -59,6 +59,7 @@
 //! ```
 #![warn(missing_docs)]
 
+pub mod acceptance;
 mod beso;
 mod common;
 mod ddpm;

@@ -1,0 +1,408 @@
+//! Accepting a learned teacher on a task whose true action distribution is a known Gaussian
+//! mixture (the paper's 2-D toys), and measuring its samplers.
+//!
+//! A teacher passes ([`Thresholds::check`]) when its samples
+//! * cover every mode: the share of samples nearest to each mode mean ([`mode_shares`]) is at
+//!   least [`Thresholds::min_mode_share`];
+//! * match the true distribution: the MMD² ([`crate::metrics::mmd2_rbf`]) between its samples
+//!   and true samples is at most [`Thresholds::max_mmd2_ratio`] times the MMD² of two
+//!   independent true samples of the same sizes (the statistic's own noise floor);
+//! * come from the right score: the mean cosine between its learned score and the exact
+//!   smoothed score of the mixture ([`score_cosine`]) is at least
+//!   [`Thresholds::min_score_cosine`].
+//!
+//! `cargo xtask bench teachers` runs these checks on the circle and rotating toys and prints
+//! the sampler tables ([`SamplerSetting`], [`act_batch_latency_us`]).
+//!
+//! ```
+//! use vdd_diffusion::acceptance::{Measures, Thresholds};
+//!
+//! let m = Measures { min_mode_share: 0.1, mmd2: 0.002, mmd2_baseline: 0.001, score_cosine: 0.95 };
+//! assert!(Thresholds::default().check(&m, 0.1).is_empty());
+//! let collapsed = Measures { min_mode_share: 0.0, ..m };
+//! let failures = Thresholds::default().check(&collapsed, 0.1);
+//! assert_eq!(failures[0].to_string(), "min mode share 0.000 < 0.06");
+//! ```
+
+use std::time::Instant;
+
+use faer::{Mat, MatRef};
+use vdd_core::gmm::{Gmm, GmmTeacher};
+use vdd_core::{Policy, ScoreModel};
+
+use crate::metrics::{mean_cosine_similarity, nearest_mode_counts};
+use crate::{DiffusionError, DiffusionTeacher, KarrasSampler, Result, TeacherKind, VpSampler};
+
+/// The share of the rows of `samples` nearest to each of `modes` (in order), and the smallest
+/// share.
+///
+/// ```
+/// let x = faer::mat![[0.1f32, 0.0], [0.9, 0.0], [1.1, 0.0], [1.0, 0.1]];
+/// let (min, shares) = vdd_diffusion::acceptance::mode_shares(x.as_ref(), &[vec![0.0, 0.0], vec![1.0, 0.0]]);
+/// assert_eq!(shares, [0.25, 0.75]);
+/// assert_eq!(min, 0.25);
+/// ```
+pub fn mode_shares(samples: MatRef<'_, f32>, modes: &[Vec<f32>]) -> (f32, Vec<f32>) {
+    let counts = nearest_mode_counts(samples, modes);
+    let n = samples.nrows() as f32;
+    let shares: Vec<f32> = counts.iter().map(|&c| c as f32 / n).collect();
+    (shares.iter().copied().fold(f32::INFINITY, f32::min), shares)
+}
+
+/// What [`score_cosine`] found: the mean cosine and the noise level the teacher was queried
+/// at (its own convention: `σ` for BESO, the matching time `t` for DDPM).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct ScoreCosine {
+    /// Mean cosine similarity of the learned and the exact score.
+    pub cosine: f32,
+    /// The teacher's noise level of the query.
+    pub level: f32,
+}
+
+/// A Gaussian mixture by its parameters, in raw action units: the true action distribution of
+/// a toy task. Unlike a [`Gmm`], it keeps its weights as given, so it can be carried into a
+/// teacher's normalised space without rounding.
+#[derive(Debug, Clone, PartialEq)]
+pub struct MixtureParams {
+    /// Positive weights (normalised by [`Gmm::new`]).
+    pub weights: Vec<f32>,
+    /// Component means.
+    pub means: Vec<Vec<f32>>,
+    /// Component covariances, row-major `d x d`.
+    pub covariances: Vec<Vec<f32>>,
+}
+
+impl MixtureParams {
+    /// `k` equally weighted isotropic components of standard deviation `std` on a circle of
+    /// `radius`, mode `i` at angle `offset + 2πi/k` (the circle toy: `circle(8, 2.0, 0.5, 0.0)`;
+    /// the rotating toy at state `s`: `circle(8, 2.0, 0.5, s)`).
+    ///
+    /// ```
+    /// let m = vdd_diffusion::acceptance::MixtureParams::circle(4, 2.0, 0.5, 0.0);
+    /// assert_eq!(m.means[0], [2.0, 0.0]);
+    /// assert_eq!(m.covariances[0], [0.25, 0.0, 0.0, 0.25]);
+    /// assert!(m.to_gmm().is_ok());
+    /// ```
+    pub fn circle(k: usize, radius: f32, std: f32, offset: f32) -> Self {
+        let means = (0..k)
+            .map(|i| {
+                let a = offset + std::f32::consts::TAU * i as f32 / k as f32;
+                vec![radius * a.cos(), radius * a.sin()]
+            })
+            .collect();
+        let var = std * std;
+        Self { weights: vec![1.0; k], means, covariances: vec![vec![var, 0.0, 0.0, var]; k] }
+    }
+
+    /// The mixture.
+    pub fn to_gmm(&self) -> Result<Gmm> {
+        Ok(Gmm::new(&self.weights, &self.means, &self.covariances)?)
+    }
+
+    /// The mixture of `(a − offset)/scale`: means `(μ − o)/c`, covariances `Σ_ij/(c_i c_j)`.
+    pub fn normalized(&self, offset: &[f32], scale: &[f32]) -> Self {
+        let d = offset.len();
+        let means = self
+            .means
+            .iter()
+            .map(|m| m.iter().enumerate().map(|(j, v)| (v - offset[j]) / scale[j]).collect())
+            .collect();
+        let covariances = self
+            .covariances
+            .iter()
+            .map(|c| (0..d * d).map(|ij| c[ij] / (scale[ij / d] * scale[ij % d])).collect())
+            .collect();
+        Self { weights: self.weights.clone(), means, covariances }
+    }
+}
+
+/// Mean cosine similarity between a learned teacher's score and the exact smoothed score of
+/// `exact`, the true action distribution in raw units, at noise level `sigma` of the
+/// teacher's normalised action space, on the raw `actions` at the raw `state` (every row).
+///
+/// The exact mixture is carried into the teacher's normalised space
+/// ([`MixtureParams::normalized`]). A DDPM teacher is queried at the time whose noise level is
+/// `sigma`; its `x_t = √ᾱ_t·(a + σε)`, so its score at `a` is compared with the exact score at
+/// `a/√ᾱ_t` (equal up to a positive factor, which the cosine ignores).
+///
+/// Errors: dimensions that do not fit the teacher, or a score that fails.
+pub fn score_cosine(
+    teacher: &mut DiffusionTeacher,
+    exact: &MixtureParams,
+    state: &[f32],
+    actions: MatRef<'_, f32>,
+    sigma: f32,
+) -> Result<ScoreCosine> {
+    let (sn, an) = {
+        let (s, a) = teacher.normalizers();
+        (s.clone(), a.clone())
+    };
+    let (n, d) = (actions.nrows(), actions.ncols());
+    let exact_dim = exact.means.first().map_or(0, Vec::len);
+    if exact_dim != d || an.offset.len() != d || sn.offset.len() != state.len() {
+        return Err(DiffusionError::Config(format!(
+            "score_cosine: a {exact_dim}-D mixture, {d}-D actions and a {}-D state for a \
+             teacher of {} -> {} dimensions",
+            state.len(),
+            sn.offset.len(),
+            an.offset.len()
+        )));
+    }
+    let mut exact = GmmTeacher::fixed(exact.normalized(&an.offset, &an.scale).to_gmm()?, 1);
+    let a = Mat::from_fn(n, d, |i, j| (actions[(i, j)] - an.offset[j]) / an.scale[j]);
+    // `−(o − x)` is `x − o` (IEEE subtraction is symmetric) and keeps `−o` for `x = 0`.
+    let s = Mat::from_fn(n, state.len(), |_, j| -(sn.offset[j] - state[j]) / sn.scale[j]);
+    let (level, x_scale) = match teacher {
+        DiffusionTeacher::Ddpm(t) => {
+            let time = t.schedule().time_for_sigma(sigma);
+            (time, 1.0 / t.schedule().alpha_bar(time).sqrt())
+        }
+        DiffusionTeacher::Beso(_) => (sigma, 1.0),
+    };
+    let mut learned = Mat::zeros(n, d);
+    teacher.score(a.as_ref(), s.as_ref(), &vec![level; n], learned.as_mut())?;
+    let y = Mat::from_fn(n, d, |i, j| a[(i, j)] * x_scale);
+    let mut truth = Mat::zeros(n, d);
+    exact.score(y.as_ref(), Mat::<f32>::zeros(n, 1).as_ref(), &vec![sigma; n], truth.as_mut())?;
+    Ok(ScoreCosine { cosine: mean_cosine_similarity(learned.as_ref(), truth.as_ref()), level })
+}
+
+/// The measures a teacher is accepted on (see the [module docs](self)).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Measures {
+    /// The smallest share of samples nearest to one mode ([`mode_shares`]).
+    pub min_mode_share: f32,
+    /// MMD² between teacher samples and true samples.
+    pub mmd2: f64,
+    /// MMD² between two independent true samples of the same sizes.
+    pub mmd2_baseline: f64,
+    /// Mean cosine of the learned and the exact score ([`score_cosine`]).
+    pub score_cosine: f32,
+}
+
+/// The acceptance thresholds; the defaults are the toy teachers' (6% per mode of 8, 3× the
+/// MMD² noise floor, cosine 0.9).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Thresholds {
+    /// Least share of samples per mode.
+    pub min_mode_share: f32,
+    /// Largest MMD² as a multiple of the true-vs-true baseline.
+    pub max_mmd2_ratio: f64,
+    /// Least mean score cosine.
+    pub min_score_cosine: f32,
+}
+
+impl Default for Thresholds {
+    fn default() -> Self {
+        Self { min_mode_share: 0.06, max_mmd2_ratio: 3.0, min_score_cosine: 0.9 }
+    }
+}
+
+/// A failed acceptance check; its `Display` states the measure and the threshold.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum Failure {
+    /// A mode is covered by too few samples.
+    ModeShare {
+        /// The smallest share.
+        share: f32,
+        /// The threshold.
+        min: f32,
+    },
+    /// The samples are too far from the true distribution.
+    Mmd2 {
+        /// The teacher's MMD².
+        mmd2: f64,
+        /// The allowed multiple of the baseline.
+        ratio: f64,
+        /// The true-vs-true MMD².
+        baseline: f64,
+    },
+    /// The learned score points elsewhere than the exact one.
+    ScoreCosine {
+        /// The mean cosine.
+        cosine: f32,
+        /// The threshold.
+        min: f32,
+        /// The noise level of the check.
+        sigma: f32,
+    },
+}
+
+impl std::fmt::Display for Failure {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            Self::ModeShare { share, min } => write!(f, "min mode share {share:.3} < {min}"),
+            Self::Mmd2 { mmd2, ratio, baseline } => {
+                write!(f, "MMD² {mmd2:.5} > {ratio} x {baseline:.5}")
+            }
+            Self::ScoreCosine { cosine, min, sigma } => {
+                write!(f, "score cosine {cosine:.4} < {min} at σ = {sigma}")
+            }
+        }
+    }
+}
+
+impl Thresholds {
+    /// Whether a smallest mode share passes.
+    pub fn covers(&self, min_mode_share: f32) -> bool {
+        min_mode_share >= self.min_mode_share
+    }
+
+    /// The largest MMD² that passes against `baseline`.
+    pub fn mmd2_bar(&self, baseline: f64) -> f64 {
+        self.max_mmd2_ratio * baseline
+    }
+
+    /// The failed checks of `m` (empty: the teacher passes); `sigma` is the noise level of the
+    /// score check, for the message.
+    pub fn check(&self, m: &Measures, sigma: f32) -> Vec<Failure> {
+        let mut failures = Vec::new();
+        if !self.covers(m.min_mode_share) {
+            failures.push(Failure::ModeShare { share: m.min_mode_share, min: self.min_mode_share });
+        }
+        // A NaN measure fails.
+        if m.mmd2.is_nan() || m.mmd2 > self.mmd2_bar(m.mmd2_baseline) {
+            failures.push(Failure::Mmd2 {
+                mmd2: m.mmd2,
+                ratio: self.max_mmd2_ratio,
+                baseline: m.mmd2_baseline,
+            });
+        }
+        if m.score_cosine.is_nan() || m.score_cosine < self.min_score_cosine {
+            failures.push(Failure::ScoreCosine {
+                cosine: m.score_cosine,
+                min: self.min_score_cosine,
+                sigma,
+            });
+        }
+        failures
+    }
+}
+
+/// A sampler of either learned teacher with its number of steps.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum SamplerSetting {
+    /// A DDPM (variance-preserving) sampler.
+    Vp(VpSampler, usize),
+    /// A BESO (variance-exploding, Karras) sampler.
+    Ve(KarrasSampler, usize),
+}
+
+impl SamplerSetting {
+    /// The teacher's current sampler.
+    pub fn of(teacher: &DiffusionTeacher) -> Self {
+        match teacher {
+            DiffusionTeacher::Ddpm(d) => Self::Vp(d.sampler().0, d.sampler().1),
+            DiffusionTeacher::Beso(b) => Self::Ve(b.sampler().0, b.sampler().1),
+        }
+    }
+
+    /// Every sampler of a teacher of `kind`, with `steps` steps.
+    pub fn all(kind: TeacherKind, steps: usize) -> Vec<Self> {
+        match kind {
+            TeacherKind::Ddpm => [VpSampler::AncestralLarge, VpSampler::Ancestral, VpSampler::Ddim]
+                .map(|v| Self::Vp(v, steps))
+                .to_vec(),
+            TeacherKind::Beso => [
+                KarrasSampler::Euler,
+                KarrasSampler::Heun,
+                KarrasSampler::EulerAncestral,
+                KarrasSampler::Ddim,
+            ]
+            .map(|v| Self::Ve(v, steps))
+            .to_vec(),
+        }
+    }
+
+    /// Sets this sampler on `teacher`; returns the previous one. An error for a sampler of the
+    /// other kind of teacher, or steps the teacher does not support.
+    pub fn apply(self, teacher: &mut DiffusionTeacher) -> Result<Self> {
+        let old = Self::of(teacher);
+        match (teacher, self) {
+            (DiffusionTeacher::Ddpm(d), Self::Vp(v, k)) => d.set_sampler(v, k)?,
+            (DiffusionTeacher::Beso(b), Self::Ve(v, k)) => b.set_sampler(v, k)?,
+            _ => {
+                return Err(DiffusionError::Config(format!(
+                    "sampler {self:?} is of the other teacher kind"
+                )));
+            }
+        }
+        Ok(old)
+    }
+
+    /// The sampler's name (`Heun`, `Ddim`, ...).
+    pub fn name(self) -> String {
+        match self {
+            Self::Vp(v, _) => format!("{v:?}"),
+            Self::Ve(v, _) => format!("{v:?}"),
+        }
+    }
+
+    /// Name and steps (`Heun 24`).
+    pub fn label(self) -> String {
+        format!("{} {}", self.name(), self.steps())
+    }
+
+    /// Sampling steps.
+    pub fn steps(self) -> usize {
+        match self {
+            Self::Vp(_, k) | Self::Ve(_, k) => k,
+        }
+    }
+
+    /// The same sampler with `k` steps.
+    pub fn with_steps(self, k: usize) -> Self {
+        match self {
+            Self::Vp(v, _) => Self::Vp(v, k),
+            Self::Ve(v, _) => Self::Ve(v, k),
+        }
+    }
+
+    /// Network evaluations per sample.
+    pub fn nfe(self) -> usize {
+        match self {
+            Self::Vp(_, k) => k,
+            Self::Ve(v, k) => v.evaluations(k),
+        }
+    }
+}
+
+/// `n` actions of `policy` at the raw observation `obs` (every row), with the policy seeded by
+/// `seed` first.
+pub fn samples_at<P: Policy + ?Sized>(
+    policy: &mut P,
+    obs: &[f32],
+    n: usize,
+    seed: u64,
+) -> Result<Mat<f32>> {
+    policy.seed(seed);
+    let obs = Mat::from_fn(n, obs.len(), |_, j| obs[j]);
+    let mut out = Mat::<f32>::zeros(n, policy.action_dim());
+    policy.act_batch(obs.as_ref(), out.as_mut())?;
+    Ok(out)
+}
+
+/// Wall-clock µs per action of `policy.act_batch` on `n` all-zero observations: three untimed
+/// calls, then the best of 5 rounds of at least `min_secs / 5` (and 2 calls) each; the best
+/// round is the one least disturbed by other jobs. Single-threaded.
+pub fn act_batch_latency_us<P: Policy + ?Sized>(
+    policy: &mut P,
+    n: usize,
+    min_secs: f64,
+) -> Result<f64> {
+    let obs = Mat::<f32>::zeros(n, policy.obs_dim());
+    let mut out = Mat::<f32>::zeros(n, policy.action_dim());
+    for _ in 0..3 {
+        policy.act_batch(obs.as_ref(), out.as_mut())?;
+    }
+    let mut best = f64::INFINITY;
+    for _ in 0..5 {
+        let (start, mut calls) = (Instant::now(), 0u32);
+        while calls < 2 || start.elapsed().as_secs_f64() < min_secs / 5.0 {
+            policy.act_batch(obs.as_ref(), out.as_mut())?;
+            calls += 1;
+        }
+        best = best.min(start.elapsed().as_secs_f64() / f64::from(calls));
+    }
+    Ok(best * 1e6 / n as f64)
+}
