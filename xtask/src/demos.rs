@@ -58,12 +58,9 @@ pub fn avoiding(args: &AvoidingArgs) -> crate::XResult {
     let t0 = Instant::now();
     let demos = generate_demonstrations(n, seed, &config)?;
     let gen_secs = t0.elapsed().as_secs_f64();
-    let lengths: Vec<usize> = demos.observations.iter().map(|o| o.nrows()).collect();
+    let lengths = demos.lengths();
     let total_steps: usize = lengths.iter().sum();
-    let mut mode_counts = vec![0usize; N_MODES];
-    for m in &demos.modes {
-        mode_counts[m.index()] += 1;
-    }
+    let mode_counts = demos.mode_counts();
     println!(
         "generated {n} Avoiding demonstrations (seed {seed}) from {} episodes in {:.1} ms",
         demos.episodes_run,
@@ -84,7 +81,7 @@ pub fn avoiding(args: &AvoidingArgs) -> crate::XResult {
     // 2. Write, load back, compare.
     std::fs::create_dir_all(&out).map_err(|e| format!("creating {}: {e}", out.display()))?;
     let npz = out.join("avoiding_demos.npz");
-    let episodes = Episodes::from_episodes(demos.observations.clone(), demos.actions.clone())?;
+    let episodes = demos.to_episodes()?;
     episodes.save_npz(&npz)?;
     check_round_trip(&episodes, &npz)?;
     println!("wrote {} and loaded it back bit-identically", npz.display());

@@ -429,6 +429,27 @@ pub struct Demonstrations {
     pub episodes_run: usize,
 }
 
+impl Demonstrations {
+    /// Steps of each episode.
+    pub fn lengths(&self) -> Vec<usize> {
+        self.observations.iter().map(|o| o.nrows()).collect()
+    }
+
+    /// Episodes per behaviour mode, indexed by [`AvoidingMode::index`].
+    pub fn mode_counts(&self) -> Vec<usize> {
+        let mut counts = vec![0usize; super::N_MODES];
+        for m in &self.modes {
+            counts[m.index()] += 1;
+        }
+        counts
+    }
+
+    /// The demonstrations as a dataset (`vdd_data::Episodes`), ready to save as `.npz`.
+    pub fn to_episodes(&self) -> std::result::Result<vdd_data::Episodes, vdd_data::DataError> {
+        vdd_data::Episodes::from_episodes(self.observations.clone(), self.actions.clone())
+    }
+}
+
 /// Runs the demonstrator until `n` episodes have succeeded and returns them (failed episodes,
 /// rare, are skipped). Episode `i` is seeded with
 /// [`episode_seed`]`(seed, i)`, so the result is deterministic.
