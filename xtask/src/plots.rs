@@ -71,3 +71,23 @@ pub fn avoiding_trajectories(
     let panels: Vec<_> = panels.iter().map(|p| p.0.clone()).collect();
     trajectories(stem, &avoiding_scene(), &panels, png)
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_avoiding_figure_draws_the_task_scene() {
+        let scene = avoiding_scene();
+        assert_eq!(scene.obstacles.len(), OBSTACLES.len());
+        assert_eq!(scene.finish_y, Some(FINISH_Y));
+        let dir = std::env::temp_dir().join(format!("xtask-plots-{}", std::process::id()));
+        let panel = TrajectoryPanel::from_rollouts("em", &[], 4, None, 0.5, 0.25);
+        assert!(panel.0.paths.is_empty());
+        let files = avoiding_trajectories(&dir.join("traj"), &[panel], false).unwrap();
+        assert_eq!(files.len(), 1);
+        let svg = std::fs::read_to_string(dir.join("traj.svg")).unwrap();
+        assert!(svg.contains("em: success 0.50, entropy 0.25"));
+        std::fs::remove_dir_all(&dir).unwrap();
+    }
+}
