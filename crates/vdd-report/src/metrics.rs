@@ -1,0 +1,222 @@
+//! `metrics.json`: per-seed rows, their mean and standard deviation over seeds, and reading
+//! runs back.
+//!
+//! # `metrics.json`
+//!
+//! ```text
+//! { "recipe": "avoiding", "task": "avoiding", "seeds": [0, 1, 2],
+//!   "method_order": ["beso", "vdd-beso"],
+//!   "methods": { "vdd-beso": { "success_rate": <mean over seeds>, "success_rate_std": <std>,
+//!                              ..., "seeds": 3, "per_seed": [ { "seed": 0, ... }, ... ] } } }
+//! ```
+//!
+//! Every numeric per-seed value gets a mean and a standard deviation over seeds (population
+//! std, `ddof = 0`, as numpy's default). Timing values (keys in [`TIMING_KEYS`]: `us_per_action`,
+//! `train_seconds`, `teacher_seconds`, `ms_per_iter`, and their `_std`) are wall-clock
+//! measurements; everything else is a deterministic function of the resolved recipe and the
+//! seed, so two runs of the same recipe and seeds give `metrics.json` files that are identical
+//! apart from the timing values ([`compare::compare_runs`](crate::compare::compare_runs)
+//! checks exactly that).
+
+use std::collections::BTreeMap;
+use std::path::{Path, PathBuf};
+
+use serde_json::{Map, Value};
+
+use crate::{Error, Result};
+
+/// One method's values at one seed.
+pub type Row = Map<String, Value>;
+
+/// Keys holding wall-clock measurements (excluded from the reproducibility guarantee).
+pub const TIMING_KEYS: [&str; 4] =
+    ["us_per_action", "train_seconds", "teacher_seconds", "ms_per_iter"];
+
+/// Whether `key` (or its `_std`) is a timing value.
+///
+/// ```
+/// use vdd_report::metrics::is_timing_key;
+/// assert!(is_timing_key("train_seconds_std"));
+/// assert!(!is_timing_key("success_rate"));
+/// ```
+pub fn is_timing_key(key: &str) -> bool {
+    let base = key.strip_suffix("_std").unwrap_or(key);
+    TIMING_KEYS.contains(&base)
+}
+
+/// Mean and population standard deviation (`NaN`s for no values).
+///
+/// ```
+/// assert_eq!(vdd_report::metrics::mean_std(&[1.0, 3.0]), (2.0, 1.0));
+/// ```
+pub fn mean_std(xs: &[f64]) -> (f64, f64) {
+    if xs.is_empty() {
+        return (f64::NAN, f64::NAN);
+    }
+    let n = xs.len() as f64;
+    let mean = xs.iter().sum::<f64>() / n;
+    let var = xs.iter().map(|x| (x - mean) * (x - mean)).sum::<f64>() / n;
+    (mean, var.sqrt())
+}
+
+/// Summarises per-seed rows: for every numeric key but `seed`, `<key>` = mean and
+/// `<key>_std` = std over the rows that have it; `seeds` = number of rows; `per_seed` = rows.
+///
+/// ```
+/// use serde_json::json;
+/// let rows = [json!({"seed": 0, "loss": 1.0}), json!({"seed": 1, "loss": 3.0})]
+///     .map(|v| v.as_object().unwrap().clone());
+/// let s = vdd_report::metrics::summarise(&rows);
+/// assert_eq!((s["loss"].clone(), s["loss_std"].clone()), (json!(2.0), json!(1.0)));
+/// ```
+pub fn summarise(per_seed: &[Row]) -> Row {
+    let mut keys: Vec<String> = Vec::new();
+    for r in per_seed {
+        for (k, v) in r {
+            if k != "seed" && v.is_number() && !keys.contains(k) {
+                keys.push(k.clone());
+            }
+        }
+    }
+    let mut out = Row::new();
+    for k in keys {
+        let xs: Vec<f64> = per_seed.iter().filter_map(|r| r.get(&k)?.as_f64()).collect();
+        let (m, s) = mean_std(&xs);
+        out.insert(k.clone(), json_f64(m));
+        out.insert(format!("{k}_std"), json_f64(s));
+    }
+    out.insert("seeds".into(), Value::from(per_seed.len()));
+    out.insert(
+        "per_seed".into(),
+        Value::Array(per_seed.iter().cloned().map(Value::Object).collect()),
+    );
+    out
+}
+
+/// A finite float as JSON, `null` otherwise.
+///
+/// ```
+/// use vdd_report::metrics::json_f64;
+/// assert_eq!(json_f64(0.5), serde_json::json!(0.5));
+/// assert!(json_f64(f64::NAN).is_null());
+/// ```
+pub fn json_f64(x: f64) -> Value {
+    serde_json::Number::from_f64(x).map(Value::Number).unwrap_or(Value::Null)
+}
+
+/// Builds `metrics.json`'s common part from `(label, per-seed rows)` in order.
+///
+/// ```
+/// use serde_json::json;
+/// let row = json!({"seed": 0, "success_rate": 0.9}).as_object().unwrap().clone();
+/// let m = vdd_report::metrics::metrics_json("avoiding", "avoiding", &[0], &[("em".into(), vec![row])]);
+/// assert_eq!(m["method_order"], json!(["em"]));
+/// assert_eq!(m["methods"]["em"]["success_rate"], json!(0.9));
+/// ```
+pub fn metrics_json(recipe: &str, task: &str, seeds: &[u64], rows: &[(String, Vec<Row>)]) -> Row {
+    let mut m = Row::new();
+    m.insert("recipe".into(), Value::from(recipe));
+    m.insert("task".into(), Value::from(task));
+    m.insert("seeds".into(), Value::from(seeds.to_vec()));
+    m.insert(
+        "method_order".into(),
+        Value::Array(rows.iter().map(|(n, _)| Value::from(n.as_str())).collect()),
+    );
+    let mut methods = Row::new();
+    for (name, per_seed) in rows {
+        methods.insert(name.clone(), Value::Object(summarise(per_seed)));
+    }
+    m.insert("methods".into(), Value::Object(methods));
+    m
+}
+
+/// Reads `dir/metrics.json` (or a `metrics.json` path); returns the file read and its value.
+pub fn read_metrics(path: &Path) -> Result<(PathBuf, Value)> {
+    let file = if path.is_dir() { path.join("metrics.json") } else { path.to_path_buf() };
+    let text = std::fs::read_to_string(&file)
+        .map_err(|source| Error::Read { path: file.clone(), source })?;
+    let v: Value = serde_json::from_str(&text)
+        .map_err(|source| Error::Parse { path: file.clone(), source })?;
+    Ok((file, v))
+}
+
+/// Collects `(label, per-seed rows)` from several `metrics.json` values, in first-seen order.
+/// A `(method, seed)` pair seen again replaces the earlier row (with a note in `notes`).
+pub fn collect_rows(metrics: &[Value], notes: &mut Vec<String>) -> Vec<(String, Vec<Row>)> {
+    let mut order: Vec<String> = Vec::new();
+    let mut rows: BTreeMap<String, Vec<Row>> = BTreeMap::new();
+    for m in metrics {
+        let Some(methods) = m.get("methods").and_then(Value::as_object) else { continue };
+        let mut names: Vec<String> = m
+            .get("method_order")
+            .and_then(Value::as_array)
+            .map(|a| a.iter().filter_map(|v| v.as_str().map(String::from)).collect())
+            .unwrap_or_default();
+        for k in methods.keys() {
+            if !names.contains(k) {
+                names.push(k.clone());
+            }
+        }
+        for name in names {
+            let Some(entry) = methods.get(&name) else { continue };
+            let per_seed =
+                entry.get("per_seed").and_then(Value::as_array).cloned().unwrap_or_default();
+            if !order.contains(&name) {
+                order.push(name.clone());
+            }
+            let target = rows.entry(name.clone()).or_default();
+            for r in per_seed {
+                let Value::Object(r) = r else { continue };
+                let seed = r.get("seed").cloned();
+                if let Some(i) =
+                    target.iter().position(|x| seed.is_some() && x.get("seed") == seed.as_ref())
+                {
+                    notes.push(format!(
+                        "{name}: seed {} appears twice; the later run is used",
+                        seed.unwrap_or(Value::Null)
+                    ));
+                    target[i] = r;
+                } else {
+                    target.push(r);
+                }
+            }
+        }
+    }
+    order
+        .into_iter()
+        .map(|n| {
+            let r = rows.remove(&n).unwrap_or_default();
+            (n, r)
+        })
+        .collect()
+}
+
+/// Run directories under `results` holding a `metrics.json`, grouped by recipe directory
+/// (sorted), skipping `cache`. Unreadable directories count as empty.
+pub fn find_runs(results: &Path) -> Vec<(String, Vec<PathBuf>)> {
+    let sorted_dirs = |p: &Path| -> Vec<PathBuf> {
+        let mut v: Vec<PathBuf> = std::fs::read_dir(p)
+            .map(|rd| rd.filter_map(|e| e.ok()).map(|e| e.path()).filter(|p| p.is_dir()).collect())
+            .unwrap_or_default();
+        v.sort();
+        v
+    };
+    let mut groups = Vec::new();
+    for recipe in sorted_dirs(results) {
+        let Some(name) = recipe.file_name().and_then(|n| n.to_str()).map(String::from) else {
+            continue;
+        };
+        if name == "cache" {
+            continue;
+        }
+        let runs: Vec<PathBuf> =
+            sorted_dirs(&recipe).into_iter().filter(|r| r.join("metrics.json").is_file()).collect();
+        if !runs.is_empty() {
+            groups.push((name, runs));
+        }
+    }
+    groups
+}
+
+#[cfg(test)]
+mod tests;

@@ -1,0 +1,157 @@
+//! Markdown tables of per-seed rows: one line per method, `mean ± std` over seeds per column.
+
+use std::path::PathBuf;
+
+use serde_json::Value;
+
+use crate::metrics::{Row, collect_rows, mean_std, read_metrics};
+use crate::{Error, Result};
+
+/// A column of a results table.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Column {
+    /// Key in the per-seed rows.
+    pub key: &'static str,
+    /// Header text.
+    pub header: &'static str,
+    /// Decimal digits.
+    pub digits: usize,
+}
+
+const fn col(key: &'static str, header: &'static str, digits: usize) -> Column {
+    Column { key, header, digits }
+}
+
+/// The paper's columns for `task` (`toy-gmm`, `toy-conditional`; any other task gets the
+/// Avoiding columns: success rate, task entropy, µs per action, training seconds).
+///
+/// ```
+/// let cols = vdd_report::table::columns_for("toy-gmm");
+/// assert_eq!(cols[0].key, "reverse_kl");
+/// ```
+pub fn columns_for(task: &str) -> Vec<Column> {
+    match task {
+        "toy-gmm" => vec![
+            col("reverse_kl", "reverse KL (nats)", 4),
+            col("forward_kl", "forward KL (nats)", 4),
+            col("modes_covered", "modes covered", 2),
+            col("ms_per_iter", "ms / iter", 3),
+            col("train_seconds", "train s", 1),
+        ],
+        "toy-conditional" => vec![
+            col("states_fully_covered", "states fully covered", 2),
+            col("mean_reverse_kl", "reverse KL (nats)", 4),
+            col("mean_forward_kl", "forward KL (nats)", 4),
+            col("ms_per_iter", "ms / iter", 3),
+            col("train_seconds", "train s", 1),
+        ],
+        _ => vec![
+            col("success_rate", "success rate", 3),
+            col("task_entropy", "task entropy", 3),
+            col("us_per_action", "µs / action", 1),
+            col("train_seconds", "train s", 1),
+        ],
+    }
+}
+
+/// `mean ± std` (just the mean for one seed, `–` when missing).
+///
+/// ```
+/// use vdd_report::table::fmt_cell;
+/// assert_eq!(fmt_cell(&[1.0, 3.0], 1), "2.0 ± 1.0");
+/// assert_eq!(fmt_cell(&[0.5], 2), "0.50");
+/// ```
+pub fn fmt_cell(xs: &[f64], digits: usize) -> String {
+    match xs.len() {
+        0 => "–".into(),
+        1 => format!("{:.*}", digits, xs[0]),
+        _ => {
+            let (m, s) = mean_std(xs);
+            format!("{m:.digits$} ± {s:.digits$}")
+        }
+    }
+}
+
+/// A markdown table with one row per method (in the given order) and `columns`.
+///
+/// ```
+/// use serde_json::json;
+/// use vdd_report::table::{columns_for, markdown_table};
+/// let row = json!({"seed": 0, "success_rate": 0.9}).as_object().unwrap().clone();
+/// let table = markdown_table(&[("em".into(), vec![row])], &columns_for("avoiding"));
+/// assert!(table.starts_with("| method | seeds | success rate |"));
+/// assert!(table.contains("| em | 1 | 0.900 | – | – | – |"));
+/// ```
+pub fn markdown_table(rows: &[(String, Vec<Row>)], columns: &[Column]) -> String {
+    let mut s = String::from("| method | seeds |");
+    for c in columns {
+        s.push_str(&format!(" {} |", c.header));
+    }
+    s.push_str("\n|---|---|");
+    for _ in columns {
+        s.push_str("---|");
+    }
+    s.push('\n');
+    for (name, per_seed) in rows {
+        s.push_str(&format!("| {name} | {} |", per_seed.len()));
+        for c in columns {
+            let xs: Vec<f64> = per_seed.iter().filter_map(|r| r.get(c.key)?.as_f64()).collect();
+            s.push_str(&format!(" {} |", fmt_cell(&xs, c.digits)));
+        }
+        s.push('\n');
+    }
+    s
+}
+
+/// A table over several runs: the markdown text and notes about how the runs were merged.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Table {
+    /// A `## recipe (task)` heading, the table, and a line naming the runs.
+    pub text: String,
+    /// Notes such as a `(method, seed)` found in two runs (the later one is used).
+    pub notes: Vec<String>,
+}
+
+/// The mean ± std table over every seed found in the runs at `paths` (run directories or
+/// their `metrics.json`), which must be of one task.
+///
+/// ```no_run
+/// let table = vdd_report::table::table_of_runs(&["results/toy-gmm/run1".into()])?;
+/// print!("{}", table.text);
+/// # Ok::<(), vdd_report::Error>(())
+/// ```
+pub fn table_of_runs(paths: &[PathBuf]) -> Result<Table> {
+    let mut values = Vec::new();
+    let mut tasks: Vec<String> = Vec::new();
+    let mut recipes: Vec<String> = Vec::new();
+    for p in paths {
+        let (file, v) = read_metrics(p)?;
+        if v.get("methods").and_then(Value::as_object).is_none() {
+            return Err(Error::NoMethods { path: file });
+        }
+        for (key, list) in [("task", &mut tasks), ("recipe", &mut recipes)] {
+            if let Some(t) = v.get(key).and_then(Value::as_str) {
+                if !list.iter().any(|x| x == t) {
+                    list.push(t.to_owned());
+                }
+            }
+        }
+        values.push(v);
+    }
+    if tasks.len() > 1 {
+        return Err(Error::MixedTasks { tasks });
+    }
+    let task = tasks.first().cloned().unwrap_or_else(|| "avoiding".into());
+    let mut notes = Vec::new();
+    let rows = collect_rows(&values, &mut notes);
+    let mut text = format!("## {} ({task})\n\n", recipes.join(" + "));
+    text.push_str(&markdown_table(&rows, &columns_for(&task)));
+    text.push_str(&format!(
+        "\nmean ± std over seeds (population std); from {}\n",
+        paths.iter().map(|p| p.display().to_string()).collect::<Vec<_>>().join(", ")
+    ));
+    Ok(Table { text, notes })
+}
+
+#[cfg(test)]
+mod tests;
