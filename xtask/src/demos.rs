@@ -18,6 +18,7 @@ use std::time::Instant;
 
 use vdd_core::Seeds;
 use vdd_data::Episodes;
+use vdd_tasks::avoiding::FarLeft;
 use vdd_tasks::avoiding::N_MODES;
 use vdd_tasks::avoiding::rollout::{EvalConfig, Evaluation, Stepping, evaluate, evaluate_cloned};
 use vdd_tasks::{
@@ -178,25 +179,6 @@ fn check_round_trip(episodes: &Episodes, path: &Path) -> crate::XResult {
         return Err(format!("re-saving the loaded {} changes its bytes", path.display()).into());
     }
     Ok(())
-}
-
-/// Steers the desired position to x = 0.28 while moving up: the far-left route, at almost no
-/// cost per step, so its rollouts time the environment itself.
-struct FarLeft;
-
-impl vdd_core::Policy for FarLeft {
-    fn obs_dim(&self) -> usize {
-        4
-    }
-    fn action_dim(&self) -> usize {
-        2
-    }
-    fn act_into(&mut self, obs: &[f32], action: &mut [f32]) -> Result<(), vdd_core::CoreError> {
-        vdd_core::check_act_args(self, obs, action)?;
-        action[0] = (0.28 - obs[0]).clamp(-0.01, 0.01);
-        action[1] = 0.005;
-        Ok(())
-    }
 }
 
 fn timed<T, E>(f: impl FnOnce() -> Result<T, E>) -> Result<(T, f64), E> {

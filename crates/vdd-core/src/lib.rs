@@ -28,12 +28,12 @@ mod score;
 mod seed;
 mod trainer;
 
-pub use denoiser::{ClampedDenoiser, DenoiserForm, data_box};
+pub use denoiser::{ClampedDenoiser, data_box};
 pub use error::{CoreError, Result, check_finite, check_finite_slice, check_len, check_shape};
 pub use expert::{Expert, ScaleActivation, sigmoid, softplus};
 pub use normalize::Affine;
 pub use policy::{Policy, check_act_args};
-pub use score::{NoiseConvention, NoiseSchedule, ScoreModel, check_score_args};
+pub use score::{DenoiserForm, NoiseConvention, NoiseSchedule, ScoreModel, check_score_args};
 pub use seed::{Rng, Seeds, fill_standard_normal, standard_normal};
 pub use trainer::Trainer;
 

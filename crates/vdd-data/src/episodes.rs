@@ -5,7 +5,6 @@ use rand::seq::SliceRandom;
 use vdd_core::Seeds;
 
 use crate::error::{DataError, Result};
-use crate::normalize::Normalization;
 
 /// A set of `N` demonstration episodes of ragged lengths `T_i`, stored padded to the longest
 /// length `T = max T_i`, exactly like the arrays of the play-to-policy / BeT datasets:
@@ -404,25 +403,28 @@ impl Episodes {
         })
     }
 
-    /// A copy with observations and actions mapped through `normalization` (valid steps only;
-    /// padding stays zero).
+    /// A copy with every valid step's observation and action mapped in place by `obs` and `act`
+    /// (padding stays zero), as [`Episodes::normalized`] does.
     ///
-    /// Errors: [`DataError::Shape`] when the normalisation's dimensions differ from the data's,
-    /// [`DataError::NonFinite`] if a value overflows.
-    pub fn normalized(&self, normalization: &Normalization) -> Result<Self> {
-        normalization.check_dims(self.obs_dim, self.act_dim)?;
+    /// Errors: [`DataError::NonFinite`] naming the first episode and step whose mapped values are
+    /// not finite.
+    pub(crate) fn map_steps(
+        &self,
+        obs: impl Fn(&mut [f32]),
+        act: impl Fn(&mut [f32]),
+    ) -> Result<Self> {
         let mut out = self.clone();
         for (i, &len) in self.lengths.iter().enumerate() {
             let o = &mut out.observations
                 [i * self.max_len * self.obs_dim..(i * self.max_len + len) * self.obs_dim];
-            normalization.observations.normalize(o);
+            obs(o);
             if let Some(k) = o.iter().position(|x| !x.is_finite()) {
                 let what = "observations";
                 return Err(DataError::NonFinite { what, episode: i, step: k / self.obs_dim });
             }
             let a = &mut out.actions
                 [i * self.max_len * self.act_dim..(i * self.max_len + len) * self.act_dim];
-            normalization.actions.normalize(a);
+            act(a);
             if let Some(k) = a.iter().position(|x| !x.is_finite()) {
                 let what = "actions";
                 return Err(DataError::NonFinite { what, episode: i, step: k / self.act_dim });

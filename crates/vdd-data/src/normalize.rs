@@ -197,6 +197,21 @@ fn fit_affine<'a>(
     Ok(Affine::new(offset, scale)?)
 }
 
+impl Episodes {
+    /// A copy with observations and actions mapped through `normalization` (valid steps only;
+    /// padding stays zero).
+    ///
+    /// Errors: [`DataError::Shape`] when the normalisation's dimensions differ from the data's,
+    /// [`DataError::NonFinite`] if a value overflows.
+    pub fn normalized(&self, normalization: &Normalization) -> Result<Self> {
+        normalization.check_dims(self.obs_dim(), self.act_dim())?;
+        self.map_steps(
+            |o| normalization.observations.normalize(o),
+            |a| normalization.actions.normalize(a),
+        )
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

@@ -374,6 +374,35 @@ pub fn segment_disc_distance(p: [f32; 2], q: [f32; 2], c: [f32; 2]) -> f32 {
     (x * x + y * y).sqrt()
 }
 
+/// A scripted policy that steers the desired position to `x = 0.28` while moving up: the
+/// far-left route, at almost no cost per step, so its rollouts time the environment itself
+/// (`cargo xtask demos avoiding` reports the environment's steps per second with it).
+///
+/// ```
+/// use vdd_core::Policy;
+/// use vdd_tasks::avoiding::FarLeft;
+/// let mut p = FarLeft;
+/// let a = p.act(&[0.5, -0.2, 0.5, -0.2]).unwrap();
+/// assert_eq!(a, vec![-0.01, 0.005]); // left at the step limit, and up
+/// ```
+#[derive(Debug, Clone, Copy, Default)]
+pub struct FarLeft;
+
+impl vdd_core::Policy for FarLeft {
+    fn obs_dim(&self) -> usize {
+        4
+    }
+    fn action_dim(&self) -> usize {
+        2
+    }
+    fn act_into(&mut self, obs: &[f32], action: &mut [f32]) -> std::result::Result<(), CoreError> {
+        vdd_core::check_act_args(self, obs, action)?;
+        action[0] = (0.28 - obs[0]).clamp(-0.01, 0.01);
+        action[1] = 0.005;
+        Ok(())
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
