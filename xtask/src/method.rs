@@ -21,20 +21,31 @@ use crate::recipe;
 use crate::student_cache::StudentCache;
 use crate::teachers::{TeachersConfig, TrainedTeacher};
 
+/// What a method is: its name, its teacher, where it runs and what it reads.
+#[derive(Debug, Clone, Copy)]
+pub struct Info {
+    /// The lower-case hyphenated name (`vdd-beso`), as in `--methods` and `metrics.json`.
+    pub name: &'static str,
+    /// The learned teacher the method needs (trained, or loaded from the cache, before it).
+    pub teacher: Option<TeacherKind>,
+    /// The tasks it runs on (`avoiding`, `toy-gmm`, `toy-conditional`).
+    pub tasks: &'static [&'static str],
+    /// The recipe keys (dotted paths below a task's method sections) it reads.
+    pub keys: &'static [&'static str],
+}
+
 /// One method of the comparison (a row of the results table).
 pub trait Method: Sync {
-    /// The lower-case hyphenated name (`vdd-beso`), as in `--methods` and `metrics.json`.
-    fn name(&self) -> &'static str;
-    /// The learned teacher the method needs (trained, or loaded from the cache, before it).
-    fn teacher(&self) -> Option<TeacherKind>;
-    /// The tasks it runs on (`avoiding`, `toy-gmm`, `toy-conditional`).
-    fn tasks(&self) -> &'static [&'static str];
-    /// The recipe keys (dotted paths below a task's method sections) it reads.
-    fn keys(&self) -> &'static [&'static str];
+    /// Name, teacher, tasks and keys.
+    fn info(&self) -> &Info;
     /// Reads its settings from `recipe`, failing as training would on a missing or bad one.
     fn check(&self, recipe: &MethodRecipe<'_>) -> crate::XResult;
     /// Trains on `job`.
     fn train(&self, job: &Job<'_>) -> crate::XResult<Trained>;
+    /// [`Info::name`].
+    fn name(&self) -> &'static str {
+        self.info().name
+    }
 }
 
 /// A method's view of one resolved recipe: the shared sections typed, anything else by path.
@@ -122,6 +133,7 @@ impl AsRef<TrainingData> for TrainingData {
 }
 
 /// Everything one training of a method gets.
+#[derive(Clone, Copy)]
 pub struct Job<'a> {
     /// The run seed (every seed inside the method's configurations is replaced by it).
     pub seed: u64,

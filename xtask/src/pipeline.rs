@@ -110,7 +110,7 @@ pub fn plan<'r, R: TaskRecipe>(
 }
 
 fn check_method_sections<R: TaskRecipe>(task: &str, tree: &Table, cfg: &R) -> XResult {
-    let claimed = |key: &str| methods::REGISTRY.iter().any(|m| m.keys().contains(&key));
+    let claimed = |key: &str| methods::REGISTRY.iter().any(|m| m.info().keys.contains(&key));
     for section in R::METHOD_SECTIONS {
         let keys = tree.get(*section).and_then(|v| v.as_table()).into_iter().flatten();
         for (k, _) in keys {
@@ -236,7 +236,7 @@ pub fn train_all<R: TaskRecipe, P: AsRef<TrainingData> + Sync>(
     let mut teacher_jobs: Vec<(String, TeacherKind, usize, usize)> = Vec::new();
     for (si, &seed) in seeds.iter().enumerate() {
         for (pi, e) in plan.iter().enumerate() {
-            if let Some(kind) = e.method.teacher() {
+            if let Some(kind) = e.method.info().teacher {
                 let key = teacher_key(kind, e.cfg.teachers(), data.get(si, pi).as_ref(), seed)?;
                 if !teacher_jobs.iter().any(|j| j.0 == key) {
                     teacher_jobs.push((key, kind, si, pi));
@@ -246,64 +246,50 @@ pub fn train_all<R: TaskRecipe, P: AsRef<TrainingData> + Sync>(
     }
     let (free, dependent): (Vec<_>, Vec<_>) = (0..seeds.len())
         .flat_map(|si| (0..plan.len()).map(move |pi| (si, pi)))
-        .partition(|&(_, pi)| plan[pi].method.teacher().is_none());
-    enum Work<'a> {
-        Teacher(&'a (String, TeacherKind, usize, usize)),
+        .partition(|&(_, pi)| plan[pi].method.info().teacher.is_none());
+    enum Work {
+        Teacher(usize),
         Method(usize, usize),
     }
     enum Done {
-        Teacher(String, Box<TrainedTeacher>),
+        Teacher(usize, Box<TrainedTeacher>),
         Method((usize, usize), Box<Trained>),
     }
     let run_job = |w: &Work, store: &TeacherStore| -> Result<Done, String> {
-        match w {
-            Work::Teacher((key, kind, si, pi)) => {
-                let (seed, d) = (seeds[*si], data.get(*si, *pi).as_ref());
-                let label = format!("{} s{seed}", teachers::kind_name(*kind));
-                let (s, a) = (d.states.as_ref(), d.actions.as_ref());
-                let cfg = plan[*pi].cfg.teachers();
-                let cache = &ctx.cache_dir;
-                let t = teachers::train_or_load(*kind, cfg, s, a, seed, cache, ctx.fresh, &label)
-                    .map_err(|e| e.to_string())?;
-                Ok(Done::Teacher(key.clone(), Box::new(t)))
-            }
-            Work::Method(si, pi) => {
-                let (e, seed, d) = (&plan[*pi], seeds[*si], data.get(*si, *pi).as_ref());
-                let label = format!("{} s{seed}", e.label);
-                let teacher = match e.method.teacher() {
-                    Some(kind) => Some(
-                        store.get(kind, e.cfg.teachers(), d, seed).map_err(|e| e.to_string())?,
-                    ),
-                    None => None,
-                };
-                let job =
-                    Job { seed, label: &label, data: d, teacher, recipe: e.recipe(), students };
-                let t = e.method.train(&job).map_err(|e| format!("{label}: {e}"))?;
-                Ok(Done::Method((*si, *pi), Box::new(t)))
-            }
+        let (si, pi) = match *w {
+            Work::Teacher(i) => (teacher_jobs[i].2, teacher_jobs[i].3),
+            Work::Method(si, pi) => (si, pi),
+        };
+        let (e, seed, d) = (&plan[pi], seeds[si], data.get(si, pi).as_ref());
+        let cfg = e.cfg.teachers();
+        if let Work::Teacher(i) = *w {
+            let kind = teacher_jobs[i].1;
+            let label = format!("{} s{seed}", teachers::kind_name(kind));
+            let (s, a, cache) = (d.states.as_ref(), d.actions.as_ref(), &ctx.cache_dir);
+            let t = teachers::train_or_load(kind, cfg, s, a, seed, cache, ctx.fresh, &label);
+            return Ok(Done::Teacher(i, Box::new(t.map_err(|e| e.to_string())?)));
         }
+        let label = format!("{} s{seed}", e.label);
+        let teacher = e.method.info().teacher.map(|kind| store.get(kind, cfg, d, seed));
+        let teacher = teacher.transpose().map_err(|e| e.to_string())?;
+        let job = Job { seed, label: &label, data: d, teacher, recipe: e.recipe(), students };
+        let t = e.method.train(&job).map_err(|e| format!("{label}: {e}"))?;
+        Ok(Done::Method((si, pi), Box::new(t)))
     };
     let mut out = Trainings { trained: HashMap::new(), teachers: TeacherStore::default() };
+    let first = (0..teacher_jobs.len()).map(Work::Teacher);
     let phases = [
-        (
-            "teachers",
-            teacher_jobs
-                .iter()
-                .map(Work::Teacher)
-                .chain(free.iter().map(|&(s, p)| Work::Method(s, p)))
-                .collect::<Vec<_>>(),
-        ),
-        ("students", dependent.iter().map(|&(s, p)| Work::Method(s, p)).collect()),
+        ("teachers", first.chain(free.iter().map(|&(s, p)| Work::Method(s, p))).collect()),
+        ("students", dependent.iter().map(|&(s, p)| Work::Method(s, p)).collect::<Vec<_>>()),
     ];
     for (stage, work) in phases {
         let t0 = Instant::now();
         for done in crate::context::parallel_map(&work, jobs, |w| run_job(w, &out.teachers))? {
             match done {
-                Done::Teacher(key, t) => {
-                    let (_, kind, si, _) =
-                        teacher_jobs.iter().find(|j| j.0 == key).ok_or("internal")?;
+                Done::Teacher(i, t) => {
+                    let (key, kind, si, _) = &teacher_jobs[i];
                     out.teachers.log.push(teachers::cache_entry(*kind, seeds[*si], &t));
-                    out.teachers.teachers.insert(key, *t);
+                    out.teachers.teachers.insert(key.clone(), *t);
                 }
                 Done::Method(k, t) => {
                     out.trained.insert(k, *t);

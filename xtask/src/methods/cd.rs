@@ -8,29 +8,30 @@ use std::time::Instant;
 use vdd_consistency::{CdConfig, CdTrainer, ConsistencyProgress};
 use vdd_diffusion::{Beso, BesoConfig, DiffusionTeacher, TeacherKind};
 
-use crate::method::{Job, Method, MethodRecipe, Trained};
+use crate::method::{Info, Job, Method, MethodRecipe, Trained};
 use crate::plots::Curves;
 use crate::policy::TrainedPolicy;
 
 /// CD.
 pub struct Cd;
 
+const INFO: Info = Info {
+    name: "cd",
+    teacher: Some(TeacherKind::Beso),
+    tasks: &["avoiding"],
+    keys: &["baselines.cd", FOLLOW],
+};
+
+/// The key of `consistency_follows_teacher` (CD and CTM).
+pub const FOLLOW: &str = "baselines.consistency_follows_teacher";
+
 impl Method for Cd {
-    fn name(&self) -> &'static str {
-        "cd"
-    }
-    fn teacher(&self) -> Option<TeacherKind> {
-        Some(TeacherKind::Beso)
-    }
-    fn tasks(&self) -> &'static [&'static str] {
-        &["avoiding"]
-    }
-    fn keys(&self) -> &'static [&'static str] {
-        &["baselines.cd", "baselines.consistency_follows_teacher"]
+    fn info(&self) -> &Info {
+        &INFO
     }
     fn check(&self, recipe: &MethodRecipe<'_>) -> crate::XResult {
         recipe.get::<CdConfig>("baselines.cd")?;
-        recipe.get::<bool>("baselines.consistency_follows_teacher").map(drop)
+        recipe.get::<bool>(FOLLOW).map(drop)
     }
     fn train(&self, job: &Job<'_>) -> crate::XResult<Trained> {
         distil(job, |beso, follow, curves| {
@@ -57,7 +58,7 @@ pub fn distil(
     let DiffusionTeacher::Beso(beso) = t.teacher.clone() else {
         return Err("CD and CTM need the BESO teacher".into());
     };
-    let follow = job.recipe.get("baselines.consistency_follows_teacher")?;
+    let follow = job.recipe.get(FOLLOW)?;
     let mut curves = Curves::default();
     let t0 = Instant::now();
     let (policy, steps) = train(beso, follow, &mut curves)?;

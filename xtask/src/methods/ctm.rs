@@ -6,28 +6,26 @@ use vdd_consistency::{CtmConfig, CtmTrainer};
 use vdd_diffusion::TeacherKind;
 
 use super::cd;
-use crate::method::{Job, Method, MethodRecipe, Trained};
+use crate::method::{Info, Job, Method, MethodRecipe, Trained};
 use crate::policy::TrainedPolicy;
 
 /// CTM.
 pub struct Ctm;
 
+const INFO: Info = Info {
+    name: "ctm",
+    teacher: Some(TeacherKind::Beso),
+    tasks: &["avoiding"],
+    keys: &["baselines.ctm", cd::FOLLOW],
+};
+
 impl Method for Ctm {
-    fn name(&self) -> &'static str {
-        "ctm"
-    }
-    fn teacher(&self) -> Option<TeacherKind> {
-        Some(TeacherKind::Beso)
-    }
-    fn tasks(&self) -> &'static [&'static str] {
-        &["avoiding"]
-    }
-    fn keys(&self) -> &'static [&'static str] {
-        &["baselines.ctm", "baselines.consistency_follows_teacher"]
+    fn info(&self) -> &Info {
+        &INFO
     }
     fn check(&self, recipe: &MethodRecipe<'_>) -> crate::XResult {
         recipe.get::<CtmConfig>("baselines.ctm")?;
-        recipe.get::<bool>("baselines.consistency_follows_teacher").map(drop)
+        recipe.get::<bool>(cd::FOLLOW).map(drop)
     }
     fn train(&self, job: &Job<'_>) -> crate::XResult<Trained> {
         cd::distil(job, |beso, follow, curves| {

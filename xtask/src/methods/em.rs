@@ -3,29 +3,23 @@
 
 use std::time::Instant;
 
-use vdd_diffusion::TeacherKind;
+use indicatif::ProgressBar;
 use vdd_mixture::{Dataset, EmConfig};
 use vdd_moe::Moe;
 
-use crate::method::{Job, Method, MethodRecipe, Trained};
+use crate::method::{Info, Job, Method, MethodRecipe, Trained};
 use crate::plots::Curves;
 use crate::policy::TrainedPolicy;
 
 /// EM.
 pub struct Em;
 
+const INFO: Info =
+    Info { name: "em", teacher: None, tasks: &["avoiding"], keys: &["baselines.em"] };
+
 impl Method for Em {
-    fn name(&self) -> &'static str {
-        "em"
-    }
-    fn teacher(&self) -> Option<TeacherKind> {
-        None
-    }
-    fn tasks(&self) -> &'static [&'static str] {
-        &["avoiding"]
-    }
-    fn keys(&self) -> &'static [&'static str] {
-        &["baselines.em"]
+    fn info(&self) -> &Info {
+        &INFO
     }
     fn check(&self, recipe: &MethodRecipe<'_>) -> crate::XResult {
         recipe.get::<EmConfig>("baselines.em").map(drop)
@@ -37,11 +31,8 @@ impl Method for Em {
             em.train(|m| {
                 bar.inc(1);
                 bar.set_message(format!("log-lik {:.3}", m.log_likelihood));
-                let x = m.iteration as f64;
-                curves
-                    .entry("log-likelihood (nats)".into())
-                    .or_default()
-                    .push((x, m.log_likelihood));
+                let ll = curves.entry("log-likelihood (nats)".into()).or_default();
+                ll.push((m.iteration as f64, m.log_likelihood));
             })?;
             Ok(em.into_student())
         })
@@ -54,7 +45,7 @@ impl Method for Em {
 pub fn fit(
     job: &Job<'_>,
     iterations: usize,
-    train: impl FnOnce(Moe, Dataset, &indicatif::ProgressBar, &mut Curves) -> crate::XResult<Moe>,
+    train: impl FnOnce(Moe, Dataset, &ProgressBar, &mut Curves) -> crate::XResult<Moe>,
 ) -> crate::XResult<Trained> {
     let d = job.data;
     let data = Dataset::new(d.states_normalized.clone(), d.actions_normalized.clone())?;

@@ -2,26 +2,19 @@
 //! demonstrations with a curriculum per expert. Keys: `baselines.imc` (the [`ImcConfig`]; its
 //! `seed` is replaced by the run seed).
 
-use vdd_diffusion::TeacherKind;
 use vdd_mixture::ImcConfig;
 
-use crate::method::{Job, Method, MethodRecipe, Trained};
+use crate::method::{Info, Job, Method, MethodRecipe, Trained};
 
 /// IMC.
 pub struct Imc;
 
+const INFO: Info =
+    Info { name: "imc", teacher: None, tasks: &["avoiding"], keys: &["baselines.imc"] };
+
 impl Method for Imc {
-    fn name(&self) -> &'static str {
-        "imc"
-    }
-    fn teacher(&self) -> Option<TeacherKind> {
-        None
-    }
-    fn tasks(&self) -> &'static [&'static str] {
-        &["avoiding"]
-    }
-    fn keys(&self) -> &'static [&'static str] {
-        &["baselines.imc"]
+    fn info(&self) -> &Info {
+        &INFO
     }
     fn check(&self, recipe: &MethodRecipe<'_>) -> crate::XResult {
         recipe.get::<ImcConfig>("baselines.imc").map(drop)
@@ -34,10 +27,8 @@ impl Method for Imc {
                 bar.inc(1);
                 bar.set_message(format!("log-lik {:.3}", m.log_likelihood));
                 let x = m.iteration as f64;
-                curves
-                    .entry("log-likelihood (nats)".into())
-                    .or_default()
-                    .push((x, m.log_likelihood));
+                let ll = curves.entry("log-likelihood (nats)".into()).or_default();
+                ll.push((x, m.log_likelihood));
                 curves.entry("IMC objective".into()).or_default().push((x, m.objective));
             })?;
             Ok(imc.into_student())

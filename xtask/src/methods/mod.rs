@@ -39,7 +39,7 @@ pub fn find(name: &str) -> Result<&'static dyn Method, String> {
 
 /// Whether `method` runs on `task`.
 pub fn supports(method: &dyn Method, task: &str) -> bool {
-    method.tasks().contains(&task)
+    method.info().tasks.contains(&task)
 }
 
 /// Parses and checks a recipe's method list: known names available on `task`, no duplicates.
@@ -88,7 +88,7 @@ mod tests {
             assert_eq!(find(n).unwrap().name(), n);
             assert!(n.chars().all(|c| c.is_ascii_lowercase() || c.is_ascii_digit() || c == '-'));
             assert!(REGISTRY[..i].iter().all(|o| o.name() != n), "{n} twice");
-            assert!(!m.tasks().is_empty(), "{n} runs nowhere");
+            assert!(!m.info().tasks.is_empty(), "{n} runs nowhere");
         }
         assert!(find("VDD-BESO").is_err());
         assert!(find("vdd").err().unwrap().contains("known: ddpm, beso"));

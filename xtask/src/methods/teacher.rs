@@ -4,41 +4,30 @@
 
 use vdd_diffusion::TeacherKind;
 
-use crate::method::{Job, Method, MethodRecipe, Trained};
+use crate::method::{Info, Job, Method, MethodRecipe, Trained};
 use crate::plots::Curves;
 use crate::policy::TrainedPolicy;
 use crate::teachers;
 
 /// A learned teacher sampling with its default steps, or with one.
-pub struct TeacherRow {
-    name: &'static str,
-    kind: TeacherKind,
-    one_step: bool,
+pub struct TeacherRow(Info, bool);
+
+const fn row(name: &'static str, kind: TeacherKind, one_step: bool) -> TeacherRow {
+    TeacherRow(Info { name, teacher: Some(kind), tasks: &["avoiding"], keys: &[] }, one_step)
 }
 
-/// `ddpm`.
-pub const DDPM: TeacherRow = TeacherRow { name: "ddpm", kind: TeacherKind::Ddpm, one_step: false };
-/// `beso`.
-pub const BESO: TeacherRow = TeacherRow { name: "beso", kind: TeacherKind::Beso, one_step: false };
-/// `ddpm-1`.
-pub const DDPM_1: TeacherRow =
-    TeacherRow { name: "ddpm-1", kind: TeacherKind::Ddpm, one_step: true };
-/// `beso-1`.
-pub const BESO_1: TeacherRow =
-    TeacherRow { name: "beso-1", kind: TeacherKind::Beso, one_step: true };
+/// `ddpm`, `beso`, `ddpm-1`, `beso-1`.
+pub const DDPM: TeacherRow = row("ddpm", TeacherKind::Ddpm, false);
+#[allow(missing_docs)]
+pub const BESO: TeacherRow = row("beso", TeacherKind::Beso, false);
+#[allow(missing_docs)]
+pub const DDPM_1: TeacherRow = row("ddpm-1", TeacherKind::Ddpm, true);
+#[allow(missing_docs)]
+pub const BESO_1: TeacherRow = row("beso-1", TeacherKind::Beso, true);
 
 impl Method for TeacherRow {
-    fn name(&self) -> &'static str {
-        self.name
-    }
-    fn teacher(&self) -> Option<TeacherKind> {
-        Some(self.kind)
-    }
-    fn tasks(&self) -> &'static [&'static str] {
-        &["avoiding"]
-    }
-    fn keys(&self) -> &'static [&'static str] {
-        &[]
+    fn info(&self) -> &Info {
+        &self.0
     }
     fn check(&self, _: &MethodRecipe<'_>) -> crate::XResult {
         Ok(())
@@ -46,14 +35,12 @@ impl Method for TeacherRow {
     fn train(&self, job: &Job<'_>) -> crate::XResult<Trained> {
         let t = job.teacher()?;
         let mut teacher = t.teacher.clone();
-        if self.one_step {
+        if self.1 {
             teacher.set_steps(1)?;
         }
-        let mut curves = Curves::default();
-        curves.insert(
-            format!("{} teacher loss", teachers::kind_name(self.kind)),
-            t.losses.iter().map(|&(s, l)| (s as f64, f64::from(l))).collect(),
-        );
+        let loss = t.losses.iter().map(|&(s, l)| (s as f64, f64::from(l))).collect();
+        let kind = teachers::kind_name(teacher.kind());
+        let curves = Curves::from([(format!("{kind} teacher loss"), loss)]);
         let steps = teacher.steps();
         let policy = TrainedPolicy::Teacher(Box::new(teacher));
         Ok(Trained { sampling_steps: Some(steps), ..Trained::new(policy, t.train_seconds, curves) })

@@ -20,66 +20,52 @@ use vdd_core::{Affine, ClampedDenoiser, ScoreModel};
 use vdd_diffusion::TeacherKind;
 use vdd_moe::{ActMode, GatingKind, MoeConfig};
 
-use crate::method::{Job, Method, MethodRecipe, Trained};
+use crate::method::{Info, Job, Method, MethodRecipe, Trained};
 use crate::plots::Curves;
 use crate::policy::TrainedPolicy;
 use crate::recipe;
 use crate::student_cache::{CachedStudent, STUDENT_CACHE_VERSION};
 use crate::teachers;
 
-/// VDD distilling one teacher.
-pub struct VddMethod {
-    name: &'static str,
-    /// The learned teacher; `None`: the task's exact one.
-    teacher: Option<TeacherKind>,
-    /// `beso`, `ddpm` or `exact`: the key of its settings below `vdd`.
-    section: &'static str,
-    keys: &'static [&'static str],
-    tasks: &'static [&'static str],
-}
+/// VDD distilling one teacher, with the key of its settings below `vdd`.
+pub struct VddMethod(Info, &'static str);
+
+const LEARNED: &[&str] = &["avoiding", "toy-gmm"];
 
 /// `vdd-ddpm`.
-pub const VDD_DDPM: VddMethod = VddMethod {
-    name: "vdd-ddpm",
-    teacher: Some(TeacherKind::Ddpm),
-    section: "ddpm",
-    keys: &[
-        "vdd.ddpm",
-        "vdd.ddpm_gating",
-        "vdd.clip_margin",
-        "vdd.greedy_gating",
-        "vdd.sample_action",
-    ],
-    tasks: &["avoiding", "toy-gmm"],
-};
+pub const VDD_DDPM: VddMethod = VddMethod(
+    Info {
+        name: "vdd-ddpm",
+        teacher: Some(TeacherKind::Ddpm),
+        tasks: LEARNED,
+        keys: &["vdd.ddpm", "vdd.ddpm_gating", CLIP, GREEDY, SAMPLE],
+    },
+    "ddpm",
+);
 /// `vdd-beso`.
-pub const VDD_BESO: VddMethod = VddMethod {
-    name: "vdd-beso",
-    teacher: Some(TeacherKind::Beso),
-    section: "beso",
-    keys: &[
-        "vdd.beso",
-        "vdd.beso_gating",
-        "vdd.clip_margin",
-        "vdd.greedy_gating",
-        "vdd.sample_action",
-    ],
-    tasks: &["avoiding", "toy-gmm"],
-};
+pub const VDD_BESO: VddMethod = VddMethod(
+    Info {
+        name: "vdd-beso",
+        teacher: Some(TeacherKind::Beso),
+        tasks: LEARNED,
+        keys: &["vdd.beso", "vdd.beso_gating", CLIP, GREEDY, SAMPLE],
+    },
+    "beso",
+);
 /// `vdd-exact`.
-pub const VDD_EXACT: VddMethod = VddMethod {
-    name: "vdd-exact",
-    teacher: None,
-    section: "exact",
-    keys: &[
-        "vdd.exact",
-        "vdd.exact_gating",
-        "vdd.clip_margin",
-        "vdd.greedy_gating",
-        "vdd.sample_action",
-    ],
-    tasks: &["toy-gmm", "toy-conditional"],
-};
+pub const VDD_EXACT: VddMethod = VddMethod(
+    Info {
+        name: "vdd-exact",
+        teacher: None,
+        tasks: &["toy-gmm", "toy-conditional"],
+        keys: &["vdd.exact", "vdd.exact_gating", CLIP, GREEDY, SAMPLE],
+    },
+    "exact",
+);
+
+const CLIP: &str = "vdd.clip_margin";
+const GREEDY: &str = "vdd.greedy_gating";
+const SAMPLE: &str = "vdd.sample_action";
 
 /// The settings of one VDD method.
 struct Settings {
@@ -91,45 +77,33 @@ struct Settings {
 
 impl VddMethod {
     fn settings(&self, r: &MethodRecipe<'_>) -> crate::XResult<Settings> {
-        let flag = |k: &str| r.get_opt::<bool>(&format!("vdd.{k}")).map(|b| b.unwrap_or(false));
+        let flag = |k: &str| r.get_opt::<bool>(k).map(|b| b.unwrap_or(false));
         Ok(Settings {
-            vdd: r.get(&format!("vdd.{}", self.section))?,
-            gating: r.get_opt(&format!("vdd.{}_gating", self.section))?,
-            clip_margin: r.get_opt("vdd.clip_margin")?,
-            act: ActMode {
-                greedy_gating: flag("greedy_gating")?,
-                sample_action: flag("sample_action")?,
-            },
+            vdd: r.get(&format!("vdd.{}", self.1))?,
+            gating: r.get_opt(&format!("vdd.{}_gating", self.1))?,
+            clip_margin: r.get_opt(CLIP)?,
+            act: ActMode { greedy_gating: flag(GREEDY)?, sample_action: flag(SAMPLE)? },
         })
     }
 }
 
 impl Method for VddMethod {
-    fn name(&self) -> &'static str {
-        self.name
-    }
-    fn teacher(&self) -> Option<TeacherKind> {
-        self.teacher
-    }
-    fn tasks(&self) -> &'static [&'static str] {
-        self.tasks
-    }
-    fn keys(&self) -> &'static [&'static str] {
-        self.keys
+    fn info(&self) -> &Info {
+        &self.0
     }
     fn check(&self, recipe: &MethodRecipe<'_>) -> crate::XResult {
         self.settings(recipe).map(drop)
     }
 
     fn train(&self, job: &Job<'_>) -> crate::XResult<Trained> {
-        let s = self.settings(&job.recipe)?;
+        let (s, d, label) = (self.settings(&job.recipe)?, job.data, job.label);
         let vc = VddConfig { seed: job.seed, ..s.vdd };
-        let d = job.data;
-        let (sn, an) = match self.teacher {
-            Some(_) => {
-                let (s, a) = job.teacher()?.teacher.normalizers();
-                (s.clone(), a.clone())
-            }
+        let teacher = match self.0.teacher {
+            Some(_) => Some(job.teacher()?),
+            None => None,
+        };
+        let (sn, an) = match teacher {
+            Some(t) => (t.teacher.normalizers().0.clone(), t.teacher.normalizers().1.clone()),
             None => (Affine::identity(d.states.ncols()), Affine::identity(d.actions.ncols())),
         };
         let states = normalize_rows(&d.states, &sn);
@@ -139,68 +113,58 @@ impl Method for VddMethod {
         mc.action_dim = actions.ncols();
         mc.gating = s.gating.unwrap_or(mc.gating);
         let iterations = vc.iterations;
-        let (trained, noise_level, teacher_seconds) = match (self.teacher, job.students) {
-            (None, _) => {
-                let teacher = d.exact.clone().ok_or("the task has no exact teacher")?;
-                let (c, noise) =
-                    distill(vc, teacher, mc, states, actions, s.clip_margin, job.label)?;
-                (c, Some(noise), None)
+        let cache = match (job.students, teacher) {
+            (Some(cache), Some(t)) => {
+                let teachers = &job.recipe.teachers;
+                let teacher_config = match t.teacher.kind() {
+                    TeacherKind::Beso => serde_json::to_value(&teachers.beso)?,
+                    TeacherKind::Ddpm => serde_json::to_value(&teachers.ddpm)?,
+                };
+                let key = json!({
+                    "version": STUDENT_CACHE_VERSION,
+                    "teacher": teacher_config,
+                    "teacher_hash": t.hash,
+                    "student": mc,
+                    "vdd": vc,
+                    "clip_margin": s.clip_margin,
+                });
+                Some((cache, recipe::config_hash(&key)?))
             }
-            (Some(kind), students) => {
-                let t = job.teacher()?;
-                let teacher = t.teacher.clone();
-                let cache = match students {
-                    Some(c) => {
-                        let teacher_config = match kind {
-                            TeacherKind::Beso => serde_json::to_value(&job.recipe.teachers.beso)?,
-                            TeacherKind::Ddpm => serde_json::to_value(&job.recipe.teachers.ddpm)?,
-                        };
-                        let key = json!({
-                            "version": STUDENT_CACHE_VERSION,
-                            "teacher": teacher_config,
-                            "teacher_hash": t.hash,
-                            "student": mc,
-                            "vdd": vc,
-                            "clip_margin": s.clip_margin,
-                        });
-                        Some((c, recipe::config_hash(&key)?))
-                    }
-                    None => None,
-                };
-                let hit = match &cache {
-                    Some((c, hash)) => c.load(self.name, hash)?,
-                    None => None,
-                };
-                match hit {
-                    Some(c) => {
-                        crate::progress::log(format!(
-                            "[{}] student loaded from the cache",
-                            job.label
-                        ));
-                        (c, None, Some(t.train_seconds))
-                    }
+            _ => None,
+        };
+        let hit = match &cache {
+            Some((c, hash)) => c.load(self.0.name, hash)?,
+            None => None,
+        };
+        let (trained, noise_level) = match hit {
+            Some(c) => {
+                crate::progress::log(format!("[{label}] student loaded from the cache"));
+                (c, None)
+            }
+            None => {
+                let clip = s.clip_margin;
+                let (c, noise) = match teacher {
+                    Some(t) => distill(vc, t.teacher.clone(), mc, states, actions, clip, label)?,
                     None => {
-                        let (c, noise) =
-                            distill(vc, teacher, mc, states, actions, s.clip_margin, job.label)?;
-                        if let Some((cache, hash)) = &cache {
-                            let path = cache.store(self.name, hash, &c)?;
-                            crate::progress::log(format!(
-                                "[{}] trained in {:.1} s; cached as {}",
-                                job.label,
-                                c.train_seconds,
-                                teachers::rel(&path)
-                            ));
-                        }
-                        (c, Some(noise), Some(t.train_seconds))
+                        let exact = d.exact.clone().ok_or("the task has no exact teacher")?;
+                        distill(vc, exact, mc, states, actions, clip, label)?
                     }
+                };
+                if let Some((cache, hash)) = &cache {
+                    let path = cache.store(self.0.name, hash, &c)?;
+                    let (secs, path) = (c.train_seconds, teachers::rel(&path));
+                    crate::progress::log(format!(
+                        "[{label}] trained in {secs:.1} s; cached as {path}"
+                    ));
                 }
+                (c, Some(noise))
             }
         };
         let CachedStudent { mut student, train_seconds, curves } = trained;
         student.set_normalizers(Some(sn), Some(an))?;
         student.set_act_mode(s.act);
         Ok(Trained {
-            teacher_seconds,
+            teacher_seconds: teacher.map(|t| t.train_seconds),
             iterations: Some(iterations),
             noise_level,
             ..Trained::new(TrainedPolicy::Moe(Box::new(student)), train_seconds, curves)

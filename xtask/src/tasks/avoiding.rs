@@ -307,23 +307,24 @@ fn evaluate(
         trained.teacher_seconds.map_or(String::new(), |t| format!(" (+ teacher {t:.1} s)")),
         eval_seconds
     ));
-    let mut row = Row::new();
-    row.insert("seed".into(), json!(seed));
-    row.insert("success_rate".into(), json!(m.success_rate));
-    row.insert("task_entropy".into(), json!(m.task_entropy));
-    row.insert("train_seconds".into(), report::json_f64(trained.train_seconds));
+    let mut row: Row = serde_json::from_value(json!({
+        "seed": seed,
+        "success_rate": m.success_rate,
+        "task_entropy": m.task_entropy,
+        "train_seconds": report::json_f64(trained.train_seconds),
+        "rollouts": m.rollouts,
+        "modes_reached": m.modes_reached,
+        "collisions": m.collisions,
+        "timeouts": m.timeouts,
+        "mean_success_steps": report::json_f64(m.mean_success_steps),
+        "mode_counts": m.mode_counts,
+    }))?;
     if let Some(t) = trained.teacher_seconds {
         row.insert("teacher_seconds".into(), report::json_f64(t));
     }
     if let Some(s) = trained.sampling_steps {
         row.insert("sampling_steps".into(), json!(s));
     }
-    row.insert("rollouts".into(), json!(m.rollouts));
-    row.insert("modes_reached".into(), json!(m.modes_reached));
-    row.insert("collisions".into(), json!(m.collisions));
-    row.insert("timeouts".into(), json!(m.timeouts));
-    row.insert("mean_success_steps".into(), report::json_f64(m.mean_success_steps));
-    row.insert("mode_counts".into(), json!(m.mode_counts));
     out.curves.insert(format!("{label}/seed{seed}"), serde_json::to_value(&trained.curves)?);
 
     if record {
