@@ -1,6 +1,6 @@
 //! What a method is to the recipes: the [`Method`] trait, the task-agnostic [`Job`] it trains
 //! from, and the [`Trained`] policy it returns. The methods themselves, one file each, and their
-//! registry are in [`crate::methods`].
+//! registry are in `xtask/src/methods/`.
 //!
 //! A method reads its own settings from the recipe by key path ([`MethodRecipe::get`]), so its
 //! defaults live in `recipes/defaults/<task>.toml` under the keys it declares

@@ -1,7 +1,7 @@
 //! The stages every task pipeline shares: the [`Task`] and [`TaskRecipe`] traits, the run's
 //! plan (methods × variants, [`plan`]), its datasets ([`Datasets`]), the training phases with
 //! the teacher store and the student cache ([`train_all`]), and writing the results
-//! ([`write_results`]). The tasks themselves are in [`crate::tasks`].
+//! ([`write_results`]). The tasks themselves are in `xtask/src/tasks/`.
 //!
 //! Training runs in two parallel phases of single-threaded jobs (`jobs` at a time): the
 //! teachers with the methods that need none, then the methods that need a teacher. Every job is

@@ -189,56 +189,14 @@ impl Task for Toy {
 
         let mut rows = pipeline::empty_rows(&plan);
         let mut panels = Vec::new();
-        let mut first_states: Option<Value> = None;
         for (si, &seed) in base.seeds.iter().enumerate() {
             for (pi, e) in plan.iter().enumerate() {
                 let trained = trainings.trained.remove(&(si, pi)).ok_or("internal: not trained")?;
-                let (d, cfg) = (data.get(si, pi), e.cfg);
-                let (iterations, train_seconds, teacher_seconds) = (
-                    trained.iterations.unwrap_or(0),
-                    trained.train_seconds,
-                    trained.teacher_seconds,
-                );
-                let mut s = student(e, trained, d, &trainings, seed)?;
-                let tag = format!("{} s{seed}", e.label);
-                let seeds = Seeds::new(seed).child("toy-eval");
-                let ms_per_iter = train_seconds * 1e3 / iterations.max(1) as f64;
-                let mut row = Row::new();
-                row.insert("seed".into(), json!(seed));
-                if self.conditional {
-                    let states =
-                        conditional_row(&mut s, cfg, &seeds, &mut row, &tag, train_seconds)?;
-                    if si == 0 && pi == 0 {
-                        first_states = Some(Value::Array(states));
-                    }
-                } else {
-                    let truth = Gmm::circle(MODES, 2.0, 0.5, 0.0)?;
-                    let (rev, fwd, cov) = evaluate_at(
-                        &mut s,
-                        &truth,
-                        0.0,
-                        cfg.eval.kl_samples,
-                        &cfg.eval,
-                        &seeds,
-                        0,
-                    )?;
-                    crate::progress::log(format!(
-                        "[{tag}] reverse KL {rev:.5} nats, forward KL {fwd:.5} nats, modes {cov}/{MODES}, {ms_per_iter:.3} ms/iter ({train_seconds:.2} s)"
-                    ));
-                    row.insert("reverse_kl".into(), report::json_f64(rev));
-                    row.insert("forward_kl".into(), report::json_f64(fwd));
-                    row.insert("modes_covered".into(), json!(cov));
-                    row.insert("modes_total".into(), json!(MODES));
-                }
-                row.insert("ms_per_iter".into(), report::json_f64(ms_per_iter));
-                row.insert("train_seconds".into(), report::json_f64(train_seconds));
-                if let Some(t) = teacher_seconds {
-                    row.insert("teacher_seconds".into(), report::json_f64(t));
-                }
-                row.insert("iterations".into(), json!(iterations));
+                let mut s = student(e, &trained, data.get(si, pi), &trainings, seed)?;
+                let row = self.evaluate(e, &trained, &mut s, seed)?;
                 rows[pi].1.push(row);
-                if si == 0 && cfg.plots.enabled {
-                    let n = if self.conditional { cfg.plots.states.max(1) } else { 1 };
+                if si == 0 && e.cfg.plots.enabled {
+                    let n = if self.conditional { e.cfg.plots.states.max(1) } else { 1 };
                     for i in 0..n {
                         let (state, title) = if self.conditional {
                             let s = (i as f32 + 0.5) * std::f32::consts::TAU / n as f32;
@@ -247,16 +205,54 @@ impl Task for Toy {
                             (0.0, e.label.clone())
                         };
                         let modes = circle_modes(MODES, state);
-                        panels.push(density_panel(&mut s, state, title, modes, &cfg.plots)?);
+                        panels.push(density_panel(&mut s, state, title, modes, &e.cfg.plots)?);
                     }
                 }
             }
         }
-        self.write_outputs(ctx, &dir, base, &rows, first_states, &panels, trainings.teachers.log)
+        self.write_outputs(ctx, &dir, base, &rows, &panels, trainings.teachers.log)
     }
 }
 
 impl Toy {
+    /// The row of one trained method: KL and coverage against the exact mixture, training time.
+    fn evaluate(
+        &self,
+        e: &Entry<'_, ToyRecipe>,
+        trained: &Trained,
+        s: &mut ToyStudent,
+        seed: u64,
+    ) -> crate::XResult<Row> {
+        let (cfg, train_seconds) = (e.cfg, trained.train_seconds);
+        let iterations = trained.iterations.unwrap_or(0);
+        let tag = format!("{} s{seed}", e.label);
+        let seeds = Seeds::new(seed).child("toy-eval");
+        let ms_per_iter = train_seconds * 1e3 / iterations.max(1) as f64;
+        let mut row = Row::new();
+        row.insert("seed".into(), json!(seed));
+        if self.conditional {
+            conditional_row(s, cfg, &seeds, &mut row, &tag, train_seconds)?;
+        } else {
+            let truth = Gmm::circle(MODES, 2.0, 0.5, 0.0)?;
+            let n = cfg.eval.kl_samples;
+            let (rev, fwd, cov) = evaluate_at(s, &truth, 0.0, n, &cfg.eval, &seeds, 0)?;
+            crate::progress::log(format!(
+                "[{tag}] reverse KL {rev:.5} nats, forward KL {fwd:.5} nats, modes {cov}/{MODES}, {ms_per_iter:.3} ms/iter ({train_seconds:.2} s)"
+            ));
+            row.insert("reverse_kl".into(), report::json_f64(rev));
+            row.insert("forward_kl".into(), report::json_f64(fwd));
+            row.insert("modes_covered".into(), json!(cov));
+            row.insert("modes_total".into(), json!(MODES));
+        }
+        row.insert("ms_per_iter".into(), report::json_f64(ms_per_iter));
+        row.insert("train_seconds".into(), report::json_f64(train_seconds));
+        if let Some(t) = trained.teacher_seconds {
+            row.insert("teacher_seconds".into(), report::json_f64(t));
+        }
+        row.insert("iterations".into(), json!(iterations));
+        Ok(row)
+    }
+
     /// The run seed's samples of the toy's mixture and its exact teacher.
     fn prepare(&self, cfg: &ToyRecipe, seed: u64) -> crate::XResult<TrainingData> {
         let n = cfg.data.points;
@@ -283,7 +279,6 @@ impl Toy {
         dir: &std::path::Path,
         base: &ToyRecipe,
         rows: &[(String, Vec<Row>)],
-        first_states: Option<Value>,
         panels: &[plots::DensityPanel],
         teacher_log: Vec<Value>,
     ) -> crate::XResult {
@@ -304,7 +299,8 @@ impl Toy {
             metrics.insert("states_fully_covered".into(), json!(min("states_fully_covered")));
             metrics.insert("mean_reverse_kl".into(), mean("mean_reverse_kl"));
             metrics.insert("mean_forward_kl".into(), mean("mean_forward_kl"));
-            metrics.insert("states".into(), first_states.unwrap_or(Value::Null));
+            let states = first.first().and_then(|r| r.get("states")).cloned();
+            metrics.insert("states".into(), states.unwrap_or(Value::Null));
         } else {
             metrics.insert("reverse_kl".into(), mean("reverse_kl"));
             metrics.insert("forward_kl".into(), mean("forward_kl"));
@@ -334,12 +330,12 @@ impl Toy {
 /// The distilled mixture of `trained` with its normalisers and teacher.
 fn student(
     e: &Entry<'_, ToyRecipe>,
-    trained: Trained,
+    trained: &Trained,
     d: &TrainingData,
     trainings: &Trainings,
     seed: u64,
 ) -> crate::XResult<ToyStudent> {
-    let TrainedPolicy::Moe(student) = trained.policy else {
+    let TrainedPolicy::Moe(student) = &trained.policy else {
         return Err(format!("{}: the toys evaluate mixtures of experts", e.label).into());
     };
     let (sn, an) = student.normalizers();
@@ -352,11 +348,11 @@ fn student(
         None => Box::new(d.exact.clone().ok_or("the toy has no exact teacher")?),
     };
     let noise_level = trained.noise_level.ok_or("internal: no distillation noise level")?;
-    Ok(ToyStudent { student: *student, state_norm, action_norm, teacher, noise_level })
+    let student = student.as_ref().clone();
+    Ok(ToyStudent { student, state_norm, action_norm, teacher, noise_level })
 }
 
-/// `toy-conditional`: KL and coverage at the evaluation states into `row`; returns the
-/// per-state results.
+/// `toy-conditional`: KL and coverage at the evaluation states into `row`.
 fn conditional_row(
     s: &mut ToyStudent,
     cfg: &ToyRecipe,
@@ -364,7 +360,7 @@ fn conditional_row(
     row: &mut Row,
     tag: &str,
     train_seconds: f64,
-) -> crate::XResult<Vec<Value>> {
+) -> crate::XResult {
     let n_states = cfg.eval.eval_states.max(1);
     let mut states = Vec::new();
     for i in 0..n_states {
@@ -389,8 +385,8 @@ fn conditional_row(
         mean("reverse_kl"),
         mean("forward_kl"),
     ));
-    row.insert("states".into(), Value::Array(states.clone()));
-    Ok(states)
+    row.insert("states".into(), Value::Array(states));
+    Ok(())
 }
 
 #[cfg(test)]
