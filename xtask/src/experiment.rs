@@ -10,15 +10,17 @@
 //! configuration, enough to re-run it as a recipe), `run.json` (command, git revision and dirty
 //! flag, wall time), `metrics.json`, `table.md` and the plots.
 //!
-//! Modules depend one way: this command → the task pipelines ([`crate::avoiding`],
-//! [`crate::toy`]) → shared leaves ([`crate::context`], [`crate::recipe`], [`crate::report`],
-//! ...). The pipelines get what they need from the command in a [`RunContext`].
+//! Modules depend one way: this command → the tasks ([`crate::tasks`], found by the recipe's
+//! `task` key) → the shared stages ([`crate::pipeline`]) → the methods ([`crate::methods`],
+//! [`crate::method`]) → shared leaves ([`crate::context`], [`crate::recipe`], [`crate::report`],
+//! ...). The tasks get what they need from the command in a [`RunContext`].
 
 use std::path::PathBuf;
 use std::time::Instant;
 
 use crate::context::RunContext;
 use crate::recipe::{self, Overrides};
+use crate::tasks;
 
 /// The command line of `experiment` (repeating an option other than `--set` keeps the last).
 #[derive(Debug, Clone, Default, PartialEq, clap::Args)]
@@ -30,7 +32,7 @@ pub struct ExperimentArgs {
     #[arg(long, visible_alias = "seed", value_name = "SEEDS", value_parser = seed_list)]
     pub seeds: Option<SeedList>,
     /// Methods, comma-separated, or `all` (ddpm, beso, ddpm-1, beso-1, cd, ctm, em, imc,
-    /// vdd-ddpm, vdd-beso; toys: vdd-exact).
+    /// vdd-ddpm, vdd-beso; toys: vdd-exact; the registry in xtask/src/methods/).
     #[arg(long, value_name = "A,B")]
     pub methods: Option<String>,
     /// Override any recipe key; the value is parsed as TOML, a bare word is a string
@@ -121,15 +123,14 @@ pub fn run(parsed: &ExperimentArgs, command: &str) -> crate::XResult {
         .map(String::from)
         .or_else(|| path.file_stem().and_then(|s| s.to_str()).map(String::from))
         .unwrap_or_else(|| parsed.recipe.clone());
+    let names = || tasks::REGISTRY.iter().map(|t| t.name()).collect::<Vec<_>>().join(", ");
     let task = file
         .get("task")
         .and_then(|v| v.as_str())
-        .ok_or_else(|| {
-            format!("{} has no `task` key (toy-gmm, toy-conditional or avoiding)", path.display())
-        })?
-        .to_owned();
+        .ok_or_else(|| format!("{} has no `task` key ({})", path.display(), names()))?;
+    let task = tasks::find(task).map_err(|e| format!("{e} in {}", path.display()))?;
     let mut overrides = parsed.overrides();
-    crate::toy::apply_shorthands(&task, &parsed.shorthands(), &mut overrides)?;
+    task.apply_shorthands(&parsed.shorthands(), &mut overrides)?;
     let ctx = RunContext {
         name,
         file,
@@ -141,15 +142,7 @@ pub fn run(parsed: &ExperimentArgs, command: &str) -> crate::XResult {
         command: command.to_owned(),
         started,
     };
-    match task.as_str() {
-        "toy-gmm" | "toy-conditional" => crate::toy::run_recipe(&ctx, &task),
-        "avoiding" => crate::avoiding::run(&ctx),
-        other => Err(format!(
-            "unknown task `{other}` in {} (toy-gmm, toy-conditional or avoiding)",
-            path.display()
-        )
-        .into()),
-    }
+    task.run(&ctx)
 }
 
 #[cfg(test)]

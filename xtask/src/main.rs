@@ -13,20 +13,21 @@
 //! input exits with status 1 and a message). Recipes are the TOML files in `recipes/` (see
 //! [`recipe`] for how they resolve and [`experiment`] for the run directory layout).
 
-mod avoiding;
 mod bench_nn;
 mod bench_teachers;
 mod context;
 mod demos;
 mod experiment;
+mod method;
 mod methods;
+mod pipeline;
 mod plots;
 mod policy;
 mod recipe;
 mod report;
 mod student_cache;
+mod tasks;
 mod teachers;
-mod toy;
 
 /// Errors of any xtask command, printed at the top level.
 pub type XResult<T = ()> = Result<T, Box<dyn std::error::Error>>;

@@ -1,8 +1,9 @@
 //! Trained VDD students, cached like the teachers ([`crate::teachers`]): keyed by a hash of
-//! everything that determines the trained weights (the teacher's configuration and cache hash,
-//! which covers the data, the student's architecture, VDD's configuration with the run seed,
-//! and the score clipping), but not the act mode or the evaluation, so that changing how a
-//! student acts (`vdd.greedy_gating`, `vdd.sample_action`) or is evaluated re-uses it.
+//! everything that determines the trained weights ([`STUDENT_CACHE_VERSION`], the teacher's
+//! configuration and cache hash, which covers the data, the student's architecture, VDD's
+//! configuration with the run seed, and the score clipping), but not the act mode or the
+//! evaluation, so that changing how a student acts (`vdd.greedy_gating`, `vdd.sample_action`)
+//! or is evaluated re-uses it. The key is built by the VDD method (`methods/vdd.rs`).
 //!
 //! A cached student is `results/cache/students/<method>-<hash>.safetensors` with a `.json`
 //! sidecar (key, training seconds, learning curves); `--fresh` retrains and overwrites.
@@ -13,6 +14,11 @@ use serde::{Deserialize, Serialize};
 use vdd_moe::Moe;
 
 use crate::plots::Curves;
+
+/// The version of the student cache's key and files, part of every key (the key's
+/// `"version"`): raise it when the training code or the file format changes what a cached
+/// student would be (every student is then retrained once).
+pub const STUDENT_CACHE_VERSION: u32 = 1;
 
 /// Where students are cached and whether to ignore what is there.
 #[derive(Debug, Clone, Copy)]

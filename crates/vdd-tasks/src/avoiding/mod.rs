@@ -35,7 +35,8 @@
 //! Rollouts of any [`vdd_core::Policy`] live in [`rollout`], and the recipes' evaluation of a
 //! run ([`EvalProtocol`]: episodes, seeds, lockstep batches) in [`protocol`]; the observation
 //! features the recipes' models see in [`ObsFeatures`]; the scripted multimodal demonstrator
-//! and demonstration generation in [`demonstrator`].
+//! and demonstration generation in [`demonstrator`]; the recipes' training data (windows,
+//! normalisers) in [`dataset`].
 //!
 //! ```
 //! use vdd_tasks::avoiding::{AvoidingEnv, Status, START};
@@ -55,6 +56,7 @@ use vdd_core::{CoreError, check_len};
 
 use crate::{Result, TaskError};
 
+pub mod dataset;
 pub mod demonstrator;
 mod features;
 pub mod protocol;

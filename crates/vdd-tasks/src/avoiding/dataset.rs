@@ -1,0 +1,167 @@
+//! The Avoiding training data as the recipes build it: scripted demonstrations → episodes (a
+//! train/validation split) → observation features → observation windows and action chunks →
+//! standard normalisation, returned as plain matrices with their normalisers.
+//!
+//! ```
+//! use vdd_tasks::avoiding::dataset::DatasetConfig;
+//!
+//! let config = DatasetConfig { demonstrations: 4, validation_fraction: 0.0, ..Default::default() };
+//! let data = config.build().unwrap();
+//! assert_eq!(data.states.ncols(), 4); // one window of 4 features
+//! assert_eq!(data.actions.ncols(), 2); // one chunk of 2 action components
+//! assert_eq!(data.states.nrows(), data.states_normalized.nrows());
+//! assert_eq!(data.train_episodes, 4);
+//! assert_eq!(data.mode_counts.iter().sum::<usize>(), 4);
+//! ```
+
+use faer::Mat;
+use serde::{Deserialize, Serialize};
+use vdd_core::Affine;
+use vdd_data::{
+    DataError, DeploySpec, Episodes, Normalization, NormalizationKind, SequenceDataset,
+    WindowConfig,
+};
+
+use super::demonstrator::{DemonstratorConfig, generate_demonstrations};
+use super::{N_MODES, ObsFeatures};
+use crate::TaskError;
+
+/// How demonstrations become training data (the `[data]` table of the Avoiding recipes).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct DatasetConfig {
+    /// Number of successful scripted demonstrations.
+    pub demonstrations: usize,
+    /// Seed of the demonstrations and of the train/validation split.
+    pub seed: u64,
+    /// Share of episodes held out (0: train on all); the normalisation is fitted on the rest.
+    pub validation_fraction: f64,
+    /// Observation window `W` (steps).
+    pub obs_window: usize,
+    /// Action chunk `C` (steps).
+    pub action_chunk: usize,
+    /// Actions of each predicted chunk executed before predicting again (`1..=C`).
+    pub execute_steps: usize,
+    /// Also train on the first `W − 1` steps with the window padded by the first observation.
+    pub pad_start: bool,
+    /// What the models see of each observation (a registered feature map, saved with the
+    /// models in their deployment spec).
+    pub features: ObsFeatures,
+    /// The scripted demonstrator.
+    pub demonstrator: DemonstratorConfig,
+}
+
+impl Default for DatasetConfig {
+    /// 200 demonstrations of seed 0, 10 % held out, window and chunk 1, `position_and_lag`.
+    fn default() -> Self {
+        Self {
+            demonstrations: 200,
+            seed: 0,
+            validation_fraction: 0.1,
+            obs_window: 1,
+            action_chunk: 1,
+            execute_steps: 1,
+            pad_start: true,
+            features: ObsFeatures::PositionAndLag,
+            demonstrator: DemonstratorConfig::default(),
+        }
+    }
+}
+
+/// Training matrices of the Avoiding task, one row per window of the training episodes.
+#[derive(Debug, Clone)]
+pub struct Dataset {
+    /// Observation windows (features of `W` steps, concatenated), raw.
+    pub states: Mat<f32>,
+    /// Action chunks (`C` steps, concatenated), raw.
+    pub actions: Mat<f32>,
+    /// The standard normalisation of the windows, fitted per step on the training episodes
+    /// and repeated over the window.
+    pub state_normalizer: Affine,
+    /// The standard normalisation of the chunks, likewise.
+    pub action_normalizer: Affine,
+    /// [`Self::states`] normalised by [`Self::state_normalizer`].
+    pub states_normalized: Mat<f32>,
+    /// [`Self::actions`] normalised by [`Self::action_normalizer`].
+    pub actions_normalized: Mat<f32>,
+    /// Raw observations (before the features) of each training episode.
+    pub episode_observations: Vec<Mat<f32>>,
+    /// Training episodes.
+    pub train_episodes: usize,
+    /// Demonstrations per behaviour mode (all demonstrations, indexed by
+    /// [`super::AvoidingMode::index`]).
+    pub mode_counts: Vec<usize>,
+}
+
+/// Errors of building the dataset.
+#[derive(Debug, thiserror::Error)]
+pub enum DatasetError {
+    /// Generating the demonstrations failed.
+    #[error(transparent)]
+    Task(#[from] TaskError),
+    /// Splitting, windowing or normalising failed.
+    #[error(transparent)]
+    Data(#[from] DataError),
+}
+
+impl DatasetConfig {
+    /// How models trained on this data act on raw observations: the features, the window,
+    /// the chunk and the executed steps.
+    pub fn deploy_spec(&self) -> DeploySpec {
+        DeploySpec {
+            obs_window: self.obs_window,
+            action_chunk: self.action_chunk,
+            execute_steps: self.execute_steps,
+            ..DeploySpec::identity()
+        }
+        .with_features(self.features.feature_map())
+    }
+
+    /// Generates the demonstrations and builds the training matrices.
+    pub fn build(&self) -> Result<Dataset, DatasetError> {
+        let demos = generate_demonstrations(self.demonstrations, self.seed, &self.demonstrator)?;
+        let episodes = Episodes::from_episodes(demos.observations, demos.actions)?;
+        let train = if self.validation_fraction > 0.0 {
+            episodes.split(self.validation_fraction, self.seed)?.train
+        } else {
+            episodes
+        };
+        // The models train on the features; the raw observations are kept for timing, which
+        // feeds them through the deployed policy (that applies the features itself).
+        let (episode_observations, episode_actions) = train.to_episode_matrices();
+        let features = self.features.feature_map();
+        let train = if features.is_identity() {
+            train
+        } else {
+            let obs: Result<Vec<_>, _> =
+                episode_observations.iter().map(|o| features.apply_rows(o.as_ref())).collect();
+            Episodes::from_episodes(obs?, episode_actions)?
+        };
+        let window =
+            WindowConfig::new(self.obs_window, self.action_chunk).with_pad_start(self.pad_start);
+        let (states, actions) = SequenceDataset::new(train.clone(), window)?.to_matrices();
+        let norm = Normalization::fit(&train, NormalizationKind::standard())?;
+        let (states_normalized, actions_normalized) =
+            SequenceDataset::new(train.normalized(&norm)?, window)?.to_matrices();
+        let mut mode_counts = vec![0usize; N_MODES];
+        for m in &demos.modes {
+            mode_counts[m.index()] += 1;
+        }
+        Ok(Dataset {
+            states,
+            actions,
+            state_normalizer: tile(&norm.observations, self.obs_window),
+            action_normalizer: tile(&norm.actions, self.action_chunk),
+            states_normalized,
+            actions_normalized,
+            episode_observations,
+            train_episodes: train.num_episodes(),
+            mode_counts,
+        })
+    }
+}
+
+/// Repeats a per-step normaliser over a window of `k` steps.
+fn tile(a: &Affine, k: usize) -> Affine {
+    Affine { offset: a.offset.repeat(k), scale: a.scale.repeat(k) }
+}

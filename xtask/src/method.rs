@@ -1,0 +1,190 @@
+//! What a method is to the recipes: the [`Method`] trait, the task-agnostic [`Job`] it trains
+//! from, and the [`Trained`] policy it returns. The methods themselves, one file each, and their
+//! registry are in `xtask/src/methods/`.
+//!
+//! A method reads its own settings from the recipe by key path ([`MethodRecipe::get`]), so its
+//! defaults live in `recipes/defaults/<task>.toml` under the keys it declares
+//! ([`Method::keys`]); the recipe types hold those tables without knowing their contents.
+
+use faer::Mat;
+use serde::Serialize;
+use serde::de::DeserializeOwned;
+use toml::{Table, Value};
+use vdd_core::Affine;
+use vdd_core::gmm::GmmTeacher;
+use vdd_diffusion::TeacherKind;
+use vdd_moe::MoeConfig;
+
+use crate::plots::Curves;
+use crate::policy::TrainedPolicy;
+use crate::recipe;
+use crate::student_cache::StudentCache;
+use crate::teachers::{TeachersConfig, TrainedTeacher};
+
+/// What a method is: its name, its teacher, where it runs and what it reads.
+#[derive(Debug, Clone, Copy)]
+pub struct Info {
+    /// The lower-case hyphenated name (`vdd-beso`), as in `--methods` and `metrics.json`.
+    pub name: &'static str,
+    /// The learned teacher the method needs (trained, or loaded from the cache, before it).
+    pub teacher: Option<TeacherKind>,
+    /// The tasks it runs on (`avoiding`, `toy-gmm`, `toy-conditional`).
+    pub tasks: &'static [&'static str],
+    /// The recipe keys (dotted paths below a task's method sections) it reads.
+    pub keys: &'static [&'static str],
+}
+
+/// One method of the comparison (a row of the results table).
+pub trait Method: Sync {
+    /// Name, teacher, tasks and keys.
+    fn info(&self) -> &Info;
+    /// Reads its settings from `recipe`, failing as training would on a missing or bad one.
+    fn check(&self, recipe: &MethodRecipe<'_>) -> crate::XResult;
+    /// Trains on `job`.
+    fn train(&self, job: &Job<'_>) -> crate::XResult<Trained>;
+    /// [`Info::name`].
+    fn name(&self) -> &'static str {
+        self.info().name
+    }
+}
+
+/// A method's view of one resolved recipe: the shared sections typed, anything else by path.
+#[derive(Debug, Clone, Copy)]
+pub struct MethodRecipe<'a> {
+    /// The learned teachers' configuration.
+    pub teachers: &'a TeachersConfig,
+    /// The mixture of experts of the students (`state_dim` / `action_dim` come from the data).
+    pub student: &'a MoeConfig,
+    /// The whole resolved recipe.
+    pub tree: &'a Table,
+}
+
+impl MethodRecipe<'_> {
+    /// The value at `path` (`baselines.em`); unknown keys inside it are errors.
+    pub fn get<T: Serialize + DeserializeOwned>(&self, path: &str) -> crate::XResult<T> {
+        self.get_opt(path)?.ok_or_else(|| format!("the recipe has no `{path}`").into())
+    }
+
+    /// The value at `path`, `None` when the key is absent.
+    pub fn get_opt<T: Serialize + DeserializeOwned>(
+        &self,
+        path: &str,
+    ) -> crate::XResult<Option<T>> {
+        let mut parts = path.split('.');
+        let first = parts.next().unwrap_or_default();
+        let mut cur = self.tree.get(first);
+        for p in parts {
+            cur = match cur {
+                Some(Value::Table(t)) => t.get(p),
+                _ => None,
+            };
+        }
+        let parsed = match cur {
+            None => return Ok(None),
+            Some(Value::Table(t)) => recipe::from_tree(t),
+            Some(v) => v.clone().try_into().map_err(|e: toml::de::Error| e.to_string()),
+        };
+        parsed.map(Some).map_err(|e| format!("`{path}`: {e}").into())
+    }
+}
+
+/// Training data of a run, as the task prepared it (row `i` of each matrix belongs together).
+#[derive(Debug, Clone)]
+pub struct TrainingData {
+    /// States, raw.
+    pub states: Mat<f32>,
+    /// Actions, raw.
+    pub actions: Mat<f32>,
+    /// The task's normalisation of the states (identity when it has none).
+    pub state_normalizer: Affine,
+    /// The task's normalisation of the actions.
+    pub action_normalizer: Affine,
+    /// `states` under `state_normalizer`.
+    pub states_normalized: Mat<f32>,
+    /// `actions` under `action_normalizer`.
+    pub actions_normalized: Mat<f32>,
+    /// The exact teacher of the data's distribution, when the task knows it (the toys; it
+    /// takes raw states and actions).
+    pub exact: Option<GmmTeacher>,
+    /// [`crate::teachers::data_hash`] of the raw matrices.
+    pub hash: String,
+}
+
+impl TrainingData {
+    /// Data without a normalisation of the task's own (identity normalisers).
+    pub fn raw(states: Mat<f32>, actions: Mat<f32>, exact: Option<GmmTeacher>) -> Self {
+        Self {
+            state_normalizer: Affine::identity(states.ncols()),
+            action_normalizer: Affine::identity(actions.ncols()),
+            states_normalized: states.clone(),
+            actions_normalized: actions.clone(),
+            hash: crate::teachers::data_hash(states.as_ref(), actions.as_ref()),
+            states,
+            actions,
+            exact,
+        }
+    }
+}
+
+impl AsRef<TrainingData> for TrainingData {
+    fn as_ref(&self) -> &TrainingData {
+        self
+    }
+}
+
+/// Everything one training of a method gets.
+#[derive(Clone, Copy)]
+pub struct Job<'a> {
+    /// The run seed (every seed inside the method's configurations is replaced by it).
+    pub seed: u64,
+    /// `vdd-beso s0`, for progress bars and log lines.
+    pub label: &'a str,
+    /// The training data.
+    pub data: &'a TrainingData,
+    /// The trained teacher of [`Method::teacher`].
+    pub teacher: Option<&'a TrainedTeacher>,
+    /// The recipe.
+    pub recipe: MethodRecipe<'a>,
+    /// Where students are cached, for tasks that cache them.
+    pub students: Option<StudentCache<'a>>,
+}
+
+impl Job<'_> {
+    /// The trained teacher, or an error for a method that declared none.
+    pub fn teacher(&self) -> crate::XResult<&TrainedTeacher> {
+        self.teacher.ok_or_else(|| format!("internal: {} got no teacher", self.label).into())
+    }
+}
+
+/// A trained method before evaluation.
+pub struct Trained {
+    /// The policy (normalisers set: it acts on the data's raw states).
+    pub policy: TrainedPolicy,
+    /// Wall-clock training time (without the teacher's).
+    pub train_seconds: f64,
+    /// The teacher's training time, for methods distilled from one.
+    pub teacher_seconds: Option<f64>,
+    /// Sampling steps of a diffusion or consistency policy.
+    pub sampling_steps: Option<usize>,
+    /// Training iterations of a distilled mixture.
+    pub iterations: Option<usize>,
+    /// The mean noise level the teacher was queried at during distillation (fresh trainings).
+    pub noise_level: Option<f32>,
+    /// Learning curves.
+    pub curves: Curves,
+}
+
+impl Trained {
+    /// A trained `policy` with nothing but its training time and curves.
+    pub fn new(policy: TrainedPolicy, train_seconds: f64, curves: Curves) -> Self {
+        Self {
+            policy,
+            train_seconds,
+            teacher_seconds: None,
+            sampling_steps: None,
+            iterations: None,
+            noise_level: None,
+            curves,
+        }
+    }
+}

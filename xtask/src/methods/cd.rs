@@ -1,0 +1,97 @@
+//! `cd`: consistency distillation of the BESO teacher. Keys: `baselines.cd` (the [`CdConfig`];
+//! its seed is replaced by the run seed) and `baselines.consistency_follows_teacher` (a student
+//! started from the teacher, `init_from_teacher`, takes the teacher's network architecture and
+//! levels `σ_data`, `σ_min`, `σ_max`, `ρ`, so `--set teachers.beso...` needs no matching change).
+
+use std::time::Instant;
+
+use vdd_consistency::{CdConfig, CdTrainer, ConsistencyProgress};
+use vdd_diffusion::{Beso, BesoConfig, DiffusionTeacher, TeacherKind};
+
+use crate::method::{Info, Job, Method, MethodRecipe, Trained};
+use crate::plots::Curves;
+use crate::policy::TrainedPolicy;
+
+/// CD.
+pub struct Cd;
+
+const INFO: Info = Info {
+    name: "cd",
+    teacher: Some(TeacherKind::Beso),
+    tasks: &["avoiding"],
+    keys: &["baselines.cd", FOLLOW],
+};
+
+/// The key of `consistency_follows_teacher` (CD and CTM).
+pub const FOLLOW: &str = "baselines.consistency_follows_teacher";
+
+impl Method for Cd {
+    fn info(&self) -> &Info {
+        &INFO
+    }
+    fn check(&self, recipe: &MethodRecipe<'_>) -> crate::XResult {
+        recipe.get::<CdConfig>("baselines.cd")?;
+        recipe.get::<bool>(FOLLOW).map(drop)
+    }
+    fn train(&self, job: &Job<'_>) -> crate::XResult<Trained> {
+        distil(job, |beso, follow, curves| {
+            let c = job.recipe.get("baselines.cd")?;
+            let c = config_for(&c, beso.config(), job.seed, follow);
+            let steps = c.sampling_steps;
+            let bar = crate::progress::bar(c.train.steps, job.label);
+            let (states, actions) = (job.data.states.as_ref(), job.data.actions.as_ref());
+            let mut trainer = CdTrainer::new(c, beso, states, actions)?;
+            let model = trainer.train(&mut |p| record(curves, &bar, p))?;
+            bar.finish_and_clear();
+            Ok((TrainedPolicy::Consistency(Box::new(model)), steps))
+        })
+    }
+}
+
+/// Runs `train` (given the BESO teacher, `consistency_follows_teacher` and the curves to fill;
+/// returning the policy and its sampling steps) and times it: CD and CTM.
+pub fn distil(
+    job: &Job<'_>,
+    train: impl FnOnce(Beso, bool, &mut Curves) -> crate::XResult<(TrainedPolicy, usize)>,
+) -> crate::XResult<Trained> {
+    let t = job.teacher()?;
+    let DiffusionTeacher::Beso(beso) = t.teacher.clone() else {
+        return Err("CD and CTM need the BESO teacher".into());
+    };
+    let follow = job.recipe.get(FOLLOW)?;
+    let mut curves = Curves::default();
+    let t0 = Instant::now();
+    let (policy, steps) = train(beso, follow, &mut curves)?;
+    Ok(Trained {
+        teacher_seconds: Some(t.train_seconds),
+        sampling_steps: Some(steps),
+        ..Trained::new(policy, t0.elapsed().as_secs_f64(), curves)
+    })
+}
+
+/// A CD / CTM configuration for `seed`: the seed and (with `follow_teacher` and
+/// `init_from_teacher`) the teacher's architecture and levels. (Their learning rate decays over
+/// their `train.steps` by construction.)
+pub fn config_for(c: &CdConfig, beso: &BesoConfig, seed: u64, follow_teacher: bool) -> CdConfig {
+    let mut c = c.clone().with_seed(seed);
+    if follow_teacher && c.init_from_teacher {
+        let t = CdConfig::for_beso(beso);
+        c.net = t.net;
+        c.sigma_data = t.sigma_data;
+        c.sigma_min = t.sigma_min;
+        c.sigma_max = t.sigma_max;
+        c.rho = t.rho;
+    }
+    c
+}
+
+/// Records a training report in the progress bar and the curves.
+pub fn record(curves: &mut Curves, bar: &indicatif::ProgressBar, p: &ConsistencyProgress) {
+    bar.set_position(p.step);
+    bar.set_message(format!("loss {:.4}", p.loss));
+    let x = p.step as f64;
+    curves.entry("consistency loss".into()).or_default().push((x, f64::from(p.consistency_loss)));
+    if p.dsm_loss != 0.0 {
+        curves.entry("DSM loss".into()).or_default().push((x, f64::from(p.dsm_loss)));
+    }
+}

@@ -1,0 +1,43 @@
+//! `ctm`: consistency trajectory model distilled from the BESO teacher. Keys: `baselines.ctm`
+//! (the [`CtmConfig`], whose `base` is set up as CD's: [`super::cd::config_for`]) and
+//! `baselines.consistency_follows_teacher`.
+
+use vdd_consistency::{CtmConfig, CtmTrainer};
+use vdd_diffusion::TeacherKind;
+
+use super::cd;
+use crate::method::{Info, Job, Method, MethodRecipe, Trained};
+use crate::policy::TrainedPolicy;
+
+/// CTM.
+pub struct Ctm;
+
+const INFO: Info = Info {
+    name: "ctm",
+    teacher: Some(TeacherKind::Beso),
+    tasks: &["avoiding"],
+    keys: &["baselines.ctm", cd::FOLLOW],
+};
+
+impl Method for Ctm {
+    fn info(&self) -> &Info {
+        &INFO
+    }
+    fn check(&self, recipe: &MethodRecipe<'_>) -> crate::XResult {
+        recipe.get::<CtmConfig>("baselines.ctm")?;
+        recipe.get::<bool>(cd::FOLLOW).map(drop)
+    }
+    fn train(&self, job: &Job<'_>) -> crate::XResult<Trained> {
+        cd::distil(job, |beso, follow, curves| {
+            let mut c: CtmConfig = job.recipe.get("baselines.ctm")?;
+            c.base = cd::config_for(&c.base, beso.config(), job.seed, follow);
+            let steps = c.base.sampling_steps;
+            let bar = crate::progress::bar(c.base.train.steps, job.label);
+            let (states, actions) = (job.data.states.as_ref(), job.data.actions.as_ref());
+            let mut trainer = CtmTrainer::new(c, beso, states, actions)?;
+            let model = trainer.train(&mut |p| cd::record(curves, &bar, p))?;
+            bar.finish_and_clear();
+            Ok((TrainedPolicy::Trajectory(Box::new(model)), steps))
+        })
+    }
+}

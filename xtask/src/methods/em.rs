@@ -1,0 +1,64 @@
+//! `em`: the mixture of experts fitted to the demonstrations by expectation maximisation.
+//! Keys: `baselines.em` (the [`EmConfig`]; its `seed` is replaced by the run seed).
+
+use std::time::Instant;
+
+use indicatif::ProgressBar;
+use vdd_mixture::{Dataset, EmConfig};
+use vdd_moe::Moe;
+
+use crate::method::{Info, Job, Method, MethodRecipe, Trained};
+use crate::plots::Curves;
+use crate::policy::TrainedPolicy;
+
+/// EM.
+pub struct Em;
+
+const INFO: Info =
+    Info { name: "em", teacher: None, tasks: &["avoiding"], keys: &["baselines.em"] };
+
+impl Method for Em {
+    fn info(&self) -> &Info {
+        &INFO
+    }
+    fn check(&self, recipe: &MethodRecipe<'_>) -> crate::XResult {
+        recipe.get::<EmConfig>("baselines.em").map(drop)
+    }
+    fn train(&self, job: &Job<'_>) -> crate::XResult<Trained> {
+        let config = EmConfig { seed: job.seed, ..job.recipe.get("baselines.em")? };
+        fit(job, config.iterations, |student, data, bar, curves| {
+            let mut em = vdd_mixture::Em::new(config, student, data)?;
+            em.train(|m| {
+                bar.inc(1);
+                bar.set_message(format!("log-lik {:.3}", m.log_likelihood));
+                let ll = curves.entry("log-likelihood (nats)".into()).or_default();
+                ll.push((m.iteration as f64, m.log_likelihood));
+            })?;
+            Ok(em.into_student())
+        })
+    }
+}
+
+/// Fits a new mixture (`student`'s configuration, initialised from the run seed) to the task's
+/// normalised data with `train` (given the mixture, the data, a progress bar of `iterations`
+/// and the curves to fill) and sets the data's normalisers on it: EM and IMC.
+pub fn fit(
+    job: &Job<'_>,
+    iterations: usize,
+    train: impl FnOnce(Moe, Dataset, &ProgressBar, &mut Curves) -> crate::XResult<Moe>,
+) -> crate::XResult<Trained> {
+    let d = job.data;
+    let data = Dataset::new(d.states_normalized.clone(), d.actions_normalized.clone())?;
+    let mut mc = job.recipe.student.clone();
+    mc.state_dim = d.states_normalized.ncols();
+    mc.action_dim = d.actions_normalized.ncols();
+    let student = Moe::from_config(mc, job.seed)?;
+    let t0 = Instant::now();
+    let bar = crate::progress::bar(iterations as u64, job.label);
+    let mut curves = Curves::default();
+    let mut student = train(student, data, &bar, &mut curves)?;
+    bar.finish_and_clear();
+    let train_seconds = t0.elapsed().as_secs_f64();
+    student.set_normalizers(Some(d.state_normalizer.clone()), Some(d.action_normalizer.clone()))?;
+    Ok(Trained::new(TrainedPolicy::Moe(Box::new(student)), train_seconds, curves))
+}

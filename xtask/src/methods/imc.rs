@@ -1,0 +1,37 @@
+//! `imc`: Information Maximizing Curriculum, the mixture of experts fitted to the
+//! demonstrations with a curriculum per expert. Keys: `baselines.imc` (the [`ImcConfig`]; its
+//! `seed` is replaced by the run seed).
+
+use vdd_mixture::ImcConfig;
+
+use crate::method::{Info, Job, Method, MethodRecipe, Trained};
+
+/// IMC.
+pub struct Imc;
+
+const INFO: Info =
+    Info { name: "imc", teacher: None, tasks: &["avoiding"], keys: &["baselines.imc"] };
+
+impl Method for Imc {
+    fn info(&self) -> &Info {
+        &INFO
+    }
+    fn check(&self, recipe: &MethodRecipe<'_>) -> crate::XResult {
+        recipe.get::<ImcConfig>("baselines.imc").map(drop)
+    }
+    fn train(&self, job: &Job<'_>) -> crate::XResult<Trained> {
+        let config = ImcConfig { seed: job.seed, ..job.recipe.get("baselines.imc")? };
+        super::em::fit(job, config.iterations, |student, data, bar, curves| {
+            let mut imc = vdd_mixture::Imc::new(config, student, data)?;
+            imc.train(|m| {
+                bar.inc(1);
+                bar.set_message(format!("log-lik {:.3}", m.log_likelihood));
+                let x = m.iteration as f64;
+                let ll = curves.entry("log-likelihood (nats)".into()).or_default();
+                ll.push((x, m.log_likelihood));
+                curves.entry("IMC objective".into()).or_default().push((x, m.objective));
+            })?;
+            Ok(imc.into_student())
+        })
+    }
+}

@@ -1,0 +1,223 @@
+//! VDD: `vdd-ddpm` and `vdd-beso` distil the learned teachers, `vdd-exact` the task's exact
+//! mixture (toys).
+//!
+//! Keys (below `vdd`): `<teacher>` (the [`VddConfig`]; its `seed` is replaced by the run seed),
+//! optional `<teacher>_gating` (the student's gating when it differs from `student.gating`),
+//! `clip_margin` (clamp the teacher's denoised estimate to the training actions' bounding box,
+//! in the student's normalised units, widened by this margin: [`ClampedDenoiser`]),
+//! `greedy_gating` and `sample_action` (how the student acts).
+//!
+//! The student works in the teacher's normalised space (the exact teacher's is the raw one).
+//! Students of learned teachers are cached when the task gives a [`StudentCache`]
+//! ([`crate::student_cache`]).
+
+use std::time::Instant;
+
+use faer::Mat;
+use serde_json::json;
+use vdd::{DistillData, Vdd, VddConfig};
+use vdd_core::{Affine, ClampedDenoiser, ScoreModel};
+use vdd_diffusion::TeacherKind;
+use vdd_moe::{ActMode, GatingKind, MoeConfig};
+
+use crate::method::{Info, Job, Method, MethodRecipe, Trained};
+use crate::plots::Curves;
+use crate::policy::TrainedPolicy;
+use crate::recipe;
+use crate::student_cache::{CachedStudent, STUDENT_CACHE_VERSION};
+use crate::teachers;
+
+/// VDD distilling one teacher, with the key of its settings below `vdd`.
+pub struct VddMethod(Info, &'static str);
+
+const LEARNED: &[&str] = &["avoiding", "toy-gmm"];
+
+/// `vdd-ddpm`.
+pub const VDD_DDPM: VddMethod = VddMethod(
+    Info {
+        name: "vdd-ddpm",
+        teacher: Some(TeacherKind::Ddpm),
+        tasks: LEARNED,
+        keys: &["vdd.ddpm", "vdd.ddpm_gating", CLIP, GREEDY, SAMPLE],
+    },
+    "ddpm",
+);
+/// `vdd-beso`.
+pub const VDD_BESO: VddMethod = VddMethod(
+    Info {
+        name: "vdd-beso",
+        teacher: Some(TeacherKind::Beso),
+        tasks: LEARNED,
+        keys: &["vdd.beso", "vdd.beso_gating", CLIP, GREEDY, SAMPLE],
+    },
+    "beso",
+);
+/// `vdd-exact`.
+pub const VDD_EXACT: VddMethod = VddMethod(
+    Info {
+        name: "vdd-exact",
+        teacher: None,
+        tasks: &["toy-gmm", "toy-conditional"],
+        keys: &["vdd.exact", "vdd.exact_gating", CLIP, GREEDY, SAMPLE],
+    },
+    "exact",
+);
+
+const CLIP: &str = "vdd.clip_margin";
+const GREEDY: &str = "vdd.greedy_gating";
+const SAMPLE: &str = "vdd.sample_action";
+
+/// The settings of one VDD method.
+struct Settings {
+    vdd: VddConfig,
+    gating: Option<GatingKind>,
+    clip_margin: Option<f32>,
+    act: ActMode,
+}
+
+impl VddMethod {
+    fn settings(&self, r: &MethodRecipe<'_>) -> crate::XResult<Settings> {
+        let flag = |k: &str| r.get_opt::<bool>(k).map(|b| b.unwrap_or(false));
+        Ok(Settings {
+            vdd: r.get(&format!("vdd.{}", self.1))?,
+            gating: r.get_opt(&format!("vdd.{}_gating", self.1))?,
+            clip_margin: r.get_opt(CLIP)?,
+            act: ActMode { greedy_gating: flag(GREEDY)?, sample_action: flag(SAMPLE)? },
+        })
+    }
+}
+
+impl Method for VddMethod {
+    fn info(&self) -> &Info {
+        &self.0
+    }
+    fn check(&self, recipe: &MethodRecipe<'_>) -> crate::XResult {
+        self.settings(recipe).map(drop)
+    }
+
+    fn train(&self, job: &Job<'_>) -> crate::XResult<Trained> {
+        let (s, d, label) = (self.settings(&job.recipe)?, job.data, job.label);
+        let vc = VddConfig { seed: job.seed, ..s.vdd };
+        let teacher = match self.0.teacher {
+            Some(_) => Some(job.teacher()?),
+            None => None,
+        };
+        let (sn, an) = match teacher {
+            Some(t) => (t.teacher.normalizers().0.clone(), t.teacher.normalizers().1.clone()),
+            None => (Affine::identity(d.states.ncols()), Affine::identity(d.actions.ncols())),
+        };
+        let states = normalize_rows(&d.states, &sn);
+        let actions = normalize_rows(&d.actions, &an);
+        let mut mc = job.recipe.student.clone();
+        mc.state_dim = states.ncols();
+        mc.action_dim = actions.ncols();
+        mc.gating = s.gating.unwrap_or(mc.gating);
+        let iterations = vc.iterations;
+        let cache = match (job.students, teacher) {
+            (Some(cache), Some(t)) => {
+                let teachers = &job.recipe.teachers;
+                let teacher_config = match t.teacher.kind() {
+                    TeacherKind::Beso => serde_json::to_value(&teachers.beso)?,
+                    TeacherKind::Ddpm => serde_json::to_value(&teachers.ddpm)?,
+                };
+                let key = json!({
+                    "version": STUDENT_CACHE_VERSION,
+                    "teacher": teacher_config,
+                    "teacher_hash": t.hash,
+                    "student": mc,
+                    "vdd": vc,
+                    "clip_margin": s.clip_margin,
+                });
+                Some((cache, recipe::config_hash(&key)?))
+            }
+            _ => None,
+        };
+        let hit = match &cache {
+            Some((c, hash)) => c.load(self.0.name, hash)?,
+            None => None,
+        };
+        let (trained, noise_level) = match hit {
+            Some(c) => {
+                crate::progress::log(format!("[{label}] student loaded from the cache"));
+                (c, None)
+            }
+            None => {
+                let clip = s.clip_margin;
+                let (c, noise) = match teacher {
+                    Some(t) => distill(vc, t.teacher.clone(), mc, states, actions, clip, label)?,
+                    None => {
+                        let exact = d.exact.clone().ok_or("the task has no exact teacher")?;
+                        distill(vc, exact, mc, states, actions, clip, label)?
+                    }
+                };
+                if let Some((cache, hash)) = &cache {
+                    let path = cache.store(self.0.name, hash, &c)?;
+                    let (secs, path) = (c.train_seconds, teachers::rel(&path));
+                    crate::progress::log(format!(
+                        "[{label}] trained in {secs:.1} s; cached as {path}"
+                    ));
+                }
+                (c, Some(noise))
+            }
+        };
+        let CachedStudent { mut student, train_seconds, curves } = trained;
+        student.set_normalizers(Some(sn), Some(an))?;
+        student.set_act_mode(s.act);
+        Ok(Trained {
+            teacher_seconds: teacher.map(|t| t.train_seconds),
+            iterations: Some(iterations),
+            noise_level,
+            ..Trained::new(TrainedPolicy::Moe(Box::new(student)), train_seconds, curves)
+        })
+    }
+}
+
+fn normalize_rows(m: &Mat<f32>, a: &Affine) -> Mat<f32> {
+    Mat::from_fn(m.nrows(), m.ncols(), |i, j| (m[(i, j)] - a.offset[j]) / a.scale[j])
+}
+
+/// Distils `teacher` into a new mixture of configuration `mc` with VDD (states and actions in
+/// the student's normalised space; the student initialised from the run seed `vc.seed`), with a
+/// progress bar and learning curves; also returns the mean noise level of the teacher queries.
+fn distill<S: ScoreModel>(
+    vc: VddConfig,
+    teacher: S,
+    mc: MoeConfig,
+    states: Mat<f32>,
+    actions: Mat<f32>,
+    clip_margin: Option<f32>,
+    label: &str,
+) -> crate::XResult<(CachedStudent, f32)> {
+    let mut curves = Curves::default();
+    let teacher = match clip_margin {
+        Some(m) => ClampedDenoiser::around_data(teacher, actions.as_ref(), m)?,
+        None => ClampedDenoiser::unclamped(teacher),
+    };
+    let data = DistillData::new(states, Some(actions))?;
+    let iterations = vc.iterations;
+    let mut vdd = Vdd::from_config(vc, teacher, mc, data)?;
+    let bar = crate::progress::bar(iterations as u64, label);
+    let every = (iterations / 200).max(1);
+    let mut noise_sum = 0.0f64;
+    let t0 = Instant::now();
+    vdd.train(|m| {
+        bar.inc(1);
+        noise_sum += f64::from(m.expert.noise_level);
+        if m.iteration % every == 0 || m.iteration + 1 == iterations {
+            let x = m.iteration as f64;
+            let mut push = |k: &str, v: f64| curves.entry(k.to_owned()).or_default().push((x, v));
+            push("expert entropy (nats)", f64::from(m.expert.expert_entropy));
+            push("corrected score rms", f64::from(m.expert.corrected_score_rms));
+            push("log responsibility", f64::from(m.expert.log_responsibility));
+            push("gating entropy (nats)", f64::from(m.gating_entropy));
+            if let Some(g) = m.gating_loss {
+                push("gating loss", f64::from(g));
+            }
+            bar.set_message(format!("H(z|s) {:.2}", m.gating_entropy));
+        }
+    })?;
+    let train_seconds = t0.elapsed().as_secs_f64();
+    bar.finish_and_clear();
+    let noise = (noise_sum / iterations.max(1) as f64) as f32;
+    Ok((CachedStudent { student: vdd.into_student(), train_seconds, curves }, noise))
+}

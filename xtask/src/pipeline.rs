@@ -1,0 +1,324 @@
+//! The stages every task pipeline shares: the [`Task`] and [`TaskRecipe`] traits, the run's
+//! plan (methods × variants, [`plan`]), its datasets ([`Datasets`]), the training phases with
+//! the teacher store and the student cache ([`train_all`]), and writing the results
+//! ([`write_results`]). The tasks themselves are in `xtask/src/tasks/`.
+//!
+//! Training runs in two parallel phases of single-threaded jobs (`jobs` at a time): the
+//! teachers with the methods that need none, then the methods that need a teacher. Every job is
+//! seeded on its own, so the results do not depend on the number of jobs.
+
+use std::collections::HashMap;
+use std::time::Instant;
+
+use serde::Serialize;
+use serde::de::DeserializeOwned;
+use serde_json::Value;
+use toml::Table;
+use vdd_diffusion::TeacherKind;
+use vdd_moe::MoeConfig;
+
+use crate::context::{RunContext, StageTimes};
+use crate::method::{Job, Method, MethodRecipe, Trained, TrainingData};
+use crate::recipe::{self, Overrides, Resolved};
+use crate::report::Row;
+use crate::student_cache::StudentCache;
+use crate::teachers::{self, TeachersConfig, TrainedTeacher};
+use crate::{XResult, methods};
+
+/// A task of `cargo xtask experiment` (the `task` key of a recipe).
+pub trait Task: Sync {
+    /// `avoiding`, `toy-gmm`, ...
+    fn name(&self) -> &'static str;
+    /// Runs a recipe of this task.
+    fn run(&self, ctx: &RunContext) -> XResult;
+    /// Translates the task's command-line shorthands (`--teacher`, `--iterations`, ...; as
+    /// `(option, value)`) into recipe overrides. By default the task has none.
+    fn apply_shorthands(
+        &self,
+        shorthands: &[(String, String)],
+        _: &mut Overrides,
+    ) -> Result<(), String> {
+        match shorthands.first() {
+            Some((k, _)) => Err(format!("option --{k} does not apply to task `{}`", self.name())),
+            None => Ok(()),
+        }
+    }
+}
+
+/// What the shared stages need of a task's recipe type.
+pub trait TaskRecipe: Serialize + DeserializeOwned + Sync {
+    /// The top-level tables read by the methods ([`Method::keys`] lists their keys).
+    const METHOD_SECTIONS: &'static [&'static str];
+    /// The `task` key.
+    fn task(&self) -> &str;
+    /// Run seeds.
+    fn seeds(&self) -> &[u64];
+    /// Method names.
+    fn methods(&self) -> &[String];
+    /// The learned teachers.
+    fn teachers(&self) -> &TeachersConfig;
+    /// The students' mixture.
+    fn student(&self) -> &MoeConfig;
+}
+
+/// One method of one variant of the recipe.
+pub struct Entry<'r, R> {
+    /// `vdd-beso`, `vdd-beso-z4`.
+    pub label: String,
+    /// The method.
+    pub method: &'static dyn Method,
+    /// The variant's configuration.
+    pub cfg: &'r R,
+    /// `cfg` as a TOML tree, for the method's own keys.
+    tree: Table,
+}
+
+impl<R: TaskRecipe> Entry<'_, R> {
+    /// The method's view of the configuration.
+    pub fn recipe(&self) -> MethodRecipe<'_> {
+        MethodRecipe {
+            teachers: self.cfg.teachers(),
+            student: self.cfg.student(),
+            tree: &self.tree,
+        }
+    }
+}
+
+/// The methods of every variant of `resolved`, in order, after checking the task, the seeds
+/// and the method sections (every key claimed by a method; every method of the task reads its
+/// settings).
+pub fn plan<'r, R: TaskRecipe>(
+    resolved: &'r Resolved<R>,
+    task: &str,
+) -> XResult<Vec<Entry<'r, R>>> {
+    if resolved.base.task() != task {
+        return Err(format!("recipe task `{}` is not `{task}`", resolved.base.task()).into());
+    }
+    if resolved.base.seeds().is_empty() {
+        return Err("the recipe lists no seeds".into());
+    }
+    let mut out = Vec::new();
+    for (variant, cfg) in resolved.configs() {
+        let tree = recipe::to_tree(cfg)?;
+        check_method_sections::<R>(task, &tree, cfg)?;
+        for method in methods::parse_methods(cfg.methods(), task)? {
+            let label = methods::label(method, variant.map(|v| v.name.as_str()));
+            out.push(Entry { label, method, cfg, tree: tree.clone() });
+        }
+    }
+    Ok(out)
+}
+
+fn check_method_sections<R: TaskRecipe>(task: &str, tree: &Table, cfg: &R) -> XResult {
+    let claimed = |key: &str| methods::REGISTRY.iter().any(|m| m.info().keys.contains(&key));
+    for section in R::METHOD_SECTIONS {
+        let keys = tree.get(*section).and_then(|v| v.as_table()).into_iter().flatten();
+        for (k, _) in keys {
+            let key = format!("{section}.{k}");
+            if !claimed(&key) {
+                return Err(format!("unknown recipe key `{key}` (no method reads it)").into());
+            }
+        }
+    }
+    let view = MethodRecipe { teachers: cfg.teachers(), student: cfg.student(), tree };
+    for m in methods::REGISTRY.iter().filter(|m| methods::supports(**m, task)) {
+        m.check(&view).map_err(|e| format!("{}: {e}", m.name()))?;
+    }
+    Ok(())
+}
+
+/// The prepared datasets of a run, one per distinct data key, and which one each (seed, plan
+/// entry) trains on.
+pub struct Datasets<P> {
+    sets: Vec<P>,
+    index: HashMap<(usize, usize), usize>,
+}
+
+impl<P: AsRef<TrainingData>> Datasets<P> {
+    /// Prepares the data of every seed and entry: `key` names a dataset (entries and seeds with
+    /// equal keys share it), `prepare` builds it (timed as the `data` stage).
+    pub fn build<R>(
+        plan: &[Entry<'_, R>],
+        seeds: &[u64],
+        stages: &mut StageTimes,
+        key: impl Fn(&R, u64) -> XResult<String>,
+        mut prepare: impl FnMut(&R, u64) -> XResult<P>,
+    ) -> XResult<Self> {
+        let mut keys: HashMap<String, usize> = HashMap::new();
+        let mut out = Self { sets: Vec::new(), index: HashMap::new() };
+        for (si, &seed) in seeds.iter().enumerate() {
+            for (pi, e) in plan.iter().enumerate() {
+                let k = key(e.cfg, seed)?;
+                let i = match keys.get(&k) {
+                    Some(&i) => i,
+                    None => {
+                        out.sets.push(stages.time("data", || prepare(e.cfg, seed))?);
+                        keys.insert(k, out.sets.len() - 1);
+                        out.sets.len() - 1
+                    }
+                };
+                out.index.insert((si, pi), i);
+            }
+        }
+        Ok(out)
+    }
+
+    /// The index of the dataset of seed `si` and entry `pi` (equal indices: the same data).
+    pub fn id(&self, si: usize, pi: usize) -> usize {
+        self.index[&(si, pi)]
+    }
+
+    /// The dataset of seed `si` and entry `pi`.
+    pub fn get(&self, si: usize, pi: usize) -> &P {
+        &self.sets[self.id(si, pi)]
+    }
+}
+
+/// The teachers of a run, keyed by kind, configuration, seed and data ([`teacher_key`]): trained
+/// once per run and shared by every method and variant that needs them.
+#[derive(Default)]
+pub struct TeacherStore {
+    teachers: HashMap<String, TrainedTeacher>,
+    /// `run.json` entries of the teachers, in training order.
+    pub log: Vec<Value>,
+}
+
+/// The key of the teacher of `kind` for a configuration, data and seed.
+fn teacher_key(
+    kind: TeacherKind,
+    cfg: &TeachersConfig,
+    data: &TrainingData,
+    seed: u64,
+) -> XResult<String> {
+    let sub = match kind {
+        TeacherKind::Beso => recipe::config_hash(&cfg.beso)?,
+        TeacherKind::Ddpm => recipe::config_hash(&cfg.ddpm)?,
+    };
+    Ok(format!("{}-{sub}-{seed}-{}", teachers::kind_name(kind), data.hash))
+}
+
+impl TeacherStore {
+    /// The teacher of `kind` for `cfg`, `data` and `seed`.
+    pub fn get(
+        &self,
+        kind: TeacherKind,
+        cfg: &TeachersConfig,
+        data: &TrainingData,
+        seed: u64,
+    ) -> XResult<&TrainedTeacher> {
+        let key = teacher_key(kind, cfg, data, seed)?;
+        self.teachers.get(&key).ok_or_else(|| {
+            let kind = teachers::kind_name(kind);
+            format!("internal: the {kind} teacher of seed {seed} was not trained").into()
+        })
+    }
+}
+
+/// The trained methods of a run, by (seed index, entry index), and their teachers.
+pub struct Trainings {
+    /// The trained methods.
+    pub trained: HashMap<(usize, usize), Trained>,
+    /// The teachers.
+    pub teachers: TeacherStore,
+}
+
+/// Trains every entry of `plan` for every seed (see the module docs for the phases; the stages
+/// `teachers` and `students`). `students`: the student cache, for tasks that use it.
+pub fn train_all<R: TaskRecipe, P: AsRef<TrainingData> + Sync>(
+    ctx: &RunContext,
+    plan: &[Entry<'_, R>],
+    seeds: &[u64],
+    data: &Datasets<P>,
+    jobs: usize,
+    students: Option<StudentCache<'_>>,
+    stages: &mut StageTimes,
+) -> XResult<Trainings> {
+    let mut teacher_jobs: Vec<(String, TeacherKind, usize, usize)> = Vec::new();
+    for (si, &seed) in seeds.iter().enumerate() {
+        for (pi, e) in plan.iter().enumerate() {
+            if let Some(kind) = e.method.info().teacher {
+                let key = teacher_key(kind, e.cfg.teachers(), data.get(si, pi).as_ref(), seed)?;
+                if !teacher_jobs.iter().any(|j| j.0 == key) {
+                    teacher_jobs.push((key, kind, si, pi));
+                }
+            }
+        }
+    }
+    let (free, dependent): (Vec<_>, Vec<_>) = (0..seeds.len())
+        .flat_map(|si| (0..plan.len()).map(move |pi| (si, pi)))
+        .partition(|&(_, pi)| plan[pi].method.info().teacher.is_none());
+    enum Work {
+        Teacher(usize),
+        Method(usize, usize),
+    }
+    enum Done {
+        Teacher(usize, Box<TrainedTeacher>),
+        Method((usize, usize), Box<Trained>),
+    }
+    let run_job = |w: &Work, store: &TeacherStore| -> Result<Done, String> {
+        let (si, pi) = match *w {
+            Work::Teacher(i) => (teacher_jobs[i].2, teacher_jobs[i].3),
+            Work::Method(si, pi) => (si, pi),
+        };
+        let (e, seed, d) = (&plan[pi], seeds[si], data.get(si, pi).as_ref());
+        let cfg = e.cfg.teachers();
+        if let Work::Teacher(i) = *w {
+            let kind = teacher_jobs[i].1;
+            let label = format!("{} s{seed}", teachers::kind_name(kind));
+            let (s, a, cache) = (d.states.as_ref(), d.actions.as_ref(), &ctx.cache_dir);
+            let t = teachers::train_or_load(kind, cfg, s, a, seed, cache, ctx.fresh, &label);
+            return Ok(Done::Teacher(i, Box::new(t.map_err(|e| e.to_string())?)));
+        }
+        let label = format!("{} s{seed}", e.label);
+        let teacher = e.method.info().teacher.map(|kind| store.get(kind, cfg, d, seed));
+        let teacher = teacher.transpose().map_err(|e| e.to_string())?;
+        let job = Job { seed, label: &label, data: d, teacher, recipe: e.recipe(), students };
+        let t = e.method.train(&job).map_err(|e| format!("{label}: {e}"))?;
+        Ok(Done::Method((si, pi), Box::new(t)))
+    };
+    let mut out = Trainings { trained: HashMap::new(), teachers: TeacherStore::default() };
+    let first = (0..teacher_jobs.len()).map(Work::Teacher);
+    let phases = [
+        ("teachers", first.chain(free.iter().map(|&(s, p)| Work::Method(s, p))).collect()),
+        ("students", dependent.iter().map(|&(s, p)| Work::Method(s, p)).collect::<Vec<_>>()),
+    ];
+    for (stage, work) in phases {
+        let t0 = Instant::now();
+        for done in crate::context::parallel_map(&work, jobs, |w| run_job(w, &out.teachers))? {
+            match done {
+                Done::Teacher(i, t) => {
+                    let (key, kind, si, _) = &teacher_jobs[i];
+                    out.teachers.log.push(teachers::cache_entry(*kind, seeds[*si], &t));
+                    out.teachers.teachers.insert(key.clone(), *t);
+                }
+                Done::Method(k, t) => {
+                    out.trained.insert(k, *t);
+                }
+            }
+        }
+        stages.add(stage, t0.elapsed().as_secs_f64());
+    }
+    Ok(out)
+}
+
+/// The rows of the results table, one list (a row per seed) per plan entry.
+pub fn empty_rows<R>(plan: &[Entry<'_, R>]) -> Vec<(String, Vec<Row>)> {
+    plan.iter().map(|e| (e.label.clone(), Vec::new())).collect()
+}
+
+/// Writes `metrics.json`, `table.md` and `run.json` (with `details`) into `dir` and prints the
+/// table.
+pub fn write_results(
+    ctx: &RunContext,
+    dir: &std::path::Path,
+    metrics: &Row,
+    table: &str,
+    details: Value,
+) -> XResult {
+    let write = |name: &str, text: &str| vdd_nn::io::write_atomic(&dir.join(name), text.as_bytes());
+    write("metrics.json", &serde_json::to_string_pretty(metrics)?)?;
+    write("table.md", table)?;
+    ctx.write_run_info(dir, details)?;
+    println!("\n{table}");
+    Ok(())
+}

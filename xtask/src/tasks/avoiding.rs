@@ -1,0 +1,507 @@
+//! The Avoiding pipeline: scripted demonstrations → dataset
+//! ([`vdd_tasks::avoiding::dataset`]) → teachers (cached) → every method → rollouts (success
+//! rate, task entropy) and µs per action → `metrics.json`, `table.md`, `curves.json`, plots.
+//!
+//! Seeds: the demonstrations come from `data.seed` (one fixed dataset for every run seed);
+//! the run seed drives teacher training, student initialisation and training, and the
+//! evaluation rollouts (`vdd_tasks::avoiding::EvalProtocol`: the same episode seeds for every
+//! method of a seed, so methods are compared on the same episodes). Every `seed` field inside the
+//! component configurations is replaced by the run seed.
+
+use std::time::Instant;
+
+use faer::Mat;
+use serde::{Deserialize, Serialize};
+use serde_json::{Value, json};
+use toml::Table;
+use vdd_data::Windowed;
+use vdd_moe::MoeConfig;
+use vdd_tasks::avoiding::EvalProtocol;
+use vdd_tasks::avoiding::dataset::DatasetConfig;
+use vdd_tasks::timing::{Timing, us_per_action};
+
+use super::experts::chosen_experts;
+use crate::context::{RunContext, StageTimes};
+use crate::method::{Trained, TrainingData};
+use crate::pipeline::{self, Datasets, Entry, Task, TaskRecipe};
+use crate::plots::{self, Curves, TrajectoryPanel};
+use crate::policy::TrainedPolicy;
+use crate::recipe;
+use crate::report::{self, Row};
+use crate::student_cache::StudentCache;
+use crate::teachers::{self, TeachersConfig};
+
+/// A recipe of the Avoiding task (see `recipes/avoiding.toml`): the schema of the recipe files;
+/// the values not given there come from `recipes/defaults/avoiding.toml` ([`Self::defaults`]).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct AvoidingRecipe {
+    /// Recipe name (results go to `results/<name>/`).
+    pub name: String,
+    /// One line on what the recipe shows.
+    pub description: String,
+    /// Always `avoiding`.
+    pub task: String,
+    /// Run seeds.
+    pub seeds: Vec<u64>,
+    /// Methods to run (`beso`, `vdd-beso`, ...; `all`).
+    pub methods: Vec<String>,
+    /// Trainings run concurrently, each on one thread (0: one per core). Results do not
+    /// depend on it.
+    pub jobs: usize,
+    /// Demonstrations and windowing.
+    pub data: DatasetConfig,
+    /// The learned teachers.
+    pub teachers: TeachersConfig,
+    /// The mixture of experts of VDD, EM and IMC (`state_dim` / `action_dim` come from the data).
+    pub student: MoeConfig,
+    /// VDD's settings, read by the VDD methods (`xtask/src/methods/vdd.rs`).
+    pub vdd: Table,
+    /// The baselines' settings, read by their methods (`em.rs`, `imc.rs`, `cd.rs`, `ctm.rs`).
+    pub baselines: Table,
+    /// Rollouts and timing.
+    pub eval: AvoidingEval,
+    /// Figures.
+    pub plots: PlotSettings,
+}
+
+/// Evaluation.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct AvoidingEval {
+    /// Rollouts per method and seed.
+    pub rollouts: usize,
+    /// Environments stepped together with one batched `act_batch` (0: one episode at a time).
+    pub lockstep_batch: usize,
+    /// Evaluation threads (0: all cores).
+    pub threads: usize,
+    /// Timed single-observation `Policy::act` calls for µs per action (single thread).
+    pub timing_calls: usize,
+    /// Untimed calls before timing.
+    pub timing_warmup: usize,
+    /// The shortest timing round in milliseconds: a fast policy makes more than
+    /// `timing_calls / 5` calls a round (see `vdd_tasks::timing::us_per_action`).
+    pub timing_min_round_ms: f64,
+}
+
+impl AvoidingEval {
+    /// The rollouts' protocol (episodes and lockstep batch; the seed comes from the run seed).
+    fn protocol(&self) -> EvalProtocol {
+        EvalProtocol { rollouts: self.rollouts, lockstep_batch: self.lockstep_batch }
+    }
+
+    /// The settings of `us_per_action`.
+    fn timing(&self) -> Timing {
+        Timing {
+            calls: self.timing_calls,
+            warmup: self.timing_warmup,
+            min_round_ms: self.timing_min_round_ms,
+        }
+    }
+}
+
+/// Figures.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct PlotSettings {
+    /// Write plots at all.
+    pub enabled: bool,
+    /// Rollouts drawn per method in the trajectory figure.
+    pub trajectories: usize,
+    /// Also write PNGs (SVG always).
+    pub png: bool,
+}
+
+/// `recipes/defaults/avoiding.toml`, embedded so that the binary is self-contained.
+const DEFAULTS: &str = include_str!("../../../recipes/defaults/avoiding.toml");
+
+impl AvoidingRecipe {
+    /// The task's defaults, `recipes/defaults/avoiding.toml`, which a recipe file overrides.
+    pub fn defaults() -> recipe::RecipeResult<Self> {
+        recipe::defaults_from_toml(&[("recipes/defaults/avoiding.toml", DEFAULTS)])
+    }
+}
+
+impl TaskRecipe for AvoidingRecipe {
+    const METHOD_SECTIONS: &'static [&'static str] = &["vdd", "baselines"];
+    fn task(&self) -> &str {
+        &self.task
+    }
+    fn seeds(&self) -> &[u64] {
+        &self.seeds
+    }
+    fn methods(&self) -> &[String] {
+        &self.methods
+    }
+    fn teachers(&self) -> &TeachersConfig {
+        &self.teachers
+    }
+    fn student(&self) -> &MoeConfig {
+        &self.student
+    }
+}
+
+/// The Avoiding task.
+pub struct Avoiding;
+
+/// The dataset of a run.
+struct Prepared {
+    training: TrainingData,
+    /// Raw observations of the training episodes (µs-per-action timing).
+    episodes_obs: Vec<Mat<f32>>,
+    summary: Value,
+}
+
+impl AsRef<TrainingData> for Prepared {
+    fn as_ref(&self) -> &TrainingData {
+        &self.training
+    }
+}
+
+fn prepare(data: &DatasetConfig) -> crate::XResult<Prepared> {
+    let t0 = Instant::now();
+    let d = data.build()?;
+    let entropy = vdd_tasks::normalized_entropy(&d.mode_counts);
+    let modes = d.mode_counts.iter().filter(|&&c| c > 0).count();
+    let summary = json!({
+        "demonstrations": data.demonstrations,
+        "train_episodes": d.train_episodes,
+        "train_samples": d.states.nrows(),
+        "state_dim": d.states.ncols(),
+        "action_dim": d.actions.ncols(),
+        "dataset_modes": modes,
+        "dataset_entropy": entropy,
+    });
+    crate::progress::log(format!(
+        "data: {} demonstrations ({} train episodes, {} samples, {modes} of 24 modes, entropy {:.3}) in {:.2} s",
+        data.demonstrations,
+        d.train_episodes,
+        d.states.nrows(),
+        summary["dataset_entropy"].as_f64().unwrap_or(0.0),
+        t0.elapsed().as_secs_f64()
+    ));
+    let hash = teachers::data_hash(d.states.as_ref(), d.actions.as_ref());
+    let training = TrainingData {
+        states: d.states,
+        actions: d.actions,
+        state_normalizer: d.state_normalizer,
+        action_normalizer: d.action_normalizer,
+        states_normalized: d.states_normalized,
+        actions_normalized: d.actions_normalized,
+        exact: None,
+        hash,
+    };
+    Ok(Prepared { training, episodes_obs: d.episode_observations, summary })
+}
+
+/// What the evaluation collects for the outputs.
+#[derive(Default)]
+struct Collected {
+    rows: Vec<(String, Vec<Row>)>,
+    curves: serde_json::Map<String, Value>,
+    panels: Vec<TrajectoryPanel>,
+    curve_panels: Vec<(String, Curves)>,
+}
+
+impl Task for Avoiding {
+    fn name(&self) -> &'static str {
+        "avoiding"
+    }
+
+    fn run(&self, ctx: &RunContext) -> crate::XResult {
+        let resolved = recipe::resolve(&AvoidingRecipe::defaults()?, &ctx.file, &ctx.overrides)?;
+        let base = &resolved.base;
+        let plan = pipeline::plan(&resolved, "avoiding")?;
+        for (_, cfg) in resolved.configs() {
+            // Before any training: a bad setting would otherwise fail after it.
+            cfg.eval.timing().check().map_err(|e| format!("eval: {e}"))?;
+            cfg.data.deploy_spec().validate().map_err(|e| format!("data: {e}"))?;
+        }
+        let dir = ctx.run_dir(&base.seeds);
+        ctx.write_resolved(&dir, &resolved.to_toml()?)?;
+        crate::progress::log(format!(
+            "recipe `{}`: {} method run(s) x {} seed(s) -> {}",
+            ctx.name,
+            plan.len(),
+            base.seeds.len(),
+            teachers::rel(&dir)
+        ));
+        let mut stages = StageTimes::default();
+        let cores = std::thread::available_parallelism().map_or(1, |p| p.get());
+        let threads = if base.eval.threads == 0 { cores } else { base.eval.threads };
+        let jobs = if base.jobs == 0 { cores } else { base.jobs };
+
+        // One dataset per distinct `data` table (usually one), whatever the seed.
+        let key = |cfg: &AvoidingRecipe, _| Ok(recipe::config_hash(&cfg.data)?);
+        let data =
+            Datasets::build(&plan, &base.seeds, &mut stages, key, |cfg, _| prepare(&cfg.data))?;
+        let students = StudentCache { dir: &ctx.student_cache_dir, fresh: ctx.fresh };
+        let mut trainings =
+            pipeline::train_all(ctx, &plan, &base.seeds, &data, jobs, Some(students), &mut stages)?;
+
+        // Evaluation, one method at a time (rollouts on every core), then the seed's
+        // single-threaded timing with nothing else running.
+        let mut out = Collected { rows: pipeline::empty_rows(&plan), ..Default::default() };
+        for (si, &seed) in base.seeds.iter().enumerate() {
+            let mut timed = Vec::with_capacity(plan.len());
+            for (pi, e) in plan.iter().enumerate() {
+                let trained = trainings.trained.remove(&(si, pi)).ok_or("internal: not trained")?;
+                let first = si == 0;
+                let (row, policy) =
+                    evaluate(e, trained, seed, first, threads, &dir, &mut out, &mut stages)?;
+                out.rows[pi].1.push(row);
+                timed.push((pi, policy));
+            }
+            let t0 = Instant::now();
+            time_seed(&plan, &data, si, seed, timed, &mut out.rows)?;
+            stages.add("timing", t0.elapsed().as_secs_f64());
+        }
+        let summary = data.get(0, 0).summary.clone();
+        write_outputs(ctx, &dir, base, out, summary, trainings.teachers.log, jobs, &mut stages)
+    }
+}
+
+/// Rolls out one trained method on raw observations through the recipe's features and windows,
+/// saves a mixture with its deployment spec (`vdd_moe::load_policy` gives a policy on raw
+/// observations), records its curves and (first seed) plot panels; returns its row and the
+/// deployed policy for timing.
+#[allow(clippy::too_many_arguments)]
+fn evaluate(
+    e: &Entry<'_, AvoidingRecipe>,
+    mut trained: Trained,
+    seed: u64,
+    first_seed: bool,
+    threads: usize,
+    dir: &std::path::Path,
+    out: &mut Collected,
+    stages: &mut StageTimes,
+) -> crate::XResult<(Row, Windowed<TrainedPolicy>)> {
+    let (label, cfg) = (&e.label, e.cfg);
+    let tag = format!("{label} s{seed}");
+    let spec = cfg.data.deploy_spec();
+    if let TrainedPolicy::Moe(moe) = &mut trained.policy {
+        moe.set_deploy_spec(spec.clone())?;
+    }
+    let wrapped = Windowed::new(trained.policy.clone(), spec)?;
+    let protocol = cfg.eval.protocol();
+    let record = first_seed && cfg.plots.enabled;
+    let spin = crate::progress::spinner(&tag, &format!("{} rollouts", cfg.eval.rollouts));
+    let t0 = Instant::now();
+    let ev = protocol.evaluate(&wrapped, seed, threads, record)?;
+    let eval_seconds = t0.elapsed().as_secs_f64();
+    stages.add("rollouts", eval_seconds);
+    spin.finish_and_clear();
+    if let TrainedPolicy::Moe(moe) = &trained.policy {
+        let models = dir.join("models");
+        std::fs::create_dir_all(&models)?;
+        moe.save(&models.join(format!("{label}-s{seed}.safetensors")))?;
+    }
+
+    let m = &ev.metrics;
+    crate::progress::log(format!(
+        "[{tag}] success {:.3}, entropy {:.3} ({} modes), trained in {:.1} s{}, evaluated in {:.1} s",
+        m.success_rate,
+        m.task_entropy,
+        m.modes_reached,
+        trained.train_seconds,
+        trained.teacher_seconds.map_or(String::new(), |t| format!(" (+ teacher {t:.1} s)")),
+        eval_seconds
+    ));
+    let mut row: Row = serde_json::from_value(json!({
+        "seed": seed,
+        "success_rate": m.success_rate,
+        "task_entropy": m.task_entropy,
+        "train_seconds": report::json_f64(trained.train_seconds),
+        "rollouts": m.rollouts,
+        "modes_reached": m.modes_reached,
+        "collisions": m.collisions,
+        "timeouts": m.timeouts,
+        "mean_success_steps": report::json_f64(m.mean_success_steps),
+        "mode_counts": m.mode_counts,
+    }))?;
+    if let Some(t) = trained.teacher_seconds {
+        row.insert("teacher_seconds".into(), report::json_f64(t));
+    }
+    if let Some(s) = trained.sampling_steps {
+        row.insert("sampling_steps".into(), json!(s));
+    }
+    out.curves.insert(format!("{label}/seed{seed}"), serde_json::to_value(&trained.curves)?);
+
+    if record {
+        let t0 = Instant::now();
+        let n = cfg.plots.trajectories;
+        let experts = match &trained.policy {
+            TrainedPolicy::Moe(moe) if cfg.data.obs_window == 1 && cfg.data.action_chunk == 1 => {
+                Some((chosen_experts(&wrapped, protocol, seed, &ev, n)?, moe.num_experts()))
+            }
+            _ => None,
+        };
+        let (sr, te) = (m.success_rate, m.task_entropy);
+        out.panels.push(TrajectoryPanel::from_rollouts(label, &ev.rollouts, n, experts, sr, te));
+        out.curve_panels.push((label.clone(), trained.curves));
+        stages.add("plots", t0.elapsed().as_secs_f64());
+    }
+    Ok((row, wrapped))
+}
+
+/// Inference time, single-threaded, one observation per call, with nothing else running: the
+/// seed's methods take their timing rounds in turn (see `us_per_action`), in groups that share
+/// the observations and the timing settings (one group unless variants change them).
+fn time_seed(
+    plan: &[Entry<'_, AvoidingRecipe>],
+    data: &Datasets<Prepared>,
+    si: usize,
+    seed: u64,
+    mut timed: Vec<(usize, Windowed<TrainedPolicy>)>,
+    rows: &mut [(String, Vec<Row>)],
+) -> crate::XResult {
+    let eval_seed = EvalProtocol::seed(seed);
+    while let Some((first, _)) = timed.first() {
+        let (timing, id) = (plan[*first].cfg.eval.timing(), data.id(si, *first));
+        let same = |pi: usize| data.id(si, pi) == id && plan[pi].cfg.eval.timing() == timing;
+        let (group, rest): (Vec<_>, Vec<_>) = timed.drain(..).partition(|(pi, _)| same(*pi));
+        timed = rest;
+        let (pis, mut policies): (Vec<usize>, Vec<_>) = group.into_iter().unzip();
+        let episodes = &data.get(si, pis[0]).episodes_obs;
+        let us = us_per_action(&mut policies, episodes, timing, eval_seed)?;
+        let mut line = Vec::with_capacity(pis.len());
+        for (pi, us) in pis.into_iter().zip(us) {
+            rows[pi].1[si].insert("us_per_action".into(), report::json_f64(us));
+            line.push(format!("{} {us:.1}", plan[pi].label));
+        }
+        crate::progress::log(format!("[s{seed}] µs per action: {}", line.join(", ")));
+    }
+    Ok(())
+}
+
+/// `metrics.json`, `curves.json`, `table.md`, the figures and `run.json`.
+#[allow(clippy::too_many_arguments)]
+fn write_outputs(
+    ctx: &RunContext,
+    dir: &std::path::Path,
+    base: &AvoidingRecipe,
+    out: Collected,
+    data_summary: Value,
+    teacher_log: Vec<Value>,
+    jobs: usize,
+    stages: &mut StageTimes,
+) -> crate::XResult {
+    let mut metrics = report::metrics_json(&ctx.name, "avoiding", &base.seeds, &out.rows);
+    metrics.insert("data".into(), data_summary.clone());
+    let curves = serde_json::to_string(&out.curves)?;
+    vdd_nn::io::write_atomic(&dir.join("curves.json"), curves.as_bytes())?;
+    let table = format!(
+        "## {} (Avoiding)\n\n{}\n\n{}\nmean ± std over seeds {:?}; {} rollouts per method and seed; µs per action: single-threaded `Policy::act` on one observation.\n",
+        ctx.name,
+        base.description,
+        report::markdown_table(&out.rows, &report::columns_for("avoiding")),
+        base.seeds,
+        base.eval.rollouts
+    );
+    let mut figures = Vec::new();
+    if base.plots.enabled && !out.panels.is_empty() {
+        let t0 = Instant::now();
+        let png = base.plots.png;
+        figures.extend(plots::avoiding_trajectories(&dir.join("trajectories"), &out.panels, png)?);
+        figures.extend(plots::learning_curves(&dir.join("curves"), &out.curve_panels, png)?);
+        stages.add("plots", t0.elapsed().as_secs_f64());
+    }
+    let details = json!({
+        "figures": figures,
+        "data": data_summary,
+        "teachers": teacher_log,
+        "jobs": jobs,
+        "stage_seconds": stages.to_json(),
+    });
+    pipeline::write_results(ctx, dir, &metrics, &table, details)?;
+    print_acceptance(&out.rows);
+    println!("stages: {}", stages.summary());
+    let cpu = crate::context::cpu_seconds().map_or(String::new(), |c| format!(", {c:.0} s CPU"));
+    let wall = ctx.started.elapsed().as_secs_f64();
+    println!("results in {} ({wall:.1} s wall{cpu})", teachers::rel(dir));
+    Ok(())
+}
+
+/// Prints VDD vs teacher comparisons (issue 7's acceptance) when both are in the run.
+fn print_acceptance(rows: &[(String, Vec<Row>)]) {
+    let mean = |label: &str, key: &str| -> Option<f64> {
+        let (_, r) = rows.iter().find(|(l, _)| l == label)?;
+        let xs: Vec<f64> = r.iter().filter_map(|x| x.get(key)?.as_f64()).collect();
+        (!xs.is_empty()).then(|| report::mean_std(&xs).0)
+    };
+    let yes = |b: bool| if b { "yes" } else { "NO" };
+    for (vdd, teacher) in [("vdd-beso", "beso"), ("vdd-ddpm", "ddpm")] {
+        let (Some(vs), Some(ve), Some(vu)) =
+            (mean(vdd, "success_rate"), mean(vdd, "task_entropy"), mean(vdd, "us_per_action"))
+        else {
+            continue;
+        };
+        let mut line = format!(
+            "{vdd}: success {vs:.3} (>= 0.90: {}), entropy {ve:.3} (>= 0.70: {})",
+            yes(vs >= 0.90),
+            yes(ve >= 0.70)
+        );
+        if let (Some(ts), Some(tu)) =
+            (mean(teacher, "success_rate"), mean(teacher, "us_per_action"))
+        {
+            line.push_str(&format!(
+                "; {teacher} success {ts:.3} (within 0.05: {}); speed-up {:.1}x (>= 10x: {})",
+                yes(vs >= ts - 0.05),
+                tu / vu,
+                yes(tu / vu >= 10.0)
+            ));
+        }
+        println!("{line}");
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_defaults_file_is_complete_and_valid() {
+        recipe::assert_complete_defaults::<AvoidingRecipe>(&[(
+            "recipes/defaults/avoiding.toml",
+            DEFAULTS,
+        )]);
+    }
+
+    #[test]
+    fn recipes_in_the_repository_resolve() {
+        for name in [
+            "avoiding",
+            "avoiding-ablation-experts",
+            "avoiding-ablation-gating",
+            "avoiding-ablation-noise",
+        ] {
+            let path = recipe::recipe_path(name).unwrap();
+            let file = recipe::read_recipe(&path).unwrap();
+            for quick in [false, true] {
+                let o = recipe::Overrides { quick, ..Default::default() };
+                let r = recipe::resolve(&AvoidingRecipe::defaults().unwrap(), &file, &o)
+                    .unwrap_or_else(|e| panic!("{name}: {e}"));
+                pipeline::plan(&r, "avoiding").unwrap_or_else(|e| panic!("{name}: {e}"));
+            }
+        }
+    }
+
+    #[test]
+    fn method_keys_are_checked() {
+        let file = recipe::read_recipe(&recipe::recipe_path("avoiding").unwrap()).unwrap();
+        let defaults = AvoidingRecipe::defaults().unwrap();
+        for (set, what) in [
+            ("baselines.emm.iterations=3", "baselines.emm"),
+            ("baselines.em.iteratons=3", "iteratons"),
+            ("vdd.beso_gating=sometimes", "vdd-beso"),
+        ] {
+            let (k, v) = set.split_once('=').unwrap();
+            let o = recipe::Overrides { sets: vec![(k.into(), v.into())], ..Default::default() };
+            let e = match recipe::resolve(&defaults, &file, &o) {
+                Ok(r) => pipeline::plan(&r, "avoiding").err().unwrap().to_string(),
+                Err(e) => e,
+            };
+            assert!(e.contains(what), "{set}: {e}");
+        }
+    }
+}

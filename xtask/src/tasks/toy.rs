@@ -1,0 +1,443 @@
+//! The toy recipes (`recipes/toy-gmm.toml`, `recipes/toy-conditional.toml`).
+//!
+//! * `toy-gmm`: the paper's 2-D toy. VDD distils a teacher of the 8-mode circle mixture — the
+//!   exact score (`vdd-exact`), or a learned DDPM / BESO teacher trained on 5000 samples
+//!   (`vdd-ddpm`, `vdd-beso`; cached like every learned teacher) — into 8 diagonal experts,
+//!   then measures reverse/forward KL against the exact density by Monte Carlo, modes covered
+//!   and training speed.
+//! * `toy-conditional`: the rotating-modes toy (mode `k` at angle `s + 2πk/K`) distilled from its
+//!   exact teacher with a learned gating trained on dataset actions; coverage and KL at 8
+//!   evaluation states.
+//!
+//! The data (and so the learned teachers) depend on the run seed. `metrics.json` has the common
+//! `methods.<method>` layout ([`crate::report`]) and, for the first method, the top-level keys
+//! of the original command: `reverse_kl`, `forward_kl`, `modes_covered` (the minimum over
+//! seeds), `ms_per_iter`, `train_seconds` (means over seeds) for `toy-gmm`;
+//! `states_fully_covered` (minimum), `mean_reverse_kl`, `mean_forward_kl`, `ms_per_iter`,
+//! `train_seconds` and the first seed's per-state results for `toy-conditional`.
+
+use faer::Mat;
+use serde::{Deserialize, Serialize};
+use serde_json::{Value, json};
+use toml::Table;
+use vdd_core::gmm::{Gmm, GmmTeacher};
+use vdd_core::{Affine, ScoreModel, Seeds};
+use vdd_moe::MoeConfig;
+
+use super::toy_eval::{ToyEval, ToyPlots, ToyStudent, circle_modes, density_panel, evaluate_at};
+use crate::context::{RunContext, StageTimes};
+use crate::method::{Trained, TrainingData};
+use crate::pipeline::{self, Datasets, Entry, Task, TaskRecipe, Trainings};
+use crate::plots;
+use crate::policy::TrainedPolicy;
+use crate::recipe::{self, Overrides};
+use crate::report::{self, Row};
+use crate::teachers::TeachersConfig;
+
+/// A toy recipe: the schema of the recipe files; the values not given there come from
+/// `recipes/defaults/` ([`Self::defaults`]).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ToyRecipe {
+    /// Recipe name.
+    pub name: String,
+    /// What it shows.
+    pub description: String,
+    /// `toy-gmm` or `toy-conditional`.
+    pub task: String,
+    /// Run seeds.
+    pub seeds: Vec<u64>,
+    /// Methods (`vdd-exact`; `toy-gmm` also `vdd-ddpm`, `vdd-beso`).
+    pub methods: Vec<String>,
+    /// Data.
+    pub data: ToyData,
+    /// Learned teachers (trained on `data.points` samples of the mixture).
+    pub teachers: TeachersConfig,
+    /// The student (`state_dim` / `action_dim` come from the task).
+    pub student: MoeConfig,
+    /// VDD's settings for each teacher, read by the VDD methods (`xtask/src/methods/vdd.rs`).
+    pub vdd: Table,
+    /// Evaluation.
+    pub eval: ToyEval,
+    /// Figure 2.
+    pub plots: ToyPlots,
+}
+
+/// Data of a toy recipe.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ToyData {
+    /// Number of states (and mixture samples) VDD distils on; learned teachers train on them.
+    pub points: usize,
+}
+
+/// `recipes/defaults/toy-gmm.toml` and the `toy-conditional` keys merged on top of it,
+/// embedded so that the binary is self-contained.
+const DEFAULTS: [(&str, &str); 2] = [
+    ("recipes/defaults/toy-gmm.toml", include_str!("../../../recipes/defaults/toy-gmm.toml")),
+    (
+        "recipes/defaults/toy-conditional.toml",
+        include_str!("../../../recipes/defaults/toy-conditional.toml"),
+    ),
+];
+
+impl ToyRecipe {
+    /// The defaults of `task` (`toy-gmm` or `toy-conditional`), from `recipes/defaults/`,
+    /// which a recipe file overrides.
+    pub fn defaults(task: &str) -> recipe::RecipeResult<Self> {
+        match task {
+            "toy-gmm" => recipe::defaults_from_toml(&DEFAULTS[..1]),
+            "toy-conditional" => recipe::defaults_from_toml(&DEFAULTS),
+            other => Err(format!("no toy task `{other}` (toy-gmm, toy-conditional)")),
+        }
+    }
+}
+
+impl TaskRecipe for ToyRecipe {
+    const METHOD_SECTIONS: &'static [&'static str] = &["vdd"];
+    fn task(&self) -> &str {
+        &self.task
+    }
+    fn seeds(&self) -> &[u64] {
+        &self.seeds
+    }
+    fn methods(&self) -> &[String] {
+        &self.methods
+    }
+    fn teachers(&self) -> &TeachersConfig {
+        &self.teachers
+    }
+    fn student(&self) -> &MoeConfig {
+        &self.student
+    }
+}
+
+/// A toy task.
+pub struct Toy {
+    name: &'static str,
+    conditional: bool,
+}
+
+/// `toy-gmm`.
+pub const TOY_GMM: Toy = Toy { name: "toy-gmm", conditional: false };
+/// `toy-conditional`.
+pub const TOY_CONDITIONAL: Toy = Toy { name: "toy-conditional", conditional: true };
+
+/// Modes of the toys' mixtures.
+const MODES: usize = 8;
+
+impl Task for Toy {
+    fn name(&self) -> &'static str {
+        self.name
+    }
+
+    /// Translates the original commands' options into recipe overrides: `toy-gmm --teacher X`
+    /// (methods = `vdd-X`), `--iterations N`; `toy-conditional --iterations N --experts N
+    /// --lr X --weighting gating|uniform`.
+    fn apply_shorthands(
+        &self,
+        shorthands: &[(String, String)],
+        o: &mut Overrides,
+    ) -> Result<(), String> {
+        let task = self.name;
+        let mut teacher = "exact".to_owned();
+        for (k, v) in shorthands.iter().filter(|(k, _)| k == "teacher") {
+            if self.conditional {
+                return Err(format!("--{k} is a toy-gmm option; use --methods for `{task}`"));
+            }
+            if !["exact", "ddpm", "beso"].contains(&v.as_str()) {
+                return Err(format!("unknown teacher `{v}` (exact|ddpm|beso)"));
+            }
+            teacher = v.clone();
+            o.methods = Some(vec![format!("vdd-{v}")]);
+        }
+        for (k, v) in shorthands {
+            let sets: Vec<(String, String)> = match (self.conditional, k.as_str()) {
+                (_, "teacher") => continue,
+                (_, "iterations") => vec![(format!("vdd.{teacher}.iterations"), v.clone())],
+                (true, "experts") => vec![("student.num_experts".into(), v.clone())],
+                (true, "lr") => vec![
+                    ("vdd.exact.expert_optimizer.lr".into(), v.clone()),
+                    ("vdd.exact.gating_optimizer.lr".into(), v.clone()),
+                ],
+                (true, "weighting") => {
+                    if !["gating", "uniform"].contains(&v.as_str()) {
+                        return Err(format!("unknown weighting `{v}` (gating|uniform)"));
+                    }
+                    vec![("vdd.exact.expert_weighting".into(), format!("\"{v}\""))]
+                }
+                _ => return Err(format!("option --{k} does not apply to task `{task}`")),
+            };
+            o.sets.extend(sets);
+        }
+        Ok(())
+    }
+
+    fn run(&self, ctx: &RunContext) -> crate::XResult {
+        let task = self.name;
+        let resolved = recipe::resolve(&ToyRecipe::defaults(task)?, &ctx.file, &ctx.overrides)?;
+        let base = &resolved.base;
+        let plan = pipeline::plan(&resolved, task)?;
+        let dir = ctx.run_dir(&base.seeds);
+        ctx.write_resolved(&dir, &resolved.to_toml()?)?;
+        let mut stages = StageTimes::default();
+        let key = |cfg: &ToyRecipe, seed| Ok(format!("{}-{seed}", recipe::config_hash(&cfg.data)?));
+        let prepare = |cfg: &ToyRecipe, seed| self.prepare(cfg, seed);
+        let data = Datasets::build(&plan, &base.seeds, &mut stages, key, prepare)?;
+        let mut trainings =
+            pipeline::train_all(ctx, &plan, &base.seeds, &data, 1, None, &mut stages)?;
+
+        let mut rows = pipeline::empty_rows(&plan);
+        let mut panels = Vec::new();
+        for (si, &seed) in base.seeds.iter().enumerate() {
+            for (pi, e) in plan.iter().enumerate() {
+                let trained = trainings.trained.remove(&(si, pi)).ok_or("internal: not trained")?;
+                let mut s = student(e, &trained, data.get(si, pi), &trainings, seed)?;
+                let row = self.evaluate(e, &trained, &mut s, seed)?;
+                rows[pi].1.push(row);
+                if si == 0 && e.cfg.plots.enabled {
+                    let n = if self.conditional { e.cfg.plots.states.max(1) } else { 1 };
+                    for i in 0..n {
+                        let (state, title) = if self.conditional {
+                            let s = (i as f32 + 0.5) * std::f32::consts::TAU / n as f32;
+                            (s, format!("{}, s = {s:.2}", e.label))
+                        } else {
+                            (0.0, e.label.clone())
+                        };
+                        let modes = circle_modes(MODES, state);
+                        panels.push(density_panel(&mut s, state, title, modes, &e.cfg.plots)?);
+                    }
+                }
+            }
+        }
+        self.write_outputs(ctx, &dir, base, &rows, &panels, trainings.teachers.log)
+    }
+}
+
+impl Toy {
+    /// The row of one trained method: KL and coverage against the exact mixture, training time.
+    fn evaluate(
+        &self,
+        e: &Entry<'_, ToyRecipe>,
+        trained: &Trained,
+        s: &mut ToyStudent,
+        seed: u64,
+    ) -> crate::XResult<Row> {
+        let (cfg, train_seconds) = (e.cfg, trained.train_seconds);
+        let iterations = trained.iterations.unwrap_or(0);
+        let tag = format!("{} s{seed}", e.label);
+        let seeds = Seeds::new(seed).child("toy-eval");
+        let ms_per_iter = train_seconds * 1e3 / iterations.max(1) as f64;
+        let mut row = Row::new();
+        row.insert("seed".into(), json!(seed));
+        if self.conditional {
+            conditional_row(s, cfg, &seeds, &mut row, &tag, train_seconds)?;
+        } else {
+            let truth = Gmm::circle(MODES, 2.0, 0.5, 0.0)?;
+            let n = cfg.eval.kl_samples;
+            let (rev, fwd, cov) = evaluate_at(s, &truth, 0.0, n, &cfg.eval, &seeds, 0)?;
+            crate::progress::log(format!(
+                "[{tag}] reverse KL {rev:.5} nats, forward KL {fwd:.5} nats, modes {cov}/{MODES}, {ms_per_iter:.3} ms/iter ({train_seconds:.2} s)"
+            ));
+            row.insert("reverse_kl".into(), report::json_f64(rev));
+            row.insert("forward_kl".into(), report::json_f64(fwd));
+            row.insert("modes_covered".into(), json!(cov));
+            row.insert("modes_total".into(), json!(MODES));
+        }
+        row.insert("ms_per_iter".into(), report::json_f64(ms_per_iter));
+        row.insert("train_seconds".into(), report::json_f64(train_seconds));
+        if let Some(t) = trained.teacher_seconds {
+            row.insert("teacher_seconds".into(), report::json_f64(t));
+        }
+        row.insert("iterations".into(), json!(iterations));
+        Ok(row)
+    }
+
+    /// The run seed's samples of the toy's mixture and its exact teacher.
+    fn prepare(&self, cfg: &ToyRecipe, seed: u64) -> crate::XResult<TrainingData> {
+        let n = cfg.data.points;
+        if n == 0 {
+            return Err("data.points must be positive".into());
+        }
+        let task = vdd_tasks::toy::CircleGmm::toy_conditional();
+        // The toy-gmm state is constant (0); toy-conditional samples states and actions.
+        if self.conditional {
+            let (states, actions) = task.sample(n, seed)?;
+            Ok(TrainingData::raw(states, actions, Some(task.teacher()?)))
+        } else {
+            let mut gmm = GmmTeacher::circle_toy();
+            let states = Mat::<f32>::zeros(n, 1);
+            let actions = gmm.sample(states.as_ref(), &mut Seeds::new(seed).stream("toy-data"))?;
+            Ok(TrainingData::raw(states, actions, Some(GmmTeacher::circle_toy())))
+        }
+    }
+
+    #[allow(clippy::too_many_arguments)]
+    fn write_outputs(
+        &self,
+        ctx: &RunContext,
+        dir: &std::path::Path,
+        base: &ToyRecipe,
+        rows: &[(String, Vec<Row>)],
+        panels: &[plots::DensityPanel],
+        teacher_log: Vec<Value>,
+    ) -> crate::XResult {
+        let task = self.name;
+        let mut metrics = report::metrics_json(&ctx.name, task, &base.seeds, rows);
+        // The original command's top-level keys, from the first method.
+        let first = &rows[0].1;
+        let mean = |key: &str| {
+            let xs: Vec<f64> = first.iter().filter_map(|r| r.get(key)?.as_f64()).collect();
+            report::json_f64(report::mean_std(&xs).0)
+        };
+        let min = |key: &str| first.iter().filter_map(|r| r.get(key)?.as_u64()).min().unwrap_or(0);
+        metrics.insert("method".into(), json!(rows[0].0));
+        metrics.insert("teacher".into(), json!(rows[0].0.trim_start_matches("vdd-")));
+        metrics.insert("seed".into(), json!(base.seeds[0]));
+        if self.conditional {
+            metrics.insert("modes".into(), json!(MODES));
+            metrics.insert("states_fully_covered".into(), json!(min("states_fully_covered")));
+            metrics.insert("mean_reverse_kl".into(), mean("mean_reverse_kl"));
+            metrics.insert("mean_forward_kl".into(), mean("mean_forward_kl"));
+            let states = first.first().and_then(|r| r.get("states")).cloned();
+            metrics.insert("states".into(), states.unwrap_or(Value::Null));
+        } else {
+            metrics.insert("reverse_kl".into(), mean("reverse_kl"));
+            metrics.insert("forward_kl".into(), mean("forward_kl"));
+            metrics.insert("modes_covered".into(), json!(min("modes_covered")));
+            metrics.insert("modes_total".into(), json!(MODES));
+        }
+        metrics.insert("ms_per_iter".into(), mean("ms_per_iter"));
+        metrics.insert("train_seconds".into(), mean("train_seconds"));
+        let table = format!(
+            "## {} ({task})\n\n{}\n\n{}\nmean ± std over seeds {:?}\n",
+            ctx.name,
+            base.description,
+            report::markdown_table(rows, &report::columns_for(task)),
+            base.seeds
+        );
+        let mut figures = Vec::new();
+        if base.plots.enabled && !panels.is_empty() {
+            figures = plots::toy_density(&dir.join("density"), panels, base.plots.png)?;
+        }
+        let details = json!({ "figures": figures, "teachers": teacher_log });
+        pipeline::write_results(ctx, dir, &metrics, &table, details)?;
+        println!("wrote {}", dir.join("metrics.json").display());
+        Ok(())
+    }
+}
+
+/// The distilled mixture of `trained` with its normalisers and teacher.
+fn student(
+    e: &Entry<'_, ToyRecipe>,
+    trained: &Trained,
+    d: &TrainingData,
+    trainings: &Trainings,
+    seed: u64,
+) -> crate::XResult<ToyStudent> {
+    let TrainedPolicy::Moe(student) = &trained.policy else {
+        return Err(format!("{}: the toys evaluate mixtures of experts", e.label).into());
+    };
+    let (sn, an) = student.normalizers();
+    let state_norm = sn.cloned().unwrap_or_else(|| Affine::identity(1));
+    let action_norm = an.cloned().unwrap_or_else(|| Affine::identity(2));
+    let teacher: Box<dyn ScoreModel> = match e.method.info().teacher {
+        Some(kind) => {
+            Box::new(trainings.teachers.get(kind, e.cfg.teachers(), d, seed)?.teacher.clone())
+        }
+        None => Box::new(d.exact.clone().ok_or("the toy has no exact teacher")?),
+    };
+    let noise_level = trained.noise_level.ok_or("internal: no distillation noise level")?;
+    let student = student.as_ref().clone();
+    Ok(ToyStudent { student, state_norm, action_norm, teacher, noise_level })
+}
+
+/// `toy-conditional`: KL and coverage at the evaluation states into `row`.
+fn conditional_row(
+    s: &mut ToyStudent,
+    cfg: &ToyRecipe,
+    seeds: &Seeds,
+    row: &mut Row,
+    tag: &str,
+    train_seconds: f64,
+) -> crate::XResult {
+    let n_states = cfg.eval.eval_states.max(1);
+    let mut states = Vec::new();
+    for i in 0..n_states {
+        let state = (i as f32 + 0.5) * std::f32::consts::TAU / n_states as f32;
+        let truth = Gmm::circle(MODES, 2.0, 0.5, state)?;
+        let samples = cfg.eval.kl_samples;
+        let (rev, fwd, cov) = evaluate_at(s, &truth, state, samples, &cfg.eval, seeds, i as u64)?;
+        states.push(
+            json!({"state": state, "modes_covered": cov, "reverse_kl": rev, "forward_kl": fwd}),
+        );
+    }
+    let mean = |key: &str| {
+        states.iter().filter_map(|v| v[key].as_f64()).sum::<f64>() / states.len() as f64
+    };
+    let full = states.iter().filter(|v| v["modes_covered"].as_u64() == Some(MODES as u64)).count();
+    row.insert("states_fully_covered".into(), json!(full));
+    row.insert("eval_states".into(), json!(n_states));
+    row.insert("mean_reverse_kl".into(), report::json_f64(mean("reverse_kl")));
+    row.insert("mean_forward_kl".into(), report::json_f64(mean("forward_kl")));
+    crate::progress::log(format!(
+        "[{tag}] all {MODES} modes covered at {full}/{n_states} states, mean reverse KL {:.4}, mean forward KL {:.4} nats, {train_seconds:.2} s",
+        mean("reverse_kl"),
+        mean("forward_kl"),
+    ));
+    row.insert("states".into(), Value::Array(states));
+    Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn resolve(task: &str, o: &Overrides) -> recipe::Resolved<ToyRecipe> {
+        let file = recipe::read_recipe(&recipe::recipe_path(task).unwrap()).unwrap();
+        recipe::resolve(&ToyRecipe::defaults(task).unwrap(), &file, o).unwrap()
+    }
+
+    #[test]
+    fn toy_recipes_resolve_and_shorthands_translate() {
+        for task in [&TOY_GMM, &TOY_CONDITIONAL] {
+            let r = resolve(task.name, &Overrides::default());
+            pipeline::plan(&r, task.name).unwrap();
+            assert_eq!(r.base.task, task.name);
+        }
+        let mut o = Overrides::default();
+        let sh = [("teacher".into(), "beso".into()), ("iterations".into(), "7".into())];
+        TOY_GMM.apply_shorthands(&sh, &mut o).unwrap();
+        assert_eq!(o.methods, Some(vec!["vdd-beso".to_owned()]));
+        let r = resolve("toy-gmm", &o);
+        assert_eq!(r.base.vdd["beso"]["iterations"].as_integer(), Some(7));
+        let bad = [("teacher".into(), "x".into())];
+        assert!(TOY_GMM.apply_shorthands(&bad, &mut Overrides::default()).is_err());
+        let teacher = [("teacher".into(), "beso".into())];
+        assert!(TOY_CONDITIONAL.apply_shorthands(&teacher, &mut Overrides::default()).is_err());
+        let avoiding = crate::tasks::find("avoiding").unwrap();
+        assert!(avoiding.apply_shorthands(&teacher, &mut Overrides::default()).is_err());
+        let mut o = Overrides::default();
+        let sh = [("weighting".into(), "uniform".into()), ("experts".into(), "8".into())];
+        TOY_CONDITIONAL.apply_shorthands(&sh, &mut o).unwrap();
+        let r = resolve("toy-conditional", &o);
+        assert_eq!(r.base.vdd["exact"]["expert_weighting"].as_str(), Some("uniform"));
+        assert_eq!(r.base.student.num_experts, 8);
+    }
+
+    #[test]
+    fn the_defaults_files_are_complete_and_valid() {
+        recipe::assert_complete_defaults::<ToyRecipe>(&DEFAULTS[..1]);
+        recipe::assert_complete_defaults::<ToyRecipe>(&DEFAULTS);
+    }
+
+    #[test]
+    fn toy_defaults_match_the_paper() {
+        let r = ToyRecipe::defaults("toy-gmm").unwrap();
+        let exact: vdd::VddConfig = recipe::from_tree(r.vdd["exact"].as_table().unwrap()).unwrap();
+        assert_eq!(exact, vdd::VddConfig::toy());
+        assert_eq!(r.student, MoeConfig::toy(1, 2, 8));
+        assert_eq!(r.data.points, 5000);
+        assert_eq!(r.eval.kl_samples, 100_000);
+    }
+}
