@@ -45,6 +45,9 @@ impl Policy for TrainedPolicy {
     fn seed(&mut self, seed: u64) {
         each!(self, p => p.seed(seed))
     }
+    fn last_experts(&self) -> &[usize] {
+        each!(self, p => p.last_experts())
+    }
     fn act_into(&mut self, obs: &[f32], action: &mut [f32]) -> vdd_core::Result<()> {
         each!(self, p => p.act_into(obs, action))
     }

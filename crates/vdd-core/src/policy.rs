@@ -43,6 +43,13 @@ pub trait Policy {
     /// Re-seeds the policy's own random stream (no-op for deterministic policies).
     fn seed(&mut self, _seed: u64) {}
 
+    /// For a mixture of experts: the expert each row of the last [`act_into`](Policy::act_into)
+    /// or [`act_batch`](Policy::act_batch) acted with (one entry per row). Empty for policies
+    /// without experts, the default.
+    fn last_experts(&self) -> &[usize] {
+        &[]
+    }
+
     /// Writes the action for `obs` into `action` (`action_dim()` long).
     fn act_into(&mut self, obs: &[f32], action: &mut [f32]) -> Result<()>;
 
@@ -100,6 +107,9 @@ impl<P: Policy + ?Sized> Policy for Box<P> {
     }
     fn seed(&mut self, seed: u64) {
         (**self).seed(seed)
+    }
+    fn last_experts(&self) -> &[usize] {
+        (**self).last_experts()
     }
     fn act_into(&mut self, obs: &[f32], action: &mut [f32]) -> Result<()> {
         (**self).act_into(obs, action)

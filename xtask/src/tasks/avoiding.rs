@@ -20,7 +20,6 @@ use vdd_tasks::avoiding::EvalProtocol;
 use vdd_tasks::avoiding::dataset::DatasetConfig;
 use vdd_tasks::timing::{Timing, us_per_action};
 
-use super::experts::chosen_experts;
 use crate::context::{RunContext, StageTimes};
 use crate::method::{Trained, TrainingData};
 use crate::pipeline::{self, Datasets, Entry, Task, TaskRecipe};
@@ -332,7 +331,7 @@ fn evaluate(
         let n = cfg.plots.trajectories;
         let experts = match &trained.policy {
             TrainedPolicy::Moe(moe) if cfg.data.obs_window == 1 && cfg.data.action_chunk == 1 => {
-                Some((chosen_experts(&wrapped, protocol, seed, &ev, n)?, moe.num_experts()))
+                Some((protocol.replay_experts(&wrapped, seed, &ev, n)?, moe.num_experts()))
             }
             _ => None,
         };

@@ -9,7 +9,6 @@
 use crate::pipeline::Task;
 
 mod avoiding;
-mod experts;
 mod toy;
 mod toy_eval;
 

@@ -248,6 +248,11 @@ impl<P: Policy> Policy for Windowed<P> {
     fn seed(&mut self, seed: u64) {
         self.inner.seed(seed);
     }
+    /// The inner policy's: the experts of its last prediction (with a chunk longer than one
+    /// step, the chunk being executed).
+    fn last_experts(&self) -> &[usize] {
+        self.inner.last_experts()
+    }
     fn act_into(&mut self, obs: &[f32], action: &mut [f32]) -> vdd_core::Result<()> {
         if self.passthrough() {
             return self.inner.act_into(obs, action);

@@ -22,6 +22,9 @@ impl<E: Expert> Policy for Moe<E> {
     fn seed(&mut self, seed: u64) {
         self.rng = Seeds::new(seed).stream("moe-act");
     }
+    fn last_experts(&self) -> &[usize] {
+        Moe::last_experts(self)
+    }
 
     fn act_into(&mut self, obs: &[f32], action: &mut [f32]) -> vdd_core::Result<()> {
         check_act_args(self, obs, action)?;

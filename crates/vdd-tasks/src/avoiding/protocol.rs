@@ -6,7 +6,7 @@ use serde::{Deserialize, Serialize};
 use vdd_core::{Policy, Seeds};
 
 use super::rollout::{EvalConfig, Evaluation, Stepping, evaluate_cloned};
-use crate::Result;
+use crate::{Result, TaskError};
 
 /// The recipes' evaluation of a policy trained with run seed `seed`: `rollouts` episodes whose
 /// policy seeds come from [`EvalProtocol::seed`]`(seed)` (the same for every method of a run
@@ -91,5 +91,143 @@ impl EvalProtocol {
         record: bool,
     ) -> Result<Evaluation> {
         evaluate_cloned(policy, threads, &self.config(run_seed, record))
+    }
+
+    /// For each step of each of the first `n` recorded rollouts of `eval` (this protocol's
+    /// evaluation of `policy` for run seed `run_seed`), the expert the policy acted with
+    /// ([`Policy::last_experts`]): the evaluation units holding those rollouts run again on this
+    /// thread with a copy of the policy (the same seeds, so the same rollouts, which is checked).
+    /// It needs a policy asked at every step for every row: a mixture with observation window
+    /// and action chunk 1.
+    ///
+    /// Errors: [`TaskError::InvalidArgument`] when the replay differs from `eval` or the policy
+    /// reports no expert for some step; the rollouts' own errors.
+    pub fn replay_experts<P: Policy + Clone>(
+        &self,
+        policy: &P,
+        run_seed: u64,
+        eval: &Evaluation,
+        n: usize,
+    ) -> Result<Vec<Vec<usize>>> {
+        let unit = self.lockstep_batch.max(1);
+        let rollouts = n.div_ceil(unit).saturating_mul(unit).min(self.rollouts);
+        let cfg = EvalProtocol { rollouts, ..*self }.config(run_seed, true);
+        let mut log = ExpertLog { policy: policy.clone(), units: Vec::new() };
+        let again = super::rollout::evaluate(&mut log, &cfg)?;
+        if eval.rollouts.get(..rollouts) != Some(&again.rollouts[..]) {
+            let why =
+                "the rollouts did not replay for expert attribution (another policy or seed?)";
+            return Err(TaskError::InvalidArgument(why.into()));
+        }
+        let mut out = Vec::with_capacity(n);
+        for (i, r) in again.rollouts.iter().take(n).enumerate() {
+            let steps = log.units.get(i / unit).map_or(&[][..], |u| &u[..]);
+            let ids: Option<Vec<usize>> =
+                (0..r.steps).map(|t| steps.get(t)?.get(i % unit).copied()).collect();
+            let why = "the policy did not report an expert for every row and step";
+            out.push(ids.ok_or_else(|| TaskError::InvalidArgument(why.into()))?);
+        }
+        Ok(out)
+    }
+}
+
+/// A policy that logs, for each evaluation unit (from one `reset` to the next) and each call,
+/// the expert of each row ([`Policy::last_experts`]).
+struct ExpertLog<P> {
+    policy: P,
+    units: Vec<Vec<Vec<usize>>>,
+}
+
+impl<P: Policy> ExpertLog<P> {
+    fn log(&mut self) {
+        let experts = self.policy.last_experts().to_vec();
+        if let Some(unit) = self.units.last_mut() {
+            unit.push(experts);
+        }
+    }
+}
+
+impl<P: Policy> Policy for ExpertLog<P> {
+    fn obs_dim(&self) -> usize {
+        self.policy.obs_dim()
+    }
+    fn action_dim(&self) -> usize {
+        self.policy.action_dim()
+    }
+    fn reset(&mut self) {
+        self.policy.reset();
+        self.units.push(Vec::new());
+    }
+    fn seed(&mut self, seed: u64) {
+        self.policy.seed(seed);
+    }
+    fn act_into(&mut self, obs: &[f32], action: &mut [f32]) -> vdd_core::Result<()> {
+        self.policy.act_into(obs, action)?;
+        self.log();
+        Ok(())
+    }
+    fn act_batch(
+        &mut self,
+        obs: faer::MatRef<'_, f32>,
+        actions: faer::MatMut<'_, f32>,
+    ) -> vdd_core::Result<()> {
+        self.policy.act_batch(obs, actions)?;
+        self.log();
+        Ok(())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::avoiding::FarLeft;
+
+    /// [`FarLeft`] reporting expert 7 for every row it acts on, one entry per row of a call.
+    #[derive(Clone)]
+    struct Tagged {
+        rows: Vec<usize>,
+    }
+
+    impl Policy for Tagged {
+        fn obs_dim(&self) -> usize {
+            4
+        }
+        fn action_dim(&self) -> usize {
+            2
+        }
+        fn last_experts(&self) -> &[usize] {
+            &self.rows
+        }
+        fn act_into(&mut self, obs: &[f32], action: &mut [f32]) -> vdd_core::Result<()> {
+            self.rows = vec![7];
+            FarLeft.act_into(obs, action)
+        }
+        fn act_batch(
+            &mut self,
+            obs: faer::MatRef<'_, f32>,
+            actions: faer::MatMut<'_, f32>,
+        ) -> vdd_core::Result<()> {
+            self.rows = vec![7; obs.nrows()];
+            FarLeft.act_batch(obs, actions)
+        }
+    }
+
+    #[test]
+    fn replayed_experts_cover_every_step_of_the_recorded_rollouts() {
+        let protocol = EvalProtocol { rollouts: 6, lockstep_batch: 4 };
+        let policy = Tagged { rows: Vec::new() };
+        let eval = protocol.evaluate(&policy, 1, 2, true).unwrap();
+        let experts = protocol.replay_experts(&policy, 1, &eval, 5).unwrap();
+        assert_eq!(experts.len(), 5);
+        for (ids, r) in experts.iter().zip(&eval.rollouts) {
+            assert_eq!(ids.len(), r.steps);
+            assert!(ids.iter().all(|&z| z == 7));
+        }
+        // Another run seed replays other rollouts: refused, not misattributed.
+        let other = protocol.evaluate(&FarLeft, 2, 1, true).unwrap();
+        assert!(protocol.replay_experts(&FarLeft, 1, &other, 5).is_err());
+        // A policy without experts cannot be attributed.
+        let plain = protocol.evaluate(&FarLeft, 1, 1, true).unwrap();
+        assert!(protocol.replay_experts(&FarLeft, 1, &plain, 2).is_err());
     }
 }
