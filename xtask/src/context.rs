@@ -29,7 +29,7 @@ pub struct RunContext {
     pub fresh: bool,
     /// The teacher cache directory.
     pub cache_dir: PathBuf,
-    /// The VDD student cache directory ([`crate::student_cache`]).
+    /// The VDD student cache directory ([`vdd_moe::cache`]).
     pub student_cache_dir: PathBuf,
     /// The command line, for `run.json`.
     pub command: String,

@@ -25,7 +25,6 @@ mod plots;
 mod policy;
 mod recipe;
 mod report;
-mod student_cache;
 mod tasks;
 mod teachers;
 

@@ -18,8 +18,8 @@ use vdd_moe::MoeConfig;
 use crate::plots::Curves;
 use crate::policy::TrainedPolicy;
 use crate::recipe;
-use crate::student_cache::StudentCache;
 use crate::teachers::{TeachersConfig, TrainedTeacher};
+use vdd_moe::cache::StudentCache;
 
 /// What a method is: its name, its teacher, where it runs and what it reads.
 #[derive(Debug, Clone, Copy)]

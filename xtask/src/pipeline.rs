@@ -21,9 +21,9 @@ use crate::context::{RunContext, StageTimes};
 use crate::method::{Job, Method, MethodRecipe, Trained, TrainingData};
 use crate::recipe::{self, Overrides, Resolved};
 use crate::report::Row;
-use crate::student_cache::StudentCache;
 use crate::teachers::{self, TeachersConfig, TrainedTeacher};
 use crate::{XResult, methods};
+use vdd_moe::cache::StudentCache;
 
 /// A task of `cargo xtask experiment` (the `task` key of a recipe).
 pub trait Task: Sync {

@@ -61,6 +61,7 @@
 
 pub mod acceptance;
 mod beso;
+pub mod cache;
 mod common;
 mod ddpm;
 mod error;

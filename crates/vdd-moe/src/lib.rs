@@ -18,6 +18,7 @@
 //! checked gradient clipping).
 #![warn(missing_docs)]
 
+pub mod cache;
 mod error;
 mod experts;
 mod moe;

@@ -9,7 +9,7 @@
 //!
 //! The student works in the teacher's normalised space (the exact teacher's is the raw one).
 //! Students of learned teachers are cached when the task gives a [`StudentCache`]
-//! ([`crate::student_cache`]).
+//! ([`vdd_moe::cache`]).
 
 use std::time::Instant;
 
@@ -24,8 +24,8 @@ use crate::method::{Info, Job, Method, MethodRecipe, Trained};
 use crate::plots::Curves;
 use crate::policy::TrainedPolicy;
 use crate::recipe;
-use crate::student_cache::{CachedStudent, STUDENT_CACHE_VERSION};
 use crate::teachers;
+use vdd_moe::cache::{CachedStudent, STUDENT_CACHE_VERSION};
 
 /// VDD distilling one teacher, with the key of its settings below `vdd`.
 pub struct VddMethod(Info, &'static str);

@@ -27,8 +27,8 @@ use crate::plots::{self, Curves, TrajectoryPanel};
 use crate::policy::TrainedPolicy;
 use crate::recipe;
 use crate::report::{self, Row};
-use crate::student_cache::StudentCache;
 use crate::teachers::{self, TeachersConfig};
+use vdd_moe::cache::StudentCache;
 
 /// A recipe of the Avoiding task (see `recipes/avoiding.toml`): the schema of the recipe files;
 /// the values not given there come from `recipes/defaults/avoiding.toml` ([`Self::defaults`]).

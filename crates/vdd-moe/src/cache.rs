@@ -1,0 +1,154 @@
+//! The student cache: trained mixtures stored by the hash of a caller-built key (everything
+//! that determines the trained weights), with their training seconds and learning curves.
+//!
+//! A cached student is `<dir>/<method>-<hash>.safetensors` with a `.json` sidecar (key,
+//! training seconds, learning curves). [`STUDENT_CACHE_VERSION`] belongs in every key.
+
+use std::collections::BTreeMap;
+use std::path::{Path, PathBuf};
+
+use serde::{Deserialize, Serialize};
+
+use crate::{Moe, MoeError};
+
+/// The version of the student cache's key and files, part of every key (the key's
+/// `"version"`): raise it when the training code or the file format changes what a cached
+/// student would be (every student is then retrained once).
+pub const STUDENT_CACHE_VERSION: u32 = 1;
+
+/// Named learning curves, `(x, y)` points each.
+pub type Curves = BTreeMap<String, Vec<(f64, f64)>>;
+
+/// Errors of the student cache.
+#[derive(Debug, thiserror::Error)]
+pub enum StudentCacheError {
+    /// A cache file or directory cannot be read or written.
+    #[error("student cache: {path}: {source}")]
+    Io {
+        /// The file or directory.
+        path: PathBuf,
+        /// The underlying error.
+        source: std::io::Error,
+    },
+    /// A sidecar cannot be serialised as JSON.
+    #[error("student cache: {path}: {source}")]
+    Json {
+        /// The file.
+        path: PathBuf,
+        /// The underlying error.
+        source: serde_json::Error,
+    },
+    /// Saving or loading the mixture (safetensors) failed.
+    #[error(transparent)]
+    Moe(#[from] MoeError),
+}
+
+/// Where students are cached and whether to ignore what is there.
+#[derive(Debug, Clone, Copy)]
+pub struct StudentCache<'a> {
+    /// The cache directory.
+    pub dir: &'a Path,
+    /// Retrain and overwrite: [`StudentCache::load`] always misses.
+    pub fresh: bool,
+}
+
+/// A student loaded from the cache or about to be stored in it.
+#[derive(Debug, Clone)]
+pub struct CachedStudent {
+    /// The trained mixture (normalisers and act mode are set by the caller).
+    pub student: Moe,
+    /// Wall-clock training time of the original training.
+    pub train_seconds: f64,
+    /// Learning curves of the original training.
+    pub curves: Curves,
+}
+
+#[derive(Serialize, Deserialize)]
+struct Sidecar {
+    key: String,
+    train_seconds: f64,
+    curves: Curves,
+}
+
+impl StudentCache<'_> {
+    /// The weights and sidecar files of `method`'s student with key `hash`.
+    ///
+    /// ```
+    /// use std::path::Path;
+    /// use vdd_moe::cache::StudentCache;
+    /// let cache = StudentCache { dir: Path::new("c"), fresh: false };
+    /// assert_eq!(cache.paths("vdd-beso", "ab").0, Path::new("c/vdd-beso-ab.safetensors"));
+    /// ```
+    pub fn paths(&self, method: &str, hash: &str) -> (PathBuf, PathBuf) {
+        let stem = format!("{method}-{hash}");
+        (self.dir.join(format!("{stem}.safetensors")), self.dir.join(format!("{stem}.json")))
+    }
+
+    /// The student of `method` with key `hash`, if cached (and not `fresh`). An unreadable
+    /// sidecar (say, a curve with a non-finite value) is a miss.
+    ///
+    /// ```
+    /// use vdd_moe::cache::StudentCache;
+    /// let dir = std::env::temp_dir().join("vdd-moe-doc-empty-cache");
+    /// let cache = StudentCache { dir: &dir, fresh: false };
+    /// assert!(cache.load("vdd-beso", "0123").unwrap().is_none());
+    /// ```
+    pub fn load(
+        &self,
+        method: &str,
+        hash: &str,
+    ) -> Result<Option<CachedStudent>, StudentCacheError> {
+        let (weights, sidecar) = self.paths(method, hash);
+        if self.fresh || !weights.is_file() || !sidecar.is_file() {
+            return Ok(None);
+        }
+        let text = std::fs::read_to_string(&sidecar)
+            .map_err(|source| StudentCacheError::Io { path: sidecar.clone(), source })?;
+        let side: Sidecar = match serde_json::from_str(&text) {
+            Ok(side) => side,
+            Err(_) => return Ok(None),
+        };
+        if side.key != hash {
+            return Ok(None);
+        }
+        let student = Moe::load(&weights)?;
+        Ok(Some(CachedStudent { student, train_seconds: side.train_seconds, curves: side.curves }))
+    }
+
+    /// Stores a freshly trained student under `hash`; returns the weights' path.
+    ///
+    /// ```
+    /// use vdd_moe::cache::{CachedStudent, StudentCache};
+    /// use vdd_moe::{Moe, MoeConfig};
+    /// let dir = std::env::temp_dir().join(format!("vdd-moe-doc-cache-{}", std::process::id()));
+    /// let cache = StudentCache { dir: &dir, fresh: false };
+    /// let student = Moe::from_config(MoeConfig::toy(1, 2, 2), 0).unwrap();
+    /// let c = CachedStudent { student, train_seconds: 1.0, curves: Default::default() };
+    /// cache.store("vdd-beso", "ab", &c).unwrap();
+    /// assert!(cache.load("vdd-beso", "ab").unwrap().is_some());
+    /// # std::fs::remove_dir_all(&dir).unwrap();
+    /// ```
+    pub fn store(
+        &self,
+        method: &str,
+        hash: &str,
+        trained: &CachedStudent,
+    ) -> Result<PathBuf, StudentCacheError> {
+        let (weights, sidecar) = self.paths(method, hash);
+        std::fs::create_dir_all(self.dir)
+            .map_err(|source| StudentCacheError::Io { path: self.dir.to_path_buf(), source })?;
+        trained.student.save(&weights)?;
+        let side = Sidecar {
+            key: hash.to_owned(),
+            train_seconds: trained.train_seconds,
+            curves: trained.curves.clone(),
+        };
+        let json = serde_json::to_string(&side)
+            .map_err(|source| StudentCacheError::Json { path: sidecar.clone(), source })?;
+        vdd_nn::io::write_atomic(&sidecar, json.as_bytes()).map_err(MoeError::from)?;
+        Ok(weights)
+    }
+}
+
+#[cfg(test)]
+mod tests;
