@@ -131,6 +131,22 @@ fn crate_dependency_rules_hold() {
                 "vdd",
             ],
         ),
+        // Recipes resolve for any tool: no task, model or trainer.
+        (
+            "vdd-recipe",
+            &[
+                "vdd-core",
+                "vdd-nn",
+                "vdd-diffusion",
+                "vdd-moe",
+                "vdd-mixture",
+                "vdd-consistency",
+                "vdd-data",
+                "vdd-tasks",
+                "vdd-report",
+                "vdd",
+            ],
+        ),
     ];
     let mut broken = Vec::new();
     for (krate, never) in forbidden {

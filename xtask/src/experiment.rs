@@ -70,7 +70,7 @@ pub struct ExperimentArgs {
 pub struct SeedList(pub Vec<u64>);
 
 fn seed_list(s: &str) -> Result<SeedList, String> {
-    recipe::parse_seeds(s).map(SeedList)
+    recipe::parse_seeds(s).map(SeedList).map_err(|e| e.to_string())
 }
 
 fn key_value(s: &str) -> Result<(String, String), String> {

@@ -81,7 +81,7 @@ impl MethodRecipe<'_> {
         }
         let parsed = match cur {
             None => return Ok(None),
-            Some(Value::Table(t)) => recipe::from_tree(t),
+            Some(Value::Table(t)) => recipe::from_tree(t).map_err(|e| e.to_string()),
             Some(v) => v.clone().try_into().map_err(|e: toml::de::Error| e.to_string()),
         };
         parsed.map(Some).map_err(|e| format!("`{path}`: {e}").into())

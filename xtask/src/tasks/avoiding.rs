@@ -498,7 +498,7 @@ mod tests {
             let o = recipe::Overrides { sets: vec![(k.into(), v.into())], ..Default::default() };
             let e = match recipe::resolve(&defaults, &file, &o) {
                 Ok(r) => pipeline::plan(&r, "avoiding").err().unwrap().to_string(),
-                Err(e) => e,
+                Err(e) => e.to_string(),
             };
             assert!(e.contains(what), "{set}: {e}");
         }

@@ -84,12 +84,12 @@ const DEFAULTS: [(&str, &str); 2] = [
 impl ToyRecipe {
     /// The defaults of `task` (`toy-gmm` or `toy-conditional`), from `recipes/defaults/`,
     /// which a recipe file overrides.
-    pub fn defaults(task: &str) -> recipe::RecipeResult<Self> {
-        match task {
-            "toy-gmm" => recipe::defaults_from_toml(&DEFAULTS[..1]),
-            "toy-conditional" => recipe::defaults_from_toml(&DEFAULTS),
-            other => Err(format!("no toy task `{other}` (toy-gmm, toy-conditional)")),
-        }
+    pub fn defaults(task: &str) -> crate::XResult<Self> {
+        Ok(match task {
+            "toy-gmm" => recipe::defaults_from_toml(&DEFAULTS[..1])?,
+            "toy-conditional" => recipe::defaults_from_toml(&DEFAULTS)?,
+            other => return Err(format!("no toy task `{other}` (toy-gmm, toy-conditional)").into()),
+        })
     }
 }
 
