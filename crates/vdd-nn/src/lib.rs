@@ -25,6 +25,7 @@ mod norm;
 mod optim;
 mod param;
 mod schedule;
+pub mod torch;
 
 pub use activation::{Activation, ActivationLayer, erf, exp_fast};
 pub use ema::Ema;

@@ -1,0 +1,4 @@
+//! Forward-only networks matching PyTorch packages' teacher architectures to f32 precision
+//! (LeRobot / diffusion_policy 1-D conditional U-Net and transformer, BESO/D3IL GPT and
+//! ResNet-MLP), for teachers imported by `vdd-import`. VDD needs their scores only, so they have
+//! no backward pass; batch throughput is what matters.
