@@ -92,8 +92,8 @@ fn crate_dependency_rules_hold() {
         ("vdd-tasks", &["vdd-core", "vdd-data"]),
         // Plain data in, files and strings out.
         ("vdd-report", &[]),
-        // Recipes of any tool resolve the same way.
-        ("vdd-recipe", &[]),
+        // Recipes of any tool resolve the same way (vdd-core only for its stable hash).
+        ("vdd-recipe", &["vdd-core"]),
         // PyTorch teachers are networks plus noise processes; they know no student or trainer.
         ("vdd-import", &["vdd-core", "vdd-nn", "vdd-diffusion", "vdd-data"]),
     ];

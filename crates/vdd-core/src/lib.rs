@@ -10,7 +10,8 @@
 //!   the trainers are tested against;
 //! * [`ClampedDenoiser`]: a teacher whose denoised estimate is clamped to a box (a deviation
 //!   from the paper, for learned teachers that extrapolate far from their data);
-//! * shared helpers: [`Seeds`] (independent ChaCha streams per purpose), Gaussian kernels in
+//! * shared helpers: [`Seeds`] (independent ChaCha streams per purpose), the stable hash
+//!   [`hash::fnv1a`] (seed purposes, cache keys, config hashes), Gaussian kernels in
 //!   [`gaussian`], element-wise [`lanes`] kernels for batched mixtures, shape and finiteness checks, and [`CoreError`].
 //!
 //! Batches are `faer` matrices with one row per sample (`n x dim`), `f32` throughout.
@@ -21,6 +22,7 @@ mod error;
 mod expert;
 pub mod gaussian;
 pub mod gmm;
+pub mod hash;
 pub mod lanes;
 mod normalize;
 mod policy;

@@ -9,6 +9,8 @@ use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 use rand_distr::StandardNormal;
 
+use crate::hash::fnv1a;
+
 /// The random number generator used everywhere in the workspace.
 pub type Rng = ChaCha8Rng;
 
@@ -62,15 +64,6 @@ impl Seeds {
         let mut state = self.root ^ fnv1a(purpose.as_bytes()).rotate_left(17);
         Seeds::new(splitmix64(&mut state))
     }
-}
-
-fn fnv1a(bytes: &[u8]) -> u64 {
-    let mut h: u64 = 0xcbf2_9ce4_8422_2325;
-    for &b in bytes {
-        h ^= u64::from(b);
-        h = h.wrapping_mul(0x0100_0000_01b3);
-    }
-    h
 }
 
 fn splitmix64(state: &mut u64) -> u64 {

@@ -15,6 +15,7 @@ use std::time::Instant;
 
 use faer::MatRef;
 use serde::{Deserialize, Serialize};
+use vdd_core::hash::Fnv1a;
 
 use crate::{
     Beso, BesoConfig, Ddpm, DdpmConfig, DiffusionError, DiffusionTeacher, TeacherKind, TrainConfig,
@@ -169,16 +170,6 @@ struct Sidecar {
     losses: Vec<(u64, f32)>,
 }
 
-/// 64-bit FNV-1a.
-fn fnv1a(bytes: &[u8]) -> u64 {
-    let mut h: u64 = 0xcbf2_9ce4_8422_2325;
-    for &b in bytes {
-        h ^= u64::from(b);
-        h = h.wrapping_mul(0x0100_0000_01b3);
-    }
-    h
-}
-
 /// A 16-hex-digit FNV-1a hash of the shapes and bits of `states` and `actions`.
 ///
 /// ```
@@ -187,18 +178,16 @@ fn fnv1a(bytes: &[u8]) -> u64 {
 /// assert_eq!(vdd_diffusion::cache::data_hash(s.as_ref(), a.as_ref()).len(), 16);
 /// ```
 pub fn data_hash(states: MatRef<'_, f32>, actions: MatRef<'_, f32>) -> String {
-    let mut bytes =
-        Vec::with_capacity(4 * (states.nrows() * (states.ncols() + actions.ncols())) + 32);
+    let mut h = Fnv1a::new();
     for m in [states, actions] {
-        bytes.extend_from_slice(&(m.nrows() as u64).to_le_bytes());
-        bytes.extend_from_slice(&(m.ncols() as u64).to_le_bytes());
+        h.write(&(m.nrows() as u64).to_le_bytes()).write(&(m.ncols() as u64).to_le_bytes());
         for j in 0..m.ncols() {
             for i in 0..m.nrows() {
-                bytes.extend_from_slice(&m[(i, j)].to_bits().to_le_bytes());
+                h.write(&m[(i, j)].to_bits().to_le_bytes());
             }
         }
     }
-    format!("{:016x}", fnv1a(&bytes))
+    h.hex()
 }
 
 /// `ddpm` / `beso`: the file-name prefix of a cached teacher.

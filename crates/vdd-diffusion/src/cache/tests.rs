@@ -1,6 +1,7 @@
 use super::*;
 use faer::Mat;
 use vdd_core::ScoreModel;
+use vdd_core::hash::fnv1a;
 
 use crate::NetConfig;
 
