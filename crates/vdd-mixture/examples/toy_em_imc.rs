@@ -141,7 +141,6 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         _ => vec!["EM", "IMC"],
     };
     for method in methods {
-        let student = Moe::from_config(mc_config.clone(), seed)?;
         let start = Instant::now();
         let mut student = match method {
             "EM" => {
@@ -151,7 +150,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
                     config.expert_steps_per_iter = steps;
                     config.gating_steps_per_iter = steps;
                 }
-                let mut em = Em::new(config, student, data.clone())?;
+                let mut em = Em::from_config(config, mc_config.clone(), data.clone())?;
                 em.train(|m| {
                     if m.iteration % 100 == 0 {
                         println!("  EM  it {:>3}: log-lik {:.4}", m.iteration, m.log_likelihood);
@@ -166,7 +165,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
                     config.expert_steps_per_iter = steps;
                     config.gating_steps_per_iter = steps;
                 }
-                let mut imc = Imc::new(config, student, data.clone())?;
+                let mut imc = Imc::from_config(config, mc_config.clone(), data.clone())?;
                 imc.train(|m| {
                     if m.iteration % 100 == 0 {
                         println!(

@@ -20,7 +20,7 @@
 
 use serde::{Deserialize, Serialize};
 use vdd_core::{CoreError, Expert, Trainer};
-use vdd_moe::{ExpertFamily, Moe};
+use vdd_moe::{ExpertFamily, Moe, MoeConfig};
 use vdd_nn::{AdamConfig, LrSchedule};
 
 use crate::dataset::Dataset;
@@ -114,7 +114,7 @@ pub struct EmMetrics {
 /// ```
 /// use faer::Mat;
 /// use vdd_mixture::{Dataset, Em, EmConfig};
-/// use vdd_moe::{GatingKind, Moe, MoeConfig};
+/// use vdd_moe::{GatingKind, MoeConfig};
 /// // Two clusters of 1-D actions at ±2 (state constant).
 /// let actions = Mat::from_fn(64, 1, |i, _| if i % 2 == 0 { 2.0 } else { -2.0 } + 0.01 * (i % 5) as f32);
 /// let data = Dataset::new(Mat::zeros(64, 1), actions).unwrap();
@@ -125,7 +125,7 @@ pub struct EmMetrics {
 /// let config = EmConfig { iterations: 40, batch_size: None, gating_batch_size: None,
 ///                         expert_optimizer: vdd_nn::AdamConfig { lr: 1e-2, ..Default::default() },
 ///                         ..EmConfig::toy() };
-/// let mut em = Em::new(config, Moe::from_config(mc, 0).unwrap(), data).unwrap();
+/// let mut em = Em::from_config(config, mc, data).unwrap();
 /// let mut first = None;
 /// em.train(|m| { first.get_or_insert(m.log_likelihood); }).unwrap();
 /// assert!(em.log_likelihood().unwrap() > first.unwrap() + 0.5);
@@ -137,8 +137,35 @@ pub struct Em<E: Expert = ExpertFamily> {
     resp: Vec<f32>,
 }
 
+impl Em {
+    /// Sets up a run with a fresh mixture of configuration `student`, initialised from the
+    /// run's seed ([`EmConfig::seed`]; the mixture draws from its own stream, so one seed
+    /// determines the whole run). [`Em::new`] takes a mixture built elsewhere.
+    pub fn from_config(
+        config: EmConfig,
+        student: MoeConfig,
+        data: Dataset,
+    ) -> Result<Self, MixtureError> {
+        let student = Moe::from_config(student, config.seed)?;
+        Self::new(config, student, data)
+    }
+}
+
 impl<E: Expert> Em<E> {
-    /// Sets up a run; checks the configuration and that the data fit the mixture's dimensions.
+    /// As [`Em::from_config`] with a custom expert family: the mixture is
+    /// `Moe::new(student, expert, config.seed)`.
+    pub fn with_family(
+        config: EmConfig,
+        student: MoeConfig,
+        expert: E,
+        data: Dataset,
+    ) -> Result<Self, MixtureError> {
+        let student = Moe::new(student, expert, config.seed)?;
+        Self::new(config, student, data)
+    }
+
+    /// Sets up a run with a mixture built elsewhere (pretrained, or initialised with a seed of
+    /// its own); checks the configuration and that the data fit the mixture's dimensions.
     pub fn new(config: EmConfig, student: Moe<E>, data: Dataset) -> Result<Self, MixtureError> {
         config.validate()?;
         let fit = MixtureFit::new(&fit::loop_settings!(&config), config.seed, student, data)?;

@@ -77,7 +77,7 @@
 
 use serde::{Deserialize, Serialize};
 use vdd_core::{CoreError, Expert, Trainer, check_len};
-use vdd_moe::{ExpertFamily, Moe};
+use vdd_moe::{ExpertFamily, Moe, MoeConfig};
 use vdd_nn::{AdamConfig, LrSchedule};
 
 use crate::dataset::Dataset;
@@ -340,7 +340,7 @@ pub struct ImcMetrics {
 /// ```
 /// use faer::Mat;
 /// use vdd_mixture::{Dataset, Imc, ImcConfig};
-/// use vdd_moe::{GatingKind, Moe, MoeConfig};
+/// use vdd_moe::{GatingKind, MoeConfig};
 /// let actions = Mat::from_fn(64, 1, |i, _| if i % 2 == 0 { 2.0 } else { -2.0 } + 0.05 * (i % 5) as f32);
 /// let data = Dataset::new(Mat::zeros(64, 1), actions).unwrap();
 /// let mut mc = MoeConfig::toy(1, 1, 2);
@@ -350,7 +350,7 @@ pub struct ImcMetrics {
 /// let config = ImcConfig { iterations: 40, batch_size: None, gating_batch_size: None,
 ///                          expert_optimizer: vdd_nn::AdamConfig { lr: 1e-2, ..Default::default() },
 ///                          ..ImcConfig::toy() };
-/// let mut imc = Imc::new(config, Moe::from_config(mc, 0).unwrap(), data).unwrap();
+/// let mut imc = Imc::from_config(config, mc, data).unwrap();
 /// imc.train(|_| {}).unwrap();
 /// let c = imc.curricula();
 /// assert!((c.curriculum(0).iter().sum::<f64>() - 1.0).abs() < 1e-9);
@@ -365,8 +365,34 @@ pub struct Imc<E: Expert = ExpertFamily> {
     marginal: Vec<f64>,
 }
 
+impl Imc {
+    /// Sets up a run with a fresh mixture of configuration `student`, initialised from the
+    /// run's seed ([`ImcConfig::seed`]; the mixture draws from its own stream, so one seed
+    /// determines the whole run). [`Imc::new`] takes a mixture built elsewhere.
+    pub fn from_config(
+        config: ImcConfig,
+        student: MoeConfig,
+        data: Dataset,
+    ) -> Result<Self, MixtureError> {
+        let student = Moe::from_config(student, config.seed)?;
+        Self::new(config, student, data)
+    }
+}
+
 impl<E: Expert> Imc<E> {
-    /// Sets up a run with uniform curricula; checks the configuration, that the data fit the
+    /// As [`Imc::from_config`] with a custom expert family: the mixture is
+    /// `Moe::new(student, expert, config.seed)`.
+    pub fn with_family(
+        config: ImcConfig,
+        student: MoeConfig,
+        expert: E,
+        data: Dataset,
+    ) -> Result<Self, MixtureError> {
+        let student = Moe::new(student, expert, config.seed)?;
+        Self::new(config, student, data)
+    }
+
+    /// Sets up a run with uniform curricula and a mixture built elsewhere; checks the configuration, that the data fit the
     /// mixture's dimensions and that the mixture has a learned gating.
     pub fn new(config: ImcConfig, student: Moe<E>, data: Dataset) -> Result<Self, MixtureError> {
         config.validate()?;

@@ -26,7 +26,7 @@
 //! use faer::Mat;
 //! use vdd_core::Trainer;
 //! use vdd_mixture::{Dataset, Em, EmConfig};
-//! use vdd_moe::{GatingKind, Moe, MoeConfig};
+//! use vdd_moe::{GatingKind, MoeConfig};
 //!
 //! // Two clusters of 1-D actions at ±2 (the state is constant).
 //! let actions = Mat::from_fn(64, 1, |i, _| if i % 2 == 0 { 2.0 } else { -2.0 });
@@ -34,7 +34,8 @@
 //! let mut mc = MoeConfig::toy(1, 1, 2);
 //! mc.gating = GatingKind::Learned;
 //! let config = EmConfig { iterations: 5, ..EmConfig::toy() };
-//! let mut em = Em::new(config, Moe::from_config(mc, 0)?, data)?;
+//! // One seed (`config.seed`) initialises the mixture and drives the fit.
+//! let mut em = Em::from_config(config, mc, data)?;
 //! em.run(|metrics| assert!(metrics.log_likelihood.is_finite()))?;
 //! let mut student = em.finish()?; // a vdd_core::Policy
 //! # use vdd_core::Policy;

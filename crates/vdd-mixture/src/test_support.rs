@@ -31,14 +31,19 @@ pub fn clusters(sizes: [usize; 3], std: f32, seed: u64) -> (Dataset, Vec<usize>)
 /// A small `1 → 2` mixture of `num_experts` experts with a learned gating, whose experts start
 /// broad (std 3, covering all of [`clusters`]), which keeps EM out of the local optimum where
 /// one expert spans two clusters and another starves.
-pub fn small_moe(kind: ExpertKind, num_experts: usize, seed: u64) -> Moe {
+pub fn small_moe_config(kind: ExpertKind, num_experts: usize) -> MoeConfig {
     let mut mc = MoeConfig::toy(1, 2, num_experts);
     mc.expert_kind = kind;
     mc.gating = GatingKind::Learned;
     mc.init_std = 3.0;
     mc.experts_network.hidden_dim = 16;
     mc.gating_network.hidden_dim = 16;
-    Moe::from_config(mc, seed).expect("valid mixture")
+    mc
+}
+
+/// [`small_moe_config`] initialised from `seed`.
+pub fn small_moe(kind: ExpertKind, num_experts: usize, seed: u64) -> Moe {
+    Moe::from_config(small_moe_config(kind, num_experts), seed).expect("valid mixture")
 }
 
 /// An EM configuration on the whole dataset (the IMC tests take its loop settings), `steps`

@@ -5,7 +5,7 @@ use std::time::Instant;
 
 use indicatif::ProgressBar;
 use vdd_mixture::{Dataset, EmConfig};
-use vdd_moe::Moe;
+use vdd_moe::{Moe, MoeConfig};
 
 use crate::method::{Info, Job, Method, MethodRecipe, Trained};
 use crate::plots::Curves;
@@ -27,7 +27,7 @@ impl Method for Em {
     fn train(&self, job: &Job<'_>) -> crate::XResult<Trained> {
         let config = EmConfig { seed: job.seed, ..job.recipe.get("baselines.em")? };
         fit(job, config.iterations, |student, data, bar, curves| {
-            let mut em = vdd_mixture::Em::new(config, student, data)?;
+            let mut em = vdd_mixture::Em::from_config(config, student, data)?;
             em.train(|m| {
                 bar.inc(1);
                 bar.set_message(format!("log-lik {:.3}", m.log_likelihood));
@@ -39,24 +39,24 @@ impl Method for Em {
     }
 }
 
-/// Fits a new mixture (`student`'s configuration, initialised from the run seed) to the task's
-/// normalised data with `train` (given the mixture, the data, a progress bar of `iterations`
-/// and the curves to fill) and sets the data's normalisers on it: EM and IMC.
+/// Fits a new mixture (`student`'s configuration with the data's dimensions; the trainer
+/// initialises it from the run seed) to the task's normalised data with `train` (given the
+/// mixture's configuration, the data, a progress bar of `iterations` and the curves to fill)
+/// and sets the data's normalisers on it: EM and IMC.
 pub fn fit(
     job: &Job<'_>,
     iterations: usize,
-    train: impl FnOnce(Moe, Dataset, &ProgressBar, &mut Curves) -> crate::XResult<Moe>,
+    train: impl FnOnce(MoeConfig, Dataset, &ProgressBar, &mut Curves) -> crate::XResult<Moe>,
 ) -> crate::XResult<Trained> {
     let d = job.data;
     let data = Dataset::new(d.states_normalized.clone(), d.actions_normalized.clone())?;
     let mut mc = job.recipe.student.clone();
     mc.state_dim = d.states_normalized.ncols();
     mc.action_dim = d.actions_normalized.ncols();
-    let student = Moe::from_config(mc, job.seed)?;
     let t0 = Instant::now();
     let bar = crate::progress::bar(iterations as u64, job.label);
     let mut curves = Curves::default();
-    let mut student = train(student, data, &bar, &mut curves)?;
+    let mut student = train(mc, data, &bar, &mut curves)?;
     bar.finish_and_clear();
     let train_seconds = t0.elapsed().as_secs_f64();
     student.set_normalizers(Some(d.state_normalizer.clone()), Some(d.action_normalizer.clone()))?;

@@ -22,7 +22,7 @@ impl Method for Imc {
     fn train(&self, job: &Job<'_>) -> crate::XResult<Trained> {
         let config = ImcConfig { seed: job.seed, ..job.recipe.get("baselines.imc")? };
         super::em::fit(job, config.iterations, |student, data, bar, curves| {
-            let mut imc = vdd_mixture::Imc::new(config, student, data)?;
+            let mut imc = vdd_mixture::Imc::from_config(config, student, data)?;
             imc.train(|m| {
                 bar.inc(1);
                 bar.set_message(format!("log-lik {:.3}", m.log_likelihood));

@@ -1,7 +1,9 @@
 //! Tests of EM: monotone likelihood, recovered clusters, determinism, bad inputs.
 
 use super::*;
-use crate::test_support::{CLUSTER_MEANS, clusters, full_batch_config, small_moe};
+use crate::test_support::{
+    CLUSTER_MEANS, clusters, full_batch_config, small_moe, small_moe_config,
+};
 use faer::Mat;
 use vdd_core::Policy;
 use vdd_moe::{ExpertKind, MoeConfig};
@@ -81,6 +83,29 @@ fn same_seed_same_run_and_other_seed_other_run() {
     let (a, b, c) = (run(7), run(7), run(8));
     assert_eq!(a, b);
     assert_ne!(a.1, c.1);
+}
+
+#[test]
+fn one_seed_initialises_the_mixture_and_drives_the_fit() {
+    let (data, _) = clusters([10, 10, 10], 0.3, 3);
+    let config = |seed| EmConfig { iterations: 2, seed, batch_size: Some(16), ..EmConfig::toy() };
+    let run = |mut em: Em| {
+        let mut params = Vec::new();
+        em.student().visit_params("", &mut |_, p| params.push(p.value.clone()));
+        let mut metrics = Vec::new();
+        em.train(|m| metrics.push(*m)).unwrap();
+        (params, metrics)
+    };
+    let mc = small_moe_config(ExpertKind::Full, 3);
+    let one = run(Em::from_config(config(5), mc.clone(), data.clone()).unwrap());
+    // The same as a mixture initialised separately with the run's seed.
+    let apart = run(Em::new(config(5), small_moe(ExpertKind::Full, 3, 5), data.clone()).unwrap());
+    assert_eq!(one, apart);
+    let family = vdd_moe::ExpertFamily::new(ExpertKind::Full, 2, mc.init_std, mc.min_std);
+    let family = Em::with_family(config(5), mc.clone(), family.unwrap(), data.clone());
+    assert_eq!(run(family.unwrap()), one);
+    let other = run(Em::from_config(config(6), mc, data).unwrap());
+    assert_ne!(other.0, one.0, "another seed, another initial mixture");
 }
 
 #[test]
