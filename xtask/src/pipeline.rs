@@ -19,7 +19,7 @@ use vdd_moe::MoeConfig;
 
 use crate::context::{RunContext, StageTimes};
 use crate::method::{Job, Method, MethodRecipe, Trained, TrainingData};
-use crate::recipe::{self, Overrides, Resolved};
+use crate::recipe::{self, Header, Overrides, Resolved};
 use crate::report::Row;
 use crate::teachers::{self, TeachersConfig, TrainedTeacher};
 use crate::{XResult, methods};
@@ -49,12 +49,8 @@ pub trait Task: Sync {
 pub trait TaskRecipe: Serialize + DeserializeOwned + Sync {
     /// The top-level tables read by the methods ([`Method::keys`] lists their keys).
     const METHOD_SECTIONS: &'static [&'static str];
-    /// The `task` key.
-    fn task(&self) -> &str;
-    /// Run seeds.
-    fn seeds(&self) -> &[u64];
-    /// Method names.
-    fn methods(&self) -> &[String];
+    /// Name, description, task, seeds and methods.
+    fn header(&self) -> &Header;
     /// The learned teachers.
     fn teachers(&self) -> &TeachersConfig;
     /// The students' mixture.
@@ -91,17 +87,18 @@ pub fn plan<'r, R: TaskRecipe>(
     resolved: &'r Resolved<R>,
     task: &str,
 ) -> XResult<Vec<Entry<'r, R>>> {
-    if resolved.base.task() != task {
-        return Err(format!("recipe task `{}` is not `{task}`", resolved.base.task()).into());
+    let header = resolved.base.header();
+    if header.task != task {
+        return Err(format!("recipe task `{}` is not `{task}`", header.task).into());
     }
-    if resolved.base.seeds().is_empty() {
+    if header.seeds.is_empty() {
         return Err("the recipe lists no seeds".into());
     }
     let mut out = Vec::new();
     for (variant, cfg) in resolved.configs() {
         let tree = recipe::to_tree(cfg)?;
         check_method_sections::<R>(task, &tree, cfg)?;
-        for method in methods::parse_methods(cfg.methods(), task)? {
+        for method in methods::parse_methods(&cfg.header().methods, task)? {
             let label = methods::label(method, variant.map(|v| v.name.as_str()));
             out.push(Entry { label, method, cfg, tree: tree.clone() });
         }

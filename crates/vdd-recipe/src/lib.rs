@@ -3,7 +3,8 @@
 //! TOML and hashed stably for cache keys.
 //!
 //! The crate knows no task, model or trainer: a recipe type is any `Serialize +
-//! DeserializeOwned` struct. It never prints.
+//! DeserializeOwned` struct, usually starting with the common keys of [`Header`] (name,
+//! description, task, seeds, methods). It never prints.
 //!
 //! # Resolution
 //!
@@ -62,12 +63,14 @@
 
 mod error;
 mod hash;
+mod header;
 mod resolve;
 mod seeds;
 mod tree;
 
 pub use error::{RecipeError, RecipeResult};
 pub use hash::{config_hash, fnv1a};
+pub use header::Header;
 pub use resolve::{
     Overrides, Resolved, Variant, check_complete_defaults, defaults_from_toml, defaults_tree,
     read_recipe, resolve,

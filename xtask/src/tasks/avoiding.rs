@@ -32,19 +32,12 @@ use vdd_moe::cache::StudentCache;
 
 /// A recipe of the Avoiding task (see `recipes/avoiding.toml`): the schema of the recipe files;
 /// the values not given there come from `recipes/defaults/avoiding.toml` ([`Self::defaults`]).
+/// Unknown keys are errors ([`recipe::from_tree`]).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-#[serde(deny_unknown_fields)]
 pub struct AvoidingRecipe {
-    /// Recipe name (results go to `results/<name>/`).
-    pub name: String,
-    /// One line on what the recipe shows.
-    pub description: String,
-    /// Always `avoiding`.
-    pub task: String,
-    /// Run seeds.
-    pub seeds: Vec<u64>,
-    /// Methods to run (`beso`, `vdd-beso`, ...; `all`).
-    pub methods: Vec<String>,
+    /// Name, description, task (`avoiding`), seeds and methods (`beso`, `vdd-beso`, ...; `all`).
+    #[serde(flatten)]
+    pub header: recipe::Header,
     /// Trainings run concurrently, each on one thread (0: one per core). Results do not
     /// depend on it.
     pub jobs: usize,
@@ -123,14 +116,8 @@ impl AvoidingRecipe {
 
 impl TaskRecipe for AvoidingRecipe {
     const METHOD_SECTIONS: &'static [&'static str] = &["vdd", "baselines"];
-    fn task(&self) -> &str {
-        &self.task
-    }
-    fn seeds(&self) -> &[u64] {
-        &self.seeds
-    }
-    fn methods(&self) -> &[String] {
-        &self.methods
+    fn header(&self) -> &recipe::Header {
+        &self.header
     }
     fn teachers(&self) -> &TeachersConfig {
         &self.teachers
@@ -216,13 +203,13 @@ impl Task for Avoiding {
             cfg.eval.timing().check().map_err(|e| format!("eval: {e}"))?;
             cfg.data.deploy_spec().validate().map_err(|e| format!("data: {e}"))?;
         }
-        let dir = ctx.run_dir(&base.seeds);
+        let dir = ctx.run_dir(&base.header.seeds);
         ctx.write_resolved(&dir, &resolved.to_toml()?)?;
         crate::progress::log(format!(
             "recipe `{}`: {} method run(s) x {} seed(s) -> {}",
             ctx.name,
             plan.len(),
-            base.seeds.len(),
+            base.header.seeds.len(),
             teachers::rel(&dir)
         ));
         let mut stages = StageTimes::default();
@@ -232,16 +219,24 @@ impl Task for Avoiding {
 
         // One dataset per distinct `data` table (usually one), whatever the seed.
         let key = |cfg: &AvoidingRecipe, _| Ok(recipe::config_hash(&cfg.data)?);
-        let data =
-            Datasets::build(&plan, &base.seeds, &mut stages, key, |cfg, _| prepare(&cfg.data))?;
+        let data = Datasets::build(&plan, &base.header.seeds, &mut stages, key, |cfg, _| {
+            prepare(&cfg.data)
+        })?;
         let students = StudentCache { dir: &ctx.student_cache_dir, fresh: ctx.fresh };
-        let mut trainings =
-            pipeline::train_all(ctx, &plan, &base.seeds, &data, jobs, Some(students), &mut stages)?;
+        let mut trainings = pipeline::train_all(
+            ctx,
+            &plan,
+            &base.header.seeds,
+            &data,
+            jobs,
+            Some(students),
+            &mut stages,
+        )?;
 
         // Evaluation, one method at a time (rollouts on every core), then the seed's
         // single-threaded timing with nothing else running.
         let mut out = Collected { rows: pipeline::empty_rows(&plan), ..Default::default() };
-        for (si, &seed) in base.seeds.iter().enumerate() {
+        for (si, &seed) in base.header.seeds.iter().enumerate() {
             let mut timed = Vec::with_capacity(plan.len());
             for (pi, e) in plan.iter().enumerate() {
                 let trained = trainings.trained.remove(&(si, pi)).ok_or("internal: not trained")?;
@@ -385,16 +380,16 @@ fn write_outputs(
     jobs: usize,
     stages: &mut StageTimes,
 ) -> crate::XResult {
-    let mut metrics = report::metrics_json(&ctx.name, "avoiding", &base.seeds, &out.rows);
+    let mut metrics = report::metrics_json(&ctx.name, "avoiding", &base.header.seeds, &out.rows);
     metrics.insert("data".into(), data_summary.clone());
     let curves = serde_json::to_string(&out.curves)?;
     vdd_nn::io::write_atomic(&dir.join("curves.json"), curves.as_bytes())?;
     let table = format!(
         "## {} (Avoiding)\n\n{}\n\n{}\nmean ± std over seeds {:?}; {} rollouts per method and seed; µs per action: single-threaded `Policy::act` on one observation.\n",
         ctx.name,
-        base.description,
+        base.header.description,
         report::markdown_table(&out.rows, &report::columns_for("avoiding")),
-        base.seeds,
+        base.header.seeds,
         base.eval.rollouts
     );
     let mut figures = Vec::new();

@@ -30,25 +30,18 @@ use crate::method::{Trained, TrainingData};
 use crate::pipeline::{self, Datasets, Entry, Task, TaskRecipe, Trainings};
 use crate::plots;
 use crate::policy::TrainedPolicy;
-use crate::recipe::{self, Overrides};
+use crate::recipe::{self, Header, Overrides};
 use crate::report::{self, Row};
 use crate::teachers::TeachersConfig;
 
 /// A toy recipe: the schema of the recipe files; the values not given there come from
-/// `recipes/defaults/` ([`Self::defaults`]).
+/// `recipes/defaults/` ([`Self::defaults`]). Unknown keys are errors ([`recipe::from_tree`]).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-#[serde(deny_unknown_fields)]
 pub struct ToyRecipe {
-    /// Recipe name.
-    pub name: String,
-    /// What it shows.
-    pub description: String,
-    /// `toy-gmm` or `toy-conditional`.
-    pub task: String,
-    /// Run seeds.
-    pub seeds: Vec<u64>,
-    /// Methods (`vdd-exact`; `toy-gmm` also `vdd-ddpm`, `vdd-beso`).
-    pub methods: Vec<String>,
+    /// Name, description, task (`toy-gmm` or `toy-conditional`), seeds and methods
+    /// (`vdd-exact`; `toy-gmm` also `vdd-ddpm`, `vdd-beso`).
+    #[serde(flatten)]
+    pub header: Header,
     /// Data.
     pub data: ToyData,
     /// Learned teachers (trained on `data.points` samples of the mixture).
@@ -95,14 +88,8 @@ impl ToyRecipe {
 
 impl TaskRecipe for ToyRecipe {
     const METHOD_SECTIONS: &'static [&'static str] = &["vdd"];
-    fn task(&self) -> &str {
-        &self.task
-    }
-    fn seeds(&self) -> &[u64] {
-        &self.seeds
-    }
-    fn methods(&self) -> &[String] {
-        &self.methods
+    fn header(&self) -> &Header {
+        &self.header
     }
     fn teachers(&self) -> &TeachersConfig {
         &self.teachers
@@ -178,18 +165,18 @@ impl Task for Toy {
         let resolved = recipe::resolve(&ToyRecipe::defaults(task)?, &ctx.file, &ctx.overrides)?;
         let base = &resolved.base;
         let plan = pipeline::plan(&resolved, task)?;
-        let dir = ctx.run_dir(&base.seeds);
+        let dir = ctx.run_dir(&base.header.seeds);
         ctx.write_resolved(&dir, &resolved.to_toml()?)?;
         let mut stages = StageTimes::default();
         let key = |cfg: &ToyRecipe, seed| Ok(format!("{}-{seed}", recipe::config_hash(&cfg.data)?));
         let prepare = |cfg: &ToyRecipe, seed| self.prepare(cfg, seed);
-        let data = Datasets::build(&plan, &base.seeds, &mut stages, key, prepare)?;
+        let data = Datasets::build(&plan, &base.header.seeds, &mut stages, key, prepare)?;
         let mut trainings =
-            pipeline::train_all(ctx, &plan, &base.seeds, &data, 1, None, &mut stages)?;
+            pipeline::train_all(ctx, &plan, &base.header.seeds, &data, 1, None, &mut stages)?;
 
         let mut rows = pipeline::empty_rows(&plan);
         let mut panels = Vec::new();
-        for (si, &seed) in base.seeds.iter().enumerate() {
+        for (si, &seed) in base.header.seeds.iter().enumerate() {
             for (pi, e) in plan.iter().enumerate() {
                 let trained = trainings.trained.remove(&(si, pi)).ok_or("internal: not trained")?;
                 let mut s = student(e, &trained, data.get(si, pi), &trainings, seed)?;
@@ -283,7 +270,7 @@ impl Toy {
         teacher_log: Vec<Value>,
     ) -> crate::XResult {
         let task = self.name;
-        let mut metrics = report::metrics_json(&ctx.name, task, &base.seeds, rows);
+        let mut metrics = report::metrics_json(&ctx.name, task, &base.header.seeds, rows);
         // The original command's top-level keys, from the first method.
         let first = &rows[0].1;
         let mean = |key: &str| {
@@ -293,7 +280,7 @@ impl Toy {
         let min = |key: &str| first.iter().filter_map(|r| r.get(key)?.as_u64()).min().unwrap_or(0);
         metrics.insert("method".into(), json!(rows[0].0));
         metrics.insert("teacher".into(), json!(rows[0].0.trim_start_matches("vdd-")));
-        metrics.insert("seed".into(), json!(base.seeds[0]));
+        metrics.insert("seed".into(), json!(base.header.seeds[0]));
         if self.conditional {
             metrics.insert("modes".into(), json!(MODES));
             metrics.insert("states_fully_covered".into(), json!(min("states_fully_covered")));
@@ -312,9 +299,9 @@ impl Toy {
         let table = format!(
             "## {} ({task})\n\n{}\n\n{}\nmean ± std over seeds {:?}\n",
             ctx.name,
-            base.description,
+            base.header.description,
             report::markdown_table(rows, &report::columns_for(task)),
-            base.seeds
+            base.header.seeds
         );
         let mut figures = Vec::new();
         if base.plots.enabled && !panels.is_empty() {
@@ -403,7 +390,7 @@ mod tests {
         for task in [&TOY_GMM, &TOY_CONDITIONAL] {
             let r = resolve(task.name, &Overrides::default());
             pipeline::plan(&r, task.name).unwrap();
-            assert_eq!(r.base.task, task.name);
+            assert_eq!(r.base.header.task, task.name);
         }
         let mut o = Overrides::default();
         let sh = [("teacher".into(), "beso".into()), ("iterations".into(), "7".into())];
@@ -423,6 +410,18 @@ mod tests {
         let r = resolve("toy-conditional", &o);
         assert_eq!(r.base.vdd["exact"]["expert_weighting"].as_str(), Some("uniform"));
         assert_eq!(r.base.student.num_experts, 8);
+    }
+
+    #[test]
+    fn unknown_keys_are_named_at_the_top_and_inside_and_the_header_comes_first() {
+        let defaults = ToyRecipe::defaults("toy-gmm").unwrap();
+        for (text, key) in [("nmae = \"x\"", "nmae"), ("[eval]\nradius = 2", "radius")] {
+            let file = text.parse().unwrap();
+            let err = recipe::resolve(&defaults, &file, &Overrides::default()).unwrap_err();
+            assert!(err.to_string().contains(key), "{err}");
+        }
+        let text = resolve("toy-gmm", &Overrides::default()).to_toml().unwrap();
+        assert!(text.find("methods = ").unwrap() < text.find("[data]").unwrap(), "{text}");
     }
 
     #[test]
