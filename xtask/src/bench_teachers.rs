@@ -9,9 +9,9 @@
 //!                            [--retrain] [--no-acceptance] [--no-latency]
 //! ```
 //!
-//! Defaults (the toy teachers): residual MLP 64 wide with 2 blocks, Adam lr 1e-2 with 200
-//! warm-up steps and a cosine decay to 2%, batch 1024, EMA 0.995, training noise
-//! `ln σ ~ N(−1.6, 1.2²)` for both teachers, 4000 steps on the circle toy and 2000 on the
+//! Defaults (the toy teachers, [`ToyTeachers::toy`]): residual MLP 64 wide with 2 blocks, Adam
+//! lr 1e-2 with 200 warm-up steps and a cosine decay to 2%, batch 1024, EMA 0.995, training
+//! noise `ln σ ~ N(−1.6, 1.2²)` for both teachers, 4000 steps on the circle toy and 2000 on the
 //! rotating toy. A whole run from scratch uses about 100 CPU-seconds (training runs the two
 //! teachers on two threads); 2 to 4 minutes of wall clock on a busy 2-core machine.
 //!
@@ -35,20 +35,15 @@ use std::path::PathBuf;
 use std::time::Instant;
 
 use faer::Mat;
-use rand::Rng as _;
 use vdd_core::Seeds;
 use vdd_core::gmm::GmmTeacher;
 use vdd_diffusion::acceptance::{
-    Measures, MixtureParams, SamplerSetting, ScoreCosine, Thresholds, act_batch_latency_us,
-    mode_shares, samples_at, score_cosine,
+    CircleMeasures, CircleReference, RotatingReference, SamplerSetting, Thresholds, ToyTeachers,
+    act_batch_latency_us, samples_at, score_cosine,
 };
-use vdd_diffusion::metrics::mmd2_rbf;
-use vdd_diffusion::{
-    BesoConfig, DdpmConfig, DiffusionTeacher, KarrasSampler, NetConfig, SigmaDistribution,
-    TeacherKind, TimeSampling, TrainConfig,
-};
+use vdd_diffusion::{DiffusionTeacher, TeacherKind};
 
-use crate::teachers::{self, BesoTeacherConfig, DdpmTeacherConfig, TeachersConfig};
+use crate::teachers;
 
 /// The command line of `bench teachers`.
 #[derive(Debug, Clone, clap::Args)]
@@ -63,25 +58,25 @@ pub struct Args {
     #[arg(long, default_value_t = 2000)]
     pub rot_steps: u64,
     /// Hidden width of the residual MLP.
-    #[arg(long, default_value_t = 64)]
+    #[arg(long, default_value_t = TOY.width)]
     pub width: usize,
     /// Residual blocks.
-    #[arg(long, default_value_t = 2)]
+    #[arg(long, default_value_t = TOY.blocks)]
     pub blocks: usize,
     /// Adam learning rate.
-    #[arg(long, default_value_t = 1e-2)]
+    #[arg(long, default_value_t = TOY.lr)]
     pub lr: f32,
     /// Batch size.
-    #[arg(long, default_value_t = 1024)]
+    #[arg(long, default_value_t = TOY.batch)]
     pub batch: usize,
     /// EMA decay of the weights.
-    #[arg(long, default_value_t = 0.995)]
+    #[arg(long, default_value_t = TOY.ema)]
     pub ema: f32,
     /// Training noise: mean of ln σ.
-    #[arg(long, default_value_t = -1.6, allow_negative_numbers = true)]
+    #[arg(long, default_value_t = TOY.noise_mean, allow_negative_numbers = true)]
     pub noise_mean: f32,
     /// Training noise: std of ln σ.
-    #[arg(long, default_value_t = 1.2)]
+    #[arg(long, default_value_t = TOY.noise_std)]
     pub noise_std: f32,
     /// Noise level of the score check (normalised units).
     #[arg(long, default_value_t = 0.1)]
@@ -103,34 +98,25 @@ pub struct Args {
     pub no_latency: bool,
 }
 
+/// The defaults of the command line: the accepted toy teachers.
+const TOY: ToyTeachers = ToyTeachers::toy();
+
 /// Everything that determines the toy teachers.
 #[derive(Debug, Clone)]
 struct Setup {
     seed: u64,
     steps: u64,
     rot_steps: u64,
-    width: usize,
-    blocks: usize,
-    lr: f32,
-    batch: usize,
-    ema: f32,
-    /// Training noise: `ln σ ~ N(mean, std²)` for both teachers.
-    noise: (f32, f32),
+    teachers: ToyTeachers,
 }
 
 /// Runs the command.
 pub fn run(args: &Args) -> crate::XResult {
-    let setup = Setup {
-        seed: args.seed,
-        steps: args.steps,
-        rot_steps: args.rot_steps,
-        width: args.width,
-        blocks: args.blocks,
-        lr: args.lr,
-        batch: args.batch,
-        ema: args.ema,
-        noise: (args.noise_mean, args.noise_std),
-    };
+    let (noise_mean, noise_std) = (args.noise_mean, args.noise_std);
+    let (width, blocks, lr, batch, ema) = (args.width, args.blocks, args.lr, args.batch, args.ema);
+    let toy = ToyTeachers { width, blocks, lr, batch, ema, noise_mean, noise_std };
+    let setup =
+        Setup { seed: args.seed, steps: args.steps, rot_steps: args.rot_steps, teachers: toy };
     let (sigma, min_secs) = (args.sigma, args.min_secs);
     let cache = Cache { dir: args.cache.clone(), retrain: args.retrain };
     std::fs::create_dir_all(&cache.dir)?;
@@ -138,13 +124,14 @@ pub fn run(args: &Args) -> crate::XResult {
     println!(
         "toy teachers: residual MLP {} wide, {} blocks; Adam lr {} (warm-up, cosine decay), \
          batch {}; {} training steps (circle), {} (rotating); seed {}",
-        setup.width, setup.blocks, setup.lr, setup.batch, setup.steps, setup.rot_steps, setup.seed
+        width, blocks, lr, batch, setup.steps, setup.rot_steps, setup.seed
     );
     println!(
         "DDPM: cosine β, N = 16, ε-prediction, log-normal training noise; BESO: EDM \
          preconditioning (σ_data 0.5), Karras σ ∈ [0.002, 80], ρ = 7, log-normal training noise"
     );
-    let (states, actions) = circle_data(5000, "toy-data", setup.seed)?;
+    let mut rng = Seeds::new(setup.seed).stream("toy-data");
+    let (states, actions) = GmmTeacher::circle_toy_data(5000, &mut rng)?;
     let task = Task { name: "circle", steps: setup.steps, states: &states, actions: &actions };
     let mut circle = teachers(&task, &setup, &cache)?;
     let mut failures = Vec::new();
@@ -169,47 +156,6 @@ pub fn run(args: &Args) -> crate::XResult {
     }
 }
 
-fn net(setup: &Setup) -> NetConfig {
-    NetConfig { hidden_dim: setup.width, num_blocks: setup.blocks, ..Default::default() }
-}
-
-/// DDPM for the toys: the library defaults (cosine β, N = 16, ancestral sampling with
-/// `σ_t² = β_t` over all 16 steps) with log-normal training times.
-fn toy_ddpm(setup: &Setup) -> DdpmConfig {
-    let (mean, std) = setup.noise;
-    DdpmConfig {
-        net: net(setup),
-        time_sampling: TimeSampling::LogNormal { mean, std },
-        ..Default::default()
-    }
-}
-
-/// BESO for the toys: the library defaults with Heun over 24 steps (47 network evaluations);
-/// first-order samplers need many more steps for the same fidelity.
-fn toy_beso(setup: &Setup) -> BesoConfig {
-    let (mean, std) = setup.noise;
-    BesoConfig {
-        net: net(setup),
-        training_sigma: SigmaDistribution::LogNormal { mean, std },
-        sampler: KarrasSampler::Heun,
-        sampling_steps: 24,
-        ..Default::default()
-    }
-}
-
-fn toy_train(setup: &Setup, steps: u64) -> TrainConfig {
-    TrainConfig {
-        steps,
-        batch_size: setup.batch,
-        adam: vdd_nn::AdamConfig { lr: setup.lr, ..Default::default() },
-        warmup_steps: 200.min(steps / 10),
-        final_lr_factor: 0.02,
-        ema_decay: setup.ema,
-        grad_clip: Some(1.0),
-        log_every: (steps / 4).max(1),
-    }
-}
-
 /// A toy task's training data and training length.
 struct Task<'a> {
     name: &'a str,
@@ -224,15 +170,6 @@ struct Cache {
     retrain: bool,
 }
 
-/// Both teachers' model and training configuration for `task`.
-fn teachers_config(task: &Task<'_>, setup: &Setup) -> TeachersConfig {
-    let train = toy_train(setup, task.steps);
-    TeachersConfig {
-        beso: BesoTeacherConfig { config: toy_beso(setup), train: train.clone() },
-        ddpm: DdpmTeacherConfig { config: toy_ddpm(setup), train },
-    }
-}
-
 /// Trains a teacher of `kind` on `task`, or loads it from the cache (the recipes' teacher
 /// cache, [`teachers::train_or_load`]); returns the training seconds (`None` when loaded).
 fn train_or_load(
@@ -243,7 +180,7 @@ fn train_or_load(
 ) -> crate::XResult<(DiffusionTeacher, Option<f64>)> {
     let t = teachers::train_or_load(
         kind,
-        &teachers_config(task, setup),
+        &setup.teachers.config(task.steps),
         task.states.as_ref(),
         task.actions.as_ref(),
         setup.seed,
@@ -278,19 +215,6 @@ fn teachers(
     Ok([ddpm.0, beso.0])
 }
 
-/// `n` states (all zero) and actions from the circle toy.
-fn circle_data(n: usize, stream: &str, seed: u64) -> crate::XResult<(Mat<f32>, Mat<f32>)> {
-    let mut gmm = GmmTeacher::circle_toy();
-    let states = Mat::<f32>::zeros(n, 1);
-    let actions = gmm.sample(states.as_ref(), &mut Seeds::new(seed).stream(stream))?;
-    Ok((states, actions))
-}
-
-/// The circle toy's true distribution, mode `k` at angle `offset + 2πk/8`.
-fn circle(offset: f32) -> MixtureParams {
-    MixtureParams::circle(8, 2.0, 0.5, offset)
-}
-
 fn teacher_name(t: &DiffusionTeacher) -> &'static str {
     match t.kind() {
         TeacherKind::Ddpm => "DDPM",
@@ -318,12 +242,9 @@ fn circle_acceptance(
 ) -> crate::XResult<Vec<String>> {
     let seed = setup.seed;
     let thresholds = Thresholds::default();
-    let (_, true_a) = circle_data(2000, "fresh-true-a", seed)?;
-    let (_, true_b) = circle_data(2000, "fresh-true-b", seed)?;
-    let baseline = mmd2_rbf(true_a.as_ref(), true_b.as_ref(), 1.0);
+    let reference = CircleReference::new(2000, seed)?;
+    let (baseline, exact) = (reference.baseline, &reference.exact);
     let bar = thresholds.mmd2_bar(baseline);
-    let exact = circle(0.0);
-    let means = &exact.means;
     let mut failures = Vec::new();
     println!("\n== acceptance: 2-D toy (8 modes on a circle of radius 2, std 0.5; 5000 pairs) ==");
     println!(
@@ -343,20 +264,12 @@ fn circle_acceptance(
     for t in ts.iter_mut() {
         let name = teacher_name(t);
         let default = SamplerSetting::of(t);
-        let samples = sample_at(t, 0.0, 10_000, seed)?;
-        let (share, shares) = mode_shares(samples.as_ref(), means);
-        let mmd = mmd2_rbf(samples.as_ref().subrows(0, 2000), true_a.as_ref(), 1.0);
-        let ScoreCosine { cosine: cos, level } =
-            score_cosine(t, &exact, &[0.0], true_b.as_ref(), sigma)?;
+        let CircleMeasures { measures, shares, level } =
+            reference.measure(t, 10_000, sigma, seed)?;
+        let (share, mmd, cos) = (measures.min_mode_share, measures.mmd2, measures.score_cosine);
         let at = match t.kind() {
             TeacherKind::Ddpm => format!("{cos:.4} (t = {level:.3})"),
             TeacherKind::Beso => format!("{cos:.4}"),
-        };
-        let measures = Measures {
-            min_mode_share: share,
-            mmd2: mmd,
-            mmd2_baseline: baseline,
-            score_cosine: cos,
         };
         let failed = thresholds.check(&measures, sigma);
         println!(
@@ -368,7 +281,7 @@ fn circle_acceptance(
         );
         failures.extend(failed.iter().map(|f| format!("{name}: {f}")));
         println!("       mode shares: {}", fmt_shares(&shares));
-        let half = score_cosine(t, &exact, &[0.0], true_b.as_ref(), 0.5 * sigma)?.cosine;
+        let half = score_cosine(t, exact, &[0.0], reference.true_b.as_ref(), 0.5 * sigma)?.cosine;
         println!("       (info) score cosine at σ = {}: {half:.4}", 0.5 * sigma);
     }
     println!("(info) other samplers, 2000 samples each (not part of the acceptance):");
@@ -384,8 +297,7 @@ fn circle_acceptance(
                 let x = sample_at(t, 0.0, 2000, seed);
                 saved.apply(t)?;
                 let x = x?;
-                let (share, _) = mode_shares(x.as_ref(), means);
-                let mmd = mmd2_rbf(x.as_ref(), true_a.as_ref(), 1.0);
+                let (share, _, mmd) = reference.compare(x.as_ref());
                 println!(
                     "{name:<6} {:<18} {:>4} {share:>10.3} {mmd:>9.5} {:>8.2}x",
                     s.label(),
@@ -401,10 +313,8 @@ fn circle_acceptance(
 fn rotating_acceptance(setup: &Setup, cache: &Cache) -> crate::XResult<Vec<String>> {
     let seed = setup.seed;
     let n_rot = 20_000;
-    let mut rng = Seeds::new(seed).stream("rot-states");
-    let states = Mat::from_fn(n_rot, 1, |_, _| rng.random_range(0.0..std::f32::consts::TAU));
-    let mut rot = GmmTeacher::rotating_toy(8, 2.0, 0.5)?;
-    let actions = rot.sample(states.as_ref(), &mut Seeds::new(seed).stream("rot-data"))?;
+    let mut rot = RotatingReference::new()?;
+    let (states, actions) = rot.data(n_rot, seed)?;
     println!(
         "\n== acceptance: rotating toy (mode k at angle s + 2πk/8, s ~ U[0, 2π); {n_rot} pairs) =="
     );
@@ -418,14 +328,9 @@ fn rotating_acceptance(setup: &Setup, cache: &Cache) -> crate::XResult<Vec<Strin
     let mut covered = [0usize; 2];
     for i in 0..8 {
         let s = (i as f32 + 0.5) * std::f32::consts::TAU / 8.0 * 0.999;
-        let obs = Mat::from_fn(1000, 1, |_, _| s);
-        let truth =
-            rot.sample(obs.as_ref(), &mut Seeds::new(seed).stream_indexed("rot-true", i))?;
         let mut cells = Vec::new();
         for (k, t) in ts.iter_mut().enumerate() {
-            let x = sample_at(t, s, 2000, seed + i)?;
-            let (share, _) = mode_shares(x.as_ref(), &circle(s).means);
-            let mmd = mmd2_rbf(x.as_ref().subrows(0, 1000), truth.as_ref(), 1.0);
+            let (share, mmd) = rot.check_at(t, s, i, seed)?;
             worst[k] = worst[k].min(share);
             covered[k] += usize::from(thresholds.covers(share));
             cells.push(format!("{share:.3} ({mmd:.4})"));

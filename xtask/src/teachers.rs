@@ -9,8 +9,7 @@ use std::path::{Path, PathBuf};
 use faer::MatRef;
 use vdd_diffusion::TeacherKind;
 pub use vdd_diffusion::cache::{
-    BesoTeacherConfig, CachedTeacher as TrainedTeacher, DdpmTeacherConfig, TeachersConfig,
-    data_hash, kind_name,
+    CachedTeacher as TrainedTeacher, TeachersConfig, data_hash, kind_name,
 };
 use vdd_diffusion::cache::{TeacherCache, TeacherCacheKey};
 

@@ -98,6 +98,30 @@ impl ConsistencyConfig {
         self
     }
 
+    /// When the student starts from the teacher ([`Self::init_from_teacher`]), the same
+    /// settings with the teacher's network architecture and levels (`net`, `sigma_data`,
+    /// `sigma_min`, `sigma_max`, `rho` of [`Self::for_beso`]), so that a changed teacher needs
+    /// no matching change here; otherwise unchanged.
+    ///
+    /// ```
+    /// use vdd_consistency::ConsistencyConfig;
+    /// use vdd_diffusion::BesoConfig;
+    /// let beso = BesoConfig { sigma_max: 40.0, ..Default::default() };
+    /// let c = ConsistencyConfig { init_from_teacher: true, ..Default::default() };
+    /// assert_eq!(c.following_teacher(&beso).sigma_max, 40.0);
+    /// ```
+    pub fn following_teacher(mut self, beso: &BesoConfig) -> Self {
+        if self.init_from_teacher {
+            let t = Self::for_beso(beso);
+            self.net = t.net;
+            self.sigma_data = t.sigma_data;
+            self.sigma_min = t.sigma_min;
+            self.sigma_max = t.sigma_max;
+            self.rho = t.rho;
+        }
+        self
+    }
+
     /// Checks the numbers.
     pub fn validate(&self) -> Result<(), ConsistencyError> {
         self.net.validate()?;

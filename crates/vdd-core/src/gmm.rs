@@ -403,6 +403,21 @@ impl GmmTeacher {
         Self::fixed(Gmm::circle(8, 2.0, 0.5, 0.0).expect("valid constants"), 1)
     }
 
+    /// `n` pairs of [`GmmTeacher::circle_toy`]: states all zero (`n x 1`) and actions drawn
+    /// from `rng` (`n x 2`), the data of the recipes' `toy-gmm` and its teachers' benchmark.
+    ///
+    /// ```
+    /// use vdd_core::{Seeds, gmm::GmmTeacher};
+    /// let (s, a) = GmmTeacher::circle_toy_data(100, &mut Seeds::new(0).stream("toy-data"))?;
+    /// assert_eq!((s.nrows(), s.ncols(), a.ncols()), (100, 1, 2));
+    /// # Ok::<(), vdd_core::CoreError>(())
+    /// ```
+    pub fn circle_toy_data(n: usize, rng: &mut dyn RngCore) -> Result<(Mat<f32>, Mat<f32>)> {
+        let states = Mat::<f32>::zeros(n, 1);
+        let actions = Self::circle_toy().sample(states.as_ref(), rng)?;
+        Ok((states, actions))
+    }
+
     /// The rotating-modes toy: `k` modes on a circle of `radius` with std `std`, mode `i` at
     /// angle `s + 2πi/k` for the scalar state `s`.
     pub fn rotating_toy(k: usize, radius: f32, std: f32) -> Result<Self> {

@@ -27,11 +27,119 @@
 use std::time::Instant;
 
 use faer::{Mat, MatRef};
+use rand::Rng as _;
 use vdd_core::gmm::{Gmm, GmmTeacher};
-use vdd_core::{Policy, ScoreModel};
+use vdd_core::{Policy, ScoreModel, Seeds};
 
-use crate::metrics::{mean_cosine_similarity, nearest_mode_counts};
-use crate::{DiffusionError, DiffusionTeacher, KarrasSampler, Result, TeacherKind, VpSampler};
+use crate::cache::{BesoTeacherConfig, DdpmTeacherConfig, TeachersConfig};
+use crate::metrics::{mean_cosine_similarity, mmd2_rbf, nearest_mode_counts};
+use crate::{
+    BesoConfig, DdpmConfig, DiffusionError, DiffusionTeacher, KarrasSampler, NetConfig, Result,
+    SigmaDistribution, TeacherKind, TimeSampling, TrainConfig, VpSampler,
+};
+
+/// The settings of the toy teachers that the acceptance checks accept (`cargo xtask bench
+/// teachers`): a residual MLP `width` wide with `blocks` blocks, Adam at `lr` with a warm-up
+/// of 200 steps (at most a tenth of the run) and a cosine decay to 2%, gradients clipped to
+/// norm 1, EMA of the weights, and log-normal training noise `ln σ ~ N(noise_mean,
+/// noise_std²)` for both teachers ([`ToyTeachers::toy`] has the values).
+///
+/// ```
+/// use vdd_diffusion::acceptance::ToyTeachers;
+/// let teachers = ToyTeachers::toy().config(4000);
+/// assert_eq!(teachers.beso.config.sampling_steps, 24);
+/// assert_eq!(teachers.ddpm.train.warmup_steps, 200);
+/// ```
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct ToyTeachers {
+    /// Hidden width of the residual MLP.
+    pub width: usize,
+    /// Residual blocks.
+    pub blocks: usize,
+    /// Adam learning rate.
+    pub lr: f32,
+    /// Batch size.
+    pub batch: usize,
+    /// EMA decay of the weights.
+    pub ema: f32,
+    /// Training noise: mean of `ln σ` (DDPM: of its log-normal training times).
+    pub noise_mean: f32,
+    /// Training noise: std of `ln σ`.
+    pub noise_std: f32,
+}
+
+impl ToyTeachers {
+    /// 64 wide, 2 blocks, lr `1e-2`, batch 1024, EMA 0.995, `ln σ ~ N(−1.6, 1.2²)`.
+    pub const fn toy() -> Self {
+        Self {
+            width: 64,
+            blocks: 2,
+            lr: 1e-2,
+            batch: 1024,
+            ema: 0.995,
+            noise_mean: -1.6,
+            noise_std: 1.2,
+        }
+    }
+
+    /// The residual MLP of both teachers.
+    pub fn net(&self) -> NetConfig {
+        NetConfig { hidden_dim: self.width, num_blocks: self.blocks, ..Default::default() }
+    }
+
+    /// DDPM: the library defaults (cosine β, N = 16, ancestral sampling with `σ_t² = β_t` over
+    /// all 16 steps) with log-normal training times.
+    pub fn ddpm(&self) -> DdpmConfig {
+        let (mean, std) = (self.noise_mean, self.noise_std);
+        DdpmConfig {
+            net: self.net(),
+            time_sampling: TimeSampling::LogNormal { mean, std },
+            ..Default::default()
+        }
+    }
+
+    /// BESO: the library defaults with Heun over 24 steps (47 network evaluations);
+    /// first-order samplers need many more steps for the same fidelity.
+    pub fn beso(&self) -> BesoConfig {
+        let (mean, std) = (self.noise_mean, self.noise_std);
+        BesoConfig {
+            net: self.net(),
+            training_sigma: SigmaDistribution::LogNormal { mean, std },
+            sampler: KarrasSampler::Heun,
+            sampling_steps: 24,
+            ..Default::default()
+        }
+    }
+
+    /// Training of `steps` steps (four progress reports).
+    pub fn train(&self, steps: u64) -> TrainConfig {
+        TrainConfig {
+            steps,
+            batch_size: self.batch,
+            adam: vdd_nn::AdamConfig { lr: self.lr, ..Default::default() },
+            warmup_steps: 200.min(steps / 10),
+            final_lr_factor: 0.02,
+            ema_decay: self.ema,
+            grad_clip: Some(1.0),
+            log_every: (steps / 4).max(1),
+        }
+    }
+
+    /// Both teachers' model and training configuration for a run of `steps` steps.
+    pub fn config(&self, steps: u64) -> TeachersConfig {
+        let train = self.train(steps);
+        TeachersConfig {
+            beso: BesoTeacherConfig { config: self.beso(), train: train.clone() },
+            ddpm: DdpmTeacherConfig { config: self.ddpm(), train },
+        }
+    }
+}
+
+impl Default for ToyTeachers {
+    fn default() -> Self {
+        Self::toy()
+    }
+}
 
 /// The share of the rows of `samples` nearest to each of `modes` (in order), and the smallest
 /// share.
@@ -165,6 +273,108 @@ pub fn score_cosine(
     let mut truth = Mat::zeros(n, d);
     exact.score(y.as_ref(), Mat::<f32>::zeros(n, 1).as_ref(), &vec![sigma; n], truth.as_mut())?;
     Ok(ScoreCosine { cosine: mean_cosine_similarity(learned.as_ref(), truth.as_ref()), level })
+}
+
+/// The circle toy's reference for the acceptance (8 modes on a circle of radius 2, std 0.5,
+/// state 0): the exact mixture and two independent true sample sets of the same size (the
+/// streams `"fresh-true-a"`, `"fresh-true-b"` of a seed) with their MMD² (RBF, bandwidth 1),
+/// the statistic's noise floor.
+#[derive(Debug, Clone)]
+pub struct CircleReference {
+    /// The true distribution.
+    pub exact: MixtureParams,
+    /// True samples, for MMD².
+    pub true_a: Mat<f32>,
+    /// Other true samples, for the score check.
+    pub true_b: Mat<f32>,
+    /// MMD² of `true_a` and `true_b`.
+    pub baseline: f64,
+}
+
+/// A teacher's [`Measures`] on the circle toy ([`CircleReference::measure`]).
+#[derive(Debug, Clone, PartialEq)]
+pub struct CircleMeasures {
+    /// The measures the thresholds check.
+    pub measures: Measures,
+    /// The share of samples nearest to each mode.
+    pub shares: Vec<f32>,
+    /// The teacher's noise level of the score check ([`ScoreCosine::level`]).
+    pub level: f32,
+}
+
+impl CircleReference {
+    /// `n` true samples per set from `seed`.
+    pub fn new(n: usize, seed: u64) -> Result<Self> {
+        let seeds = Seeds::new(seed);
+        let (_, true_a) = GmmTeacher::circle_toy_data(n, &mut seeds.stream("fresh-true-a"))?;
+        let (_, true_b) = GmmTeacher::circle_toy_data(n, &mut seeds.stream("fresh-true-b"))?;
+        let baseline = mmd2_rbf(true_a.as_ref(), true_b.as_ref(), 1.0);
+        Ok(Self { exact: MixtureParams::circle(8, 2.0, 0.5, 0.0), true_a, true_b, baseline })
+    }
+
+    /// The smallest mode share, the shares and the MMD² to `true_a` of its first rows of
+    /// teacher samples `x` (as many as `true_a` has).
+    pub fn compare(&self, x: MatRef<'_, f32>) -> (f32, Vec<f32>, f64) {
+        let (share, shares) = mode_shares(x, &self.exact.means);
+        let rows = x.nrows().min(self.true_a.nrows());
+        (share, shares, mmd2_rbf(x.subrows(0, rows), self.true_a.as_ref(), 1.0))
+    }
+
+    /// The measures of `teacher` with its current sampler: `n` samples at state 0 (the policy
+    /// stream seeded by `seed`, [`samples_at`]) and the score cosine at `sigma` on `true_b`.
+    pub fn measure(
+        &self,
+        teacher: &mut DiffusionTeacher,
+        n: usize,
+        sigma: f32,
+        seed: u64,
+    ) -> Result<CircleMeasures> {
+        let x = samples_at(teacher, &[0.0], n, seed)?;
+        let (min_mode_share, shares, mmd2) = self.compare(x.as_ref());
+        let ScoreCosine { cosine, level } =
+            score_cosine(teacher, &self.exact, &[0.0], self.true_b.as_ref(), sigma)?;
+        let measures =
+            Measures { min_mode_share, mmd2, mmd2_baseline: self.baseline, score_cosine: cosine };
+        Ok(CircleMeasures { measures, shares, level })
+    }
+}
+
+/// The rotating toy of the acceptance: mode `k` at angle `s + 2πk/8` on the circle of radius
+/// 2, std 0.5, for the scalar state `s`.
+pub struct RotatingReference(GmmTeacher);
+
+impl RotatingReference {
+    /// The mixture.
+    pub fn new() -> Result<Self> {
+        Ok(Self(GmmTeacher::rotating_toy(8, 2.0, 0.5)?))
+    }
+
+    /// `n` training pairs from `seed`: states uniform in `[0, 2π)` (stream `"rot-states"`),
+    /// actions from the mixture (stream `"rot-data"`).
+    pub fn data(&mut self, n: usize, seed: u64) -> Result<(Mat<f32>, Mat<f32>)> {
+        let mut rng = Seeds::new(seed).stream("rot-states");
+        let states = Mat::from_fn(n, 1, |_, _| rng.random_range(0.0..std::f32::consts::TAU));
+        let actions = self.0.sample(states.as_ref(), &mut Seeds::new(seed).stream("rot-data"))?;
+        Ok((states, actions))
+    }
+
+    /// The smallest mode share of 2000 samples of `teacher` at state `s` (policy stream seeded
+    /// by `seed + index`) and their first 1000 rows' MMD² to 1000 true samples (stream
+    /// `"rot-true"` of `seed`, indexed by `index`).
+    pub fn check_at(
+        &mut self,
+        teacher: &mut DiffusionTeacher,
+        s: f32,
+        index: u64,
+        seed: u64,
+    ) -> Result<(f32, f64)> {
+        let obs = Mat::from_fn(1000, 1, |_, _| s);
+        let mut rng = Seeds::new(seed).stream_indexed("rot-true", index);
+        let truth = self.0.sample(obs.as_ref(), &mut rng)?;
+        let x = samples_at(teacher, &[s], 2000, seed + index)?;
+        let (share, _) = mode_shares(x.as_ref(), &MixtureParams::circle(8, 2.0, 0.5, s).means);
+        Ok((share, mmd2_rbf(x.as_ref().subrows(0, 1000), truth.as_ref(), 1.0)))
+    }
 }
 
 /// The measures a teacher is accepted on (see the [module docs](self)).

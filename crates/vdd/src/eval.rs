@@ -1,10 +1,211 @@
 //! Exact-density evaluation of a distilled mixture on problems whose target density is known
-//! (the toy tasks): Monte-Carlo reverse and forward KL, and mode coverage.
+//! (the toy tasks): Monte-Carlo reverse and forward KL, and mode coverage; [`against_gmm`]
+//! does all three against an exact Gaussian mixture in raw coordinates.
+
+use std::cell::RefCell;
 
 use faer::{Mat, MatRef};
 use rand::Rng as _;
-use vdd_core::{Expert, Rng, check_shape, gaussian};
+use serde::{Deserialize, Serialize};
+use vdd_core::gmm::Gmm;
+use vdd_core::{Affine, Expert, Rng, Seeds, check_len, check_shape, gaussian};
 use vdd_moe::{Moe, MoeError};
+
+/// Settings of the evaluation against a known mixture ([`against_gmm`]; the toy recipes'
+/// `[eval]`).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct GmmEval {
+    /// Monte-Carlo samples per KL estimate (each way, at each evaluation state).
+    pub kl_samples: usize,
+    /// Evaluation states of a conditional problem (the toy's `s_i = (i + 0.5) 2π / n`; the
+    /// caller spreads them).
+    pub eval_states: usize,
+    /// A mode is covered when an expert mean lies within this distance of it (raw units)...
+    pub coverage_radius: f32,
+    /// ... and that expert's gating weight is at least this.
+    pub min_weight: f32,
+}
+
+/// What [`against_gmm`] measures at one state.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct GmmScores {
+    /// `KL(q || p)` in nats (Monte Carlo).
+    pub reverse_kl: f64,
+    /// `KL(p || q)` in nats (Monte Carlo).
+    pub forward_kl: f64,
+    /// Components of the target covered by some expert ([`GmmEval::coverage_radius`],
+    /// [`GmmEval::min_weight`]).
+    pub modes_covered: usize,
+}
+
+/// Reverse and forward KL and mode coverage of `student` at raw state `state` against the exact
+/// mixture `truth` of raw actions.
+///
+/// KL is computed in the student's normalised action space ([`Moe::normalizers`]; identity
+/// when unset) with the target transformed alike (KL is invariant under that affine map);
+/// coverage distances are measured after mapping the experts' means back to raw actions. The
+/// student's samples come from `seeds`' stream `"reverse"`, the target's from `"forward"`,
+/// both indexed by `index` (one index per evaluation state).
+///
+/// ```
+/// use vdd::eval::{GmmEval, against_gmm};
+/// use vdd::{Moe, MoeConfig, Seeds};
+/// use vdd_core::gmm::Gmm;
+/// let truth = Gmm::circle(8, 2.0, 0.5, 0.0)?;
+/// let mut student = Moe::from_config(MoeConfig::toy(1, 2, 8), 0)?; // untrained
+/// let settings = GmmEval { kl_samples: 500, eval_states: 1, coverage_radius: 0.5, min_weight: 0.05 };
+/// let scores = against_gmm(&mut student, &truth, &[0.0], &settings, &Seeds::new(0), 0)?;
+/// assert!(scores.reverse_kl > 0.0 && scores.forward_kl > 0.0 && scores.modes_covered <= 8);
+/// # Ok::<(), Box<dyn std::error::Error>>(())
+/// ```
+pub fn against_gmm<E: Expert>(
+    student: &mut Moe<E>,
+    truth: &Gmm,
+    state: &[f32],
+    settings: &GmmEval,
+    seeds: &Seeds,
+    index: u64,
+) -> Result<GmmScores, MoeError> {
+    let (d, ds) = (student.config().action_dim, student.config().state_dim);
+    check_len("target mixture dimension", truth.dim(), d)?;
+    check_len("state", state.len(), ds)?;
+    let (sn, an) = normalizers(student);
+    let log_det: f32 = an.scale.iter().map(|c| c.ln()).sum();
+    let s_n: Vec<f32> = (0..ds).map(|j| (state[j] - sn.offset[j]) / sn.scale[j]).collect();
+    let to_raw = |a: &[f32], raw: &mut [f32]| {
+        for j in 0..d {
+            raw[j] = a[j] * an.scale[j] + an.offset[j];
+        }
+    };
+    // log p in the normalised space: p_n(a_n) = p(denorm(a_n)) · Π scale.
+    let raw = RefCell::new(vec![0.0f32; d]);
+    let log_p = |a: &[f32]| {
+        let mut raw = raw.borrow_mut();
+        to_raw(a, &mut raw);
+        truth.log_density(&raw, 0.0).map(|l| l + log_det).unwrap_or(f32::NEG_INFINITY)
+    };
+    let n = settings.kl_samples;
+    let reverse_kl =
+        reverse_kl(student, &s_n, log_p, n, &mut seeds.stream_indexed("reverse", index))?;
+    let mut rng = seeds.stream_indexed("forward", index);
+    let mut target = Mat::zeros(n, d);
+    let mut a = vec![0.0f32; d];
+    for i in 0..n {
+        truth.sample_into(&mut rng, &mut a);
+        for j in 0..d {
+            target[(i, j)] = (a[j] - an.offset[j]) / an.scale[j];
+        }
+    }
+    let forward_kl = forward_kl(student, &s_n, log_p, target.as_ref())?;
+    // Coverage in raw coordinates.
+    student.forward(MatRef::from_row_major_slice(&s_n, 1, ds))?;
+    let out = student.output();
+    let lg = out.log_gating_row(0);
+    let mut mu = vec![0.0f32; d];
+    let modes_covered = (0..truth.num_components())
+        .filter(|&k| {
+            let m = truth.mean(k);
+            (0..out.num_experts).any(|z| {
+                to_raw(out.mean(0, z), &mut mu);
+                let dist = mu.iter().zip(m).map(|(x, y)| (x - y).powi(2)).sum::<f32>().sqrt();
+                lg[z].exp() >= settings.min_weight && dist <= settings.coverage_radius
+            })
+        })
+        .count();
+    Ok(GmmScores { reverse_kl, forward_kl, modes_covered })
+}
+
+/// One expert at a state in raw action coordinates ([`density_map`]).
+#[derive(Debug, Clone, PartialEq)]
+pub struct RawExpert {
+    /// Mean.
+    pub mean: Vec<f32>,
+    /// Covariance `S L Lᵀ S` (`d x d`, row-major; `S` the action normaliser's scales).
+    pub covariance: Vec<f32>,
+    /// Gating weight.
+    pub weight: f32,
+}
+
+/// The student's density on a grid and its experts at raw `state`, for figures of 2-D actions
+/// ([`density_map`]).
+#[derive(Debug, Clone, PartialEq)]
+pub struct DensityMap {
+    /// Cells per side.
+    pub n: usize,
+    /// `q` of the student's normalised actions at the centres of the `n x n` cells of the raw
+    /// square `[−extent, extent]²`, row `i` (second coordinate) major.
+    pub density: Vec<f32>,
+    /// The experts in raw coordinates.
+    pub experts: Vec<RawExpert>,
+}
+
+/// The density of `student` (2-D actions) at raw `state` on an `n x n` grid over the raw square
+/// `[−extent, extent]²` (`n` at least 2), and its experts in raw coordinates: what a figure
+/// of the mixture draws. Normalisers as in [`against_gmm`].
+///
+/// ```
+/// use vdd::{Moe, MoeConfig};
+/// let mut student = Moe::from_config(MoeConfig::toy(1, 2, 3), 0)?;
+/// let map = vdd::eval::density_map(&mut student, &[0.0], 3.0, 20)?;
+/// assert_eq!((map.density.len(), map.experts.len()), (400, 3));
+/// assert!((map.experts.iter().map(|e| e.weight).sum::<f32>() - 1.0).abs() < 1e-5);
+/// # Ok::<(), vdd::MoeError>(())
+/// ```
+pub fn density_map<E: Expert>(
+    student: &mut Moe<E>,
+    state: &[f32],
+    extent: f32,
+    n: usize,
+) -> Result<DensityMap, MoeError> {
+    let (d, ds) = (student.config().action_dim, student.config().state_dim);
+    check_len("action dimension of a density map", d, 2)?;
+    check_len("state", state.len(), ds)?;
+    let (sn, an) = normalizers(student);
+    let s_n: Vec<f32> = (0..ds).map(|j| (state[j] - sn.offset[j]) / sn.scale[j]).collect();
+    let (e, n) = (extent, n.max(2));
+    let h = 2.0 * e / n as f32;
+    let mut pts = Mat::<f32>::zeros(n * n, 2);
+    for i in 0..n {
+        for j in 0..n {
+            let (x, y) = (-e + (j as f32 + 0.5) * h, -e + (i as f32 + 0.5) * h);
+            pts[(i * n + j, 0)] = (x - an.offset[0]) / an.scale[0];
+            pts[(i * n + j, 1)] = (y - an.offset[1]) / an.scale[1];
+        }
+    }
+    let log_q = student_log_density(student, &s_n, pts.as_ref())?;
+    let density = log_q.iter().map(|l| l.exp()).collect();
+    student.forward(MatRef::from_row_major_slice(&s_n, 1, ds))?;
+    let out = student.output();
+    let experts = (0..out.num_experts)
+        .map(|z| {
+            let (mu, l) = (out.mean(0, z), out.scale(0, z));
+            let mut covariance = vec![0.0f32; d * d];
+            for r in 0..d {
+                for c in 0..d {
+                    let llt: f32 = (0..=r.min(c)).map(|k| l[r * d + k] * l[c * d + k]).sum();
+                    covariance[r * d + c] = llt * an.scale[r] * an.scale[c];
+                }
+            }
+            RawExpert {
+                mean: (0..d).map(|j| mu[j] * an.scale[j] + an.offset[j]).collect(),
+                covariance,
+                weight: out.log_gating_row(0)[z].exp(),
+            }
+        })
+        .collect();
+    Ok(DensityMap { n, density, experts })
+}
+
+/// The student's state and action normalisers (identity when unset).
+fn normalizers<E: Expert>(student: &Moe<E>) -> (Affine, Affine) {
+    let (d, ds) = (student.config().action_dim, student.config().state_dim);
+    let (sn, an) = student.normalizers();
+    (
+        sn.cloned().unwrap_or_else(|| Affine::identity(ds)),
+        an.cloned().unwrap_or_else(|| Affine::identity(d)),
+    )
+}
 
 /// Draws `n` samples `a ~ q(·|state)` from the student (networks' normalised space) into an
 /// `n x d` matrix.

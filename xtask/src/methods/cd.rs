@@ -69,20 +69,12 @@ pub fn distil(
     })
 }
 
-/// A CD / CTM configuration for `seed`: the seed and (with `follow_teacher` and
-/// `init_from_teacher`) the teacher's architecture and levels. (Their learning rate decays over
-/// their `train.steps` by construction.)
+/// A CD / CTM configuration for `seed`, with (`follow_teacher`) the teacher's architecture and
+/// levels ([`CdConfig::following_teacher`]). (Their learning rate decays over their
+/// `train.steps` by construction.)
 pub fn config_for(c: &CdConfig, beso: &BesoConfig, seed: u64, follow_teacher: bool) -> CdConfig {
-    let mut c = c.clone().with_seed(seed);
-    if follow_teacher && c.init_from_teacher {
-        let t = CdConfig::for_beso(beso);
-        c.net = t.net;
-        c.sigma_data = t.sigma_data;
-        c.sigma_min = t.sigma_min;
-        c.sigma_max = t.sigma_max;
-        c.rho = t.rho;
-    }
-    c
+    let c = c.clone().with_seed(seed);
+    if follow_teacher { c.following_teacher(beso) } else { c }
 }
 
 /// Records a training report in the progress bar and the curves.

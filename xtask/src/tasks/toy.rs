@@ -16,15 +16,15 @@
 //! `states_fully_covered` (minimum), `mean_reverse_kl`, `mean_forward_kl`, `ms_per_iter`,
 //! `train_seconds` and the first seed's per-state results for `toy-conditional`.
 
-use faer::Mat;
 use serde::{Deserialize, Serialize};
 use serde_json::{Value, json};
 use toml::Table;
+use vdd::eval::{GmmEval, GmmScores, against_gmm};
 use vdd_core::gmm::{Gmm, GmmTeacher};
 use vdd_core::{Affine, ScoreModel, Seeds};
 use vdd_moe::MoeConfig;
 
-use super::toy_eval::{ToyEval, ToyPlots, ToyStudent, circle_modes, density_panel, evaluate_at};
+use super::toy_eval::{ToyPlots, ToyStudent, circle_modes, density_panel};
 use crate::context::{RunContext, StageTimes};
 use crate::method::{Trained, TrainingData};
 use crate::pipeline::{self, Datasets, Entry, Task, TaskRecipe, Trainings};
@@ -51,7 +51,7 @@ pub struct ToyRecipe {
     /// VDD's settings for each teacher, read by the VDD methods (`xtask/src/methods/vdd.rs`).
     pub vdd: Table,
     /// Evaluation.
-    pub eval: ToyEval,
+    pub eval: GmmEval,
     /// Figure 2.
     pub plots: ToyPlots,
 }
@@ -221,8 +221,8 @@ impl Toy {
             conditional_row(s, cfg, &seeds, &mut row, &tag, train_seconds)?;
         } else {
             let truth = Gmm::circle(MODES, 2.0, 0.5, 0.0)?;
-            let n = cfg.eval.kl_samples;
-            let (rev, fwd, cov) = evaluate_at(s, &truth, 0.0, n, &cfg.eval, &seeds, 0)?;
+            let GmmScores { reverse_kl: rev, forward_kl: fwd, modes_covered: cov } =
+                against_gmm(&mut s.student, &truth, &[0.0], &cfg.eval, &seeds, 0)?;
             crate::progress::log(format!(
                 "[{tag}] reverse KL {rev:.5} nats, forward KL {fwd:.5} nats, modes {cov}/{MODES}, {ms_per_iter:.3} ms/iter ({train_seconds:.2} s)"
             ));
@@ -252,9 +252,8 @@ impl Toy {
             let (states, actions) = task.sample(n, seed)?;
             Ok(TrainingData::raw(states, actions, Some(task.teacher()?)))
         } else {
-            let mut gmm = GmmTeacher::circle_toy();
-            let states = Mat::<f32>::zeros(n, 1);
-            let actions = gmm.sample(states.as_ref(), &mut Seeds::new(seed).stream("toy-data"))?;
+            let mut rng = Seeds::new(seed).stream("toy-data");
+            let (states, actions) = GmmTeacher::circle_toy_data(n, &mut rng)?;
             Ok(TrainingData::raw(states, actions, Some(GmmTeacher::circle_toy())))
         }
     }
@@ -353,8 +352,8 @@ fn conditional_row(
     for i in 0..n_states {
         let state = (i as f32 + 0.5) * std::f32::consts::TAU / n_states as f32;
         let truth = Gmm::circle(MODES, 2.0, 0.5, state)?;
-        let samples = cfg.eval.kl_samples;
-        let (rev, fwd, cov) = evaluate_at(s, &truth, state, samples, &cfg.eval, seeds, i as u64)?;
+        let GmmScores { reverse_kl: rev, forward_kl: fwd, modes_covered: cov } =
+            against_gmm(&mut s.student, &truth, &[state], &cfg.eval, seeds, i as u64)?;
         states.push(
             json!({"state": state, "modes_covered": cov, "reverse_kl": rev, "forward_kl": fwd}),
         );

@@ -1,34 +1,14 @@
-//! Evaluation of a toy student against the exact mixture: KL both ways and mode coverage at a
-//! state ([`evaluate_at`]), and one panel of Figure 2 ([`density_panel`]), with their settings
-//! (the recipes' `[eval]` and `[plots]`).
-//!
-//! KL and coverage are computed in the student's (teacher-normalised) action space with the
-//! target transformed alike; KL is invariant under that affine map, and coverage distances are
-//! measured after mapping the experts' means back to raw actions.
+//! One panel of Figure 2 for a toy student ([`density_panel`]) with its settings (the recipes'
+//! `[plots]`). The evaluation against the exact mixture is [`vdd::eval::against_gmm`].
 
 use faer::Mat;
 use vdd::eval;
-use vdd_core::gmm::Gmm;
-use vdd_core::{Affine, ScoreModel, Seeds};
+use vdd_core::{Affine, ScoreModel};
 use vdd_moe::Moe;
 
 use serde::{Deserialize, Serialize};
 
 use crate::plots::{DensityPanel, ExpertEllipse};
-
-/// Evaluation of a toy recipe.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-#[serde(deny_unknown_fields)]
-pub struct ToyEval {
-    /// Monte-Carlo samples per KL estimate (and per evaluation state).
-    pub kl_samples: usize,
-    /// Evaluation states of `toy-conditional` (`s_i = (i + 0.5) 2π / n`).
-    pub eval_states: usize,
-    /// A mode is covered when an expert mean lies within this distance.
-    pub coverage_radius: f32,
-    /// ... and that expert's gating weight is at least this.
-    pub min_weight: f32,
-}
 
 /// Figure 2 settings.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -62,60 +42,8 @@ pub struct ToyStudent {
     pub noise_level: f32,
 }
 
-/// KL both ways and coverage of the student at raw state `s` against the exact mixture `truth`.
-pub fn evaluate_at(
-    d: &mut ToyStudent,
-    truth: &Gmm,
-    s: f32,
-    samples: usize,
-    cfg: &ToyEval,
-    seeds: &Seeds,
-    index: u64,
-) -> crate::XResult<(f64, f64, usize)> {
-    let an = d.action_norm.clone();
-    let log_det: f32 = an.scale.iter().map(|c| c.ln()).sum();
-    let s_n = [(s - d.state_norm.offset[0]) / d.state_norm.scale[0]];
-    // log p in the normalised space: p_n(a_n) = p(denorm(a_n)) · Π scale.
-    let log_p = |a: &[f32]| {
-        let raw = [a[0] * an.scale[0] + an.offset[0], a[1] * an.scale[1] + an.offset[1]];
-        truth.log_density(&raw, 0.0).map(|l| l + log_det).unwrap_or(f32::NEG_INFINITY)
-    };
-    let reverse = eval::reverse_kl(
-        &mut d.student,
-        &s_n,
-        log_p,
-        samples,
-        &mut seeds.stream_indexed("reverse", index),
-    )?;
-    let mut rng = seeds.stream_indexed("forward", index);
-    let mut target = Mat::zeros(samples, 2);
-    let mut a = [0.0f32; 2];
-    for i in 0..samples {
-        truth.sample_into(&mut rng, &mut a);
-        for j in 0..2 {
-            target[(i, j)] = (a[j] - an.offset[j]) / an.scale[j];
-        }
-    }
-    let forward = eval::forward_kl(&mut d.student, &s_n, log_p, target.as_ref())?;
-    // Coverage in raw coordinates.
-    d.student.forward(faer::MatRef::from_row_major_slice(&s_n, 1, 1))?;
-    let out = d.student.output();
-    let lg = out.log_gating_row(0);
-    let covered = (0..truth.num_components())
-        .filter(|&k| {
-            let m = truth.mean(k);
-            (0..out.num_experts).any(|z| {
-                let mu = out.mean(0, z);
-                let raw = [mu[0] * an.scale[0] + an.offset[0], mu[1] * an.scale[1] + an.offset[1]];
-                let dist = ((raw[0] - m[0]).powi(2) + (raw[1] - m[1]).powi(2)).sqrt();
-                lg[z].exp() >= cfg.min_weight && dist <= cfg.coverage_radius
-            })
-        })
-        .count();
-    Ok((reverse, forward, covered))
-}
-
-/// One panel of Figure 2 at raw state `s`.
+/// One panel of Figure 2 at raw state `s`: the student's density and experts
+/// ([`eval::density_map`]) and the teacher's score field at its VDD noise level.
 pub fn density_panel(
     d: &mut ToyStudent,
     s: f32,
@@ -126,20 +54,7 @@ pub fn density_panel(
     let (sn, an) = (d.state_norm.clone(), d.action_norm.clone());
     let s_n = (s - sn.offset[0]) / sn.scale[0];
     let e = p.extent;
-    let n = p.grid.max(2);
-    let h = 2.0 * e / n as f32;
-    let norm_point =
-        |x: f32, y: f32| [(x - an.offset[0]) / an.scale[0], (y - an.offset[1]) / an.scale[1]];
-    let mut pts = Mat::<f32>::zeros(n * n, 2);
-    for i in 0..n {
-        for j in 0..n {
-            let q = norm_point(-e + (j as f32 + 0.5) * h, -e + (i as f32 + 0.5) * h);
-            pts[(i * n + j, 0)] = q[0];
-            pts[(i * n + j, 1)] = q[1];
-        }
-    }
-    let log_q = eval::student_log_density(&mut d.student, &[s_n], pts.as_ref())?;
-    let density: Vec<f32> = log_q.iter().map(|l| l.exp()).collect();
+    let map = eval::density_map(&mut d.student, &[s], e, p.grid)?;
     // Score field of the teacher at its VDD noise level, mapped to raw coordinates.
     let k = p.arrows.max(2);
     let spacing = 2.0 * e / k as f32;
@@ -148,9 +63,8 @@ pub fn density_panel(
     for i in 0..k {
         for j in 0..k {
             let (x, y) = (-e + (j as f32 + 0.5) * spacing, -e + (i as f32 + 0.5) * spacing);
-            let q = norm_point(x, y);
-            apts[(i * k + j, 0)] = q[0];
-            apts[(i * k + j, 1)] = q[1];
+            apts[(i * k + j, 0)] = (x - an.offset[0]) / an.scale[0];
+            apts[(i * k + j, 1)] = (y - an.offset[1]) / an.scale[1];
             raw_pos.push((x, y));
         }
     }
@@ -169,23 +83,16 @@ pub fn density_panel(
             (pos, (gx / len * l, gy / len * l))
         })
         .collect();
-    d.student.forward(faer::MatRef::from_row_major_slice(&[s_n], 1, 1))?;
-    let out = d.student.output();
-    let experts = (0..out.num_experts)
-        .map(|z| {
-            let mu = out.mean(0, z);
-            let l = out.scale(0, z);
-            let (l00, l10, l11) = (l[0], l[2], l[3]);
-            let (c00, c01, c11) = (l00 * l00, l00 * l10, l10 * l10 + l11 * l11);
-            let (s0, s1) = (an.scale[0], an.scale[1]);
-            ExpertEllipse {
-                mean: (mu[0] * s0 + an.offset[0], mu[1] * s1 + an.offset[1]),
-                cov: (c00 * s0 * s0, c01 * s0 * s1, c11 * s1 * s1),
-                weight: out.log_gating_row(0)[z].exp(),
-            }
+    let experts = map
+        .experts
+        .iter()
+        .map(|x| ExpertEllipse {
+            mean: (x.mean[0], x.mean[1]),
+            cov: (x.covariance[0], x.covariance[1], x.covariance[3]),
+            weight: x.weight,
         })
         .collect();
-    Ok(DensityPanel { title, extent: e, density, n, arrows, experts, modes })
+    Ok(DensityPanel { title, extent: e, density: map.density, n: map.n, arrows, experts, modes })
 }
 
 /// `k` modes on the circle of radius 2 rotated by `offset`.
