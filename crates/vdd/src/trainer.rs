@@ -378,34 +378,26 @@ impl<S: ScoreModel, E: Expert> Vdd<S, E> {
             };
             let (c, snapshot, v) = (&self.config, &self.snapshot, self.config.vi_samples);
             let out = self.student.output();
-            let moments = match &self.action_map {
-                None => corrected_score_moments(
-                    &mut self.teacher,
-                    out,
-                    snapshot,
-                    states,
-                    &c.noise,
-                    progress,
-                    v,
-                    &mut rng,
-                    &mut self.buf,
-                ),
-                Some(map) => corrected_score_moments(
-                    &mut MappedTeacher {
-                        teacher: &mut self.teacher,
-                        map,
-                        scratch: &mut self.map_scratch,
-                    },
-                    out,
-                    snapshot,
-                    states,
-                    &c.noise,
-                    progress,
-                    v,
-                    &mut rng,
-                    &mut self.buf,
-                ),
+            let mut mapped;
+            let teacher: &mut dyn ScoreModel = match &self.action_map {
+                None => &mut self.teacher,
+                Some(map) => {
+                    let scratch = &mut self.map_scratch;
+                    mapped = MappedTeacher { teacher: &mut self.teacher, map, scratch };
+                    &mut mapped
+                }
             };
+            let moments = corrected_score_moments(
+                teacher,
+                out,
+                snapshot,
+                states,
+                &c.noise,
+                progress,
+                v,
+                &mut rng,
+                &mut self.buf,
+            );
             stats = moments.map_err(|e| match e {
                 CoreError::NonFinite { what } => {
                     VddError::NonFinite { iteration: it, quantity: what }
