@@ -9,7 +9,7 @@ use std::time::Instant;
 
 use faer::{Mat, MatMut, MatRef};
 use rand::Rng as _;
-use vdd_core::{Affine, CoreError, Seeds, Trainer, check_finite, check_len};
+use vdd_core::{CoreError, Seeds, Trainer, check_finite, check_len};
 use vdd_diffusion::{DenoiserNet, DiffusionError, SamplerBuffers};
 use vdd_nn::{Adam, Ema, Parameters};
 
@@ -476,15 +476,10 @@ fn normalised_data<T: ConsistencyTeacher + ?Sized>(
     check_len("action rows vs state rows", actions.nrows(), states.nrows())?;
     check_finite("training states", states)?;
     check_finite("training actions", actions)?;
-    let data = Pairs { states: normalize(states, sn), actions: normalize(actions, an) };
+    let data = Pairs { states: sn.normalize_rows(states)?, actions: an.normalize_rows(actions)? };
     check_finite("normalised training states", data.states.as_ref())?;
     check_finite("normalised training actions", data.actions.as_ref())?;
     Ok(data)
-}
-
-/// `(m − offset) / scale` per column.
-fn normalize(m: MatRef<'_, f32>, a: &Affine) -> Mat<f32> {
-    Mat::from_fn(m.nrows(), m.ncols(), |i, j| (m[(i, j)] - a.offset[j]) / a.scale[j])
 }
 
 /// The student's initial weights: the teacher's network when asked (it must exist and match),

@@ -2,6 +2,7 @@
 //! (offset = mean, scale = std) and min-max normalisation take. Models store it beside their
 //! weights so a deployed policy needs nothing else.
 
+use faer::{Mat, MatRef};
 use serde::{Deserialize, Serialize};
 
 use crate::error::{CoreError, Result, check_len};
@@ -54,6 +55,20 @@ impl Affine {
         for (i, v) in x.iter_mut().enumerate() {
             *v = (*v - self.offset[i % d]) / self.scale[i % d];
         }
+    }
+
+    /// `(m − offset) / scale` on every row of `m` (`n x dim()`), as a new matrix; an error when
+    /// the columns are not `dim()`.
+    ///
+    /// ```
+    /// let a = vdd_core::Affine::new(vec![1.0, 0.0], vec![2.0, 4.0])?;
+    /// let m = a.normalize_rows(faer::mat![[3.0f32, 8.0], [1.0, -4.0]].as_ref())?;
+    /// assert_eq!((m[(0, 0)], m[(0, 1)], m[(1, 0)], m[(1, 1)]), (1.0, 2.0, 0.0, -1.0));
+    /// # Ok::<(), vdd_core::CoreError>(())
+    /// ```
+    pub fn normalize_rows(&self, m: MatRef<'_, f32>) -> Result<Mat<f32>> {
+        check_len("columns to normalise", m.ncols(), self.dim())?;
+        Ok(Mat::from_fn(m.nrows(), m.ncols(), |i, j| (m[(i, j)] - self.offset[j]) / self.scale[j]))
     }
 
     /// `x ← x · scale + offset`.

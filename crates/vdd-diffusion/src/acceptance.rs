@@ -257,7 +257,7 @@ pub fn score_cosine(
         )));
     }
     let mut exact = GmmTeacher::fixed(exact.normalized(&an.offset, &an.scale).to_gmm()?, 1);
-    let a = Mat::from_fn(n, d, |i, j| (actions[(i, j)] - an.offset[j]) / an.scale[j]);
+    let a = an.normalize_rows(actions)?;
     // `−(o − x)` is `x − o` (IEEE subtraction is symmetric) and keeps `−o` for `x = 0`.
     let s = Mat::from_fn(n, state.len(), |_, j| -(sn.offset[j] - state[j]) / sn.scale[j]);
     let (level, x_scale) = match teacher {

@@ -133,16 +133,11 @@ pub(crate) fn prepare_data(
     let state_norm = fit_normalizer(states, state_kind);
     let action_norm = fit_normalizer(actions, action_kind);
     Ok(PreparedData {
-        states: normalized(states, &state_norm),
-        actions: normalized(actions, &action_norm),
+        states: state_norm.normalize_rows(states)?,
+        actions: action_norm.normalize_rows(actions)?,
         state_norm,
         action_norm,
     })
-}
-
-/// `(m − offset) / scale` per column.
-pub(crate) fn normalized(m: MatRef<'_, f32>, norm: &Affine) -> Mat<f32> {
-    Mat::from_fn(m.nrows(), m.ncols(), |i, j| (m[(i, j)] - norm.offset[j]) / norm.scale[j])
 }
 
 /// One row's denoising-score-matching coefficients at a noise level: the network sees

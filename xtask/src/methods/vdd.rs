@@ -106,8 +106,8 @@ impl Method for VddMethod {
             Some(t) => (t.teacher.normalizers().0.clone(), t.teacher.normalizers().1.clone()),
             None => (Affine::identity(d.states.ncols()), Affine::identity(d.actions.ncols())),
         };
-        let states = normalize_rows(&d.states, &sn);
-        let actions = normalize_rows(&d.actions, &an);
+        let states = sn.normalize_rows(d.states.as_ref())?;
+        let actions = an.normalize_rows(d.actions.as_ref())?;
         let mut mc = job.recipe.student.clone();
         mc.state_dim = states.ncols();
         mc.action_dim = actions.ncols();
@@ -170,10 +170,6 @@ impl Method for VddMethod {
             ..Trained::new(TrainedPolicy::Moe(Box::new(student)), train_seconds, curves)
         })
     }
-}
-
-fn normalize_rows(m: &Mat<f32>, a: &Affine) -> Mat<f32> {
-    Mat::from_fn(m.nrows(), m.ncols(), |i, j| (m[(i, j)] - a.offset[j]) / a.scale[j])
 }
 
 /// Distils `teacher` into a new mixture of configuration `mc` with VDD (states and actions in
