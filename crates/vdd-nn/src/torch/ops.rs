@@ -1,0 +1,124 @@
+//! Row-major forward kernels shared by the imported networks: token matrices are kept
+//! row-major (`rows x features`, one token per row) so attention reads each token's features
+//! contiguously, and every dense layer runs as one `faer` matrix product over all tokens.
+
+use faer::linalg::matmul::matmul;
+use faer::{Accum, MatMut, MatRef, Par};
+
+use crate::{LayerNorm, Linear, Module as _};
+
+/// `out = x Wᵀ + b` for `rows` row-major rows of `x` (`rows x in`); `out` is resized to
+/// `rows x out` (row-major) and reuses its allocation.
+pub(crate) fn affine_rows(lin: &Linear, x: &[f32], rows: usize, out: &mut Vec<f32>) {
+    let (k, m) = (lin.in_dim(), lin.out_dim());
+    debug_assert_eq!(x.len(), rows * k);
+    out.resize(rows * m, 0.0);
+    for row in out.chunks_exact_mut(m) {
+        row.copy_from_slice(&lin.bias.value);
+    }
+    if rows == 0 || m == 0 || k == 0 {
+        return;
+    }
+    let xv = MatRef::from_row_major_slice(x, rows, k);
+    let yv = MatMut::from_row_major_slice_mut(out.as_mut_slice(), rows, m);
+    matmul(yv, Accum::Add, xv, lin.weight_t(), 1.0, Par::Seq);
+}
+
+/// PyTorch's `LayerNorm` over each row of `x` (`rows x dim`, row-major) into `out`, with the
+/// layer's `ε` (biased variance, mean and variance accumulated in `f64`).
+pub(crate) fn layer_norm_rows(ln: &LayerNorm, x: &[f32], out: &mut Vec<f32>) {
+    let d = ln.weight.value.len();
+    out.resize(x.len(), 0.0);
+    if d == 0 {
+        return;
+    }
+    let eps = f64::from(ln.eps());
+    for (xr, yr) in x.chunks_exact(d).zip(out.chunks_exact_mut(d)) {
+        let mean = xr.iter().map(|&v| f64::from(v)).sum::<f64>() / d as f64;
+        let var = xr.iter().map(|&v| (f64::from(v) - mean).powi(2)).sum::<f64>() / d as f64;
+        let rstd = 1.0 / (var + eps).sqrt();
+        for (j, (y, &v)) in yr.iter_mut().zip(xr).enumerate() {
+            let xhat = ((f64::from(v) - mean) * rstd) as f32;
+            *y = xhat * ln.weight.value[j] + ln.bias.value[j];
+        }
+    }
+}
+
+/// Copies a (possibly strided) matrix into a row-major buffer.
+pub(crate) fn gather_rows(m: MatRef<'_, f32>, out: &mut Vec<f32>) {
+    let (n, k) = (m.nrows(), m.ncols());
+    out.resize(n * k, 0.0);
+    for i in 0..n {
+        for j in 0..k {
+            out[i * k + j] = m[(i, j)];
+        }
+    }
+}
+
+/// Causal multi-head self-attention of one sequence: `q`, `k`, `v` and `y` are `len x d`
+/// row-major, `heads` divides `d`; row `i` attends to rows `0..=i` (a lower-triangular mask,
+/// as `masked_fill(mask == 0, -inf)` then softmax). `p` is scratch of at least `len` floats.
+/// With `causal == false` every row attends to every row.
+#[allow(clippy::too_many_arguments)]
+pub(crate) fn attention(
+    q: &[f32],
+    k: &[f32],
+    v: &[f32],
+    len: usize,
+    kv_len: usize,
+    d: usize,
+    heads: usize,
+    mask: &dyn Fn(usize, usize) -> bool,
+    p: &mut [f32],
+    y: &mut [f32],
+) {
+    let hs = d / heads;
+    let scale = 1.0 / (hs as f32).sqrt();
+    for h in 0..heads {
+        let c = h * hs;
+        for i in 0..len {
+            let qi = &q[i * d + c..i * d + c + hs];
+            let mut max = f32::NEG_INFINITY;
+            for j in 0..kv_len {
+                if !mask(i, j) {
+                    p[j] = f32::NEG_INFINITY;
+                    continue;
+                }
+                let kj = &k[j * d + c..j * d + c + hs];
+                let s = qi.iter().zip(kj).map(|(a, b)| a * b).sum::<f32>() * scale;
+                p[j] = s;
+                max = max.max(s);
+            }
+            let yi = &mut y[i * d + c..i * d + c + hs];
+            yi.fill(0.0);
+            if max == f32::NEG_INFINITY {
+                // A fully masked row: PyTorch's softmax gives NaN here; no imported network
+                // builds one, so the row stays zero.
+                continue;
+            }
+            let mut sum = 0.0f32;
+            for pj in p[..kv_len].iter_mut() {
+                *pj = if *pj == f32::NEG_INFINITY { 0.0 } else { (*pj - max).exp() };
+                sum += *pj;
+            }
+            let inv = 1.0 / sum;
+            for j in 0..kv_len {
+                let w = p[j] * inv;
+                if w == 0.0 {
+                    continue;
+                }
+                let vj = &v[j * d + c..j * d + c + hs];
+                for (o, &x) in yi.iter_mut().zip(vj) {
+                    *o += w * x;
+                }
+            }
+        }
+    }
+}
+
+/// `x += y` element-wise.
+pub(crate) fn add_assign(x: &mut [f32], y: &[f32]) {
+    for (a, b) in x.iter_mut().zip(y) {
+        *a += b;
+    }
+}
