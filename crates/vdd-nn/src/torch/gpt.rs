@@ -6,7 +6,7 @@
 use faer::{MatMut, MatRef};
 use serde::{Deserialize, Serialize};
 
-use super::ops::{add_assign, affine_rows, attention, gather_rows, layer_norm_rows};
+use super::ops::{add_assign, affine_rows, attention, gather_rows, gelu, layer_norm_rows};
 use crate::{Activation, LayerNorm, Linear, NnError, Param, Parameters, join_name};
 
 /// The constructor arguments of `DiffusionGPT` that fix its weights' shapes and its forward.
@@ -253,7 +253,7 @@ impl DiffusionGpt {
             add_assign(&mut b.x, &b.h);
             layer_norm_rows(&blk.ln2, &b.x, &mut b.h);
             affine_rows(&blk.fc1, &b.h, rows, &mut b.f);
-            b.f.iter_mut().for_each(|v| *v = Activation::Gelu.apply(*v));
+            b.f.iter_mut().for_each(|v| *v = gelu(*v));
             affine_rows(&blk.fc2, &b.f, rows, &mut b.h);
             add_assign(&mut b.x, &b.h);
         }

@@ -5,6 +5,8 @@
 use faer::linalg::matmul::matmul;
 use faer::{Accum, MatMut, MatRef, Par};
 
+use vdd_core::gaussian::exp_fast;
+
 use crate::{LayerNorm, Linear, Module as _};
 
 /// `out = x Wᵀ + b` for `rows` row-major rows of `x` (`rows x in`); `out` is resized to
@@ -25,23 +27,67 @@ pub(crate) fn affine_rows(lin: &Linear, x: &[f32], rows: usize, out: &mut Vec<f3
 }
 
 /// PyTorch's `LayerNorm` over each row of `x` (`rows x dim`, row-major) into `out`, with the
-/// layer's `ε` (biased variance, mean and variance accumulated in `f64`).
+/// layer's `ε` (biased variance, two passes in `f32` as PyTorch's CPU kernel).
 pub(crate) fn layer_norm_rows(ln: &LayerNorm, x: &[f32], out: &mut Vec<f32>) {
     let d = ln.weight.value.len();
     out.resize(x.len(), 0.0);
     if d == 0 {
         return;
     }
-    let eps = f64::from(ln.eps());
+    let (w, b, eps) = (&ln.weight.value[..], &ln.bias.value[..], ln.eps());
+    let inv_d = 1.0 / d as f32;
     for (xr, yr) in x.chunks_exact(d).zip(out.chunks_exact_mut(d)) {
-        let mean = xr.iter().map(|&v| f64::from(v)).sum::<f64>() / d as f64;
-        let var = xr.iter().map(|&v| (f64::from(v) - mean).powi(2)).sum::<f64>() / d as f64;
+        let mean = lane_sum(xr) * inv_d;
+        for (y, &v) in yr.iter_mut().zip(xr) {
+            *y = v - mean;
+        }
+        let var = lane_sum_sq(yr) * inv_d;
         let rstd = 1.0 / (var + eps).sqrt();
-        for (j, (y, &v)) in yr.iter_mut().zip(xr).enumerate() {
-            let xhat = ((f64::from(v) - mean) * rstd) as f32;
-            *y = xhat * ln.weight.value[j] + ln.bias.value[j];
+        for ((y, &wj), &bj) in yr.iter_mut().zip(w).zip(b) {
+            *y = *y * rstd * wj + bj;
         }
     }
+}
+
+/// `Σ x` in eight interleaved partial sums (vectorises).
+#[inline]
+fn lane_sum(x: &[f32]) -> f32 {
+    let mut acc = [0.0f32; 8];
+    let chunks = x.chunks_exact(8);
+    let rest: f32 = chunks.remainder().iter().sum();
+    for c in chunks {
+        for l in 0..8 {
+            acc[l] += c[l];
+        }
+    }
+    acc.iter().sum::<f32>() + rest
+}
+
+/// `Σ x²` in eight interleaved partial sums.
+#[inline]
+fn lane_sum_sq(x: &[f32]) -> f32 {
+    let mut acc = [0.0f32; 8];
+    let chunks = x.chunks_exact(8);
+    let rest: f32 = chunks.remainder().iter().map(|v| v * v).sum();
+    for c in chunks {
+        for l in 0..8 {
+            acc[l] += c[l] * c[l];
+        }
+    }
+    acc.iter().sum::<f32>() + rest
+}
+
+/// PyTorch's exact (erf) GELU, `x Φ(x)`, branch-free in `f32`: erf by Abramowitz–Stegun
+/// 7.1.26 (absolute error below 1.5e-7) with [`vdd_core::gaussian::exp_fast`].
+#[inline(always)]
+pub(crate) fn gelu(x: f32) -> f32 {
+    const P: f32 = 0.327_591_1;
+    const A: [f32; 5] = [0.254_829_6, -0.284_496_74, 1.421_413_7, -1.453_152_1, 1.061_405_4];
+    let z = (x * std::f32::consts::FRAC_1_SQRT_2).abs();
+    let t = 1.0 / (1.0 + P * z);
+    let poly = t * (A[0] + t * (A[1] + t * (A[2] + t * (A[3] + t * A[4]))));
+    let erf_abs = 1.0 - poly * vdd_core::gaussian::exp_fast(-z * z);
+    0.5 * x * (1.0 + erf_abs.copysign(x))
 }
 
 /// Copies a (possibly strided) matrix into a row-major buffer.
@@ -98,7 +144,7 @@ pub(crate) fn attention(
             }
             let mut sum = 0.0f32;
             for pj in p[..kv_len].iter_mut() {
-                *pj = if *pj == f32::NEG_INFINITY { 0.0 } else { (*pj - max).exp() };
+                *pj = if *pj == f32::NEG_INFINITY { 0.0 } else { exp_fast(*pj - max) };
                 sum += *pj;
             }
             let inv = 1.0 / sum;

@@ -289,10 +289,8 @@ impl ResMlpScore {
         affine_rows(&self.first, &b.x, rows, &mut b.h);
         let act = c.activation;
         for blk in &self.blocks {
-            let apply = |v: &mut Vec<f32>| {
-                let slope = blk.prelu.as_ref().map_or(0.25, |p| p.value[0]);
-                v.iter_mut().for_each(|x| *x = activate(act, slope, *x));
-            };
+            let slope = blk.prelu.as_ref().map_or(0.25, |p| p.value[0]);
+            let apply = |v: &mut Vec<f32>| activate(act, slope, v);
             let mut src: &Vec<f32> = &b.h;
             if let Some(ln) = &blk.norm {
                 layer_norm_rows(ln, &b.h, &mut b.u);
@@ -321,17 +319,16 @@ impl ResMlpScore {
     }
 }
 
-fn activate(act: MlpActivation, slope: f32, x: f32) -> f32 {
+/// Applies the activation to every element (one loop per kind, so each vectorises).
+fn activate(act: MlpActivation, slope: f32, v: &mut [f32]) {
     match act {
-        MlpActivation::Relu => x.max(0.0),
-        MlpActivation::Mish => Activation::Mish.apply(x),
-        MlpActivation::Sigmoid => 1.0 / (1.0 + (-x).exp()),
+        MlpActivation::Relu => v.iter_mut().for_each(|x| *x = x.max(0.0)),
+        MlpActivation::Mish => v.iter_mut().for_each(|x| *x = Activation::Mish.apply(*x)),
+        MlpActivation::Sigmoid => {
+            v.iter_mut().for_each(|x| *x = 1.0 / (1.0 + vdd_core::gaussian::exp_fast(-*x)))
+        }
         MlpActivation::Prelu => {
-            if x >= 0.0 {
-                x
-            } else {
-                slope * x
-            }
+            v.iter_mut().for_each(|x| *x = if *x >= 0.0 { *x } else { slope * *x })
         }
     }
 }
