@@ -36,7 +36,8 @@ pub struct BesoScaler {
     pub obs: Affine,
     /// Action scaling (identity when `scale_data` is false).
     pub action: Affine,
-    /// `y_bounds[0]`: per-dimension lower clamp of the (scaled) action.
+    /// `y_bounds[0]`: per-dimension lower clamp of the (scaled) action (`f32::MIN` when the
+    /// run exported no scaler).
     pub action_min: Vec<f32>,
     /// `y_bounds[1]`: per-dimension upper clamp.
     pub action_max: Vec<f32>,
@@ -120,8 +121,12 @@ impl BesoTeacherConfig {
         {
             return bad(format!("scaler dimensions do not match obs {od} / action {ad}"));
         }
-        if s.action_min.iter().zip(&s.action_max).any(|(a, b)| a.is_nan() || b.is_nan() || a > b) {
-            return bad("scaler action bounds must be ordered".into());
+        if s.action_min
+            .iter()
+            .zip(&s.action_max)
+            .any(|(a, b)| !(a.is_finite() && b.is_finite() && a <= b))
+        {
+            return bad("scaler action bounds must be finite and ordered".into());
         }
         Ok(())
     }
@@ -219,6 +224,16 @@ impl BesoTeacher {
     /// The configuration.
     pub fn config(&self) -> &BesoTeacherConfig {
         &self.config
+    }
+
+    /// Replaces the data scaler (for example D3IL statistics exported after the import); on
+    /// error (dimensions that do not match the network) the teacher is unchanged.
+    pub fn set_scaler(&mut self, scaler: BesoScaler) -> Result<(), BesoError> {
+        let mut config = self.config.clone();
+        config.scaler = scaler;
+        config.validate()?;
+        self.config = config;
+        Ok(())
     }
 
     /// Loads the weights from a safetensors file of the PyTorch state dict (`GCDenoiser`'s

@@ -267,8 +267,8 @@ pub fn beso_config_from_yaml(
         (None, false) => BesoScaler {
             obs: Affine::identity(od),
             action: Affine::identity(ad),
-            action_min: vec![f32::NEG_INFINITY; ad],
-            action_max: vec![f32::INFINITY; ad],
+            action_min: vec![f32::MIN; ad],
+            action_max: vec![f32::MAX; ad],
         },
         (None, true) => {
             return Err(BesoError::MissingKey {
