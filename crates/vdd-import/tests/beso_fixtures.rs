@@ -19,3 +19,12 @@ fn every_beso_fixture_matches_pytorch_within_1e_4() {
         assert!(report.sampling_diff < 1e-4, "{report:?}");
     }
 }
+
+#[test]
+fn every_transformer_for_diffusion_fixture_matches_pytorch_within_1e_4() {
+    for name in vdd_import::DP_TRANSFORMER_FIXTURES {
+        let (diff, _, _) = vdd_import::check_dp_transformer_fixture(&fixtures(), name).unwrap();
+        eprintln!("{name}: max_abs_diff {diff:e}");
+        assert!(diff < 1e-4, "{name}: {diff}");
+    }
+}

@@ -247,7 +247,18 @@ impl DiffusionGpt {
             for i in 0..n {
                 let r = i * len * d..(i + 1) * len * d;
                 let (q, k, v) = (&b.q[r.clone()], &b.k[r.clone()], &b.v[r.clone()]);
-                attention(q, k, v, len, len, d, c.n_heads, &causal, &mut b.p, &mut b.y[r]);
+                attention(
+                    (q, d),
+                    (k, d),
+                    (v, d),
+                    len,
+                    len,
+                    d,
+                    c.n_heads,
+                    &causal,
+                    &mut b.p,
+                    &mut b.y[r],
+                );
             }
             affine_rows(&blk.proj, &b.y, rows, &mut b.h);
             add_assign(&mut b.x, &b.h);

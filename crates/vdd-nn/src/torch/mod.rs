@@ -6,6 +6,10 @@
 mod gpt;
 mod ops;
 mod resnet_mlp;
+mod transformer_dp;
 
 pub use gpt::{DiffusionGpt, DiffusionGptConfig, diffusion_gpt_buffer_suffixes};
 pub use resnet_mlp::{BlockNorm, MlpActivation, ResMlpScore, ResMlpScoreConfig, SigmaEmbedding};
+pub use transformer_dp::{
+    TransformerForDiffusion, TransformerForDiffusionConfig, transformer_for_diffusion_buffer_names,
+};

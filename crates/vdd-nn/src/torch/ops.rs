@@ -101,15 +101,16 @@ pub(crate) fn gather_rows(m: MatRef<'_, f32>, out: &mut Vec<f32>) {
     }
 }
 
-/// Causal multi-head self-attention of one sequence: `q`, `k`, `v` and `y` are `len x d`
-/// row-major, `heads` divides `d`; row `i` attends to rows `0..=i` (a lower-triangular mask,
-/// as `masked_fill(mask == 0, -inf)` then softmax). `p` is scratch of at least `len` floats.
-/// With `causal == false` every row attends to every row.
+/// Multi-head scaled dot-product attention of one sequence: query row `i` of `q` (row stride
+/// `qs`, features at `0..d`) attends to the rows `j < kv_len` of `k` and `v` (row strides `ks`
+/// and `vs`) for which `mask(i, j)` holds (as `masked_fill(-inf)` before the softmax); `heads`
+/// divides `d`. `y` (`len x d`, row-major) receives the heads side by side; `p` is scratch of
+/// at least `kv_len` floats.
 #[allow(clippy::too_many_arguments)]
 pub(crate) fn attention(
-    q: &[f32],
-    k: &[f32],
-    v: &[f32],
+    (q, qs): (&[f32], usize),
+    (k, ks): (&[f32], usize),
+    (v, vs): (&[f32], usize),
     len: usize,
     kv_len: usize,
     d: usize,
@@ -123,14 +124,14 @@ pub(crate) fn attention(
     for h in 0..heads {
         let c = h * hs;
         for i in 0..len {
-            let qi = &q[i * d + c..i * d + c + hs];
+            let qi = &q[i * qs + c..i * qs + c + hs];
             let mut max = f32::NEG_INFINITY;
             for j in 0..kv_len {
                 if !mask(i, j) {
                     p[j] = f32::NEG_INFINITY;
                     continue;
                 }
-                let kj = &k[j * d + c..j * d + c + hs];
+                let kj = &k[j * ks + c..j * ks + c + hs];
                 let s = qi.iter().zip(kj).map(|(a, b)| a * b).sum::<f32>() * scale;
                 p[j] = s;
                 max = max.max(s);
@@ -153,7 +154,7 @@ pub(crate) fn attention(
                 if w == 0.0 {
                     continue;
                 }
-                let vj = &v[j * d + c..j * d + c + hs];
+                let vj = &v[j * vs + c..j * vs + c + hs];
                 for (o, &x) in yi.iter_mut().zip(vj) {
                     *o += w * x;
                 }
