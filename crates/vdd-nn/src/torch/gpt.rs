@@ -6,7 +6,9 @@
 use faer::{MatMut, MatRef};
 use serde::{Deserialize, Serialize};
 
-use super::ops::{add_assign, affine_rows, attention, gather_rows, gelu, layer_norm_rows};
+use super::ops::{
+    add_assign, affine_rows, attention, causal_limits, gather_rows, gelu, layer_norm_rows,
+};
 use crate::{Activation, LayerNorm, Linear, NnError, Param, Parameters, join_name};
 
 /// The constructor arguments of `DiffusionGPT` that fix its weights' shapes and its forward.
@@ -86,6 +88,7 @@ struct Buffers {
     y: Vec<f32>,
     f: Vec<f32>,
     p: Vec<f32>,
+    limits: Vec<usize>,
     out: Vec<f32>,
 }
 
@@ -238,7 +241,7 @@ impl DiffusionGpt {
         }
         b.p.resize(len, 0.0);
         b.y.resize(rows * d, 0.0);
-        let causal = |i: usize, j: usize| j <= i;
+        causal_limits(len, &mut b.limits);
         for blk in &self.blocks {
             layer_norm_rows(&blk.ln1, &b.x, &mut b.h);
             affine_rows(&blk.query, &b.h, rows, &mut b.q);
@@ -247,18 +250,7 @@ impl DiffusionGpt {
             for i in 0..n {
                 let r = i * len * d..(i + 1) * len * d;
                 let (q, k, v) = (&b.q[r.clone()], &b.k[r.clone()], &b.v[r.clone()]);
-                attention(
-                    (q, d),
-                    (k, d),
-                    (v, d),
-                    len,
-                    len,
-                    d,
-                    c.n_heads,
-                    &causal,
-                    &mut b.p,
-                    &mut b.y[r],
-                );
+                attention((q, d), (k, d), (v, d), &b.limits, d, c.n_heads, &mut b.p, &mut b.y[r]);
             }
             affine_rows(&blk.proj, &b.y, rows, &mut b.h);
             add_assign(&mut b.x, &b.h);

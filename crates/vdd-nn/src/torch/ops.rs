@@ -102,58 +102,51 @@ pub(crate) fn gather_rows(m: MatRef<'_, f32>, out: &mut Vec<f32>) {
 }
 
 /// Multi-head scaled dot-product attention of one sequence: query row `i` of `q` (row stride
-/// `qs`, features at `0..d`) attends to the rows `j < kv_len` of `k` and `v` (row strides `ks`
-/// and `vs`) for which `mask(i, j)` holds (as `masked_fill(-inf)` before the softmax); `heads`
-/// divides `d`. `y` (`len x d`, row-major) receives the heads side by side; `p` is scratch of
-/// at least `kv_len` floats.
+/// `qs`, features at `0..d`) attends to the rows `j < limits[i]` of `k` and `v` (row strides
+/// `ks` and `vs`); every mask of the imported networks (causal, diffusion_policy's memory mask,
+/// none) keeps such a prefix, as `masked_fill(-inf)` before the softmax would. `heads` divides
+/// `d`; `y` (`limits.len() x d`, row-major) receives the heads side by side; `p` is scratch of
+/// at least `max(limits)` floats. A row with `limits[i] == 0` (which PyTorch would turn into
+/// NaN) stays zero; no imported network builds one.
 #[allow(clippy::too_many_arguments)]
 pub(crate) fn attention(
     (q, qs): (&[f32], usize),
     (k, ks): (&[f32], usize),
     (v, vs): (&[f32], usize),
-    len: usize,
-    kv_len: usize,
+    limits: &[usize],
     d: usize,
     heads: usize,
-    mask: &dyn Fn(usize, usize) -> bool,
     p: &mut [f32],
     y: &mut [f32],
 ) {
     let hs = d / heads;
     let scale = 1.0 / (hs as f32).sqrt();
-    for h in 0..heads {
-        let c = h * hs;
-        for i in 0..len {
+    for (i, &lim) in limits.iter().enumerate() {
+        let yrow = &mut y[i * d..(i + 1) * d];
+        yrow.fill(0.0);
+        if lim == 0 {
+            continue;
+        }
+        let p = &mut p[..lim];
+        for h in 0..heads {
+            let c = h * hs;
             let qi = &q[i * qs + c..i * qs + c + hs];
             let mut max = f32::NEG_INFINITY;
-            for j in 0..kv_len {
-                if !mask(i, j) {
-                    p[j] = f32::NEG_INFINITY;
-                    continue;
-                }
+            for (j, pj) in p.iter_mut().enumerate() {
                 let kj = &k[j * ks + c..j * ks + c + hs];
                 let s = qi.iter().zip(kj).map(|(a, b)| a * b).sum::<f32>() * scale;
-                p[j] = s;
+                *pj = s;
                 max = max.max(s);
             }
-            let yi = &mut y[i * d + c..i * d + c + hs];
-            yi.fill(0.0);
-            if max == f32::NEG_INFINITY {
-                // A fully masked row: PyTorch's softmax gives NaN here; no imported network
-                // builds one, so the row stays zero.
-                continue;
-            }
             let mut sum = 0.0f32;
-            for pj in p[..kv_len].iter_mut() {
-                *pj = if *pj == f32::NEG_INFINITY { 0.0 } else { exp_fast(*pj - max) };
+            for pj in p.iter_mut() {
+                *pj = exp_fast(*pj - max);
                 sum += *pj;
             }
             let inv = 1.0 / sum;
-            for j in 0..kv_len {
-                let w = p[j] * inv;
-                if w == 0.0 {
-                    continue;
-                }
+            let yi = &mut yrow[c..c + hs];
+            for (j, &pj) in p.iter().enumerate() {
+                let w = pj * inv;
                 let vj = &v[j * vs + c..j * vs + c + hs];
                 for (o, &x) in yi.iter_mut().zip(vj) {
                     *o += w * x;
@@ -161,6 +154,12 @@ pub(crate) fn attention(
             }
         }
     }
+}
+
+/// Row limits of a causal mask (`j ≤ i`) over `len` rows, into `out`.
+pub(crate) fn causal_limits(len: usize, out: &mut Vec<usize>) {
+    out.clear();
+    out.extend(1..=len);
 }
 
 /// `x += y` element-wise.

@@ -256,6 +256,7 @@ impl TransformerForDiffusion {
         }
         b.f = tok;
         let tc = c.t_cond();
+        let cond_limits = vec![tc; tc];
         if let Some(enc) = &self.cond_encoder {
             // Cond sequence [time, obs…] with its position embedding.
             b.mem.resize(n * tc * d, 0.0);
@@ -284,18 +285,21 @@ impl TransformerForDiffusion {
                 }
                 CondEncoder::Layers(layers) => {
                     for l in layers {
-                        encoder_layer(l, b, n, tc, d, c.n_head, &|_, _| true, Which::Mem);
+                        encoder_layer(l, b, n, &cond_limits, d, c.n_head, Which::Mem);
                     }
                 }
             }
         }
-        let self_mask = move |i: usize, j: usize| !causal || j <= i;
+        // Causal: token i sees tokens 0..=i; memory (cond) mask t >= s − 1: token t sees cond
+        // tokens 0..=t+1.
+        let self_limits: Vec<usize> = (0..len).map(|i| if causal { i + 1 } else { len }).collect();
+        let masked = causal && obs_cond;
+        let mem_limits: Vec<usize> =
+            (0..len).map(|t| if masked { (t + 2).min(tc) } else { tc }).collect();
         for l in &self.layers {
-            encoder_layer(l, b, n, len, d, c.n_head, &self_mask, Which::X);
+            encoder_layer(l, b, n, &self_limits, d, c.n_head, Which::X);
             if let Some((cross, norm)) = &l.cross {
-                // x = x + MHA(norm2(x), memory, memory); memory mask t >= s − 1.
-                let masked = causal && obs_cond;
-                let mem_mask = move |t: usize, s: usize| !masked || t + 1 >= s;
+                // x = x + MHA(norm2(x), memory, memory).
                 layer_norm_rows(&l.norm2, &b.x, &mut b.h);
                 affine_rows(&cross.in_proj, &b.h, n * len, &mut b.qkv);
                 affine_rows(&cross.in_proj, &b.mem, n * tc, &mut b.kv);
@@ -309,11 +313,9 @@ impl TransformerForDiffusion {
                         (q, 3 * d),
                         (&kv[d..], 3 * d),
                         (&kv[2 * d..], 3 * d),
-                        len,
-                        tc,
+                        &mem_limits,
                         d,
                         c.n_head,
-                        &mem_mask,
                         &mut b.p,
                         y,
                     );
@@ -356,12 +358,12 @@ fn encoder_layer(
     l: &Layer,
     b: &mut Buffers,
     n: usize,
-    len: usize,
+    limits: &[usize],
     d: usize,
     heads: usize,
-    mask: &dyn Fn(usize, usize) -> bool,
     which: Which,
 ) {
+    let len = limits.len();
     let x = match which {
         Which::X => std::mem::take(&mut b.x),
         Which::Mem => std::mem::take(&mut b.mem),
@@ -378,11 +380,9 @@ fn encoder_layer(
             (s, 3 * d),
             (&s[d..], 3 * d),
             (&s[2 * d..], 3 * d),
-            len,
-            len,
+            limits,
             d,
             heads,
-            mask,
             &mut b.p,
             y,
         );
