@@ -10,3 +10,24 @@
 //! packages' files (safetensors, JSON, YAML), checks them, and wires network, noise process and
 //! normalisers into one teacher.
 #![warn(missing_docs)]
+
+mod beso;
+mod beso_error;
+mod beso_fixture;
+mod beso_import;
+mod beso_policy;
+mod dp_transformer;
+pub mod karras;
+
+pub use beso::{BESO_CONFIG_KEY, BesoNetworkConfig, BesoScaler, BesoTeacher, BesoTeacherConfig};
+pub use beso_error::BesoError;
+pub use beso_fixture::{BESO_FIXTURES, BesoFixtureReport, beso_rows_per_s, check_beso_fixture};
+pub use beso_import::{
+    BESO_SCALER_FILE, BESO_WEIGHTS_FILE, beso_config_from_yaml, import_beso_run, read_beso_scaler,
+};
+pub use beso_policy::BesoPolicy;
+pub use dp_transformer::{
+    DP_TRANSFORMER_FIXTURES, check_dp_transformer_fixture, dp_transformer_config,
+    dp_transformer_rows_per_s, load_dp_transformer,
+};
+pub use karras::SigmaSchedule;

@@ -2,3 +2,14 @@
 //! (LeRobot / diffusion_policy 1-D conditional U-Net and transformer, BESO/D3IL GPT and
 //! ResNet-MLP), for teachers imported by `vdd-import`. VDD needs their scores only, so they have
 //! no backward pass; batch throughput is what matters.
+
+mod gpt;
+mod ops;
+mod resnet_mlp;
+mod transformer_dp;
+
+pub use gpt::{DiffusionGpt, DiffusionGptConfig, diffusion_gpt_buffer_suffixes};
+pub use resnet_mlp::{BlockNorm, MlpActivation, ResMlpScore, ResMlpScoreConfig, SigmaEmbedding};
+pub use transformer_dp::{
+    TransformerForDiffusion, TransformerForDiffusionConfig, transformer_for_diffusion_buffer_names,
+};
