@@ -97,7 +97,11 @@ impl VddConfig {
         g_it * self.gating_steps_per_iter as u64
     }
 
-    /// Checks ranges.
+    /// Checks the documented ranges: every count positive, both optimisers'
+    /// [`AdamConfig::validate`] (finite `lr >= 0`, betas in `[0, 1)`, finite `eps > 0`, finite
+    /// `weight_decay >= 0`), `max_grad_norm` finite and positive, `student_ema` in `[0, 1)`,
+    /// and the noise schedule's own ranges. Non-finite values (NaN, or `1e39` read as an `f32`
+    /// infinity) fail.
     pub fn validate(&self) -> Result<(), CoreError> {
         let positive = [
             ("iterations", self.iterations),
@@ -113,9 +117,12 @@ impl VddConfig {
         }
         for (name, opt) in [("expert", &self.expert_optimizer), ("gating", &self.gating_optimizer)]
         {
-            if !(opt.lr.is_finite() && opt.lr >= 0.0) {
-                return Err(CoreError::Config(format!("{name} learning rate must be >= 0")));
-            }
+            opt.validate().map_err(|e| CoreError::Config(format!("{name}_optimizer: {e}")))?;
+        }
+        for (name, s) in
+            [("expert", &self.expert_lr_schedule), ("gating", &self.gating_lr_schedule)]
+        {
+            s.validate().map_err(|e| CoreError::Config(format!("{name}_lr_schedule: {e}")))?;
         }
         if let Some(m) = self.max_grad_norm {
             if !(m.is_finite() && m > 0.0) {
