@@ -22,6 +22,7 @@ mod expert;
 pub mod gaussian;
 pub mod gmm;
 pub mod lanes;
+pub mod memory;
 mod normalize;
 mod policy;
 mod score;

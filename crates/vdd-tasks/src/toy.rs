@@ -24,6 +24,51 @@ pub const ON_MODE_STDS: f32 = 3.0;
 /// [`CircleGmm::coverage`].
 pub const COVERAGE_SHARE: f32 = 0.25;
 
+/// How a toy recipe evaluates a student against the exact mixture (the recipes' `[eval]`).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ToyEval {
+    /// Monte-Carlo samples per KL estimate (and per evaluation state), in `1..=10^8`.
+    pub kl_samples: usize,
+    /// Evaluation states of `toy-conditional` (`s_i = (i + 0.5) 2π / n`), in `1..=10^4`.
+    pub eval_states: usize,
+    /// A mode is covered when an expert mean lies within this distance (finite, `> 0`).
+    pub coverage_radius: f32,
+    /// ... and that expert's gating weight is at least this (in `[0, 1]`).
+    pub min_weight: f32,
+}
+
+impl ToyEval {
+    /// Checks the documented ranges of every field.
+    ///
+    /// ```
+    /// use vdd_tasks::toy::ToyEval;
+    /// let eval = ToyEval { kl_samples: 1000, eval_states: 8, coverage_radius: 0.5, min_weight: 0.01 };
+    /// assert!(eval.validate().is_ok());
+    /// assert!(ToyEval { kl_samples: 0, ..eval.clone() }.validate().is_err());
+    /// assert!(ToyEval { coverage_radius: f32::NAN, ..eval }.validate().is_err());
+    /// ```
+    pub fn validate(&self) -> Result<()> {
+        let bad = |what: String| Err(TaskError::InvalidArgument(format!("eval.{what}")));
+        if !(1..=100_000_000).contains(&self.kl_samples) {
+            return bad(format!("kl_samples must be in 1..=1e8, got {}", self.kl_samples));
+        }
+        if !(1..=10_000).contains(&self.eval_states) {
+            return bad(format!("eval_states must be in 1..=1e4, got {}", self.eval_states));
+        }
+        if !(self.coverage_radius.is_finite() && self.coverage_radius > 0.0) {
+            return bad(format!(
+                "coverage_radius must be finite and > 0, got {}",
+                self.coverage_radius
+            ));
+        }
+        if !(0.0..=1.0).contains(&self.min_weight) {
+            return bad(format!("min_weight must be in [0, 1], got {}", self.min_weight));
+        }
+        Ok(())
+    }
+}
+
 /// A 2-D isotropic Gaussian mixture whose `K` equally weighted modes lie on a circle, optionally
 /// rotating with a scalar state.
 ///

@@ -178,6 +178,9 @@ impl Task for Toy {
         let resolved = recipe::resolve(&ToyRecipe::defaults(task)?, &ctx.file, &ctx.overrides)?;
         let base = &resolved.base;
         let plan = pipeline::plan(&resolved, task)?;
+        for (_, cfg) in resolved.configs() {
+            cfg.eval.validate()?;
+        }
         let dir = ctx.run_dir(&base.seeds);
         ctx.write_resolved(&dir, &resolved.to_toml()?)?;
         let mut stages = StageTimes::default();

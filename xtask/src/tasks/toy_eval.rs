@@ -14,21 +14,9 @@ use vdd_moe::Moe;
 
 use serde::{Deserialize, Serialize};
 
-use crate::plots::{DensityPanel, ExpertEllipse};
+pub use vdd_tasks::toy::ToyEval;
 
-/// Evaluation of a toy recipe.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-#[serde(deny_unknown_fields)]
-pub struct ToyEval {
-    /// Monte-Carlo samples per KL estimate (and per evaluation state).
-    pub kl_samples: usize,
-    /// Evaluation states of `toy-conditional` (`s_i = (i + 0.5) 2π / n`).
-    pub eval_states: usize,
-    /// A mode is covered when an expert mean lies within this distance.
-    pub coverage_radius: f32,
-    /// ... and that expert's gating weight is at least this.
-    pub min_weight: f32,
-}
+use crate::plots::{DensityPanel, ExpertEllipse};
 
 /// Figure 2 settings.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
