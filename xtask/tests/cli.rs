@@ -41,6 +41,8 @@ fn bad_settings_fail_before_any_work_and_leave_nothing() {
         ("eval.coverage_radius=nan", "coverage_radius"),
         ("vdd.exact.expert_optimizer.eps=-1", "eps"),
         ("vdd.exact.student_ema=3.0", "student_ema"),
+        ("plots.grid=100000000", "grid"),
+        ("data.points=1000000000000", "memory"),
     ] {
         let args = toy(set);
         refused(&args.iter().map(String::as_str).collect::<Vec<_>>(), &dir, needle);

@@ -184,7 +184,7 @@ pub fn generations(root: &Path) -> Result<Vec<(u64, PathBuf)>, NnError> {
             out.push((step, entry.path()));
         }
     }
-    out.sort_by(|a, b| b.0.cmp(&a.0));
+    out.sort_by_key(|g| std::cmp::Reverse(g.0));
     Ok(out)
 }
 

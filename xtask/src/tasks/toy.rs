@@ -180,6 +180,7 @@ impl Task for Toy {
         let plan = pipeline::plan(&resolved, task)?;
         for (_, cfg) in resolved.configs() {
             cfg.eval.validate()?;
+            cfg.plots.validate()?;
         }
         let dir = ctx.run_dir(&base.seeds);
         ctx.write_resolved(&dir, &resolved.to_toml()?)?;
