@@ -182,13 +182,17 @@ fn normalize_rows(m: &Mat<f32>, a: &Affine) -> Mat<f32> {
     Mat::from_fn(m.nrows(), m.ncols(), |i, j| (m[(i, j)] - a.offset[j]) / a.scale[j])
 }
 
+/// Seconds of VDD training between checkpoints.
+const CHECKPOINT_SECONDS: u64 = 10;
+
 /// Distils `teacher` into a new mixture of configuration `mc` with VDD (states and actions in
 /// the student's normalised space; the student initialised from the run seed `vc.seed`), with a
 /// progress bar and learning curves; also returns the mean noise level of the teacher queries.
 ///
-/// The run checkpoints 50 times to `<run>/checkpoints/<label>/` (a [`CheckpointDir`]; with the
-/// curves so far in `progress.json`), resumes from there under `--resume` (refusing a
-/// checkpoint of other settings), and removes it when done.
+/// The run commits a checkpoint every [`CHECKPOINT_SECONDS`] of training to
+/// `<run>/checkpoints/<label>/` (a [`CheckpointDir`]; with the curves, noise sum and training
+/// seconds so far in `progress.json`), resumes from there under `--resume` (refusing a
+/// checkpoint of other settings), and removes it when done. Commits are not training time.
 fn distill<S: ScoreModel>(
     vc: VddConfig,
     teacher: S,
@@ -210,22 +214,22 @@ fn distill<S: ScoreModel>(
         std::fs::remove_dir_all(&root)?;
     }
     let store = CheckpointDir::open(&root)?;
-    let (mut curves, mut noise_sum, mut vdd) = match store.latest()? {
+    let (mut curves, mut noise_sum, mut train_seconds, mut vdd) = match store.latest()? {
         Some((_, generation)) => {
-            let (c, n): (Curves, f64) =
+            let (c, n, t): (Curves, f64, f64) =
                 serde_json::from_slice(&std::fs::read(generation.join("progress.json"))?)?;
             let vdd = Vdd::resume(&generation, teacher, data)?;
             if vdd.config() != &vc || vdd.student().config() != &mc {
                 return Err(format!("{}: written with other settings", root.display()).into());
             }
-            (c, n, vdd)
+            (c, n, t, vdd)
         }
-        None => (Curves::default(), 0.0f64, Vdd::from_config(vc, teacher, mc, data)?),
+        None => (Curves::default(), 0.0, 0.0, Vdd::from_config(vc, teacher, mc, data)?),
     };
     let bar = crate::progress::bar(iterations as u64, label);
     bar.set_position(vdd.iteration() as u64);
-    let (every, save_every) = ((iterations / 200).max(1), (iterations / 50).max(1));
-    let t0 = Instant::now();
+    let every = (iterations / 200).max(1);
+    let mut t0 = Instant::now();
     while vdd.iteration() < iterations {
         let m = vdd.step()?;
         bar.inc(1);
@@ -242,15 +246,17 @@ fn distill<S: ScoreModel>(
             }
             bar.set_message(format!("H(z|s) {:.2}", m.gating_entropy));
         }
-        if vdd.iteration() % save_every == 0 && vdd.iteration() < iterations {
-            let progress = serde_json::to_vec(&(&curves, noise_sum))?;
+        if t0.elapsed().as_secs() >= CHECKPOINT_SECONDS && vdd.iteration() < iterations {
+            train_seconds += t0.elapsed().as_secs_f64();
+            let progress = serde_json::to_vec(&(&curves, noise_sum, train_seconds))?;
             store.commit(vdd.iteration() as u64, |dir| -> crate::XResult {
                 vdd.write_checkpoint(dir)?;
                 Ok(vdd_nn::io::write_atomic(&dir.join("progress.json"), &progress)?)
             })?;
+            t0 = Instant::now(); // the training time leaves the commits out
         }
     }
-    let train_seconds = t0.elapsed().as_secs_f64();
+    train_seconds += t0.elapsed().as_secs_f64();
     bar.finish_and_clear();
     drop(store);
     std::fs::remove_dir_all(&root)?;
