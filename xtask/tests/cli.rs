@@ -42,7 +42,7 @@ fn bad_settings_fail_before_any_work_and_leave_nothing() {
         ("vdd.exact.expert_optimizer.eps=-1", "eps"),
         ("vdd.exact.student_ema=3.0", "student_ema"),
         ("plots.grid=100000000", "grid"),
-        ("data.points=1000000000000", "memory"),
+        ("data.points=1000000000000", "data.points"),
     ] {
         let args = toy(set);
         refused(&args.iter().map(String::as_str).collect::<Vec<_>>(), &dir, needle);

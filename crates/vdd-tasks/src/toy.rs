@@ -24,6 +24,29 @@ pub const ON_MODE_STDS: f32 = 3.0;
 /// [`CircleGmm::coverage`].
 pub const COVERAGE_SHARE: f32 = 0.25;
 
+/// Data of a toy recipe (the recipes' `[data]`).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ToyData {
+    /// Number of states (and mixture samples) VDD distils on; learned teachers train on them.
+    /// In `1..=10^8`, and their memory must fit.
+    pub points: usize,
+}
+
+impl ToyData {
+    /// Checks the documented range of `points` and its memory.
+    pub fn validate(&self) -> Result<()> {
+        let n = self.points;
+        if !(1..=100_000_000).contains(&n) {
+            return Err(TaskError::InvalidArgument(format!(
+                "data.points must be in 1..=1e8, got {n}"
+            )));
+        }
+        let bytes = vdd_core::memory::product(&[n, 3, 4, 4]);
+        Ok(vdd_core::memory::check_fits(&format!("data.points = {n}"), bytes)?)
+    }
+}
+
 /// How a toy recipe evaluates a student against the exact mixture (the recipes' `[eval]`).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
