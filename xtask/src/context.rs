@@ -27,6 +27,8 @@ pub struct RunContext {
     pub out: Option<PathBuf>,
     /// `--fresh`: retrain cached teachers and students.
     pub fresh: bool,
+    /// `--resume`: continue from the run directory's checkpoints.
+    pub resume: bool,
     /// The teacher cache directory.
     pub cache_dir: PathBuf,
     /// The VDD student cache directory ([`vdd_moe::cache`]).
@@ -49,8 +51,12 @@ impl RunContext {
         }
     }
 
-    /// Writes `resolved.toml` into `dir` (created).
+    /// Writes `resolved.toml` into `dir` (created; a directory this creates is removed again
+    /// when the run fails, [`remove_created_run_dir`]).
     pub fn write_resolved(&self, dir: &Path, resolved_toml: &str) -> crate::XResult {
+        if !dir.exists() {
+            *CREATED.lock().unwrap_or_else(|e| e.into_inner()) = Some(dir.to_owned());
+        }
         std::fs::create_dir_all(dir).map_err(|e| format!("creating {}: {e}", dir.display()))?;
         let header = format!(
             "# Resolved configuration of recipe `{}`.\n# Command: {}\n# Re-run: cargo xtask experiment {}/resolved.toml\n\n",
@@ -79,6 +85,16 @@ impl RunContext {
             serde_json::to_string_pretty(&info)?.as_bytes(),
         )?;
         Ok(())
+    }
+}
+
+static CREATED: std::sync::Mutex<Option<PathBuf>> = std::sync::Mutex::new(None);
+
+/// Removes the run directory [`RunContext::write_resolved`] created, if any: a failed run
+/// leaves nothing behind.
+pub fn remove_created_run_dir() {
+    if let Some(dir) = CREATED.lock().unwrap_or_else(|e| e.into_inner()).take() {
+        let _ = std::fs::remove_dir_all(dir);
     }
 }
 

@@ -48,6 +48,10 @@ pub struct ExperimentArgs {
     /// Retrain cached teachers and students.
     #[arg(long)]
     pub fresh: bool,
+    /// Continue a killed run in the same directory from its checkpoints (VDD distillations
+    /// checkpoint to `<run>/checkpoints/`); the results equal an uninterrupted run's.
+    #[arg(long)]
+    pub resume: bool,
     /// toy-gmm: the teacher VDD distils (shorthand for --methods vdd-<teacher>).
     #[arg(long, value_parser = ["exact", "ddpm", "beso"])]
     pub teacher: Option<String>,
@@ -137,12 +141,17 @@ pub fn run(parsed: &ExperimentArgs, command: &str) -> crate::XResult {
         overrides,
         out: parsed.out.clone(),
         fresh: parsed.fresh,
+        resume: parsed.resume,
         cache_dir: recipe::repo_root().join("results").join("cache").join("teachers"),
         student_cache_dir: recipe::repo_root().join("results").join("cache").join("students"),
         command: command.to_owned(),
         started,
     };
-    task.run(&ctx)
+    let result = task.run(&ctx);
+    if result.is_err() {
+        crate::context::remove_created_run_dir();
+    }
+    result
 }
 
 #[cfg(test)]

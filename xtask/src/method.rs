@@ -147,6 +147,8 @@ pub struct Job<'a> {
     pub recipe: MethodRecipe<'a>,
     /// Where students are cached, for tasks that cache them.
     pub students: Option<StudentCache<'a>>,
+    /// The run's checkpoint directory, and whether to resume from it (`--resume`).
+    pub checkpoints: (&'a std::path::Path, bool),
 }
 
 impl Job<'_> {

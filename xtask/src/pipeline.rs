@@ -97,6 +97,7 @@ pub fn plan<'r, R: TaskRecipe>(
     let mut out = Vec::new();
     for (variant, cfg) in resolved.configs() {
         let tree = recipe::to_tree(cfg)?;
+        cfg.student().check(1).map_err(|e| format!("student: {e}"))?;
         check_method_sections::<R>(task, &tree, cfg)?;
         for method in methods::parse_methods(&cfg.header().methods, task)? {
             let label = methods::label(method, variant.map(|v| v.name.as_str()));
@@ -252,6 +253,7 @@ pub fn train_all<R: TaskRecipe, P: AsRef<TrainingData> + Sync>(
         Teacher(usize, Box<TrainedTeacher>),
         Method((usize, usize), Box<Trained>),
     }
+    let ck = ctx.run_dir(seeds).join("checkpoints");
     let run_job = |w: &Work, store: &TeacherStore| -> Result<Done, String> {
         let (si, pi) = match *w {
             Work::Teacher(i) => (teacher_jobs[i].2, teacher_jobs[i].3),
@@ -269,7 +271,9 @@ pub fn train_all<R: TaskRecipe, P: AsRef<TrainingData> + Sync>(
         let label = format!("{} s{seed}", e.label);
         let teacher = e.method.info().teacher.map(|kind| store.get(kind, cfg, d, seed));
         let teacher = teacher.transpose().map_err(|e| e.to_string())?;
-        let job = Job { seed, label: &label, data: d, teacher, recipe: e.recipe(), students };
+        let checkpoints = (ck.as_path(), ctx.resume);
+        let (data, recipe) = (d, e.recipe());
+        let job = Job { seed, label: &label, data, teacher, recipe, students, checkpoints };
         let t = e.method.train(&job).map_err(|e| format!("{label}: {e}"))?;
         Ok(Done::Method((si, pi), Box::new(t)))
     };

@@ -359,7 +359,7 @@ impl Optimisation {
         let progress = (step as f32 / self.steps.max(1) as f32).min(1.0);
         let cosine = 0.5 * (1.0 + (std::f32::consts::PI * progress).cos());
         let factor = self.final_lr_factor + (1.0 - self.final_lr_factor) * cosine;
-        self.adam.step(online, factor);
+        self.adam.step(online, factor)?;
         self.target_ema.update(online)?;
         self.target_ema.copy_to(target)?;
         self.eval_ema.update(online)?;

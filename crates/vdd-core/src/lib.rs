@@ -24,6 +24,7 @@ pub mod gaussian;
 pub mod gmm;
 pub mod hash;
 pub mod lanes;
+pub mod memory;
 mod normalize;
 mod policy;
 mod score;

@@ -364,7 +364,7 @@ impl DsmLoop {
             }
         }
         let factor = self.schedule.factor(step, self.config.steps);
-        self.adam.step(&mut self.net, factor);
+        self.adam.step(&mut self.net, factor)?;
         self.ema.update(&mut self.ema_net, &self.net);
         self.loss_sum += f64::from(loss);
         self.loss_count += 1;

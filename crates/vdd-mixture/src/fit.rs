@@ -306,7 +306,7 @@ pub fn expert_step<E: Expert>(
     r?;
     let nets = student.expert_networks_mut();
     clip_or_fail(nets, max_grad_norm, iteration, "expert gradient")?;
-    optimizer.step(nets, lr_factor);
+    optimizer.step(nets, lr_factor).map_err(vdd_moe::MoeError::from)?;
     Ok(loss)
 }
 

@@ -170,7 +170,7 @@ pub fn gating_step<E: Expert>(
         return Ok(None);
     };
     clip_or_fail(net, max_grad_norm, iteration, "gating gradient")?;
-    optimizer.step(net, lr_factor);
+    optimizer.step(net, lr_factor).map_err(MoeError::from)?;
     Ok(Some(loss))
 }
 

@@ -100,6 +100,36 @@ impl Ema {
         Ok(())
     }
 
+    /// Checks a restored average (e.g. from a checkpoint) against `model`: the decay in
+    /// `[0, 1]`, the same parameter names and sizes in the same order, and finite values. The
+    /// error names the first parameter that does not match.
+    pub fn validate(&self, model: &dyn Parameters) -> Result<(), NnError> {
+        if !(0.0..=1.0).contains(&self.decay) {
+            return Err(mismatch(format!("decay must be in [0, 1], got {}", self.decay)));
+        }
+        if self.names.len() != self.shadow.len() {
+            return Err(mismatch(format!(
+                "{} names for {} tensors",
+                self.names.len(),
+                self.shadow.len()
+            )));
+        }
+        self.check(model)?;
+        for (name, p) in self.names.iter().zip(&self.shadow) {
+            if p.value.len() != p.shape.iter().product::<usize>() {
+                return Err(mismatch(format!(
+                    "`{name}` has shape {:?} but {} values",
+                    p.shape,
+                    p.value.len()
+                )));
+            }
+            if !p.value.iter().all(|v| v.is_finite()) {
+                return Err(mismatch(format!("`{name}` holds non-finite values")));
+            }
+        }
+        Ok(())
+    }
+
     /// One averaging step towards the model's current parameters.
     pub fn update(&mut self, model: &dyn Parameters) -> Result<(), NnError> {
         self.check(model)?;

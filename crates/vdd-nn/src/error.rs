@@ -65,4 +65,15 @@ pub enum NnError {
         /// The file's shape.
         got: Vec<usize>,
     },
+    /// A checkpoint directory is locked by another process that still runs
+    /// ([`crate::checkpoint::CheckpointDir`]).
+    #[error(
+        "{path} is held by another writer (pid and start time: {owner}); stop it, or remove the lock if it is not running"
+    )]
+    Locked {
+        /// The lock file.
+        path: PathBuf,
+        /// Its contents: the owner's pid and start time.
+        owner: String,
+    },
 }

@@ -2,6 +2,7 @@
 
 use serde::{Deserialize, Serialize};
 
+use crate::error::NnError;
 use crate::param::Parameters;
 
 /// Hyper-parameters of [`Adam`].
@@ -19,6 +20,38 @@ pub struct AdamConfig {
     pub weight_decay: f32,
     /// `true` for AdamW's decoupled weight decay.
     pub decoupled: bool,
+}
+
+impl AdamConfig {
+    /// Checks the documented ranges: `lr` finite and `>= 0`, `beta1` and `beta2` in `[0, 1)`,
+    /// `eps` finite and `> 0`, `weight_decay` finite and `>= 0`.
+    ///
+    /// ```
+    /// use vdd_nn::AdamConfig;
+    /// assert!(AdamConfig::default().validate().is_ok());
+    /// assert!(AdamConfig { eps: -1.0, ..Default::default() }.validate().is_err());
+    /// assert!(AdamConfig { beta2: 1.0, ..Default::default() }.validate().is_err());
+    /// ```
+    pub fn validate(&self) -> Result<(), NnError> {
+        let bad = |name: &str, v: f32, range: &str| {
+            Err(NnError::Config(format!("Adam {name} must be {range}, got {v}")))
+        };
+        if !(self.lr.is_finite() && self.lr >= 0.0) {
+            return bad("lr", self.lr, "finite and >= 0");
+        }
+        for (name, b) in [("beta1", self.beta1), ("beta2", self.beta2)] {
+            if !(0.0..1.0).contains(&b) {
+                return bad(name, b, "in [0, 1)");
+            }
+        }
+        if !(self.eps.is_finite() && self.eps > 0.0) {
+            return bad("eps", self.eps, "finite and > 0");
+        }
+        if !(self.weight_decay.is_finite() && self.weight_decay >= 0.0) {
+            return bad("weight_decay", self.weight_decay, "finite and >= 0");
+        }
+        Ok(())
+    }
 }
 
 impl Default for AdamConfig {
@@ -44,7 +77,7 @@ impl Default for AdamConfig {
 /// for _ in 0..200 {
 ///     x.zero_grad();
 ///     x.0.grad[0] = 2.0 * x.0.value[0]; // d/dx x²
-///     opt.step(&mut x, 1.0);
+///     opt.step(&mut x, 1.0).unwrap();
 /// }
 /// assert!(x.0.value[0].abs() < 0.05);
 /// ```
@@ -72,9 +105,67 @@ impl Adam {
         self.step
     }
 
+    /// Checks that this optimiser's state belongs to `params`: its hyper-parameters are in
+    /// range ([`AdamConfig::validate`]), and its moments are either empty (no step taken) or one
+    /// finite pair per parameter, in visiting order, of the parameter's size (second moments
+    /// `>= 0`). The error names the first parameter that does not match. A restored
+    /// optimiser (e.g. from a checkpoint) should be checked before it steps.
+    ///
+    /// ```
+    /// use vdd_nn::{Adam, AdamConfig, Linear};
+    /// let mut rng = vdd_core::Seeds::new(0).stream("init");
+    /// let (mut small, big) = (Linear::new(2, 1, &mut rng), Linear::new(3, 1, &mut rng));
+    /// let mut opt = Adam::new(AdamConfig::default());
+    /// opt.step(&mut small, 1.0).unwrap();
+    /// assert!(opt.check(&small).is_ok());
+    /// assert!(opt.check(&big).unwrap_err().to_string().contains("weight"));
+    /// ```
+    pub fn check(&self, params: &dyn Parameters) -> Result<(), NnError> {
+        self.config.validate()?;
+        let mismatch = |what: String| Err(NnError::ModelMismatch(format!("Adam state: {what}")));
+        if self.m.len() != self.v.len() {
+            let (m, v) = (self.m.len(), self.v.len());
+            return mismatch(format!("{m} first moments but {v} second moments"));
+        }
+        let mut k = 0;
+        let mut err: Option<String> = None;
+        params.visit_params("", &mut |name, p| {
+            if err.is_none() && !self.m.is_empty() {
+                err = match (self.m.get(k), self.v.get(k)) {
+                    (Some(m), Some(v)) if m.len() != p.len() || v.len() != p.len() => {
+                        Some(format!("`{name}` has {} values but its moments {}", p.len(), m.len()))
+                    }
+                    (Some(m), Some(v))
+                        if !m.iter().all(|x| x.is_finite())
+                            || !v.iter().all(|x| x.is_finite() && *x >= 0.0) =>
+                    {
+                        Some(format!("the moments of `{name}` are not finite (or negative)"))
+                    }
+                    (Some(_), Some(_)) => None,
+                    _ => Some(format!("no moments for `{name}` (parameter {k})")),
+                };
+            }
+            k += 1;
+        });
+        if let Some(e) = err {
+            return mismatch(e);
+        }
+        if !self.m.is_empty() && self.m.len() != k {
+            return mismatch(format!(
+                "{} moment pairs for a model of {k} parameters",
+                self.m.len()
+            ));
+        }
+        Ok(())
+    }
+
     /// One update with learning rate `config.lr * lr_factor` using the accumulated gradients
     /// (buffers, `trainable == false`, are skipped).
-    pub fn step(&mut self, params: &mut dyn Parameters, lr_factor: f32) {
+    ///
+    /// A model that does not match the optimiser's state ([`Adam::check`]'s sizes: another
+    /// architecture than the one it stepped before) is an error, and nothing is changed.
+    pub fn step(&mut self, params: &mut dyn Parameters, lr_factor: f32) -> Result<(), NnError> {
+        self.check_sizes(params)?;
         self.step += 1;
         let c = self.config;
         let lr = c.lr * lr_factor;
@@ -94,7 +185,6 @@ impl Adam {
             if !p.trainable {
                 return;
             }
-            assert_eq!(m.len(), p.len(), "Adam stepped on a different model");
             if p.grad.len() != p.value.len() {
                 p.zero_grad();
             }
@@ -112,6 +202,32 @@ impl Adam {
                 p.value[i] -= step_size * m[i] / (v[i].sqrt() / bc2_sqrt + c.eps);
             }
         });
+        Ok(())
+    }
+
+    /// The size checks of [`Adam::check`] that [`Adam::step`] needs (cheap: no value scan).
+    fn check_sizes(&self, params: &dyn Parameters) -> Result<(), NnError> {
+        let (mut k, mut err) = (0, None);
+        params.visit_params("", &mut |name, p| {
+            let sizes = (self.m.get(k).map(Vec::len), self.v.get(k).map(Vec::len));
+            let ok = match sizes {
+                (Some(m), Some(v)) => m == p.len() && v == p.len(),
+                (None, None) => self.m.is_empty(),
+                _ => false,
+            };
+            if !ok && err.is_none() {
+                err = Some(format!(
+                    "Adam stepped on a different model: `{name}` has {} values, its moments {:?}",
+                    p.len(),
+                    sizes.0
+                ));
+            }
+            k += 1;
+        });
+        if err.is_none() && self.m.len() > k {
+            err = Some(format!("Adam state of {} tensors, model of {k}", self.m.len()));
+        }
+        err.map_or(Ok(()), |e| Err(NnError::ModelMismatch(e)))
     }
 }
 
@@ -231,7 +347,7 @@ mod tests {
             net.zero_grad();
             mse(&mut net, &x, &y, &mut g);
             net.backward(g.as_ref());
-            opt.step(&mut net, schedule.factor(step, steps));
+            opt.step(&mut net, schedule.factor(step, steps)).unwrap();
         }
         let last = mse(&mut net, &x, &y, &mut g);
         assert!(initial > 0.1, "{initial}");
@@ -251,7 +367,7 @@ mod tests {
         let mut opt =
             Adam::new(AdamConfig { weight_decay: 0.5, decoupled: true, ..Default::default() });
         ff.w.grad = vec![1.0; 2];
-        opt.step(&mut ff, 1.0);
+        opt.step(&mut ff, 1.0).unwrap();
         assert_eq!(ff.w.value, before);
         assert_eq!(clip_grad_norm(&mut ff, 1e-3), 0.0);
 
@@ -264,10 +380,44 @@ mod tests {
             decoupled: true,
             ..Default::default()
         });
-        opt.step(&mut layer, 1.0);
+        opt.step(&mut layer, 1.0).unwrap();
         // Zero gradient: only the decoupled decay acts, w ← (1 − lr·wd) w.
         for (a, b) in layer.weight.value.iter().zip(&w0) {
             assert!((a - 0.95 * b).abs() < 1e-7);
         }
+    }
+
+    #[test]
+    fn a_mismatched_state_is_an_error_that_changes_nothing() {
+        let mut rng = vdd_core::Seeds::new(0).stream("i");
+        let mut small = crate::Linear::new(2, 2, &mut rng);
+        let mut big = crate::Linear::new(3, 2, &mut rng);
+        let mut fewer = crate::Linear::new(2, 2, &mut rng);
+        let mut opt = Adam::new(AdamConfig::default());
+        small.zero_grad();
+        opt.step(&mut small, 1.0).unwrap();
+        let (before, steps) = (big.weight.value.clone(), opt.steps());
+        big.zero_grad();
+        let e = opt.step(&mut big, 1.0).unwrap_err().to_string();
+        assert!(e.contains("weight") && e.contains("different model"), "{e}");
+        assert_eq!((big.weight.value.clone(), opt.steps()), (before, steps));
+        assert!(opt.check(&big).is_err());
+        // A state with fewer tensors than the model, or more, is refused too.
+        let mut part = opt.clone();
+        part.m.pop();
+        part.v.pop();
+        assert!(part.step(&mut fewer, 1.0).is_err() && part.check(&fewer).is_err());
+        let mut more = opt.clone();
+        more.m.push(vec![0.0]);
+        more.v.push(vec![0.0]);
+        assert!(more.step(&mut fewer, 1.0).is_err() && more.check(&fewer).is_err());
+        // Non-finite moments and bad hyper-parameters fail the full check.
+        let mut nan = opt.clone();
+        nan.v[0][0] = f32::NAN;
+        assert!(nan.check(&small).unwrap_err().to_string().contains("not finite"));
+        let mut eps = opt.clone();
+        eps.config.eps = -1.0;
+        assert!(eps.check(&small).is_err());
+        assert!(opt.check(&small).is_ok());
     }
 }

@@ -24,6 +24,67 @@ pub const ON_MODE_STDS: f32 = 3.0;
 /// [`CircleGmm::coverage`].
 pub const COVERAGE_SHARE: f32 = 0.25;
 
+/// Data of a toy recipe (the recipes' `[data]`).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ToyData {
+    /// Number of states (and mixture samples) VDD distils on; learned teachers train on them.
+    /// In `1..=10^8`, and their memory must fit.
+    pub points: usize,
+}
+
+impl ToyData {
+    /// Checks the documented range of `points` and its memory.
+    pub fn validate(&self) -> Result<()> {
+        let n = self.points;
+        if !(1..=100_000_000).contains(&n) {
+            return Err(TaskError::InvalidArgument(format!(
+                "data.points must be in 1..=1e8, got {n}"
+            )));
+        }
+        let bytes = vdd_core::memory::product(&[n, 3, 4, 4]);
+        Ok(vdd_core::memory::check_fits(&format!("data.points = {n}"), bytes)?)
+    }
+}
+
+/// Figure 2 of a toy recipe: the student's density and the teacher's score (the recipes'
+/// `[plots]`).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ToyPlots {
+    /// Write the figure.
+    pub enabled: bool,
+    /// Also PNG.
+    pub png: bool,
+    /// Density grid cells per side, in `1..=2048`.
+    pub grid: usize,
+    /// Score arrows per side, in `1..=256`.
+    pub arrows: usize,
+    /// Half-width of the plotted square (finite, `> 0`).
+    pub extent: f32,
+    /// Panels of `toy-conditional` (states spread over `[0, 2π)`), in `0..=64`.
+    pub states: usize,
+}
+
+impl ToyPlots {
+    /// Checks the documented ranges of every field.
+    pub fn validate(&self) -> Result<()> {
+        let bad = |what: String| Err(TaskError::InvalidArgument(format!("plots.{what}")));
+        for (name, v, max) in [("grid", self.grid, 2048), ("arrows", self.arrows, 256)] {
+            if !(1..=max).contains(&v) {
+                return bad(format!("{name} must be in 1..={max}, got {v}"));
+            }
+        }
+        if self.states > 64 {
+            return bad(format!("states must be in 0..=64, got {}", self.states));
+        }
+        if !(self.extent.is_finite() && self.extent > 0.0) {
+            return bad(format!("extent must be finite and > 0, got {}", self.extent));
+        }
+        Ok(())
+    }
+}
+
 /// A 2-D isotropic Gaussian mixture whose `K` equally weighted modes lie on a circle, optionally
 /// rotating with a scalar state.
 ///
@@ -153,6 +214,8 @@ impl CircleGmm {
         if n == 0 {
             return Err(TaskError::InvalidArgument("cannot sample 0 (state, action) pairs".into()));
         }
+        let bytes = vdd_core::memory::product(&[n, 3, 4]);
+        vdd_core::memory::check_fits(&format!("{n} (state, action) pairs"), bytes)?;
         let mut rng = Seeds::new(seed).stream("toy-gmm-sample");
         let mut states = Mat::<f32>::zeros(n, 1);
         let mut actions = Mat::<f32>::zeros(n, 2);

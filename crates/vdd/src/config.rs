@@ -2,6 +2,7 @@
 
 use serde::{Deserialize, Serialize};
 use vdd_core::{CoreError, NoiseSchedule};
+use vdd_moe::MoeConfig;
 use vdd_nn::{AdamConfig, LrSchedule};
 
 /// How the per-expert objectives are weighted in the experts' loss
@@ -97,7 +98,11 @@ impl VddConfig {
         g_it * self.gating_steps_per_iter as u64
     }
 
-    /// Checks ranges.
+    /// Checks the documented ranges: every count positive, both optimisers'
+    /// [`AdamConfig::validate`] (finite `lr >= 0`, betas in `[0, 1)`, finite `eps > 0`, finite
+    /// `weight_decay >= 0`), `max_grad_norm` finite and positive, `student_ema` in `[0, 1)`,
+    /// and the noise schedule's own ranges. Non-finite values (NaN, or `1e39` read as an `f32`
+    /// infinity) fail.
     pub fn validate(&self) -> Result<(), CoreError> {
         let positive = [
             ("iterations", self.iterations),
@@ -113,9 +118,12 @@ impl VddConfig {
         }
         for (name, opt) in [("expert", &self.expert_optimizer), ("gating", &self.gating_optimizer)]
         {
-            if !(opt.lr.is_finite() && opt.lr >= 0.0) {
-                return Err(CoreError::Config(format!("{name} learning rate must be >= 0")));
-            }
+            opt.validate().map_err(|e| CoreError::Config(format!("{name}_optimizer: {e}")))?;
+        }
+        for (name, s) in
+            [("expert", &self.expert_lr_schedule), ("gating", &self.gating_lr_schedule)]
+        {
+            s.validate().map_err(|e| CoreError::Config(format!("{name}_lr_schedule: {e}")))?;
         }
         if let Some(m) = self.max_grad_norm {
             if !(m.is_finite() && m > 0.0) {
@@ -128,6 +136,35 @@ impl VddConfig {
             }
         }
         self.noise.validate()
+    }
+}
+
+impl VddConfig {
+    /// What a run checks before any work: [`VddConfig::validate`], the student's ranges, and
+    /// the estimated memory of training `student` with these settings (the student's
+    /// [`MoeConfig::training_bytes`] plus the expert step's `batch_size · num_experts ·
+    /// vi_samples` sample buffers) against the memory available.
+    ///
+    /// ```
+    /// use vdd::{MoeConfig, VddConfig};
+    /// let student = MoeConfig::toy(1, 2, 8);
+    /// assert!(VddConfig::toy().check(&student).is_ok());
+    /// let wide = VddConfig { vi_samples: 1 << 40, ..VddConfig::toy() };
+    /// assert!(wide.check(&student).unwrap_err().to_string().contains("memory"));
+    /// ```
+    pub fn check(&self, student: &MoeConfig) -> Result<(), CoreError> {
+        use vdd_core::memory::{check_fits, product};
+        self.validate()?;
+        student.check(self.batch_size.max(self.gating_batch_size))?;
+        let rows = self.batch_size.max(self.gating_batch_size);
+        let samples = product(&[8, self.batch_size, student.num_experts, self.vi_samples])
+            .saturating_mul(product(&[student.action_dim + 1, 4]));
+        let bytes = student.training_bytes(rows).saturating_add(samples);
+        let what = format!(
+            "VDD with batch_size {}, vi_samples {} and {} experts",
+            self.batch_size, self.vi_samples, student.num_experts
+        );
+        check_fits(&what, bytes)
     }
 }
 

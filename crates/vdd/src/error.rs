@@ -39,6 +39,18 @@ pub enum VddError {
         #[source]
         source: serde_json::Error,
     },
+    /// A checkpoint's trainer state breaks a documented range or does not belong to its
+    /// student (an optimiser or average of another model); `what` says which part.
+    #[error("checkpoint {path}: {what}: {source}")]
+    CheckpointInvalid {
+        /// The generation directory.
+        path: std::path::PathBuf,
+        /// The part of the state (`expert optimiser`, `settings`, ...).
+        what: &'static str,
+        /// What is wrong.
+        #[source]
+        source: Box<dyn std::error::Error + Send + Sync>,
+    },
     /// A learned gating has no actions to learn from: no dataset actions, and the teacher
     /// cannot sample (its error is the source).
     #[error("a learned gating needs dataset actions or a teacher that samples: {source}")]

@@ -27,6 +27,38 @@ pub struct GmmEval {
     pub min_weight: f32,
 }
 
+impl GmmEval {
+    /// Checks the documented ranges: `kl_samples` in `1..=10^8`, `eval_states` in `1..=10^4`,
+    /// `coverage_radius` finite and `> 0`, `min_weight` in `[0, 1]`.
+    ///
+    /// ```
+    /// use vdd::eval::GmmEval;
+    /// let eval = GmmEval { kl_samples: 1000, eval_states: 8, coverage_radius: 0.5, min_weight: 0.01 };
+    /// assert!(eval.validate().is_ok());
+    /// assert!(GmmEval { kl_samples: 0, ..eval.clone() }.validate().is_err());
+    /// assert!(GmmEval { coverage_radius: f32::NAN, ..eval }.validate().is_err());
+    /// ```
+    pub fn validate(&self) -> Result<(), vdd_core::CoreError> {
+        let bad = |what: String| Err(vdd_core::CoreError::Config(format!("eval.{what}")));
+        if !(1..=100_000_000).contains(&self.kl_samples) {
+            return bad(format!("kl_samples must be in 1..=1e8, got {}", self.kl_samples));
+        }
+        if !(1..=10_000).contains(&self.eval_states) {
+            return bad(format!("eval_states must be in 1..=1e4, got {}", self.eval_states));
+        }
+        if !(self.coverage_radius.is_finite() && self.coverage_radius > 0.0) {
+            return bad(format!(
+                "coverage_radius must be finite and > 0, got {}",
+                self.coverage_radius
+            ));
+        }
+        if !(0.0..=1.0).contains(&self.min_weight) {
+            return bad(format!("min_weight must be in [0, 1], got {}", self.min_weight));
+        }
+        Ok(())
+    }
+}
+
 /// What [`against_gmm`] measures at one state.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct GmmScores {

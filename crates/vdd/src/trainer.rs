@@ -1,7 +1,5 @@
 //! The EM loop: E-step snapshot, expert step, gating step; checkpoints and resume.
 
-use std::path::{Path, PathBuf};
-
 use faer::{Mat, MatRef};
 use rand::Rng as _;
 use serde::{Deserialize, Serialize};
@@ -83,16 +81,6 @@ pub struct IterationMetrics {
     pub expert_lr: f32,
     /// Gating learning rate used (0 when not trained).
     pub gating_lr: f32,
-}
-
-#[derive(Serialize, Deserialize)]
-struct TrainerState {
-    config: VddConfig,
-    iteration: usize,
-    expert_optimizer: Adam,
-    gating_optimizer: Adam,
-    #[serde(default)]
-    student_ema: Option<Ema>,
 }
 
 /// Variational Diffusion Distillation of a teacher `S` into a mixture of experts of family `E`.
@@ -422,7 +410,7 @@ impl<S: ScoreModel, E: Expert> Vdd<S, E> {
             let factor =
                 self.config.expert_lr_schedule.factor(self.expert_optimizer.steps(), total);
             expert_lr = self.config.expert_optimizer.lr * factor;
-            self.expert_optimizer.step(nets, factor);
+            self.expert_optimizer.step(nets, factor)?;
         }
 
         // Gating steps.
@@ -538,85 +526,6 @@ impl<S: ScoreModel, E: Expert> Vdd<S, E> {
         )?;
         Ok(loss.map(|l| l as f32))
     }
-
-    /// Writes a checkpoint directory (`student.safetensors` + `trainer.json`) atomically: the
-    /// files go to a temporary sibling directory that replaces `dir` only when complete.
-    pub fn save_checkpoint(&self, dir: &Path) -> Result<(), VddError> {
-        let err = |path: &Path| {
-            let path = path.to_owned();
-            move |source| VddError::CheckpointIo { path, source }
-        };
-        let tmp = sibling(dir, "tmp");
-        if tmp.exists() {
-            std::fs::remove_dir_all(&tmp).map_err(err(&tmp))?;
-        }
-        std::fs::create_dir_all(&tmp).map_err(err(&tmp))?;
-        self.student.save(&tmp.join("student.safetensors"))?;
-        let state = TrainerState {
-            config: self.config.clone(),
-            iteration: self.iteration,
-            expert_optimizer: self.expert_optimizer.clone(),
-            gating_optimizer: self.gating_optimizer.clone(),
-            student_ema: self.student_ema.clone(),
-        };
-        let json = serde_json::to_vec(&state).map_err(|source| VddError::CheckpointFormat {
-            path: tmp.join("trainer.json"),
-            source,
-        })?;
-        vdd_nn::io::write_atomic(&tmp.join("trainer.json"), &json)?;
-        let old = sibling(dir, "old");
-        if dir.exists() {
-            if old.exists() {
-                std::fs::remove_dir_all(&old).map_err(err(&old))?;
-            }
-            std::fs::rename(dir, &old).map_err(err(dir))?;
-        }
-        std::fs::rename(&tmp, dir).map_err(err(&tmp))?;
-        if old.exists() {
-            std::fs::remove_dir_all(&old).map_err(err(&old))?;
-        }
-        Ok(())
-    }
-
-    /// Resumes a run from [`Vdd::save_checkpoint`] with a custom expert family; continuing
-    /// gives exactly the numbers of an uninterrupted run.
-    pub fn resume_with_family(
-        dir: &Path,
-        teacher: S,
-        expert: E,
-        data: DistillData,
-    ) -> Result<Self, VddError> {
-        let student = Moe::load_with_family(&dir.join("student.safetensors"), expert)?;
-        Self::resume_inner(dir, teacher, student, data)
-    }
-
-    fn resume_inner(
-        dir: &Path,
-        teacher: S,
-        student: Moe<E>,
-        data: DistillData,
-    ) -> Result<Self, VddError> {
-        let path = dir.join("trainer.json");
-        let bytes = std::fs::read(&path)
-            .map_err(|source| VddError::CheckpointIo { path: path.clone(), source })?;
-        let state: TrainerState = serde_json::from_slice(&bytes)
-            .map_err(|source| VddError::CheckpointFormat { path, source })?;
-        let mut vdd = Self::new(state.config, teacher, student, data)?;
-        vdd.iteration = state.iteration;
-        vdd.expert_optimizer = state.expert_optimizer;
-        vdd.gating_optimizer = state.gating_optimizer;
-        // A checkpoint written without an average starts one at the resumed student.
-        vdd.student_ema = state.student_ema.or(vdd.student_ema);
-        Ok(vdd)
-    }
-}
-
-impl<S: ScoreModel> Vdd<S, ExpertFamily> {
-    /// Resumes a run from [`Vdd::save_checkpoint`] (built-in expert families).
-    pub fn resume(dir: &Path, teacher: S, data: DistillData) -> Result<Self, VddError> {
-        let student = Moe::load(&dir.join("student.safetensors"))?;
-        Self::resume_inner(dir, teacher, student, data)
-    }
 }
 
 /// VDD as a [`Trainer`]: a step is one EM iteration ([`Vdd::step`]), and
@@ -646,12 +555,10 @@ impl<S: ScoreModel, E: Expert> Trainer for Vdd<S, E> {
     }
 }
 
-fn sibling(dir: &Path, tag: &str) -> PathBuf {
-    let name = dir.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
-    dir.with_file_name(format!(".{name}.{tag}"))
-}
-
+mod checkpoint;
 #[cfg(test)]
 mod tests;
+#[cfg(test)]
+mod tests_checkpoint;
 #[cfg(test)]
 mod tests_spaces;

@@ -26,6 +26,7 @@ use crate::policy::TrainedPolicy;
 use crate::recipe;
 use crate::teachers;
 use vdd_moe::cache::{CachedStudent, STUDENT_CACHE_VERSION};
+use vdd_nn::checkpoint::CheckpointDir;
 
 /// VDD distilling one teacher, with the key of its settings below `vdd`.
 pub struct VddMethod(Info, &'static str);
@@ -92,7 +93,12 @@ impl Method for VddMethod {
         &self.0
     }
     fn check(&self, recipe: &MethodRecipe<'_>) -> crate::XResult {
-        self.settings(recipe).map(drop)
+        let s = self.settings(recipe)?;
+        let student = MoeConfig {
+            gating: s.gating.unwrap_or(recipe.student.gating),
+            ..recipe.student.clone()
+        };
+        Ok(s.vdd.check(&student).map_err(|e| format!("vdd.{}: {e}", self.1))?)
     }
 
     fn train(&self, job: &Job<'_>) -> crate::XResult<Trained> {
@@ -144,10 +150,10 @@ impl Method for VddMethod {
             None => {
                 let clip = s.clip_margin;
                 let (c, noise) = match teacher {
-                    Some(t) => distill(vc, t.teacher.clone(), mc, states, actions, clip, label)?,
+                    Some(t) => distill(vc, t.teacher.clone(), mc, states, actions, clip, job)?,
                     None => {
                         let exact = d.exact.clone().ok_or("the task has no exact teacher")?;
-                        distill(vc, exact, mc, states, actions, clip, label)?
+                        distill(vc, exact, mc, states, actions, clip, job)?
                     }
                 };
                 if let Some((cache, hash)) = &cache {
@@ -172,9 +178,17 @@ impl Method for VddMethod {
     }
 }
 
+/// Seconds of VDD training between checkpoints.
+const CHECKPOINT_SECONDS: u64 = 10;
+
 /// Distils `teacher` into a new mixture of configuration `mc` with VDD (states and actions in
 /// the student's normalised space; the student initialised from the run seed `vc.seed`), with a
 /// progress bar and learning curves; also returns the mean noise level of the teacher queries.
+///
+/// The run commits a checkpoint every [`CHECKPOINT_SECONDS`] of training to
+/// `<run>/checkpoints/<label>/` (a [`CheckpointDir`]; with the curves, noise sum and training
+/// seconds so far in `progress.json`), resumes from there under `--resume` (refusing a
+/// checkpoint of other settings), and removes it when done. Commits are not training time.
 fn distill<S: ScoreModel>(
     vc: VddConfig,
     teacher: S,
@@ -182,21 +196,38 @@ fn distill<S: ScoreModel>(
     states: Mat<f32>,
     actions: Mat<f32>,
     clip_margin: Option<f32>,
-    label: &str,
+    job: &Job<'_>,
 ) -> crate::XResult<(CachedStudent, f32)> {
-    let mut curves = Curves::default();
+    let label = job.label;
     let teacher = match clip_margin {
         Some(m) => ClampedDenoiser::around_data(teacher, actions.as_ref(), m)?,
         None => ClampedDenoiser::unclamped(teacher),
     };
     let data = DistillData::new(states, Some(actions))?;
     let iterations = vc.iterations;
-    let mut vdd = Vdd::from_config(vc, teacher, mc, data)?;
+    let root = job.checkpoints.0.join(label.replace(' ', "-"));
+    if !job.checkpoints.1 && root.exists() {
+        std::fs::remove_dir_all(&root)?;
+    }
+    let store = CheckpointDir::open(&root)?;
+    let (mut curves, mut noise_sum, mut train_seconds, mut vdd) = match store.latest()? {
+        Some((_, generation)) => {
+            let (c, n, t): (Curves, f64, f64) =
+                serde_json::from_slice(&std::fs::read(generation.join("progress.json"))?)?;
+            let vdd = Vdd::resume(&generation, teacher, data)?;
+            if vdd.config() != &vc || vdd.student().config() != &mc {
+                return Err(format!("{}: written with other settings", root.display()).into());
+            }
+            (c, n, t, vdd)
+        }
+        None => (Curves::default(), 0.0, 0.0, Vdd::from_config(vc, teacher, mc, data)?),
+    };
     let bar = crate::progress::bar(iterations as u64, label);
+    bar.set_position(vdd.iteration() as u64);
     let every = (iterations / 200).max(1);
-    let mut noise_sum = 0.0f64;
-    let t0 = Instant::now();
-    vdd.train(|m| {
+    let mut t0 = Instant::now();
+    while vdd.iteration() < iterations {
+        let m = vdd.step()?;
         bar.inc(1);
         noise_sum += f64::from(m.expert.noise_level);
         if m.iteration % every == 0 || m.iteration + 1 == iterations {
@@ -211,9 +242,21 @@ fn distill<S: ScoreModel>(
             }
             bar.set_message(format!("H(z|s) {:.2}", m.gating_entropy));
         }
-    })?;
-    let train_seconds = t0.elapsed().as_secs_f64();
+        if t0.elapsed().as_secs() >= CHECKPOINT_SECONDS && vdd.iteration() < iterations {
+            train_seconds += t0.elapsed().as_secs_f64();
+            let progress = serde_json::to_vec(&(&curves, noise_sum, train_seconds))?;
+            store.commit(vdd.iteration() as u64, |dir| -> crate::XResult {
+                vdd.write_checkpoint(dir)?;
+                Ok(vdd_nn::io::write_atomic(&dir.join("progress.json"), &progress)?)
+            })?;
+            t0 = Instant::now(); // the training time leaves the commits out
+        }
+    }
+    train_seconds += t0.elapsed().as_secs_f64();
     bar.finish_and_clear();
+    drop(store);
+    std::fs::remove_dir_all(&root)?;
+    let _ = std::fs::remove_dir(job.checkpoints.0); // when empty
     let noise = (noise_sum / iterations.max(1) as f64) as f32;
     Ok((CachedStudent { student: vdd.into_student(), train_seconds, curves }, noise))
 }

@@ -201,6 +201,7 @@ impl Task for Avoiding {
         for (_, cfg) in resolved.configs() {
             // Before any training: a bad setting would otherwise fail after it.
             cfg.eval.timing().check().map_err(|e| format!("eval: {e}"))?;
+            cfg.eval.protocol().check().map_err(|e| format!("eval: {e}"))?;
             cfg.data.deploy_spec().validate().map_err(|e| format!("data: {e}"))?;
         }
         let dir = ctx.run_dir(&base.header.seeds);

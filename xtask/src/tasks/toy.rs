@@ -23,6 +23,7 @@ use vdd::eval::{GmmEval, GmmScores, against_gmm};
 use vdd_core::gmm::{Gmm, GmmTeacher};
 use vdd_core::{Affine, ScoreModel, Seeds};
 use vdd_moe::MoeConfig;
+use vdd_tasks::toy::ToyData;
 
 use super::toy_eval::{ToyPlots, ToyStudent, circle_modes, density_panel};
 use crate::context::{RunContext, StageTimes};
@@ -54,14 +55,6 @@ pub struct ToyRecipe {
     pub eval: GmmEval,
     /// Figure 2.
     pub plots: ToyPlots,
-}
-
-/// Data of a toy recipe.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-#[serde(deny_unknown_fields)]
-pub struct ToyData {
-    /// Number of states (and mixture samples) VDD distils on; learned teachers train on them.
-    pub points: usize,
 }
 
 /// `recipes/defaults/toy-gmm.toml` and the `toy-conditional` keys merged on top of it,
@@ -165,6 +158,11 @@ impl Task for Toy {
         let resolved = recipe::resolve(&ToyRecipe::defaults(task)?, &ctx.file, &ctx.overrides)?;
         let base = &resolved.base;
         let plan = pipeline::plan(&resolved, task)?;
+        for (_, cfg) in resolved.configs() {
+            cfg.data.validate()?;
+            cfg.eval.validate()?;
+            cfg.plots.validate()?;
+        }
         let dir = ctx.run_dir(&base.header.seeds);
         ctx.write_resolved(&dir, &resolved.to_toml()?)?;
         let mut stages = StageTimes::default();
@@ -243,9 +241,6 @@ impl Toy {
     /// The run seed's samples of the toy's mixture and its exact teacher.
     fn prepare(&self, cfg: &ToyRecipe, seed: u64) -> crate::XResult<TrainingData> {
         let n = cfg.data.points;
-        if n == 0 {
-            return Err("data.points must be positive".into());
-        }
         let task = vdd_tasks::toy::CircleGmm::toy_conditional();
         // The toy-gmm state is constant (0); toy-conditional samples states and actions.
         if self.conditional {

@@ -6,27 +6,9 @@ use vdd::eval;
 use vdd_core::{Affine, ScoreModel};
 use vdd_moe::Moe;
 
-use serde::{Deserialize, Serialize};
+pub use vdd_tasks::toy::ToyPlots;
 
 use crate::plots::{DensityPanel, ExpertEllipse};
-
-/// Figure 2 settings.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-#[serde(deny_unknown_fields)]
-pub struct ToyPlots {
-    /// Write the figure.
-    pub enabled: bool,
-    /// Also PNG.
-    pub png: bool,
-    /// Density grid cells per side.
-    pub grid: usize,
-    /// Score arrows per side.
-    pub arrows: usize,
-    /// Half-width of the plotted square.
-    pub extent: f32,
-    /// Panels of `toy-conditional` (states spread over `[0, 2π)`).
-    pub states: usize,
-}
 
 /// A distilled toy student with what its evaluation needs.
 pub struct ToyStudent {

@@ -107,3 +107,68 @@ pub struct ActMode {
     /// Sample `a ~ N(μ_z, Σ_z)` instead of returning `μ_z` (the paper evaluates with `μ_z`).
     pub sample_action: bool,
 }
+
+impl NetworkConfig {
+    /// Floats a residual MLP of this shape from `in_dim` to `out_dim` holds: its parameters,
+    /// and per row of a batch its activations (saturating; an upper bound with layer norms).
+    fn floats(&self, in_dim: usize, out_dim: usize) -> (u64, u64) {
+        use vdd_core::memory::product;
+        let h = self.hidden_dim;
+        let block = product(&[2, h, h]).saturating_add(product(&[6, h]));
+        let params = product(&[in_dim + 1, h])
+            .saturating_add(product(&[self.num_blocks]).saturating_mul(block))
+            .saturating_add(product(&[h + 1, out_dim]));
+        let per_row = product(&[8, h, self.num_blocks + 1]).saturating_add(product(&[2, out_dim]));
+        (params, per_row)
+    }
+}
+
+impl MoeConfig {
+    /// Estimated bytes of training this mixture on batches of `batch_rows` states: every
+    /// parameter five times (value, gradient, Adam's two moments, an average) and the
+    /// activations and gradients of a batch (saturating at `u64::MAX`).
+    ///
+    /// ```
+    /// use vdd_moe::MoeConfig;
+    /// let small = MoeConfig::toy(1, 2, 8).training_bytes(256);
+    /// assert!(small < 1 << 30);
+    /// let huge = MoeConfig { num_experts: 100_000_000, shared_trunk: false, ..MoeConfig::toy(1, 2, 8) };
+    /// assert!(huge.training_bytes(256) > 1 << 40);
+    /// ```
+    pub fn training_bytes(&self, batch_rows: usize) -> u64 {
+        use vdd_core::memory::product;
+        let (z, d) = (self.num_experts, self.action_dim);
+        // Raw outputs per expert: the mean and the (full at most) covariance factor.
+        let raw = match self.expert_kind {
+            ExpertKind::Diagonal => product(&[2, d]),
+            ExpertKind::Full => product(&[d, d + 3]) / 2,
+        }
+        .min(usize::MAX as u64) as usize;
+        let (experts, expert_rows) = if self.shared_trunk {
+            self.experts_network.floats(self.state_dim, z.saturating_mul(raw))
+        } else {
+            let (p, r) = self.experts_network.floats(self.state_dim, raw);
+            (p.saturating_mul(z as u64), r.saturating_mul(z as u64))
+        };
+        let (gating, gating_rows) = match self.gating {
+            GatingKind::Uniform => (0, z as u64),
+            GatingKind::Learned => self.gating_network.floats(self.state_dim, z),
+        };
+        let params = experts.saturating_add(gating).saturating_mul(5);
+        let rows = expert_rows.saturating_add(gating_rows).saturating_mul(batch_rows as u64);
+        params.saturating_add(rows).saturating_mul(4)
+    }
+
+    /// The configuration's ranges (as [`crate::Moe::new`] checks them), then
+    /// [`MoeConfig::training_bytes`] of batches of `batch_rows` against the memory available
+    /// ([`vdd_core::memory::check_fits`]): what a run checks before any work.
+    pub fn check(&self, batch_rows: usize) -> Result<(), CoreError> {
+        self.validate()?;
+        let bytes = self.training_bytes(batch_rows);
+        let what = format!(
+            "a mixture of {} experts (hidden_dim {} / {}) on batches of {batch_rows}",
+            self.num_experts, self.experts_network.hidden_dim, self.gating_network.hidden_dim
+        );
+        vdd_core::memory::check_fits(&what, bytes)
+    }
+}

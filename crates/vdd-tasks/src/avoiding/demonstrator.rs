@@ -46,8 +46,8 @@ use vdd_core::{
 
 use super::rollout::{Worker, episode_seed};
 use super::{
-    ACTION_DIM, ACTION_LIMIT, AvoidingMode, EE_RADIUS, LEVEL_Y, N_LEVELS, N_MODES, OBS_DIM,
-    OBSTACLES, START, gap_centre, segment_disc_distance,
+    ACTION_DIM, ACTION_LIMIT, AvoidingMode, EE_RADIUS, LEVEL_Y, MAX_STEPS, N_LEVELS, N_MODES,
+    OBS_DIM, OBSTACLES, START, gap_centre, segment_disc_distance,
 };
 use crate::{Result, TaskError};
 
@@ -462,6 +462,10 @@ pub fn generate_demonstrations(
     if n == 0 {
         return Err(TaskError::InvalidArgument("cannot generate 0 demonstrations".into()));
     }
+    // Observations (4) and actions (2) of up to MAX_STEPS steps, and the vectors holding them.
+    let per_episode = vdd_core::memory::product(&[MAX_STEPS, 6, 4]) + 128;
+    let bytes = (n as u64).saturating_mul(per_episode);
+    vdd_core::memory::check_fits(&format!("{n} demonstrations"), bytes)?;
     let mut demo = AvoidingDemonstrator::new(config.clone())?;
     let mut worker = Worker::default();
     let mut out = Demonstrations {

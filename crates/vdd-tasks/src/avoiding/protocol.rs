@@ -48,6 +48,26 @@ impl Default for EvalProtocol {
 }
 
 impl EvalProtocol {
+    /// Checks the documented ranges: `rollouts` in `1..=10^7`, `lockstep_batch` in
+    /// `0..=10^5` (0: one episode at a time), and the memory of the recorded episodes.
+    pub fn check(&self) -> crate::Result<()> {
+        if !(1..=10_000_000).contains(&self.rollouts) {
+            let n = self.rollouts;
+            return Err(TaskError::InvalidArgument(format!(
+                "rollouts must be in 1..=1e7, got {n}"
+            )));
+        }
+        if self.lockstep_batch > 100_000 {
+            let b = self.lockstep_batch;
+            return Err(TaskError::InvalidArgument(format!(
+                "lockstep_batch must be <= 1e5, got {b}"
+            )));
+        }
+        let bytes = vdd_core::memory::product(&[self.rollouts, super::MAX_STEPS, 8, 4]);
+        vdd_core::memory::check_fits(&format!("{} rollouts", self.rollouts), bytes)?;
+        Ok(())
+    }
+
     /// The root seed of the evaluation of run seed `run_seed`: the policy seeds of the episodes
     /// ([`EvalConfig::seed`]) and of the timing
     /// ([`us_per_action`](crate::timing::us_per_action)) derive from it. It is

@@ -8,7 +8,7 @@ use faer::MatMut;
 use vdd_core::NoiseSchedule;
 use vdd_moe::{GatingKind, MoeConfig};
 
-fn small_run(iterations: usize) -> (VddConfig, IsoGmm, Moe, DistillData) {
+pub(super) fn small_run(iterations: usize) -> (VddConfig, IsoGmm, Moe, DistillData) {
     let teacher = IsoGmm::circle(4, 2.0, 0.5);
     let mut mc = MoeConfig::toy(1, 2, 4);
     mc.experts_network.hidden_dim = 16;
@@ -54,8 +54,9 @@ fn resuming_from_a_checkpoint_reproduces_an_uninterrupted_run() {
     for _ in 0..5 {
         first.step().unwrap();
     }
-    first.save_checkpoint(&dir).unwrap();
-    drop(first);
+    let store = vdd_nn::checkpoint::CheckpointDir::open(&dir).unwrap();
+    first.save_checkpoint(&store).unwrap();
+    drop((first, store));
     let mut resumed = Vdd::resume(&dir, teacher, data).unwrap();
     assert_eq!(resumed.iteration(), 5);
     resumed.train(|_| {}).unwrap();
@@ -65,7 +66,7 @@ fn resuming_from_a_checkpoint_reproduces_an_uninterrupted_run() {
     std::fs::remove_dir_all(&dir).ok();
 }
 
-fn params(student: &Moe) -> Vec<(String, Vec<f32>)> {
+pub(super) fn params(student: &Moe) -> Vec<(String, Vec<f32>)> {
     let mut out = Vec::new();
     student.visit_params("", &mut |n, p| out.push((n.to_owned(), p.value.clone())));
     out

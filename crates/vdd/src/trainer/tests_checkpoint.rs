@@ -1,0 +1,114 @@
+//! Tests of resuming: every part of a checkpoint's trainer state is checked.
+
+use std::path::{Path, PathBuf};
+
+use serde_json::Value;
+use vdd_nn::checkpoint::CheckpointDir;
+
+use super::tests::{params, small_run};
+use super::*;
+
+fn temp(tag: &str) -> PathBuf {
+    let d = std::env::temp_dir().join(format!("vdd-ckpt-{tag}-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&d);
+    d
+}
+
+/// A checkpoint after 3 of 6 iterations with a moving average; returns its generation.
+fn checkpoint(root: &Path) -> PathBuf {
+    let (mut config, teacher, student, data) = small_run(6);
+    config.student_ema = Some(0.9);
+    let mut vdd = Vdd::new(config, teacher, student, data).unwrap();
+    for _ in 0..3 {
+        vdd.step().unwrap();
+    }
+    let store = CheckpointDir::open(root).unwrap();
+    vdd.save_checkpoint(&store).unwrap()
+}
+
+/// Resumes after `edit` changed `trainer.json`; the error's text.
+fn resume_after(tag: &str, edit: impl FnOnce(&mut Value)) -> String {
+    let root = temp(tag);
+    let generation = checkpoint(&root);
+    let path = generation.join("trainer.json");
+    let mut state: Value = serde_json::from_slice(&std::fs::read(&path).unwrap()).unwrap();
+    edit(&mut state);
+    std::fs::write(&path, serde_json::to_vec(&state).unwrap()).unwrap();
+    let (_, teacher, _, data) = small_run(6);
+    let e = Vdd::resume(&root, teacher, data).err().expect("the edited state is refused");
+    std::fs::remove_dir_all(&root).unwrap();
+    let mut text = e.to_string();
+    let mut source = std::error::Error::source(&e);
+    while let Some(s) = source {
+        text.push_str(&format!(" | {s}"));
+        source = s.source();
+    }
+    text
+}
+
+#[test]
+fn an_unchanged_checkpoint_resumes_and_continues_like_a_straight_run() {
+    let root = temp("ok");
+    checkpoint(&root);
+    let (mut config, teacher, student, data) = small_run(6);
+    config.student_ema = Some(0.9);
+    let mut straight = Vdd::new(config, teacher.clone(), student, data.clone()).unwrap();
+    straight.train(|_| {}).unwrap();
+    let mut resumed = Vdd::resume(&root, teacher, data).unwrap();
+    assert_eq!(resumed.iteration(), 3);
+    resumed.train(|_| {}).unwrap();
+    assert_eq!(params(&straight.into_student()), params(&resumed.into_student()));
+    std::fs::remove_dir_all(&root).unwrap();
+}
+
+#[test]
+fn an_optimiser_state_of_another_model_is_an_error_naming_the_tensor() {
+    let e = resume_after("adam", |s| {
+        let m = &mut s["expert_optimizer"]["m"][0];
+        m.as_array_mut().unwrap().pop();
+    });
+    assert!(e.contains("expert optimiser") && e.contains('`'), "{e}");
+    let e = resume_after("adam-gating", |s| {
+        s["gating_optimizer"]["v"].as_array_mut().unwrap().pop();
+    });
+    assert!(e.contains("gating optimiser"), "{e}");
+    let e = resume_after("adam-extra", |s| {
+        let m = s["expert_optimizer"]["m"].as_array_mut().unwrap();
+        m.push(Value::Array(vec![0.0.into()]));
+        s["expert_optimizer"]["v"].as_array_mut().unwrap().push(Value::Array(vec![0.0.into()]));
+    });
+    assert!(e.contains("expert optimiser"), "{e}");
+}
+
+#[test]
+fn settings_out_of_range_are_errors_on_resume() {
+    let e = resume_after("ema", |s| s["config"]["student_ema"] = 3.0.into());
+    assert!(e.contains("student_ema"), "{e}");
+    let e = resume_after("ema-state", |s| s["student_ema"]["decay"] = 3.0.into());
+    assert!(e.contains("student average") && e.contains("decay"), "{e}");
+    let e = resume_after("eps", |s| {
+        s["config"]["expert_optimizer"]["eps"] = (-1.0).into();
+        s["expert_optimizer"]["config"]["eps"] = (-1.0).into();
+    });
+    assert!(e.contains("eps"), "{e}");
+    let e = resume_after("beta", |s| s["gating_optimizer"]["config"]["beta1"] = 1.5.into());
+    assert!(e.contains("gating optimiser"), "{e}");
+    let e = resume_after("iteration", |s| s["iteration"] = 99.into());
+    assert!(e.contains("iteration"), "{e}");
+    // 1e39 reads as an f32 infinity.
+    let e = resume_after("inf", |s| {
+        let big: Value = serde_json::from_str("1e39").unwrap();
+        s["config"]["gating_optimizer"]["lr"] = big;
+    });
+    assert!(e.contains("lr"), "{e}");
+}
+
+#[test]
+fn a_second_writer_is_refused() {
+    let root = temp("lock");
+    let store = CheckpointDir::open(&root).unwrap();
+    let e = CheckpointDir::open(&root).unwrap_err();
+    assert!(e.to_string().contains("another writer"), "{e}");
+    drop(store);
+    std::fs::remove_dir_all(&root).unwrap();
+}
