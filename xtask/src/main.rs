@@ -18,6 +18,7 @@ mod bench_teachers;
 mod context;
 mod demos;
 mod experiment;
+mod fuzz;
 mod method;
 mod methods;
 mod pipeline;
@@ -52,6 +53,11 @@ enum Cli {
     /// Scripted demonstrations.
     #[command(subcommand)]
     Demos(Demos),
+    /// Mutation fuzzing of the file loaders (see xtask/src/fuzz/mod.rs).
+    Fuzz(fuzz::Args),
+    /// One fuzz case, run in a child process by `fuzz`.
+    #[command(hide = true)]
+    FuzzCase(fuzz::CaseArgs),
 }
 
 /// `cargo xtask bench ...`.
@@ -110,6 +116,8 @@ fn main() {
         Cli::Bench(Bench::Nn(a)) => bench_nn::run(&a),
         Cli::Bench(Bench::Teachers(a)) => bench_teachers::run(&a),
         Cli::Demos(Demos::Avoiding(a)) => demos::avoiding(&a),
+        Cli::Fuzz(a) => fuzz::run(&a),
+        Cli::FuzzCase(a) => fuzz::case(&a),
     };
     if let Err(e) = result {
         eprintln!("error: {e}");

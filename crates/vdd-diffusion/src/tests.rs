@@ -552,11 +552,21 @@ fn save_load_round_trips_and_reports_clear_errors() {
     let cut = tmp("cut");
     std::fs::write(&cut, &bytes[..bytes.len() - 9]).unwrap();
     assert!(Beso::load(&cut, 0).is_err());
-    // Metadata whose config does not match the stored tensors.
+    // Metadata whose config does not match the stored tensors: a larger network than the
+    // file holds is refused before it is built, a smaller one by the tensors' shapes.
     let mut meta = vdd_nn::io::read_metadata(&path).unwrap();
-    let wider = BesoConfig { net: NetConfig { hidden_dim: 9, ..tiny_net() }, ..beso_cfg };
+    let wider = BesoConfig { net: NetConfig { hidden_dim: 9, ..tiny_net() }, ..beso_cfg.clone() };
     meta.insert("vdd_diffusion.config".into(), serde_json::to_string(&wider).unwrap());
     let bad = tmp("mismatch");
+    vdd_nn::io::save_safetensors(&bad, beso.net(), &meta).unwrap();
+    let err = Beso::load(&bad, 0).unwrap_err();
+    assert!(
+        matches!(err, DiffusionError::Nn(vdd_nn::NnError::Format { .. }))
+            && err.to_string().contains("parameters"),
+        "{err}"
+    );
+    let narrower = BesoConfig { net: NetConfig { hidden_dim: 7, ..tiny_net() }, ..beso_cfg };
+    meta.insert("vdd_diffusion.config".into(), serde_json::to_string(&narrower).unwrap());
     vdd_nn::io::save_safetensors(&bad, beso.net(), &meta).unwrap();
     assert!(matches!(
         Beso::load(&bad, 0),
