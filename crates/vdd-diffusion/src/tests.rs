@@ -687,3 +687,33 @@ fn _teachers_are_send() {
 
 #[allow(dead_code)]
 fn _unused(_: MatRef<'_, f32>) {}
+
+#[test]
+fn hostile_teacher_metadata_is_refused_before_work() {
+    let cfg = BesoConfig { net: tiny_net(), ..Default::default() };
+    let beso = Beso::new(&cfg, Affine::identity(1), Affine::identity(2), 0).unwrap();
+    let dir = std::env::temp_dir().join(format!("vdd-diffusion-hostile-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let path = dir.join("t.safetensors");
+    beso.save(&path).unwrap();
+    let meta = vdd_nn::io::read_metadata(&path).unwrap();
+    let load = |key: &str, edit: &dyn Fn(&mut serde_json::Value)| {
+        let mut m = meta.clone();
+        let mut v: serde_json::Value = serde_json::from_str(&m[key]).unwrap();
+        edit(&mut v);
+        m.insert(key.to_owned(), v.to_string());
+        vdd_nn::io::save_safetensors(&path, beso.net(), &m).unwrap();
+        DiffusionTeacher::load(&path, 0).map(drop).unwrap_err().to_string()
+    };
+    let config = "vdd_diffusion.config";
+    // A sampler that would run for ever, a network far larger than the file, overflows.
+    let e = load(config, &|c| c["sampling_steps"] = 1_000_000_000_000u64.into());
+    assert!(e.contains("sampling_steps") && e.contains("t.safetensors"), "{e}");
+    let e = load(config, &|c| c["net"]["hidden_dim"] = 65536.into());
+    assert!(e.contains("parameters"), "{e}");
+    let e = load(config, &|c| c["net"]["embed_dim"] = (u64::MAX - 1).into());
+    assert!(e.contains("embed_dim"), "{e}");
+    let e = load("vdd_diffusion.shape", &|s| s["action_dim"] = u64::MAX.into());
+    assert!(e.contains("t.safetensors"), "{e}");
+    let _ = std::fs::remove_dir_all(&dir);
+}

@@ -247,7 +247,7 @@ fn read_tensor(
         return Err(format_err(
             path,
             format!(
-                "tensor `{name}` holds {} at index {i}, beyond the limit |w| <= {limit:e}",
+                "tensor `{name}` holds {:e} at index {i}, beyond the limit |w| <= {limit:e}",
                 values[i]
             ),
         ));
@@ -385,6 +385,37 @@ mod tests {
 
         let missing = path.with_file_name("absent.safetensors");
         assert!(matches!(load_safetensors(&missing, &mut m), Err(NnError::Io { .. })));
+    }
+
+    #[test]
+    fn hostile_files_are_refused_before_anything_large_is_built() {
+        let path = tmp("hostile");
+        let mut a = net(1);
+        a.output_layer_mut().weight.value[3] = -2e6;
+        save_safetensors(&path, &a, &BTreeMap::new()).unwrap();
+        let err = load_safetensors(&path, &mut net(2)).unwrap_err().to_string();
+        assert!(
+            err.contains("-2e6") && err.contains("index 3") && err.contains("hostile"),
+            "{err}"
+        );
+
+        // The file's own tensors bound the model a config may describe.
+        let (_, elements) = read_header(&path).unwrap();
+        let mut count = 0;
+        a.visit_params("", &mut |_, p| count += p.value.len());
+        assert_eq!(elements, count);
+        assert_eq!(a.config().num_params(), Some(count));
+        check_fits(&path, "config", Some(count), elements).unwrap();
+        let err = check_fits(&path, "config", Some(count + 1), elements).unwrap_err();
+        assert!(err.to_string().contains(&format!("{} parameters", count + 1)), "{err}");
+        let wide = ResidualMlpConfig { hidden_dim: 65536, ..a.config().clone() };
+        assert!(check_fits(&path, "config", wide.num_params(), elements).is_err());
+        assert!(check_fits(&path, "config", None, elements).is_err());
+        let mut rng = vdd_core::Seeds::new(0).stream("init");
+        assert!(ResidualMlp::new(&wide, &mut rng).is_err(), "17 GB: refused, not allocated");
+        let overflow = ResidualMlpConfig { in_dim: usize::MAX, ..a.config().clone() };
+        assert_eq!(overflow.num_params(), None);
+        assert!(ResidualMlp::new(&overflow, &mut rng).is_err());
     }
 
     #[test]

@@ -143,7 +143,18 @@ pub fn run(a: &Args) -> XResult {
     });
     std::fs::write(a.out.join("fuzz.json"), serde_json::to_string_pretty(&out)?)?;
     progress::log(format!("wrote {}", a.out.join("fuzz.json").display()));
-    Ok(())
+    let bad: usize = report
+        .values()
+        .flat_map(|row| ["panic", "abort", "hang", "ok_nonfinite"].map(|k| row[k].as_u64()))
+        .map(|n| n.unwrap_or(0) as usize)
+        .sum();
+    match bad {
+        0 => Ok(()),
+        n => {
+            Err(format!("{n} failing case(s); inputs in {}", a.out.join("crashes").display())
+                .into())
+        }
+    }
 }
 
 fn summary(counts: &BTreeMap<&'static str, usize>) -> String {
