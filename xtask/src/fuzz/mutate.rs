@@ -206,6 +206,11 @@ pub fn npy(rng: &mut Rng, data: &mut Vec<u8>) {
             out.extend((text.len() as u16).to_le_bytes());
             out.extend(text.as_bytes());
             out.extend(&data[end..]);
+            // Often the data are resized to what the new header declares (when small), so the
+            // edit reaches the checks behind the size check.
+            if let Some(n) = declared_bytes(&text).filter(|&n| n <= 1 << 20 && rng.random()) {
+                out.resize(10 + text.len() + n, 0);
+            }
             *data = out;
         }
         (Some(end), 2) if end + 4 <= data.len() => {
@@ -220,6 +225,20 @@ pub fn npy(rng: &mut Rng, data: &mut Vec<u8>) {
     }
 }
 
+/// The data bytes an `.npy` header text declares (`<f4`/`<f8`/`|b1` and a shape), if it parses.
+fn declared_bytes(header: &str) -> Option<usize> {
+    let size: usize = [("f4'", 4), ("f8'", 8), ("b1'", 1), ("i8'", 8), ("u1'", 1)]
+        .iter()
+        .find(|(d, _)| header.contains(d))?
+        .1;
+    let shape = header.split("'shape':").nth(1)?.split(')').next()?.trim().trim_start_matches('(');
+    shape
+        .split(',')
+        .map(str::trim)
+        .filter(|s| !s.is_empty())
+        .try_fold(size, |acc, d| acc.checked_mul(d.parse::<usize>().ok()?))
+}
+
 /// Mutates a `safetensors` file: its JSON header (tensor shapes, offsets and dtypes, the
 /// metadata and the JSON inside it; the header length is rewritten), a weight (interesting
 /// floats), or its bytes.
@@ -229,7 +248,25 @@ pub fn safetensors(rng: &mut Rng, data: &mut Vec<u8>) {
     let parsed = end.and_then(|e| serde_json::from_slice::<Value>(&data[8..e]).ok());
     match (end, parsed, rng.random_range(0..5)) {
         (Some(end), Some(mut header), 0..=2) => {
-            json(rng, &mut header);
+            // Half the time a field of one metadata entry (a config, normalisers, a spec),
+            // keeping it a string holding JSON; otherwise anything in the header.
+            let meta = header.get_mut("__metadata__").and_then(Value::as_object_mut);
+            let entry = meta.and_then(|m| {
+                let keys: Vec<String> = m.keys().cloned().collect();
+                let k = keys.choose(rng)?.clone();
+                m.get_mut(&k)
+            });
+            match entry {
+                Some(Value::String(text)) if rng.random() => {
+                    if let Ok(mut inner) = serde_json::from_str::<Value>(text) {
+                        json(rng, &mut inner);
+                        *text = inner.to_string();
+                    } else {
+                        *text = text_number(rng, text);
+                    }
+                }
+                _ => json(rng, &mut header),
+            }
             let text = header.to_string();
             let mut out = (text.len() as u64).to_le_bytes().to_vec();
             out.extend(text.as_bytes());
