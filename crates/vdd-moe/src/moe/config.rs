@@ -132,7 +132,7 @@ impl MoeConfig {
         let w = self.mean_bias_init;
         if !(w.is_finite() && (0.0..=MAX_ABS_WEIGHT).contains(&w)) {
             return Err(CoreError::Config(format!(
-                "mean_bias_init must be in [0, {MAX_ABS_WEIGHT:e}], got {w}"
+                "mean_bias_init must be in [0, {MAX_ABS_WEIGHT:e}], got {w:e}"
             )));
         }
         let (init, min) = (self.init_std, self.min_std);
