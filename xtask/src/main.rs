@@ -20,6 +20,7 @@ mod context;
 mod demos;
 mod experiment;
 mod import;
+mod fuzz;
 mod method;
 mod methods;
 mod pipeline;
@@ -57,6 +58,11 @@ enum Cli {
     /// Teachers trained in PyTorch, into teacher files.
     #[command(subcommand)]
     Import(import::Import),
+    /// Mutation fuzzing of the file loaders (see xtask/src/fuzz/mod.rs).
+    Fuzz(fuzz::Args),
+    /// One fuzz case, run in a child process by `fuzz`.
+    #[command(hide = true)]
+    FuzzCase(fuzz::CaseArgs),
 }
 
 /// `cargo xtask bench ...`.
@@ -116,6 +122,8 @@ fn main() {
         Cli::Bench(Bench::Teachers(a)) => bench_teachers::run(&a),
         Cli::Demos(Demos::Avoiding(a)) => demos::avoiding(&a),
         Cli::Import(c) => import::run(&c),
+        Cli::Fuzz(a) => fuzz::run(&a),
+        Cli::FuzzCase(a) => fuzz::case(&a),
     };
     if let Err(e) = result {
         eprintln!("error: {e}");

@@ -16,17 +16,23 @@
 //! (`T x N x d`) are read with [`LoadOptions`]; see its presets for the Relay-Kitchen and
 //! Block-Push files.
 //!
+//! Reading is bounded: an array's header must declare at most [`MAX_ARRAY_BYTES`] of data (and
+//! have at most [`MAX_NPY_HEADER_BYTES`] of header), and a compressed archive entry is
+//! decompressed only up to the size its header declares, so a small hostile archive cannot
+//! make the loader allocate gigabytes.
+//!
 //! Writes are atomic: each file is written to a temporary sibling, fsynced, then renamed over
 //! the target, so a crash leaves either the old file or the complete new one. The npz entries
 //! are stored uncompressed with a fixed timestamp, so saving the same data twice gives
 //! byte-identical files.
 
-use std::io::{Cursor, Read, Write};
+use std::io::{Cursor, Write};
 use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicU64, Ordering};
 
 use crate::episodes::Episodes;
 use crate::error::{DataError, Result, archive_err, format_err, io_err};
+pub use crate::npy::{MAX_ARRAY_BYTES, MAX_NPY_HEADER_BYTES};
 use crate::npy::{NpyArray, encode_f32};
 
 /// Axis order of the stored arrays.
@@ -128,10 +134,7 @@ impl Episodes {
             }
             let mut entry =
                 zip.by_name(&format!("{key}.npy")).map_err(archive_err(path, Some(key)))?;
-            let mut out =
-                Vec::with_capacity(usize::try_from(entry.size()).unwrap_or(0).min(1 << 26));
-            entry.read_to_end(&mut out).map_err(archive_err(path, Some(key)))?;
-            Ok(out)
+            crate::npy::read_bounded(&mut entry, path, key)
         };
         let obs = read(&options.observations_key)?;
         let act = read(&options.actions_key)?;
@@ -164,8 +167,8 @@ impl Episodes {
         for (file, key) in
             files.iter().zip([&options.observations_key, &options.actions_key, &options.mask_key])
         {
-            match std::fs::read(file) {
-                Ok(b) => bytes.push(b),
+            match std::fs::File::open(file) {
+                Ok(mut f) => bytes.push(crate::npy::read_bounded(&mut f, file, key)?),
                 Err(e) if e.kind() == std::io::ErrorKind::NotFound => {
                     return Err(DataError::MissingKey {
                         path: dir.to_owned(),

@@ -28,75 +28,148 @@ struct NpyDtype {
     big_endian: bool,
 }
 
+/// Largest `.npy` header read (numpy writes a few hundred bytes).
+pub const MAX_NPY_HEADER_BYTES: usize = 1 << 20;
+
+/// Largest data of one array (`prod(shape) · itemsize`, 2 GiB): an archive entry is read only
+/// up to the size its header declares, and a header declaring more is refused before anything
+/// is decompressed.
+pub const MAX_ARRAY_BYTES: usize = 1 << 31;
+
+/// Reads one `.npy` stream (an archive entry or a file), never more than its header declares:
+/// the fixed prefix, the header (at most [`MAX_NPY_HEADER_BYTES`]), then the declared data
+/// (at most [`MAX_ARRAY_BYTES`]) and one byte more, so that excess data is reported by
+/// [`NpyArray::parse`] without being decompressed. Malformed prefixes are returned as read
+/// for `parse` to report.
+pub(crate) fn read_bounded(
+    r: &mut impl std::io::Read,
+    path: &Path,
+    array: &str,
+) -> Result<Vec<u8>> {
+    use std::io::Read;
+    let bad = |reason: String| format_err(path, format!("array `{array}`: {reason}"));
+    let io = |e: std::io::Error| crate::error::archive_err(path, Some(array))(e);
+    let mut buf = Vec::new();
+    r.by_ref().take(12).read_to_end(&mut buf).map_err(io)?;
+    if buf.len() < 10 || &buf[..6] != b"\x93NUMPY" {
+        return Ok(buf);
+    }
+    let (header_len, start) = match buf[6] {
+        1 => (u16::from_le_bytes([buf[8], buf[9]]) as usize, 10),
+        2 | 3 if buf.len() >= 12 => {
+            (u32::from_le_bytes([buf[8], buf[9], buf[10], buf[11]]) as usize, 12)
+        }
+        _ => return Ok(buf),
+    };
+    if header_len > MAX_NPY_HEADER_BYTES {
+        return Err(bad(format!(
+            "header of {header_len} bytes, more than the limit of {MAX_NPY_HEADER_BYTES}"
+        )));
+    }
+    let header_end = start + header_len;
+    let more = header_end.saturating_sub(buf.len()) as u64;
+    r.by_ref().take(more).read_to_end(&mut buf).map_err(io)?;
+    let nbytes = header(&buf, path, array)?.nbytes.unwrap_or(0);
+    let total = header_end + nbytes;
+    let more = (total + 1).saturating_sub(buf.len()) as u64;
+    r.by_ref().take(more).read_to_end(&mut buf).map_err(io)?;
+    Ok(buf)
+}
+
+/// What an `.npy` header says.
+struct Header {
+    shape: Vec<usize>,
+    fortran_order: bool,
+    dtype: Option<NpyDtype>,
+    descr: String,
+    header_end: usize,
+    /// The data bytes the shape and a known dtype need.
+    nbytes: Option<usize>,
+}
+
+/// Parses the prefix and header of an `.npy` file (the data need not be there).
+fn header(bytes: &[u8], path: &Path, array: &str) -> Result<Header> {
+    let bad = |reason: String| format_err(path, format!("array `{array}`: {reason}"));
+    const MAGIC: &[u8] = b"\x93NUMPY";
+    if bytes.len() < 10 || &bytes[..6] != MAGIC {
+        return Err(bad("not an .npy file (bad magic)".into()));
+    }
+    let major = bytes[6];
+    let (header_len, start): (usize, usize) = match major {
+        1 => (u16::from_le_bytes([bytes[8], bytes[9]]) as usize, 10),
+        2 | 3 if bytes.len() >= 12 => {
+            (u32::from_le_bytes([bytes[8], bytes[9], bytes[10], bytes[11]]) as usize, 12)
+        }
+        _ => return Err(bad(format!("unsupported .npy format version {major}"))),
+    };
+    let header_end = start
+        .checked_add(header_len)
+        .filter(|&e| e <= bytes.len())
+        .ok_or_else(|| bad("truncated header".into()))?;
+    let header = std::str::from_utf8(&bytes[start..header_end])
+        .map_err(|_| bad("header is not valid text".into()))?;
+    let dict = match PyValue::parse(header).map_err(|e| bad(format!("bad header: {e}")))? {
+        PyValue::Dict(d) => d,
+        _ => return Err(bad("header is not a dict".into())),
+    };
+    let get = |key: &str| {
+        dict.iter()
+            .find(|(k, _)| matches!(k, PyValue::Str(s) if s == key))
+            .map(|(_, v)| v)
+            .ok_or_else(|| bad(format!("header has no `{key}`")))
+    };
+    let descr = match get("descr")? {
+        PyValue::Str(s) => s.clone(),
+        other => {
+            return Err(DataError::Dtype {
+                path: path.to_owned(),
+                array: array.to_owned(),
+                found: format!("{other:?}"),
+                expected: "a plain numeric dtype, not a structured one",
+            });
+        }
+    };
+    let fortran_order = match get("fortran_order")? {
+        PyValue::Bool(b) => *b,
+        _ => return Err(bad("`fortran_order` is not a bool".into())),
+    };
+    let shape = match get("shape")? {
+        PyValue::Tuple(items) => items
+            .iter()
+            .map(|v| match v {
+                PyValue::Int(n) => usize::try_from(*n).map_err(|_| bad("shape too large".into())),
+                _ => Err(bad("`shape` holds a non-integer".into())),
+            })
+            .collect::<Result<Vec<usize>>>()?,
+        _ => return Err(bad("`shape` is not a tuple".into())),
+    };
+    let dtype = NpyDtype::parse(&descr);
+    let count = shape
+        .iter()
+        .try_fold(1usize, |acc, &s| acc.checked_mul(s))
+        .ok_or_else(|| bad(format!("shape {shape:?} overflows")))?;
+    let nbytes = match dtype {
+        Some(dtype) => Some(
+            count.checked_mul(dtype.size).filter(|&n| n <= MAX_ARRAY_BYTES).ok_or_else(|| {
+                bad(format!(
+                    "shape {shape:?} of `{descr}` needs more than the limit of \
+                         {MAX_ARRAY_BYTES} data bytes"
+                ))
+            })?,
+        ),
+        None => None,
+    };
+    Ok(Header { shape, fortran_order, dtype, descr, header_end, nbytes })
+}
+
 impl<'a> NpyArray<'a> {
     /// Parses the bytes of one `.npy` file. `path` and `array` only label errors.
     pub(crate) fn parse(bytes: &'a [u8], path: &Path, array: &str) -> Result<Self> {
         let bad = |reason: String| format_err(path, format!("array `{array}`: {reason}"));
-        const MAGIC: &[u8] = b"\x93NUMPY";
-        if bytes.len() < 10 || &bytes[..6] != MAGIC {
-            return Err(bad("not an .npy file (bad magic)".into()));
-        }
-        let major = bytes[6];
-        let (header_len, start): (usize, usize) = match major {
-            1 => (u16::from_le_bytes([bytes[8], bytes[9]]) as usize, 10),
-            2 | 3 if bytes.len() >= 12 => {
-                (u32::from_le_bytes([bytes[8], bytes[9], bytes[10], bytes[11]]) as usize, 12)
-            }
-            _ => return Err(bad(format!("unsupported .npy format version {major}"))),
-        };
-        let header_end = start
-            .checked_add(header_len)
-            .filter(|&e| e <= bytes.len())
-            .ok_or_else(|| bad("truncated header".into()))?;
-        let header = std::str::from_utf8(&bytes[start..header_end])
-            .map_err(|_| bad("header is not valid text".into()))?;
-        let dict = match PyValue::parse(header).map_err(|e| bad(format!("bad header: {e}")))? {
-            PyValue::Dict(d) => d,
-            _ => return Err(bad("header is not a dict".into())),
-        };
-        let get = |key: &str| {
-            dict.iter()
-                .find(|(k, _)| matches!(k, PyValue::Str(s) if s == key))
-                .map(|(_, v)| v)
-                .ok_or_else(|| bad(format!("header has no `{key}`")))
-        };
-        let descr = match get("descr")? {
-            PyValue::Str(s) => s.clone(),
-            other => {
-                return Err(DataError::Dtype {
-                    path: path.to_owned(),
-                    array: array.to_owned(),
-                    found: format!("{other:?}"),
-                    expected: "a plain numeric dtype, not a structured one",
-                });
-            }
-        };
-        let fortran_order = match get("fortran_order")? {
-            PyValue::Bool(b) => *b,
-            _ => return Err(bad("`fortran_order` is not a bool".into())),
-        };
-        let shape = match get("shape")? {
-            PyValue::Tuple(items) => items
-                .iter()
-                .map(|v| match v {
-                    PyValue::Int(n) => {
-                        usize::try_from(*n).map_err(|_| bad("shape too large".into()))
-                    }
-                    _ => Err(bad("`shape` holds a non-integer".into())),
-                })
-                .collect::<Result<Vec<usize>>>()?,
-            _ => return Err(bad("`shape` is not a tuple".into())),
-        };
-        let dtype = NpyDtype::parse(&descr);
-        let count = shape
-            .iter()
-            .try_fold(1usize, |acc, &s| acc.checked_mul(s))
-            .ok_or_else(|| bad(format!("shape {shape:?} overflows")))?;
+        let Header { shape, fortran_order, dtype, descr, header_end, nbytes } =
+            header(bytes, path, array)?;
         let data = &bytes[header_end..];
-        if let Some(dtype) = dtype {
-            let nbytes = count
-                .checked_mul(dtype.size)
-                .ok_or_else(|| bad(format!("shape {shape:?} overflows")))?;
+        if let Some(nbytes) = nbytes {
             if data.len() != nbytes {
                 return Err(bad(format!(
                     "shape {shape:?} of `{descr}` needs {nbytes} data bytes, the file has {}",

@@ -200,3 +200,48 @@ fn missing_arrays_and_broken_files_are_rejected() {
         Err(DataError::MissingKey { .. })
     ));
 }
+
+/// An archive entry is never inflated beyond what its `.npy` header declares: 10 MB of
+/// compressed zeros behind a header declaring a few bytes is refused after reading one byte
+/// more than declared, and a header declaring more than the limit is refused before reading.
+#[test]
+fn compressed_entries_are_read_only_up_to_their_declared_size() {
+    use std::io::Write;
+    let dir = std::env::temp_dir().join(format!("vdd-data-bomb-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let npy = |shape: &str, data: usize| {
+        let header = format!("{{'descr': '<f4', 'fortran_order': False, 'shape': ({shape}), }}");
+        let mut b = b"\x93NUMPY\x01\x00".to_vec();
+        b.extend((header.len() as u16).to_le_bytes());
+        b.extend(header.as_bytes());
+        b.extend(std::iter::repeat_n(0u8, data));
+        b
+    };
+    let write = |name: &str, obs: Vec<u8>| {
+        let path = dir.join(name);
+        let mut z = zip::ZipWriter::new(std::fs::File::create(&path).unwrap());
+        let opts =
+            zip::write::FileOptions::default().compression_method(zip::CompressionMethod::Deflated);
+        for (key, bytes) in [
+            ("observations_seq", obs),
+            ("actions_seq", npy("1, 2, 1", 8)),
+            ("existence_mask", npy("1, 2", 8)),
+        ] {
+            z.start_file(format!("{key}.npy"), opts).unwrap();
+            z.write_all(&bytes).unwrap();
+        }
+        z.finish().unwrap();
+        path
+    };
+    let bomb = write("bomb.npz", npy("1, 2, 1", 10_000_000));
+    assert!(std::fs::metadata(&bomb).unwrap().len() < 100_000);
+    let err = Episodes::load_npz(&bomb).unwrap_err().to_string();
+    assert!(
+        err.contains("observations_seq") && err.contains("needs 8 data bytes, the file has 9"),
+        "{err}"
+    );
+    let huge = write("huge.npz", npy("100000, 100000, 1000", 0));
+    let err = Episodes::load_npz(&huge).unwrap_err().to_string();
+    assert!(err.contains("observations_seq") && err.contains("limit"), "{err}");
+    let _ = std::fs::remove_dir_all(&dir);
+}

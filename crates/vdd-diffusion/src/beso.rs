@@ -126,8 +126,12 @@ impl BesoConfig {
         if !(self.rho.is_finite() && self.rho > 0.0) {
             return Err(DiffusionError::Config(format!("rho must be positive, got {}", self.rho)));
         }
-        if self.sampling_steps == 0 {
-            return Err(DiffusionError::Config("sampling_steps must be >= 1".into()));
+        if self.sampling_steps == 0 || self.sampling_steps > crate::MAX_SAMPLING_STEPS {
+            return Err(DiffusionError::Config(format!(
+                "sampling_steps must be in 1..={}, got {}",
+                crate::MAX_SAMPLING_STEPS,
+                self.sampling_steps
+            )));
         }
         Ok(())
     }

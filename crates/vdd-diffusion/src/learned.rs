@@ -283,10 +283,22 @@ impl<P: Process> LearnedTeacher<P> {
     /// Loads a teacher of this kind saved by [`LearnedTeacher::save`]; its policy stream is
     /// seeded with `seed`.
     pub fn load(path: &Path, seed: u64) -> Result<Self> {
-        let meta = vdd_nn::io::read_metadata(path)?;
+        let (meta, elements) = vdd_nn::io::read_header(path)?;
         let (config, shape, train): (P::Config, SavedShape, Option<TrainConfig>) =
             common::parse_metadata(path, &meta, P::KIND)?;
         P::validate(&config).map_err(|e| common::format_err(path, e))?;
+        let max = vdd_nn::limits::MAX_WIDTH;
+        if shape.action_dim > max || shape.state_dim > max {
+            return Err(common::format_err(
+                path,
+                format!(
+                    "`shape` metadata: action_dim {} and state_dim {} must be <= {max}",
+                    shape.action_dim, shape.state_dim
+                ),
+            ));
+        }
+        let mlp = P::net_config(&config).mlp_config(shape.action_dim, shape.state_dim, 1);
+        vdd_nn::io::check_fits(path, "the `config` metadata", mlp.num_params(), elements)?;
         let mut net = DenoiserNet::new(
             P::net_config(&config),
             shape.action_dim,
@@ -430,8 +442,8 @@ impl<P: Process> ScoreModel for LearnedTeacher<P> {
     ) -> Result<(), CoreError> {
         check_score_args(self, actions, states, noise_levels, out.rb())?;
         self.evaluate_checked(actions, noise_levels, states, out.as_mut())?;
-        self.process.prediction_to_score(actions, noise_levels, out);
-        Ok(())
+        self.process.prediction_to_score(actions, noise_levels, out.as_mut());
+        vdd_core::check_finite("scores", out.rb())
     }
 
     /// Samples with the configured sampler and steps (normalised space).
@@ -439,9 +451,10 @@ impl<P: Process> ScoreModel for LearnedTeacher<P> {
         &mut self,
         states: MatRef<'_, f32>,
         rng: &mut dyn RngCore,
-        out: MatMut<'_, f32>,
+        mut out: MatMut<'_, f32>,
     ) -> Result<(), CoreError> {
-        self.sample_checked(None, states, rng, out)
+        self.sample_checked(None, states, rng, out.as_mut())?;
+        vdd_core::check_finite("sampled actions", out.rb())
     }
 
     /// Draws from `schedule` and maps each draw onto a valid level (BESO: clamped to
@@ -490,7 +503,7 @@ impl<P: Process> Policy for LearnedTeacher<P> {
     fn act_batch(
         &mut self,
         obs: MatRef<'_, f32>,
-        actions: MatMut<'_, f32>,
+        mut actions: MatMut<'_, f32>,
     ) -> Result<(), CoreError> {
         let n = obs.nrows();
         let (ds, da) = (self.state_norm.dim(), self.action_norm.dim());
@@ -500,7 +513,7 @@ impl<P: Process> Policy for LearnedTeacher<P> {
         self.io.load_obs(obs, &self.state_norm);
         let Self { process, net, sampler_buf, io, rng, .. } = self;
         process.sample(net, sampler_buf, None, io.obs.as_ref(), rng, io.act.as_mut())?;
-        self.io.store_actions(&self.action_norm, actions);
-        Ok(())
+        self.io.store_actions(&self.action_norm, actions.as_mut());
+        vdd_core::check_finite("actions", actions.rb())
     }
 }

@@ -83,7 +83,10 @@ pub use learned::{LearnedTeacher, TeacherTrainer};
 pub use net::{DenoiserNet, NetConfig, NoiseEmbedding, RowCoefficients};
 pub use normalize::{NormalizerKind, fit_normalizer};
 pub use sampling::{KarrasSampler, SamplerBuffers, VpSampler, heun_step, sample_karras, sample_vp};
-pub use schedule::{BetaSchedule, Preconditioning, VpSchedule, karras_sigmas, karras_sigmas_into};
+pub use schedule::{
+    BetaSchedule, MAX_DIFFUSION_STEPS, MAX_SAMPLING_STEPS, Preconditioning, VpSchedule,
+    karras_sigmas, karras_sigmas_into,
+};
 pub use teacher::{DiffusionTeacher, TeacherKind};
 pub use train::{TrainConfig, TrainProgress};
 pub use vdd_core::gmm::{self, Gmm, GmmTeacher};

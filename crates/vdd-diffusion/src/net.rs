@@ -38,12 +38,22 @@ impl Default for NetConfig {
 impl NetConfig {
     /// Checks the numbers.
     pub fn validate(&self) -> Result<()> {
-        if self.hidden_dim == 0 {
-            return Err(DiffusionError::Config("hidden_dim must be positive".into()));
-        }
-        if self.embed_dim < 2 || self.embed_dim % 2 != 0 {
+        use vdd_nn::limits::{MAX_BLOCKS, MAX_WIDTH};
+        if self.hidden_dim == 0 || self.hidden_dim > MAX_WIDTH {
             return Err(DiffusionError::Config(format!(
-                "embed_dim must be even and >= 2, got {}",
+                "hidden_dim must be in 1..={MAX_WIDTH}, got {}",
+                self.hidden_dim
+            )));
+        }
+        if self.num_blocks > MAX_BLOCKS {
+            return Err(DiffusionError::Config(format!(
+                "num_blocks must be <= {MAX_BLOCKS}, got {}",
+                self.num_blocks
+            )));
+        }
+        if self.embed_dim < 2 || self.embed_dim % 2 != 0 || self.embed_dim > MAX_WIDTH {
+            return Err(DiffusionError::Config(format!(
+                "embed_dim must be even and in 2..={MAX_WIDTH}, got {}",
                 self.embed_dim
             )));
         }
@@ -293,11 +303,16 @@ impl DenoiserNet {
         rng: &mut vdd_core::Rng,
     ) -> Result<Self> {
         config.validate()?;
-        if action_dim == 0 {
-            return Err(DiffusionError::Config("action_dim must be positive".into()));
+        let max = vdd_nn::limits::MAX_WIDTH;
+        if action_dim == 0 || action_dim > max || state_dim > max {
+            return Err(DiffusionError::Config(format!(
+                "need 1 <= action_dim <= {max} and state_dim <= {max}, got {action_dim}, {state_dim}"
+            )));
         }
-        if levels == 0 {
-            return Err(DiffusionError::Config("a denoiser network needs a noise level".into()));
+        if levels == 0 || levels > 16 {
+            return Err(DiffusionError::Config(format!(
+                "a denoiser network takes 1 to 16 noise levels, got {levels}"
+            )));
         }
         let mlp = ResidualMlp::new(&config.mlp_config(action_dim, state_dim, levels), rng)?;
         Ok(Self {

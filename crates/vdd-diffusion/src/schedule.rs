@@ -70,11 +70,20 @@ pub struct VpSchedule {
     log_alpha_bars: Vec<f64>,
 }
 
+/// Largest number of discrete steps `N` of a VP schedule (DDPM uses 16 to 1000).
+pub const MAX_DIFFUSION_STEPS: usize = 100_000;
+
+/// Largest number of sampling steps of a teacher (each is a network evaluation per action;
+/// the paper's teachers use 16).
+pub const MAX_SAMPLING_STEPS: usize = 10_000;
+
 impl VpSchedule {
-    /// Builds the schedule with `num_steps = N ≥ 1` discrete steps.
+    /// Builds the schedule with `1 ≤ num_steps = N ≤ `[`MAX_DIFFUSION_STEPS`] discrete steps.
     pub fn new(kind: BetaSchedule, num_steps: usize) -> Result<Self> {
-        if num_steps == 0 {
-            return Err(DiffusionError::Config("a VP schedule needs at least 1 step".into()));
+        if num_steps == 0 || num_steps > MAX_DIFFUSION_STEPS {
+            return Err(DiffusionError::Config(format!(
+                "a VP schedule needs 1..={MAX_DIFFUSION_STEPS} steps, got {num_steps}"
+            )));
         }
         let n = num_steps as f64;
         let mut log_ab = Vec::with_capacity(num_steps + 1);
@@ -205,9 +214,9 @@ impl VpSchedule {
     }
 
     /// The `k + 1` times `τ_0 = 0 < τ_1 < … < τ_k = N` a `k`-step sampler visits (in increasing
-    /// order), `τ_i = round(i N / k)`; `1 ≤ k ≤ N`.
+    /// order), `τ_i = round(i N / k)`; `1 ≤ k ≤ min(N, `[`MAX_SAMPLING_STEPS`]`)`.
     pub fn sampling_times(&self, k: usize) -> Result<Vec<f32>> {
-        let n = self.num_steps();
+        let n = self.num_steps().min(MAX_SAMPLING_STEPS);
         if k == 0 || k > n {
             return Err(DiffusionError::Config(format!(
                 "sampling steps must be in 1..={n} for this schedule, got {k}"
@@ -217,7 +226,7 @@ impl VpSchedule {
     }
 }
 
-/// The Karras et al. (2022) noise levels for `n ≥ 1` sampling steps, followed by a final 0:
+/// The Karras et al. (2022) noise levels for `1 ≤ n ≤ `[`MAX_SAMPLING_STEPS`] sampling steps, followed by a final 0:
 /// `σ_i = (σ_max^{1/ρ} + i/(n−1) (σ_min^{1/ρ} − σ_max^{1/ρ}))^ρ`, `i = 0..n−1` (for `n = 1`
 /// just `σ_max`). The result has `n + 1` entries, decreasing, ending in 0.
 ///
@@ -241,8 +250,10 @@ pub fn karras_sigmas_into(
     rho: f32,
     out: &mut Vec<f32>,
 ) -> Result<()> {
-    if n == 0 {
-        return Err(DiffusionError::Config("the Karras schedule needs at least 1 step".into()));
+    if n == 0 || n > MAX_SAMPLING_STEPS {
+        return Err(DiffusionError::Config(format!(
+            "the Karras schedule needs 1..={MAX_SAMPLING_STEPS} steps, got {n}"
+        )));
     }
     check_sigma_range(sigma_min, sigma_max)?;
     if !(rho.is_finite() && rho > 0.0) {

@@ -552,11 +552,21 @@ fn save_load_round_trips_and_reports_clear_errors() {
     let cut = tmp("cut");
     std::fs::write(&cut, &bytes[..bytes.len() - 9]).unwrap();
     assert!(Beso::load(&cut, 0).is_err());
-    // Metadata whose config does not match the stored tensors.
+    // Metadata whose config does not match the stored tensors: a larger network than the
+    // file holds is refused before it is built, a smaller one by the tensors' shapes.
     let mut meta = vdd_nn::io::read_metadata(&path).unwrap();
-    let wider = BesoConfig { net: NetConfig { hidden_dim: 9, ..tiny_net() }, ..beso_cfg };
+    let wider = BesoConfig { net: NetConfig { hidden_dim: 9, ..tiny_net() }, ..beso_cfg.clone() };
     meta.insert("vdd_diffusion.config".into(), serde_json::to_string(&wider).unwrap());
     let bad = tmp("mismatch");
+    vdd_nn::io::save_safetensors(&bad, beso.net(), &meta).unwrap();
+    let err = Beso::load(&bad, 0).unwrap_err();
+    assert!(
+        matches!(err, DiffusionError::Nn(vdd_nn::NnError::Format { .. }))
+            && err.to_string().contains("parameters"),
+        "{err}"
+    );
+    let narrower = BesoConfig { net: NetConfig { hidden_dim: 7, ..tiny_net() }, ..beso_cfg };
+    meta.insert("vdd_diffusion.config".into(), serde_json::to_string(&narrower).unwrap());
     vdd_nn::io::save_safetensors(&bad, beso.net(), &meta).unwrap();
     assert!(matches!(
         Beso::load(&bad, 0),
@@ -677,3 +687,33 @@ fn _teachers_are_send() {
 
 #[allow(dead_code)]
 fn _unused(_: MatRef<'_, f32>) {}
+
+#[test]
+fn hostile_teacher_metadata_is_refused_before_work() {
+    let cfg = BesoConfig { net: tiny_net(), ..Default::default() };
+    let beso = Beso::new(&cfg, Affine::identity(1), Affine::identity(2), 0).unwrap();
+    let dir = std::env::temp_dir().join(format!("vdd-diffusion-hostile-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let path = dir.join("t.safetensors");
+    beso.save(&path).unwrap();
+    let meta = vdd_nn::io::read_metadata(&path).unwrap();
+    let load = |key: &str, edit: &dyn Fn(&mut serde_json::Value)| {
+        let mut m = meta.clone();
+        let mut v: serde_json::Value = serde_json::from_str(&m[key]).unwrap();
+        edit(&mut v);
+        m.insert(key.to_owned(), v.to_string());
+        vdd_nn::io::save_safetensors(&path, beso.net(), &m).unwrap();
+        DiffusionTeacher::load(&path, 0).map(drop).unwrap_err().to_string()
+    };
+    let config = "vdd_diffusion.config";
+    // A sampler that would run for ever, a network far larger than the file, overflows.
+    let e = load(config, &|c| c["sampling_steps"] = 1_000_000_000_000u64.into());
+    assert!(e.contains("sampling_steps") && e.contains("t.safetensors"), "{e}");
+    let e = load(config, &|c| c["net"]["hidden_dim"] = 65536.into());
+    assert!(e.contains("parameters"), "{e}");
+    let e = load(config, &|c| c["net"]["embed_dim"] = (u64::MAX - 1).into());
+    assert!(e.contains("embed_dim"), "{e}");
+    let e = load("vdd_diffusion.shape", &|s| s["action_dim"] = u64::MAX.into());
+    assert!(e.contains("t.safetensors"), "{e}");
+    let _ = std::fs::remove_dir_all(&dir);
+}

@@ -101,12 +101,65 @@ pub fn save_safetensors(
     write_atomic(path, &to_safetensors_bytes(model, metadata)?)
 }
 
+/// Largest weights file read: [`MAX_PARAMS`](crate::limits::MAX_PARAMS) values in `f64` plus
+/// a header of the `safetensors` format's largest size (100 MB).
+pub const MAX_FILE_BYTES: u64 = crate::limits::MAX_PARAMS as u64 * 8 + 100_000_000;
+
+/// Reads a whole weights file after checking its size against [`MAX_FILE_BYTES`].
+fn read_bounded(path: &Path) -> Result<Vec<u8>, NnError> {
+    let len = std::fs::metadata(path).map_err(io_err(path))?.len();
+    if len > MAX_FILE_BYTES {
+        return Err(format_err(
+            path,
+            format!("the file has {len} bytes, more than the limit of {MAX_FILE_BYTES}"),
+        ));
+    }
+    std::fs::read(path).map_err(io_err(path))
+}
+
 /// Reads only the string metadata of a `safetensors` file (for example a model's config, to
 /// build the model before loading its weights).
 pub fn read_metadata(path: &Path) -> Result<BTreeMap<String, String>, NnError> {
-    let bytes = std::fs::read(path).map_err(io_err(path))?;
+    Ok(read_header(path)?.0)
+}
+
+/// Reads the string metadata of a `safetensors` file and the total number of tensor elements
+/// it holds (over all its tensors), which bounds the parameters of any model it can fill.
+pub fn read_header(path: &Path) -> Result<(BTreeMap<String, String>, usize), NnError> {
+    let bytes = read_bounded(path)?;
     let (_, meta) = SafeTensors::read_metadata(&bytes).map_err(malformed(path))?;
-    Ok(meta.metadata().clone().unwrap_or_default().into_iter().collect())
+    let mut elements = 0usize;
+    for (name, info) in meta.tensors() {
+        let n = info.shape.iter().try_fold(1usize, |acc, &d| acc.checked_mul(d));
+        elements = n.and_then(|n| elements.checked_add(n)).ok_or_else(|| {
+            format_err(path, format!("tensor `{name}` has an overflowing shape {:?}", info.shape))
+        })?;
+    }
+    Ok((meta.metadata().clone().unwrap_or_default().into_iter().collect(), elements))
+}
+
+/// Checks, before a model is built from a file's metadata, that the file can hold it: the
+/// model's parameter count `needed` (`None`: it overflows) must be at most
+/// [`MAX_PARAMS`](crate::limits::MAX_PARAMS) and at most the `elements` the file's tensors
+/// hold ([`read_header`]). `what` names the metadata entry the model comes from.
+pub fn check_fits(
+    path: &Path,
+    what: &str,
+    needed: Option<usize>,
+    elements: usize,
+) -> Result<(), NnError> {
+    let needed = crate::limits::check_params(what, needed)
+        .map_err(|e| format_err(path, format!("{what}: {e}")))?;
+    if needed > elements {
+        return Err(format_err(
+            path,
+            format!(
+                "{what} describes a model of {needed} parameters, the file's tensors hold \
+                 {elements} values"
+            ),
+        ));
+    }
+    Ok(())
 }
 
 /// Loads every parameter of `model` from `path` by name and returns the file's metadata.
@@ -118,7 +171,7 @@ pub fn load_safetensors(
     path: &Path,
     model: &mut dyn Parameters,
 ) -> Result<BTreeMap<String, String>, NnError> {
-    let bytes = std::fs::read(path).map_err(io_err(path))?;
+    let bytes = read_bounded(path)?;
     load_safetensors_bytes(path, &bytes, model)
 }
 
@@ -188,6 +241,16 @@ fn read_tensor(
     };
     if let Some(i) = values.iter().position(|v| !v.is_finite()) {
         return Err(format_err(path, format!("tensor `{name}` has a non-finite value at {i}")));
+    }
+    let limit = crate::limits::MAX_ABS_WEIGHT;
+    if let Some(i) = values.iter().position(|v| v.abs() > limit) {
+        return Err(format_err(
+            path,
+            format!(
+                "tensor `{name}` holds {:e} at index {i}, beyond the limit |w| <= {limit:e}",
+                values[i]
+            ),
+        ));
     }
     Ok(values)
 }
@@ -322,6 +385,37 @@ mod tests {
 
         let missing = path.with_file_name("absent.safetensors");
         assert!(matches!(load_safetensors(&missing, &mut m), Err(NnError::Io { .. })));
+    }
+
+    #[test]
+    fn hostile_files_are_refused_before_anything_large_is_built() {
+        let path = tmp("hostile");
+        let mut a = net(1);
+        a.output_layer_mut().weight.value[3] = -2e6;
+        save_safetensors(&path, &a, &BTreeMap::new()).unwrap();
+        let err = load_safetensors(&path, &mut net(2)).unwrap_err().to_string();
+        assert!(
+            err.contains("-2e6") && err.contains("index 3") && err.contains("hostile"),
+            "{err}"
+        );
+
+        // The file's own tensors bound the model a config may describe.
+        let (_, elements) = read_header(&path).unwrap();
+        let mut count = 0;
+        a.visit_params("", &mut |_, p| count += p.value.len());
+        assert_eq!(elements, count);
+        assert_eq!(a.config().num_params(), Some(count));
+        check_fits(&path, "config", Some(count), elements).unwrap();
+        let err = check_fits(&path, "config", Some(count + 1), elements).unwrap_err();
+        assert!(err.to_string().contains(&format!("{} parameters", count + 1)), "{err}");
+        let wide = ResidualMlpConfig { hidden_dim: 65536, ..a.config().clone() };
+        assert!(check_fits(&path, "config", wide.num_params(), elements).is_err());
+        assert!(check_fits(&path, "config", None, elements).is_err());
+        let mut rng = vdd_core::Seeds::new(0).stream("init");
+        assert!(ResidualMlp::new(&wide, &mut rng).is_err(), "17 GB: refused, not allocated");
+        let overflow = ResidualMlpConfig { in_dim: usize::MAX, ..a.config().clone() };
+        assert_eq!(overflow.num_params(), None);
+        assert!(ResidualMlp::new(&overflow, &mut rng).is_err());
     }
 
     #[test]

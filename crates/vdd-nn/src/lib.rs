@@ -19,6 +19,7 @@ mod error;
 pub mod gradcheck;
 pub mod init;
 pub mod io;
+pub mod limits;
 mod linear;
 mod mlp;
 mod module;

@@ -48,6 +48,12 @@ fn check_widths(what: &str, widths: &[usize]) -> Result<(), NnError> {
             "{what}: every width must be positive, got {widths:?}"
         )));
     }
+    if let Some(w) = widths.iter().find(|&&w| w > crate::limits::MAX_WIDTH) {
+        return Err(NnError::Config(format!(
+            "{what}: width {w} is above the limit of {} ({widths:?})",
+            crate::limits::MAX_WIDTH
+        )));
+    }
     Ok(())
 }
 
@@ -58,6 +64,10 @@ impl Mlp {
         widths.extend(&config.hidden);
         widths.push(config.out_dim);
         check_widths("Mlp", &widths)?;
+        let count = widths
+            .windows(2)
+            .try_fold(0usize, |acc, w| acc.checked_add(crate::limits::linear_params(w[0], w[1])?));
+        crate::limits::check_params("Mlp", count)?;
         let linears = widths.windows(2).map(|w| Linear::new(w[0], w[1], rng)).collect();
         let activations =
             config.hidden.iter().map(|&h| ActivationLayer::new(config.activation, h)).collect();
@@ -147,6 +157,20 @@ pub struct ResidualMlpConfig {
     /// [`ResidualMlp::set_layer_norm_eps`]), as BESO's residual blocks with `use_norm=True`.
     #[serde(default)]
     pub layer_norm: bool,
+}
+
+impl ResidualMlpConfig {
+    /// Number of parameters of the network (`None` if the count overflows `usize`), computed
+    /// without building it; layer norms count their weight and bias.
+    pub fn num_params(&self) -> Option<usize> {
+        use crate::limits::linear_params;
+        let h = self.hidden_dim;
+        let norms = if self.layer_norm { h.checked_mul(4)? } else { 0 };
+        let block = linear_params(h, h)?.checked_mul(2)?.checked_add(norms)?;
+        linear_params(self.in_dim, h)?
+            .checked_add(block.checked_mul(self.num_blocks)?)?
+            .checked_add(linear_params(h, self.out_dim)?)
+    }
 }
 
 /// One pre-activation residual block, BESO's `TwoLayerPreActivationResNetLinear`:
@@ -340,6 +364,14 @@ impl ResidualMlp {
     /// Builds the network with PyTorch's default initialisation.
     pub fn new(config: &ResidualMlpConfig, rng: &mut vdd_core::Rng) -> Result<Self, NnError> {
         check_widths("ResidualMlp", &[config.in_dim, config.hidden_dim, config.out_dim])?;
+        if config.num_blocks > crate::limits::MAX_BLOCKS {
+            return Err(NnError::Config(format!(
+                "ResidualMlp: {} blocks, above the limit of {}",
+                config.num_blocks,
+                crate::limits::MAX_BLOCKS
+            )));
+        }
+        crate::limits::check_params("ResidualMlp", config.num_params())?;
         let input = Linear::new(config.in_dim, config.hidden_dim, rng);
         let blocks = (0..config.num_blocks)
             .map(|_| {

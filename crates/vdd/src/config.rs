@@ -98,11 +98,12 @@ impl VddConfig {
         g_it * self.gating_steps_per_iter as u64
     }
 
-    /// Checks the documented ranges: every count positive, both optimisers'
-    /// [`AdamConfig::validate`] (finite `lr >= 0`, betas in `[0, 1)`, finite `eps > 0`, finite
-    /// `weight_decay >= 0`), `max_grad_norm` finite and positive, `student_ema` in `[0, 1)`,
-    /// and the noise schedule's own ranges. Non-finite values (NaN, or `1e39` read as an `f32`
-    /// infinity) fail.
+    /// Checks the documented ranges: every count positive and at most its limit
+    /// ([`MAX_ITERATIONS`], [`MAX_BATCH_SIZE`], [`MAX_VI_SAMPLES`], [`MAX_STEPS_PER_ITER`],
+    /// [`MAX_SAMPLES_PER_EXPERT`]), both optimisers' [`AdamConfig::validate`] (finite
+    /// `lr >= 0`, betas in `[0, 1)`, finite `eps > 0`, finite `weight_decay >= 0`),
+    /// `max_grad_norm` finite and positive, `student_ema` in `[0, 1)`, and the noise schedule's
+    /// own ranges. Non-finite values (NaN, or `1e39` read as an `f32` infinity) fail.
     pub fn validate(&self) -> Result<(), CoreError> {
         let positive = [
             ("iterations", self.iterations),
@@ -115,6 +116,25 @@ impl VddConfig {
             if v == 0 {
                 return Err(CoreError::Config(format!("{name} must be positive")));
             }
+        }
+        let bounded = [
+            ("iterations", self.iterations, MAX_ITERATIONS),
+            ("batch_size", self.batch_size, MAX_BATCH_SIZE),
+            ("gating_batch_size", self.gating_batch_size, MAX_BATCH_SIZE),
+            ("vi_samples", self.vi_samples, MAX_VI_SAMPLES),
+            ("expert_steps_per_iter", self.expert_steps_per_iter, MAX_STEPS_PER_ITER),
+            ("gating_steps_per_iter", self.gating_steps_per_iter, MAX_STEPS_PER_ITER),
+        ];
+        for (name, v, max) in bounded {
+            if v > max {
+                return Err(CoreError::Config(format!("{name} must be <= {max}, got {v}")));
+            }
+        }
+        if self.batch_size * self.vi_samples > MAX_SAMPLES_PER_EXPERT {
+            return Err(CoreError::Config(format!(
+                "batch_size · vi_samples must be <= {MAX_SAMPLES_PER_EXPERT}, got {} · {}",
+                self.batch_size, self.vi_samples
+            )));
         }
         for (name, opt) in [("expert", &self.expert_optimizer), ("gating", &self.gating_optimizer)]
         {
@@ -167,6 +187,21 @@ impl VddConfig {
         check_fits(&what, bytes)
     }
 }
+
+/// Largest number of iterations of a run.
+pub const MAX_ITERATIONS: usize = 1 << 30;
+/// Largest `batch_size` and `gating_batch_size`.
+pub const MAX_BATCH_SIZE: usize = 1 << 16;
+/// Largest `vi_samples`.
+pub const MAX_VI_SAMPLES: usize = 1 << 12;
+/// Largest `expert_steps_per_iter` and `gating_steps_per_iter`.
+pub const MAX_STEPS_PER_ITER: usize = 10_000;
+/// Largest `batch_size · vi_samples`: the samples of one expert in one expert step (all experts
+/// together hold `num_experts` times as many, see [`MAX_SAMPLES_PER_STEP`]).
+pub const MAX_SAMPLES_PER_EXPERT: usize = 1 << 20;
+/// Largest `batch_size · vi_samples · num_experts`: the teacher's score rows of one expert
+/// step, checked by [`crate::Vdd::new`].
+pub const MAX_SAMPLES_PER_STEP: usize = 1 << 22;
 
 impl Default for VddConfig {
     fn default() -> Self {

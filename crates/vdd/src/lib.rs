@@ -68,7 +68,10 @@ pub mod trainer;
 #[cfg(test)]
 mod test_support;
 
-pub use config::{ExpertWeighting, VddConfig};
+pub use config::{
+    ExpertWeighting, MAX_BATCH_SIZE, MAX_ITERATIONS, MAX_SAMPLES_PER_EXPERT, MAX_SAMPLES_PER_STEP,
+    MAX_STEPS_PER_ITER, MAX_VI_SAMPLES, VddConfig,
+};
 pub use error::VddError;
 pub use spaces::TeacherSpace;
 pub use trainer::{DistillData, IterationMetrics, Vdd};

@@ -240,6 +240,14 @@ impl<S: ScoreModel, E: Expert> Vdd<S, E> {
                 .map_err(|source| VddError::NoGatingActions { source })?;
         }
         let z = mc.num_experts;
+        let rows = config.batch_size * config.vi_samples;
+        if rows.checked_mul(z).is_none_or(|r| r > crate::config::MAX_SAMPLES_PER_STEP) {
+            return Err(CoreError::Config(format!(
+                "batch_size · vi_samples · num_experts must be <= {}, got {rows} · {z}",
+                crate::config::MAX_SAMPLES_PER_STEP
+            ))
+            .into());
+        }
         let student_ema = config.student_ema.map(|decay| Ema::new(&student, decay)).transpose()?;
         Ok(Self {
             expert_optimizer: Adam::new(config.expert_optimizer),

@@ -12,6 +12,8 @@ mod avoiding;
 mod toy;
 mod toy_eval;
 
+pub use toy::check_toy_gmm;
+
 /// Every task.
 pub static REGISTRY: &[&dyn Task] = &[&avoiding::Avoiding, &toy::TOY_GMM, &toy::TOY_CONDITIONAL];
 

@@ -79,6 +79,32 @@ impl ToyRecipe {
     }
 }
 
+/// Resolves a `toy-gmm` recipe file and checks it without doing any work (the fuzzer's
+/// `recipe` target): the plan and the methods' settings as `experiment` checks them, the
+/// ranges of the student, the teachers and every VDD section, and the student's size.
+pub fn check_toy_gmm(file: &Table) -> crate::XResult {
+    let resolved = recipe::resolve(&ToyRecipe::defaults("toy-gmm")?, file, &Overrides::default())?;
+    pipeline::plan(&resolved, "toy-gmm")?;
+    for (_, cfg) in resolved.configs() {
+        let s = &cfg.student;
+        s.validate()?;
+        let family =
+            vdd_moe::ExpertFamily::new(s.expert_kind, s.action_dim, s.init_std, s.min_std)?;
+        vdd_nn::limits::check_params(
+            "the student",
+            s.num_params(vdd_core::Expert::raw_dim(&family)),
+        )?;
+        cfg.teachers.beso.config.validate()?;
+        cfg.teachers.ddpm.config.validate()?;
+        for (name, section) in &cfg.vdd {
+            if let Ok(v) = section.clone().try_into::<vdd::VddConfig>() {
+                v.validate().map_err(|e| format!("vdd.{name}: {e}"))?;
+            }
+        }
+    }
+    Ok(())
+}
+
 impl TaskRecipe for ToyRecipe {
     const METHOD_SECTIONS: &'static [&'static str] = &["vdd"];
     fn header(&self) -> &Header {

@@ -83,21 +83,106 @@ impl MoeConfig {
         }
     }
 
-    pub(super) fn validate(&self) -> Result<(), CoreError> {
-        if self.state_dim == 0 || self.action_dim == 0 || self.num_experts == 0 {
-            return Err(CoreError::Config(
-                "state_dim, action_dim and num_experts must be positive".into(),
-            ));
+    /// Checks every setting against its documented range: `state_dim` in
+    /// `1..=`[`MAX_WIDTH`](vdd_nn::limits::MAX_WIDTH), `action_dim` in `1..=`[`MAX_ACTION_DIM`],
+    /// `num_experts` in `1..=`[`MAX_EXPERTS`] with `num_experts · action_dim²` at most
+    /// [`MAX_SCALE_ENTRIES`] (the experts' scales of one state),
+    /// the networks' `hidden_dim` in `1..=MAX_WIDTH` and `num_blocks` at most
+    /// [`MAX_BLOCKS`](vdd_nn::limits::MAX_BLOCKS), `mean_bias_init` in
+    /// `[0, `[`MAX_ABS_WEIGHT`](vdd_nn::limits::MAX_ABS_WEIGHT)`]`, and `min_std`, `init_std`
+    /// in `[0, `[`MAX_STD`]`]` (the built-in families also need `min_std < init_std`). The parameter count, which also depends on
+    /// the expert family, is checked by [`MoeConfig::num_params`] and [`crate::Moe::new`].
+    ///
+    /// ```
+    /// use vdd_moe::MoeConfig;
+    /// assert!(MoeConfig::toy(2, 2, 8).validate().is_ok());
+    /// let huge = MoeConfig { mean_bias_init: 3e38, ..MoeConfig::toy(2, 2, 8) };
+    /// assert!(huge.validate().unwrap_err().to_string().contains("mean_bias_init"));
+    /// ```
+    pub fn validate(&self) -> Result<(), CoreError> {
+        use vdd_nn::limits::{MAX_ABS_WEIGHT, MAX_BLOCKS, MAX_WIDTH};
+        let sizes = [
+            ("state_dim", self.state_dim, MAX_WIDTH),
+            ("action_dim", self.action_dim, MAX_ACTION_DIM),
+            ("num_experts", self.num_experts, MAX_EXPERTS),
+            ("experts_network.hidden_dim", self.experts_network.hidden_dim, MAX_WIDTH),
+            ("gating_network.hidden_dim", self.gating_network.hidden_dim, MAX_WIDTH),
+        ];
+        for (name, v, max) in sizes {
+            if v == 0 || v > max {
+                return Err(CoreError::Config(format!("{name} must be in 1..={max}, got {v}")));
+            }
         }
-        if !(self.mean_bias_init.is_finite() && self.mean_bias_init >= 0.0) {
-            return Err(CoreError::Config("mean_bias_init must be finite and >= 0".into()));
+        for (name, v) in [
+            ("experts_network.num_blocks", self.experts_network.num_blocks),
+            ("gating_network.num_blocks", self.gating_network.num_blocks),
+        ] {
+            if v > MAX_BLOCKS {
+                return Err(CoreError::Config(format!("{name} must be <= {MAX_BLOCKS}, got {v}")));
+            }
         }
-        if !(self.init_std.is_finite() && self.min_std.is_finite()) {
-            return Err(CoreError::Config("init_std and min_std must be finite".into()));
+        // Every row of a forward pass holds a d x d scale per expert.
+        let scale_entries = self.num_experts * self.action_dim * self.action_dim;
+        if scale_entries > MAX_SCALE_ENTRIES {
+            return Err(CoreError::Config(format!(
+                "num_experts · action_dim² must be <= {MAX_SCALE_ENTRIES}, got {} · {}²",
+                self.num_experts, self.action_dim
+            )));
+        }
+        let w = self.mean_bias_init;
+        if !(w.is_finite() && (0.0..=MAX_ABS_WEIGHT).contains(&w)) {
+            return Err(CoreError::Config(format!(
+                "mean_bias_init must be in [0, {MAX_ABS_WEIGHT:e}], got {w:e}"
+            )));
+        }
+        let (init, min) = (self.init_std, self.min_std);
+        if !((0.0..=MAX_STD).contains(&min) && (0.0..=MAX_STD).contains(&init)) {
+            return Err(CoreError::Config(format!(
+                "min_std and init_std must be in [0, {MAX_STD:e}], got {min} and {init}"
+            )));
         }
         Ok(())
     }
+
+    /// Number of parameters of the mixture with experts of `raw_dim` raw outputs each, without
+    /// building it (`None` if the count overflows `usize`).
+    pub fn num_params(&self, raw_dim: usize) -> Option<usize> {
+        let net = |out_dim: usize, nc: &NetworkConfig| {
+            vdd_nn::ResidualMlpConfig {
+                in_dim: self.state_dim,
+                hidden_dim: nc.hidden_dim,
+                num_blocks: nc.num_blocks,
+                out_dim,
+                activation: nc.activation,
+                layer_norm: false,
+            }
+            .num_params()
+        };
+        let z = self.num_experts;
+        let experts = if self.shared_trunk {
+            net(z.checked_mul(raw_dim)?, &self.experts_network)?
+        } else {
+            net(raw_dim, &self.experts_network)?.checked_mul(z)?
+        };
+        let gating = match self.gating {
+            GatingKind::Uniform => 0,
+            GatingKind::Learned => net(z, &self.gating_network)?,
+        };
+        experts.checked_add(gating)
+    }
 }
+
+/// Largest number of experts of a mixture (far above the paper's 8 to 16).
+pub const MAX_EXPERTS: usize = 1 << 12;
+
+/// Largest action dimension (a flattened chunk of actions) of a mixture.
+pub const MAX_ACTION_DIM: usize = 1 << 10;
+
+/// Largest `num_experts · action_dim²`: the entries of the experts' scale matrices of one state.
+pub const MAX_SCALE_ENTRIES: usize = 1 << 22;
+
+/// Largest initial standard deviation of an expert (`init_std`).
+pub const MAX_STD: f32 = 1e6;
 
 /// How [`Policy::act`](vdd_core::Policy::act) turns the mixture into one action.
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize)]

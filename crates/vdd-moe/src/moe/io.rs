@@ -5,7 +5,7 @@ use std::collections::BTreeMap;
 use std::path::Path;
 
 use serde::{Deserialize, Serialize};
-use vdd_core::{Affine, Expert};
+use vdd_core::{Affine, Expert, check_len};
 
 use super::{Moe, MoeConfig};
 use crate::error::MoeError;
@@ -14,24 +14,36 @@ use crate::experts::ExpertFamily;
 impl Moe<ExpertFamily> {
     /// Loads a mixture saved by [`Moe::save`] (family from the saved configuration).
     pub fn load(path: &Path) -> Result<Self, MoeError> {
-        let (config, meta) = read_config(path)?;
+        let (config, meta, elements) = read_config(path)?;
+        config.validate().map_err(|e| bad_config(path, e))?;
         let family = ExpertFamily::new(
             config.expert_kind,
             config.action_dim,
             config.init_std,
             config.min_std,
         )?;
-        Self::load_with(path, family, Some((config, meta)))
+        Self::load_with(path, family, Some((config, meta, elements)))
     }
 }
 
 /// The metadata key of the deployment spec.
 const DEPLOY_SPEC_KEY: &str = "deploy_spec";
 
-fn read_config(path: &Path) -> Result<(MoeConfig, BTreeMap<String, String>), MoeError> {
-    let meta = vdd_nn::io::read_metadata(path)?;
+/// The metadata and config of a saved mixture, with the number of values its tensors hold.
+type Header = (MoeConfig, BTreeMap<String, String>, usize);
+
+fn read_config(path: &Path) -> Result<Header, MoeError> {
+    let (meta, elements) = vdd_nn::io::read_header(path)?;
     let config: MoeConfig = parse_meta(path, &meta, "config")?;
-    Ok((config, meta))
+    Ok((config, meta, elements))
+}
+
+/// A `config` metadata entry out of its documented ranges.
+fn bad_config(path: &Path, e: vdd_core::CoreError) -> MoeError {
+    MoeError::Nn(vdd_nn::NnError::Format {
+        path: path.to_owned(),
+        reason: format!("`config` metadata: {e}"),
+    })
 }
 
 /// Parses the JSON metadata entry `key` of the file `path`.
@@ -83,15 +95,19 @@ impl<E: Expert> Moe<E> {
         Self::load_with(path, expert, None)
     }
 
-    fn load_with(
-        path: &Path,
-        expert: E,
-        config: Option<(MoeConfig, BTreeMap<String, String>)>,
-    ) -> Result<Self, MoeError> {
-        let (config, meta) = match config {
+    fn load_with(path: &Path, expert: E, config: Option<Header>) -> Result<Self, MoeError> {
+        let (config, meta, elements) = match config {
             Some(c) => c,
             None => read_config(path)?,
         };
+        config.validate().map_err(|e| bad_config(path, e))?;
+        check_len("expert family action_dim", expert.action_dim(), config.action_dim)?;
+        vdd_nn::io::check_fits(
+            path,
+            "the `config` metadata",
+            config.num_params(expert.raw_dim()),
+            elements,
+        )?;
         if meta.contains_key("expert_family") {
             // Files written before the fingerprint existed load without this check.
             let saved: FamilyFingerprint = parse_meta(path, &meta, "expert_family")?;
@@ -168,8 +184,12 @@ impl std::fmt::Display for FamilyFingerprint {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
         let kind = if self.is_diagonal { "a diagonal" } else { "a non-diagonal" };
         let d = self.action_dim;
-        let std0: Vec<f32> =
-            self.probes.first().map_or(Vec::new(), |p| (0..d).map(|i| p[d + i * d + i]).collect());
+        let std0: Vec<f32> = self.probes.first().map_or(Vec::new(), |p| {
+            (0..d.min(p.len()))
+                .filter_map(|i| p.get(d.checked_add(i.checked_mul(d.checked_add(1)?)?)?))
+                .copied()
+                .collect()
+        });
         write!(f, "{kind} family (action_dim {d}, raw_dim {}, initial stds {std0:?})", self.raw_dim)
     }
 }

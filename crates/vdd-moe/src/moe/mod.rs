@@ -9,7 +9,10 @@ mod policy;
 #[cfg(test)]
 mod tests;
 
-pub use config::{ActMode, GatingKind, MoeConfig, NetworkConfig};
+pub use config::{
+    ActMode, GatingKind, MAX_ACTION_DIM, MAX_EXPERTS, MAX_SCALE_ENTRIES, MAX_STD, MoeConfig,
+    NetworkConfig,
+};
 pub use deploy::{DeployedPolicy, load_policy};
 pub use output::MoeOutput;
 
@@ -150,6 +153,7 @@ impl<E: Expert> Moe<E> {
     pub fn new(config: MoeConfig, expert: E, seed: u64) -> Result<Self, MoeError> {
         config.validate()?;
         check_len("expert family action_dim", expert.action_dim(), config.action_dim)?;
+        vdd_nn::limits::check_params("the mixture", config.num_params(expert.raw_dim()))?;
         let seeds = Seeds::new(seed);
         let mut rng = seeds.stream("moe-init");
         let z = config.num_experts;

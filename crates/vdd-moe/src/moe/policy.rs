@@ -199,6 +199,9 @@ impl<E: Expert> Moe<E> {
             if let Some(norm) = action_normalizer.as_ref() {
                 norm.denormalize(action);
             }
+            // Weights are finite and bounded, but a deep network can still overflow: an error,
+            // never a non-finite action.
+            vdd_core::check_finite_slice("actions", action)?;
             for (j, &a) in action.iter().enumerate() {
                 actions[(b, j)] = a;
             }

@@ -405,3 +405,29 @@ impl ScoreModel for IsoGmmNoSampling {
         self.0.score(a, s, l, out)
     }
 }
+
+#[test]
+fn sizes_beyond_the_limits_are_refused_before_allocating() {
+    for (what, edit) in [
+        ("batch_size", &(|c: &mut VddConfig| c.batch_size = 1 << 31) as &dyn Fn(&mut VddConfig)),
+        ("gating_batch_size", &|c: &mut VddConfig| c.gating_batch_size = 1 << 31),
+        ("vi_samples", &|c: &mut VddConfig| c.vi_samples = usize::MAX),
+        ("expert_steps_per_iter", &|c: &mut VddConfig| c.expert_steps_per_iter = 1 << 40),
+        ("batch_size · vi_samples", &|c: &mut VddConfig| {
+            c.batch_size = 1 << 16;
+            c.vi_samples = 1 << 12;
+        }),
+        ("student_ema", &|c: &mut VddConfig| c.student_ema = Some(f32::INFINITY)),
+    ] {
+        let (mut config, teacher, student, data) = small_run(1);
+        edit(&mut config);
+        let e = Vdd::new(config, teacher, student, data).map(drop).unwrap_err();
+        assert!(e.to_string().contains(what), "{what}: {e}");
+    }
+    // Within each limit, but too many samples over all experts.
+    let (mut config, teacher, _, data) = small_run(1);
+    (config.batch_size, config.vi_samples) = (1 << 10, 1 << 10);
+    let student = Moe::from_config(MoeConfig::toy(1, 2, 8), 0).unwrap();
+    let e = Vdd::new(config, teacher, student, data).map(drop).unwrap_err();
+    assert!(e.to_string().contains("num_experts"), "{e}");
+}

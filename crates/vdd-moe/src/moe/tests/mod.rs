@@ -208,5 +208,6 @@ fn assert_close(got: f64, want: f64, tol: f64, what: &str) {
 mod acting;
 mod errors;
 mod gradients;
+mod hostile;
 mod io;
 mod likelihood;

@@ -1,0 +1,65 @@
+//! Documented limits on networks: what a configuration may ask for and what a weights file
+//! may hold. Every network built here and every file loaded through [`crate::io`] is checked
+//! against them before memory is allocated, so a hostile or corrupt configuration (a file's
+//! metadata, a recipe) gives an error instead of an abort, a panic or a hang.
+//!
+//! The limits are far above any model of the paper (its largest networks have well under a
+//! million parameters):
+//!
+//! | limit | value | what it bounds |
+//! |---|---|---|
+//! | [`MAX_WIDTH`] | 65,536 | any single input, hidden or output width |
+//! | [`MAX_BLOCKS`] | 1,024 | residual blocks of one network |
+//! | [`MAX_PARAMS`] | 2^27 (134,217,728; 512 MiB of `f32`) | parameters of one model |
+//! | [`MAX_ABS_WEIGHT`] | 10^6 | magnitude of any weight read from a file |
+//!
+//! ```
+//! use vdd_nn::{limits, Activation, ResidualMlpConfig};
+//! let cfg = ResidualMlpConfig { in_dim: 3, hidden_dim: 32, num_blocks: 2, out_dim: 4,
+//!                               activation: Activation::Mish, layer_norm: false };
+//! assert_eq!(cfg.num_params(), Some(3 * 32 + 32 + 2 * 2 * (32 * 32 + 32) + 32 * 4 + 4));
+//! let huge = ResidualMlpConfig { hidden_dim: 60_000, ..cfg };
+//! assert!(limits::check_params("a network", huge.num_params()).is_err());
+//! ```
+
+use crate::NnError;
+
+/// Largest width (input, hidden or output features) of one layer.
+pub const MAX_WIDTH: usize = 1 << 16;
+
+/// Largest number of residual blocks of one network.
+pub const MAX_BLOCKS: usize = 1024;
+
+/// Largest number of parameters of one model (2^27, 512 MiB of `f32`).
+pub const MAX_PARAMS: usize = 1 << 27;
+
+/// Largest magnitude of a weight read from a file. Trained networks stay orders of magnitude
+/// below it; a value beyond it is corruption, and it would turn outputs non-finite.
+pub const MAX_ABS_WEIGHT: f32 = 1e6;
+
+/// Checks that `value` (the setting `what`) is in `1..=max`.
+pub fn check_size(what: &str, value: usize, max: usize) -> Result<(), NnError> {
+    if value == 0 || value > max {
+        return Err(NnError::Config(format!("{what} must be in 1..={max}, got {value}")));
+    }
+    Ok(())
+}
+
+/// Checks a parameter count computed with checked arithmetic (`None`: it overflowed) against
+/// [`MAX_PARAMS`].
+pub fn check_params(what: &str, count: Option<usize>) -> Result<usize, NnError> {
+    match count {
+        Some(n) if n <= MAX_PARAMS => Ok(n),
+        Some(n) => Err(NnError::Config(format!(
+            "{what} would have {n} parameters, more than the limit of {MAX_PARAMS}"
+        ))),
+        None => Err(NnError::Config(format!(
+            "{what} would have more parameters than the limit of {MAX_PARAMS} (the count overflows)"
+        ))),
+    }
+}
+
+/// Parameters of a linear layer `in_dim → out_dim` (weight and bias), `None` on overflow.
+pub fn linear_params(in_dim: usize, out_dim: usize) -> Option<usize> {
+    in_dim.checked_mul(out_dim)?.checked_add(out_dim)
+}

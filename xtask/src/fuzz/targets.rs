@@ -1,0 +1,310 @@
+//! The fuzzer's targets: the valid seed inputs each one mutates (written by the fuzzer itself),
+//! how a case is mutated, and what a case runs in the child process (load, then use: act,
+//! score, forward, a training step), with outputs checked for non-finite numbers.
+
+use std::io::{Read as _, Write as _};
+use std::path::{Path, PathBuf};
+
+use faer::Mat;
+use rand::Rng as _;
+use rand::seq::IndexedRandom as _;
+use rand_chacha::ChaCha8Rng as Rng;
+use vdd_core::{Affine, NoiseSchedule, Policy, ScoreModel, Seeds};
+use vdd_data::{DeploySpec, Episodes};
+use vdd_moe::{ExpertKind, GatingKind, Moe, MoeConfig};
+
+use super::mutate;
+use crate::XResult;
+
+/// Every target, in the order `all` runs them.
+pub const TARGETS: &[&str] =
+    &["npy", "npz", "safetensors", "moe", "teacher", "checkpoint", "recipe"];
+
+/// What a case did when it loaded: every output finite, or a non-finite one returned as `Ok`.
+pub enum Loaded {
+    /// Loaded and used; every output finite.
+    Finite,
+    /// Loaded, and using it returned a non-finite number without an error.
+    NonFinite(String),
+}
+
+/// Writes the seed inputs of `target` under `dir`, one directory each.
+pub fn write_seeds(target: &str, dir: &Path) -> XResult<Vec<PathBuf>> {
+    let seed_dir = |k: usize| -> XResult<PathBuf> {
+        let d = dir.join(format!("seed{k}"));
+        std::fs::create_dir_all(&d)?;
+        Ok(d)
+    };
+    let mut out = Vec::new();
+    match target {
+        "npy" | "npz" => {
+            let episodes = (0..3)
+                .map(|i| Mat::from_fn(4 + i, 2, |r, c| (r + 2 * c + i) as f32 * 0.1))
+                .collect::<Vec<_>>();
+            let acts = episodes.iter().map(|m| Mat::from_fn(m.nrows(), 2, |r, c| m[(r, c)] - 0.5));
+            let e = Episodes::from_episodes(episodes.clone(), acts.collect())?;
+            let d = seed_dir(0)?;
+            if target == "npy" {
+                e.save_npy_dir(&d)?
+            } else {
+                e.save_npz(&d.join("data.npz"))?
+            }
+            out.push(d);
+        }
+        "safetensors" => {
+            let cfg = net_config();
+            let net = vdd_nn::ResidualMlp::new(&cfg, &mut Seeds::new(0).stream("init"))?;
+            let meta = [("config".to_owned(), serde_json::to_string(&cfg)?)].into();
+            let d = seed_dir(0)?;
+            vdd_nn::io::save_safetensors(&d.join("net.safetensors"), &net, &meta)?;
+            out.push(d);
+        }
+        "moe" => {
+            let d = seed_dir(0)?;
+            Moe::from_config(MoeConfig::toy(2, 2, 4), 0)?.save(&d.join("policy.safetensors"))?;
+            out.push(d);
+            let mut mc = MoeConfig::toy(4, 2, 3);
+            mc.expert_kind = ExpertKind::Full;
+            mc.gating = GatingKind::Learned;
+            mc.experts_network.hidden_dim = 8;
+            mc.gating_network.hidden_dim = 8;
+            let mut moe = Moe::from_config(mc, 1)?;
+            moe.set_normalizers(
+                Some(Affine::new(vec![0.0, 1.0, -1.0, 0.5], vec![1.0, 2.0, 0.5, 1.0])?),
+                Some(Affine::new(vec![0.5, 0.0], vec![0.1, 0.2])?),
+            )?;
+            let spec = DeploySpec { obs_window: 2, ..DeploySpec::identity() };
+            moe.set_deploy_spec(spec)?;
+            let d = seed_dir(1)?;
+            moe.save(&d.join("policy.safetensors"))?;
+            out.push(d);
+        }
+        "teacher" => {
+            use vdd_diffusion::{Beso, BesoConfig, Ddpm, DdpmConfig, NetConfig};
+            let net =
+                NetConfig { hidden_dim: 8, num_blocks: 1, embed_dim: 4, ..Default::default() };
+            let (s, a) = (Affine::identity(1), Affine::new(vec![0.1, -0.2], vec![1.0, 2.0])?);
+            let beso = BesoConfig { net: net.clone(), sampling_steps: 4, ..Default::default() };
+            let d = seed_dir(0)?;
+            Beso::new(&beso, s.clone(), a.clone(), 0)?.save(&d.join("teacher.safetensors"))?;
+            out.push(d);
+            let ddpm = DdpmConfig { net, sampling_steps: 4, ..Default::default() };
+            let d = seed_dir(1)?;
+            Ddpm::new(&ddpm, s, a, 0)?.save(&d.join("teacher.safetensors"))?;
+            out.push(d);
+        }
+        "checkpoint" => {
+            let (config, teacher, data) = checkpoint_run();
+            let mut mc = MoeConfig::toy(1, 2, 3);
+            mc.gating = GatingKind::Learned;
+            mc.experts_network.hidden_dim = 8;
+            mc.gating_network.hidden_dim = 8;
+            let config = vdd::VddConfig { student_ema: Some(0.9), ..config };
+            let mut v = vdd::Vdd::from_config(config, teacher, mc, data)?;
+            v.step()?;
+            let d = seed_dir(0)?;
+            v.write_checkpoint(&d)?;
+            out.push(d);
+        }
+        "recipe" => {
+            let d = seed_dir(0)?;
+            std::fs::write(d.join("recipe.toml"), include_str!("../../../recipes/toy-gmm.toml"))?;
+            out.push(d);
+        }
+        other => return Err(format!("unknown fuzz target `{other}`").into()),
+    }
+    Ok(out)
+}
+
+fn net_config() -> vdd_nn::ResidualMlpConfig {
+    vdd_nn::ResidualMlpConfig {
+        in_dim: 3,
+        hidden_dim: 8,
+        num_blocks: 1,
+        out_dim: 2,
+        activation: vdd_nn::Activation::Mish,
+        layer_norm: false,
+    }
+}
+
+/// The toy run the checkpoint seeds come from and the cases resume.
+fn checkpoint_run() -> (vdd::VddConfig, vdd_core::gmm::GmmTeacher, vdd::DistillData) {
+    let gmm = vdd_core::gmm::Gmm::circle(4, 2.0, 0.5, 0.0).expect("a valid mixture");
+    let config = vdd::VddConfig {
+        iterations: 4,
+        batch_size: 4,
+        vi_samples: 4,
+        gating_batch_size: 8,
+        ..vdd::VddConfig::toy()
+    };
+    let data = vdd::DistillData::from_states(Mat::zeros(8, 1)).expect("valid states");
+    (config, vdd_core::gmm::GmmTeacher::fixed(gmm, 1), data)
+}
+
+/// Keys the recipe mutations set (sizes, counts, rates and ranges).
+const RECIPE_KEYS: &[&str] = &[
+    "seeds",
+    "data.points",
+    "student.num_experts",
+    "student.state_dim",
+    "student.action_dim",
+    "student.experts_network.hidden_dim",
+    "student.experts_network.num_blocks",
+    "student.gating_network.hidden_dim",
+    "student.mean_bias_init",
+    "student.init_std",
+    "student.min_std",
+    "vdd.exact.iterations",
+    "vdd.exact.batch_size",
+    "vdd.exact.vi_samples",
+    "vdd.exact.gating_batch_size",
+    "vdd.exact.expert_steps_per_iter",
+    "vdd.exact.expert_optimizer.lr",
+    "vdd.exact.noise.level",
+    "vdd.exact.student_ema",
+    "vdd.exact.max_grad_norm",
+    "teachers.beso.config.sampling_steps",
+    "teachers.ddpm.config.num_steps",
+    "teachers.beso.config.net.hidden_dim",
+    "teachers.beso.train.batch_size",
+    "teachers.beso.train.steps",
+    "eval.kl_samples",
+];
+
+/// Mutates one file of `case` (a copy of a seed directory) in place.
+pub fn mutate_case(target: &str, case: &Path, rng: &mut Rng) -> XResult {
+    let edit = |name: &str, f: &mut dyn FnMut(&mut Vec<u8>)| -> XResult {
+        let path = case.join(name);
+        let mut bytes = std::fs::read(&path)?;
+        f(&mut bytes);
+        std::fs::write(&path, bytes)?;
+        Ok(())
+    };
+    match target {
+        "npy" => {
+            let names = ["observations_seq.npy", "actions_seq.npy", "existence_mask.npy"];
+            let name = names.choose(rng).copied().unwrap_or(names[0]);
+            edit(name, &mut |b| mutate::npy(rng, b))
+        }
+        "npz" if rng.random_bool(0.8) => {
+            let path = case.join("data.npz");
+            let bytes = std::fs::read(&path)?;
+            std::fs::write(&path, rezip(&bytes, rng)?)?;
+            Ok(())
+        }
+        "npz" => edit("data.npz", &mut |b| mutate::bytes(rng, b)),
+        "safetensors" => edit("net.safetensors", &mut |b| mutate::safetensors(rng, b)),
+        "moe" => edit("policy.safetensors", &mut |b| mutate::safetensors(rng, b)),
+        "teacher" => edit("teacher.safetensors", &mut |b| mutate::safetensors(rng, b)),
+        "checkpoint" if rng.random() => edit("trainer.json", &mut |b| mutate::json_file(rng, b)),
+        "checkpoint" => edit("student.safetensors", &mut |b| mutate::safetensors(rng, b)),
+        "recipe" => edit("recipe.toml", &mut |b| mutate::toml_file(rng, b, RECIPE_KEYS)),
+        other => Err(format!("unknown fuzz target `{other}`").into()),
+    }
+}
+
+/// The archive with one entry mutated as an `.npy` file, rewritten stored or deflated.
+fn rezip(bytes: &[u8], rng: &mut Rng) -> XResult<Vec<u8>> {
+    let mut zin = zip::ZipArchive::new(std::io::Cursor::new(bytes))?;
+    let mut entries = Vec::new();
+    for i in 0..zin.len() {
+        let mut f = zin.by_index(i)?;
+        let mut data = Vec::new();
+        f.read_to_end(&mut data)?;
+        entries.push((f.name().to_owned(), data));
+    }
+    let k = rng.random_range(0..entries.len().max(1));
+    if let Some((_, data)) = entries.get_mut(k) {
+        mutate::npy(rng, data);
+    }
+    let method = if rng.random() {
+        zip::CompressionMethod::Deflated
+    } else {
+        zip::CompressionMethod::Stored
+    };
+    let mut zout = zip::ZipWriter::new(std::io::Cursor::new(Vec::new()));
+    for (name, data) in entries {
+        zout.start_file(name, zip::write::FileOptions::default().compression_method(method))?;
+        zout.write_all(&data)?;
+    }
+    Ok(zout.finish()?.into_inner())
+}
+
+/// Runs one case (in the child process): loads the case's input and uses it.
+pub fn run_case(target: &str, case: &Path) -> XResult<Loaded> {
+    let mut outputs: Vec<f32> = Vec::new();
+    match target {
+        "npy" | "npz" => {
+            let e = if target == "npy" {
+                Episodes::load_npy_dir(case)?
+            } else {
+                Episodes::load_npz(&case.join("data.npz"))?
+            };
+            outputs.extend(e.padded_observations());
+            outputs.extend(e.padded_actions());
+        }
+        "safetensors" => {
+            let path = case.join("net.safetensors");
+            let (meta, elements) = vdd_nn::io::read_header(&path)?;
+            let cfg: vdd_nn::ResidualMlpConfig =
+                serde_json::from_str(meta.get("config").ok_or("no config metadata")?)?;
+            vdd_nn::io::check_fits(&path, "config", cfg.num_params(), elements)?;
+            let mut net = vdd_nn::ResidualMlp::new(&cfg, &mut Seeds::new(0).stream("init"))?;
+            vdd_nn::io::load_safetensors(&path, &mut net)?;
+            let x = Mat::from_fn(4, cfg.in_dim, |i, j| (i as f32 - 1.5) * (j as f32 + 1.0));
+            let y = vdd_nn::Module::forward(&mut net, x.as_ref());
+            outputs.extend((0..y.nrows()).flat_map(|i| (0..y.ncols()).map(move |j| y[(i, j)])));
+        }
+        "moe" => {
+            let path = case.join("policy.safetensors");
+            let mut moe = Moe::load(&path)?;
+            let obs = Mat::from_fn(3, moe.obs_dim(), |i, j| (i + j) as f32 * 0.3 - 0.5);
+            let mut actions = Mat::zeros(3, moe.action_dim());
+            moe.act_batch(obs.as_ref(), actions.as_mut())?;
+            outputs.extend(
+                (0..3)
+                    .flat_map(|i| (0..actions.ncols()).map(move |j| (i, j)))
+                    .map(|ij| actions[ij]),
+            );
+            let mut policy = vdd_moe::load_policy(&path)?;
+            for step in 0..3 {
+                let o: Vec<f32> = (0..policy.obs_dim()).map(|j| (step + j) as f32 * 0.2).collect();
+                outputs.extend(policy.act(&o)?);
+            }
+        }
+        "teacher" => {
+            let mut t =
+                vdd_diffusion::DiffusionTeacher::load(&case.join("teacher.safetensors"), 0)?;
+            let (ds, da) = (ScoreModel::state_dim(&t), ScoreModel::action_dim(&t));
+            let n = 3;
+            let mut levels = vec![0.0; n];
+            let mut rng = Seeds::new(0).stream("levels");
+            t.draw_noise_levels(&NoiseSchedule::Fixed { level: 0.5 }, 0.5, &mut rng, &mut levels);
+            let a = Mat::from_fn(n, da, |i, j| (i + j) as f32 * 0.2 - 0.3);
+            let s = Mat::from_fn(n, ds, |i, j| (i * j) as f32 * 0.1);
+            let mut out = Mat::zeros(n, da);
+            t.score(a.as_ref(), s.as_ref(), &levels, out.as_mut())?;
+            outputs.extend((0..n).flat_map(|i| (0..da).map(move |j| (i, j))).map(|ij| out[ij]));
+            let obs: Vec<f32> = (0..Policy::obs_dim(&t)).map(|j| j as f32 * 0.1).collect();
+            outputs.extend(t.act(&obs)?);
+        }
+        "checkpoint" => {
+            let (_, teacher, data) = checkpoint_run();
+            let mut v = vdd::Vdd::resume(case, teacher, data)?;
+            let m = v.step()?;
+            outputs.extend([m.expert.expert_entropy, m.gating_entropy, m.expert_lr]);
+            outputs.extend(m.gating_loss);
+            let mut student = v.into_student();
+            outputs.extend(student.act(&[0.0])?);
+        }
+        "recipe" => {
+            let file = crate::recipe::read_recipe(&case.join("recipe.toml"))?;
+            crate::tasks::check_toy_gmm(&file)?;
+        }
+        other => return Err(format!("unknown fuzz target `{other}`").into()),
+    }
+    Ok(match outputs.iter().position(|v| !v.is_finite()) {
+        Some(i) => Loaded::NonFinite(format!("output {i} is {}", outputs[i])),
+        None => Loaded::Finite,
+    })
+}
