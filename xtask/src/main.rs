@@ -27,6 +27,7 @@ mod recipe;
 mod report;
 mod tasks;
 mod teachers;
+mod tuning;
 
 /// Errors of any xtask command, printed at the top level.
 pub type XResult<T = ()> = Result<T, Box<dyn std::error::Error>>;
