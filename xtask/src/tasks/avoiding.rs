@@ -6,7 +6,8 @@
 //! the run seed drives teacher training, student initialisation and training, and the
 //! evaluation rollouts (`vdd_tasks::avoiding::EvalProtocol`: the same episode seeds for every
 //! method of a seed, so methods are compared on the same episodes). Every `seed` field inside the
-//! component configurations is replaced by the run seed.
+//! component configurations is replaced by the run seed. Tuning runs (seeds 100–104,
+//! `--tuning`) use their own demonstrations and are logged: [`crate::tuning`].
 
 use std::time::Instant;
 
