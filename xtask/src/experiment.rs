@@ -32,7 +32,8 @@ pub struct ExperimentArgs {
     #[arg(long, visible_alias = "seed", value_name = "SEEDS", value_parser = seed_list)]
     pub seeds: Option<SeedList>,
     /// Methods, comma-separated, or `all` (ddpm, beso, ddpm-1, beso-1, cd, ctm, em, imc,
-    /// vdd-ddpm, vdd-beso; toys: vdd-exact; the registry in xtask/src/methods/).
+    /// vdd-ddpm, vdd-beso, then beso-d3il, beso-d3il-1, vdd-beso-learned, vdd-beso-d3il,
+    /// imc-authors; toys: vdd-exact; the registry in xtask/src/methods/).
     #[arg(long, value_name = "A,B")]
     pub methods: Option<String>,
     /// Override any recipe key; the value is parsed as TOML, a bare word is a string
@@ -52,6 +53,11 @@ pub struct ExperimentArgs {
     /// checkpoint to `<run>/checkpoints/`); the results equal an uninterrupted run's.
     #[arg(long)]
     pub resume: bool,
+    /// A tuning run: the tuning seeds (100–104 unless --seeds says which) and their own
+    /// demonstrations; results under results/tuning/, every method appended to the tuning log
+    /// (Avoiding; see xtask/src/tuning.rs).
+    #[arg(long)]
+    pub tuning: bool,
     /// toy-gmm: the teacher VDD distils (shorthand for --methods vdd-<teacher>).
     #[arg(long, value_parser = ["exact", "ddpm", "beso"])]
     pub teacher: Option<String>,
@@ -111,6 +117,7 @@ impl ExperimentArgs {
             ("experts", self.experts.map(|n| n.to_string())),
             ("lr", self.lr.clone()),
             ("weighting", self.weighting.clone()),
+            ("tuning", self.tuning.then(|| "true".to_owned())),
         ];
         given.into_iter().filter_map(|(k, v)| Some((k.to_owned(), v?))).collect()
     }

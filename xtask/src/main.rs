@@ -19,8 +19,8 @@ mod bench_teachers;
 mod context;
 mod demos;
 mod experiment;
-mod import;
 mod fuzz;
+mod import;
 mod method;
 mod methods;
 mod pipeline;
@@ -30,6 +30,7 @@ mod recipe;
 mod report;
 mod tasks;
 mod teachers;
+mod tuning;
 
 /// Errors of any xtask command, printed at the top level.
 pub type XResult<T = ()> = Result<T, Box<dyn std::error::Error>>;

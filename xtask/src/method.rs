@@ -42,6 +42,11 @@ pub trait Method: Sync {
     fn check(&self, recipe: &MethodRecipe<'_>) -> crate::XResult;
     /// Trains on `job`.
     fn train(&self, job: &Job<'_>) -> crate::XResult<Trained>;
+    /// The learned teachers it is distilled from or is: the recipe's `teachers` unless the
+    /// method brings its own (the D3IL-style BESO rows). Their cache keys follow from it.
+    fn teachers(&self, recipe: &MethodRecipe<'_>) -> crate::XResult<TeachersConfig> {
+        Ok(recipe.teachers.clone())
+    }
     /// [`Info::name`].
     fn name(&self) -> &'static str {
         self.info().name
@@ -174,6 +179,17 @@ pub struct Trained {
     pub noise_level: Option<f32>,
     /// Learning curves.
     pub curves: Curves,
+    /// Optimiser steps and batch of the method's own training (not its teacher's).
+    pub budget: Option<Budget>,
+}
+
+/// A training budget: optimiser steps of a given batch size.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Budget {
+    /// Optimiser steps.
+    pub steps: u64,
+    /// Rows (states, or state-action pairs) per step.
+    pub batch: usize,
 }
 
 impl Trained {
@@ -187,6 +203,7 @@ impl Trained {
             iterations: None,
             noise_level: None,
             curves,
+            budget: None,
         }
     }
 }

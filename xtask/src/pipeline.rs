@@ -67,16 +67,14 @@ pub struct Entry<'r, R> {
     pub cfg: &'r R,
     /// `cfg` as a TOML tree, for the method's own keys.
     tree: Table,
+    /// The teachers of the method ([`Method::teachers`]).
+    teachers: TeachersConfig,
 }
 
 impl<R: TaskRecipe> Entry<'_, R> {
     /// The method's view of the configuration.
     pub fn recipe(&self) -> MethodRecipe<'_> {
-        MethodRecipe {
-            teachers: self.cfg.teachers(),
-            student: self.cfg.student(),
-            tree: &self.tree,
-        }
+        MethodRecipe { teachers: &self.teachers, student: self.cfg.student(), tree: &self.tree }
     }
 }
 
@@ -101,7 +99,10 @@ pub fn plan<'r, R: TaskRecipe>(
         check_method_sections::<R>(task, &tree, cfg)?;
         for method in methods::parse_methods(&cfg.header().methods, task)? {
             let label = methods::label(method, variant.map(|v| v.name.as_str()));
-            out.push(Entry { label, method, cfg, tree: tree.clone() });
+            let view =
+                MethodRecipe { teachers: cfg.teachers(), student: cfg.student(), tree: &tree };
+            let teachers = method.teachers(&view).map_err(|e| format!("{label}: {e}"))?;
+            out.push(Entry { label, method, cfg, tree: tree.clone(), teachers });
         }
     }
     Ok(out)
@@ -235,7 +236,7 @@ pub fn train_all<R: TaskRecipe, P: AsRef<TrainingData> + Sync>(
     for (si, &seed) in seeds.iter().enumerate() {
         for (pi, e) in plan.iter().enumerate() {
             if let Some(kind) = e.method.info().teacher {
-                let key = teacher_key(kind, e.cfg.teachers(), data.get(si, pi).as_ref(), seed)?;
+                let key = teacher_key(kind, &e.teachers, data.get(si, pi).as_ref(), seed)?;
                 if !teacher_jobs.iter().any(|j| j.0 == key) {
                     teacher_jobs.push((key, kind, si, pi));
                 }
@@ -260,7 +261,7 @@ pub fn train_all<R: TaskRecipe, P: AsRef<TrainingData> + Sync>(
             Work::Method(si, pi) => (si, pi),
         };
         let (e, seed, d) = (&plan[pi], seeds[si], data.get(si, pi).as_ref());
-        let cfg = e.cfg.teachers();
+        let cfg = &e.teachers;
         if let Work::Teacher(i) = *w {
             let kind = teacher_jobs[i].1;
             let label = format!("{} s{seed}", teachers::kind_name(kind));

@@ -17,6 +17,10 @@ pub struct TableArgs {
     /// Also write the tables to FILE.
     #[arg(long, value_name = "FILE")]
     pub out: Option<PathBuf>,
+    /// Add the budget columns: training steps, batch and configurations tried on the tuning
+    /// seeds.
+    #[arg(long)]
+    pub budgets: bool,
 }
 
 /// `cargo xtask table [--out FILE] [RUN_DIR | metrics.json]...`: one mean ± std table over
@@ -24,6 +28,7 @@ pub struct TableArgs {
 /// per recipe over every run under `results/` (the teacher cache excluded).
 pub fn run_table(args: &TableArgs) -> crate::XResult {
     let (paths, out) = (&args.runs, &args.out);
+    let extra = if args.budgets { budget_columns() } else { Vec::new() };
     let text = if paths.is_empty() {
         let groups = find_runs(&crate::recipe::repo_root().join("results"));
         if groups.is_empty() {
@@ -33,12 +38,12 @@ pub fn run_table(args: &TableArgs) -> crate::XResult {
         }
         let mut text = String::new();
         for (_, runs) in groups {
-            text.push_str(&table_text(&runs)?);
+            text.push_str(&table_text(&runs, &extra)?);
             text.push('\n');
         }
         text
     } else {
-        table_text(paths)?
+        table_text(paths, &extra)?
     };
     print!("{text}");
     if let Some(out) = out {
@@ -49,8 +54,8 @@ pub fn run_table(args: &TableArgs) -> crate::XResult {
 }
 
 /// The table of the runs at `paths`, its notes printed to stderr.
-fn table_text(paths: &[PathBuf]) -> crate::XResult<String> {
-    let Table { text, notes } = table_of_runs(paths)?;
+fn table_text(paths: &[PathBuf], extra: &[Column]) -> crate::XResult<String> {
+    let Table { text, notes } = table_of_runs_with(paths, extra)?;
     for n in &notes {
         eprintln!("note: {n}");
     }

@@ -117,6 +117,37 @@ impl Default for BesoConfig {
 }
 
 impl BesoConfig {
+    /// The BESO agent of D3IL (`ALRhub/d3il`, `configs/agents/beso_agent.yaml`), the teacher of
+    /// the VDD paper: `σ ∈ [0.1, 1]`, `σ_data = 0.5`, training levels log-logistic with
+    /// `loc = ln σ_data` and scale 0.5 (BESO's `rand_log_logistic`, truncated to the range),
+    /// the Euler-ancestral sampler on D3IL's linear grid from `σ_max` to `σ_min` (a Karras grid
+    /// with `ρ = 1`; D3IL's `rho: 5` is not used by its `linear` schedule) and 8 sampling
+    /// steps. The network and normalisers are this crate's defaults (D3IL's is a transformer).
+    ///
+    /// ```
+    /// use vdd_diffusion::{karras_sigmas, BesoConfig, KarrasSampler};
+    /// let c = BesoConfig::d3il();
+    /// c.validate().unwrap();
+    /// assert_eq!(c.sampler, KarrasSampler::EulerAncestral);
+    /// // One step (BESO-1) denoises from σ_max = 1 in one go; three steps are evenly spaced.
+    /// assert_eq!(karras_sigmas(1, c.sigma_min, c.sigma_max, c.rho).unwrap(), vec![1.0, 0.0]);
+    /// let g = karras_sigmas(3, c.sigma_min, c.sigma_max, c.rho).unwrap();
+    /// assert!((g[1] - 0.55).abs() < 1e-6 && (g[2] - 0.1).abs() < 1e-6);
+    /// ```
+    pub fn d3il() -> Self {
+        let sigma_data = 0.5f32;
+        Self {
+            sigma_data,
+            training_sigma: SigmaDistribution::LogLogistic { loc: sigma_data.ln(), scale: 0.5 },
+            sigma_min: 0.1,
+            sigma_max: 1.0,
+            rho: 1.0,
+            sampler: KarrasSampler::EulerAncestral,
+            sampling_steps: 8,
+            ..Self::default()
+        }
+    }
+
     /// Checks the numbers.
     pub fn validate(&self) -> Result<()> {
         self.net.validate()?;

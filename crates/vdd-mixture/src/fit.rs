@@ -149,6 +149,52 @@ pub fn weighted_nll_gradients<E: Expert>(
     Ok(loss)
 }
 
+/// [`weighted_nll_gradients`] with every expert's covariance fixed to the identity:
+/// `Σ_{b,z} w_{bz} ½‖a_b − μ_z(s_b)‖²` (the constant `(d/2) log 2π` left out), gradients to
+/// the means only (the scales get zero gradient).
+pub(crate) fn weighted_unit_nll_gradients<E: Expert>(
+    expert: &E,
+    out: &MoeOutput,
+    actions: MatRef<'_, f32>,
+    weights: &[f32],
+    buf: &mut FitBuffers,
+) -> Result<f64, CoreError> {
+    let (n, z_n, d, r) = (out.n, out.num_experts, out.action_dim, expert.raw_dim());
+    check_shape("actions", actions, n, d)?;
+    check_len("weights", weights.len(), n * z_n)?;
+    check_len("raw outputs", out.raw.len(), n * z_n * r)?;
+    check_finite_slice("weights", weights)?;
+    buf.grad_raw.resize(n * z_n * r, 0.0);
+    buf.d_mean.resize(d, 0.0);
+    buf.d_scale.resize(d * d, 0.0);
+    buf.d_scale.fill(0.0);
+    let mut loss = 0.0f64;
+    for b in 0..n {
+        for k in 0..z_n {
+            let bz = b * z_n + k;
+            let w = weights[bz];
+            let g = &mut buf.grad_raw[bz * r..(bz + 1) * r];
+            if w == 0.0 {
+                g.fill(0.0);
+                continue;
+            }
+            let mean = out.mean(b, k);
+            let mut half_sq = 0.0f32;
+            for j in 0..d {
+                let diff = actions[(b, j)] - mean[j];
+                half_sq += 0.5 * diff * diff;
+                buf.d_mean[j] = -diff;
+            }
+            loss += f64::from(w) * f64::from(half_sq);
+            expert.backward(&out.raw[bz * r..(bz + 1) * r], &buf.d_mean, &buf.d_scale, g);
+            for x in g.iter_mut() {
+                *x *= w;
+            }
+        }
+    }
+    Ok(loss)
+}
+
 /// Evaluates the mixture on every pair of `data` (in chunks of [`EVAL_CHUNK`] rows) and returns
 /// the mean log-likelihood `(1/n) Σ_o log q(a_o|s_o)`.
 ///
@@ -294,8 +340,38 @@ pub fn expert_step<E: Expert>(
     iteration: usize,
     buf: &mut FitBuffers,
 ) -> Result<f64, MixtureError> {
+    let step = StepArgs { lr_factor, max_grad_norm, iteration, unit_variance: false };
+    expert_step_with(student, states, actions, weights, optimizer, step, buf)
+}
+
+/// The per-step settings of [`expert_step_with`].
+#[derive(Debug, Clone, Copy)]
+pub(crate) struct StepArgs {
+    pub(crate) lr_factor: f32,
+    pub(crate) max_grad_norm: Option<f32>,
+    pub(crate) iteration: usize,
+    /// Score the experts as `N(μ_z, I)` (their scales neither used nor trained).
+    pub(crate) unit_variance: bool,
+}
+
+/// [`expert_step`], optionally with unit-variance experts.
+fn expert_step_with<E: Expert>(
+    student: &mut Moe<E>,
+    states: MatRef<'_, f32>,
+    actions: MatRef<'_, f32>,
+    weights: &[f32],
+    optimizer: &mut Adam,
+    step: StepArgs,
+    buf: &mut FitBuffers,
+) -> Result<f64, MixtureError> {
+    let StepArgs { lr_factor, max_grad_norm, iteration, unit_variance } = step;
     student.forward_experts(states)?;
-    let loss = weighted_nll_gradients(student.expert(), student.output(), actions, weights, buf)?;
+    let (expert, out) = (student.expert(), student.output());
+    let loss = if unit_variance {
+        weighted_unit_nll_gradients(expert, out, actions, weights, buf)?
+    } else {
+        weighted_nll_gradients(expert, out, actions, weights, buf)?
+    };
     if !loss.is_finite() {
         return Err(MixtureError::NonFinite { iteration, quantity: "expert loss" });
     }
@@ -487,6 +563,8 @@ pub(crate) struct MixtureFit<E: Expert> {
     row_weights: Vec<f32>,
     grad_logits: Mat<f32>,
     buf: FitBuffers,
+    /// Expert steps score the experts as `N(μ_z, I)` ([`weighted_unit_nll_gradients`]).
+    pub(crate) unit_variance: bool,
 }
 
 impl<E: Expert> MixtureFit<E> {
@@ -511,6 +589,7 @@ impl<E: Expert> MixtureFit<E> {
             row_weights: Vec::new(),
             grad_logits: Mat::zeros(0, 0),
             buf: FitBuffers::default(),
+            unit_variance: false,
             student,
             data,
         })
@@ -548,15 +627,19 @@ impl<E: Expert> MixtureFit<E> {
             let factor = phase.schedule.factor(self.expert_optimizer.steps(), total);
             lr = phase.optimizer.lr * factor;
             let (states, actions) = rows(&self.batch, &self.data, full);
-            loss = expert_step(
+            let step = StepArgs {
+                lr_factor: factor,
+                max_grad_norm: settings.max_grad_norm,
+                iteration: self.iteration,
+                unit_variance: self.unit_variance,
+            };
+            loss = expert_step_with(
                 &mut self.student,
                 states,
                 actions,
                 &self.weights,
                 &mut self.expert_optimizer,
-                factor,
-                settings.max_grad_norm,
-                self.iteration,
+                step,
                 &mut self.buf,
             )?;
         }

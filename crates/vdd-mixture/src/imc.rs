@@ -95,6 +95,31 @@ pub enum GatingData {
     Curriculum,
 }
 
+/// Which IMC [`Imc`] runs.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, Default)]
+#[serde(rename_all = "snake_case")]
+pub enum ImcVariant {
+    /// The paper's equations (the module docs): learned expert scales, curricula normalised
+    /// jointly over all (point, expert) pairs, the gating fitted every iteration.
+    #[default]
+    Paper,
+    /// The authors' code (Blessing et al.'s `InformationMaximizingCurriculum`): experts scored
+    /// as `N(μ_z, I)` (`ℓ_z(o) = −½‖a_o − μ_z(s_o)‖²`; their scales are neither used nor
+    /// trained, and the fitted mixture acts with its means), log curricula
+    /// `ℓ_z(o)/η + log p(z|o)` normalised per data point (the best expert of every point gets
+    /// weight 1, so no point is dropped), experts fitted on uniform minibatches weighted by
+    /// their curricula, and the gating fitted once at the end, to `p(z|o)`, with all of the
+    /// run's gating steps. [`ImcMetrics::objective`] and [`Imc::curricula`] then describe the
+    /// curricula normalised jointly.
+    Authors,
+}
+
+impl ImcVariant {
+    fn is_paper(&self) -> bool {
+        *self == ImcVariant::Paper
+    }
+}
+
 /// Hyper-parameters of [`Imc`]. [`ImcConfig::toy`] is the one default used on every task.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct ImcConfig {
@@ -124,6 +149,9 @@ pub struct ImcConfig {
     pub max_grad_norm: Option<f32>,
     /// Root seed of every random draw of the run.
     pub seed: u64,
+    /// The paper's IMC or the authors' (absent in a recipe: the paper's).
+    #[serde(default, skip_serializing_if = "ImcVariant::is_paper")]
+    pub variant: ImcVariant,
 }
 
 impl ImcConfig {
@@ -151,6 +179,7 @@ impl ImcConfig {
             gating_lr_schedule: em.gating_lr_schedule,
             max_grad_norm: em.max_grad_norm,
             seed: em.seed,
+            variant: ImcVariant::Paper,
         }
     }
 
@@ -297,7 +326,7 @@ impl Curricula {
     }
 }
 
-fn log_sum_exp(xs: &[f64]) -> f64 {
+pub(crate) fn log_sum_exp(xs: &[f64]) -> f64 {
     let m = xs.iter().copied().fold(f64::NEG_INFINITY, f64::max);
     if !m.is_finite() {
         return m;
@@ -363,6 +392,8 @@ pub struct Imc<E: Expert = ExpertFamily> {
     log_lik: Vec<f32>,
     posterior: Vec<f32>,
     marginal: Vec<f64>,
+    /// The authors' log curricula `log c(o, z)`, normalised per point (`N·Z`).
+    per_point: Vec<f64>,
 }
 
 impl Imc {
@@ -404,11 +435,14 @@ impl<E: Expert> Imc<E> {
             .into());
         }
         let (n, z_n) = (fit.data.len(), fit.student.num_experts());
+        let mut fit = fit;
+        fit.unit_variance = config.variant == ImcVariant::Authors;
         Ok(Self {
             curricula: Curricula::uniform(n, z_n)?,
             log_lik: vec![0.0; n * z_n],
             posterior: vec![0.0; n * z_n],
             marginal: vec![0.0; n],
+            per_point: vec![0.0; n * z_n],
             config,
             fit,
         })
@@ -478,6 +512,9 @@ impl<E: Expert> Trainer for Imc<E> {
     /// One IMC iteration. On error the steps already taken stay applied and the iteration
     /// counter does not advance (a failed curriculum update leaves the curricula unchanged).
     fn step(&mut self) -> Result<ImcMetrics, MixtureError> {
+        if self.config.variant == ImcVariant::Authors {
+            return self.step_authors();
+        }
         let it = self.fit.iteration;
         let (n, z_n) = (self.fit.data.len(), self.fit.student.num_experts());
         let eta = self.config.eta;
@@ -554,5 +591,6 @@ impl<E: Expert> Trainer for Imc<E> {
     }
 }
 
+mod authors;
 #[cfg(test)]
 mod tests;

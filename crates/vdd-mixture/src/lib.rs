@@ -56,4 +56,4 @@ mod test_support;
 pub use dataset::Dataset;
 pub use em::{Em, EmConfig, EmMetrics};
 pub use error::MixtureError;
-pub use imc::{Curricula, GatingData, Imc, ImcConfig, ImcMetrics};
+pub use imc::{Curricula, GatingData, Imc, ImcConfig, ImcMetrics, ImcVariant};

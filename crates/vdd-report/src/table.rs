@@ -54,6 +54,43 @@ pub fn columns_for(task: &str) -> Vec<Column> {
     }
 }
 
+/// The budget columns (`--budgets` of `cargo xtask table`): optimiser steps and batch of a
+/// method's own training, and the configurations tried on the tuning seeds. Their cells show
+/// the value when every seed agrees, else the range ([`budget_cell`]).
+///
+/// ```
+/// let keys: Vec<_> = vdd_report::table::budget_columns().iter().map(|c| c.key).collect();
+/// assert_eq!(keys, ["train_steps", "train_batch", "tuning_configs"]);
+/// ```
+pub fn budget_columns() -> Vec<Column> {
+    BUDGET_KEYS
+        .iter()
+        .zip(["train steps", "batch", "configs tried"])
+        .map(|(&k, h)| col(k, h, 0))
+        .collect()
+}
+
+/// The keys of [`budget_columns`].
+pub const BUDGET_KEYS: [&str; 3] = ["train_steps", "train_batch", "tuning_configs"];
+
+/// A budget cell: the value when all agree, `min–max` otherwise, `–` when missing.
+///
+/// ```
+/// use vdd_report::table::budget_cell;
+/// assert_eq!(budget_cell(&[96000.0, 96000.0]), "96000");
+/// assert_eq!(budget_cell(&[1.0, 3.0]), "1–3");
+/// assert_eq!(budget_cell(&[]), "–");
+/// ```
+pub fn budget_cell(xs: &[f64]) -> String {
+    let lo = xs.iter().copied().fold(f64::INFINITY, f64::min);
+    let hi = xs.iter().copied().fold(f64::NEG_INFINITY, f64::max);
+    match xs.len() {
+        0 => "–".into(),
+        _ if lo == hi => format!("{lo:.0}"),
+        _ => format!("{lo:.0}–{hi:.0}"),
+    }
+}
+
 /// `mean ± std` (just the mean for one seed, `–` when missing).
 ///
 /// ```
@@ -96,7 +133,12 @@ pub fn markdown_table(rows: &[(String, Vec<Row>)], columns: &[Column]) -> String
         s.push_str(&format!("| {name} | {} |", per_seed.len()));
         for c in columns {
             let xs: Vec<f64> = per_seed.iter().filter_map(|r| r.get(c.key)?.as_f64()).collect();
-            s.push_str(&format!(" {} |", fmt_cell(&xs, c.digits)));
+            let cell = if BUDGET_KEYS.contains(&c.key) {
+                budget_cell(&xs)
+            } else {
+                fmt_cell(&xs, c.digits)
+            };
+            s.push_str(&format!(" {cell} |"));
         }
         s.push('\n');
     }
@@ -121,6 +163,17 @@ pub struct Table {
 /// # Ok::<(), vdd_report::Error>(())
 /// ```
 pub fn table_of_runs(paths: &[PathBuf]) -> Result<Table> {
+    table_of_runs_with(paths, &[])
+}
+
+/// [`table_of_runs`] with `extra` columns after the task's (e.g. [`budget_columns`]).
+///
+/// ```no_run
+/// use vdd_report::table::{budget_columns, table_of_runs_with};
+/// let table = table_of_runs_with(&["results/avoiding/run1".into()], &budget_columns())?;
+/// # Ok::<(), vdd_report::Error>(())
+/// ```
+pub fn table_of_runs_with(paths: &[PathBuf], extra: &[Column]) -> Result<Table> {
     let mut values = Vec::new();
     let mut tasks: Vec<String> = Vec::new();
     let mut recipes: Vec<String> = Vec::new();
@@ -145,7 +198,9 @@ pub fn table_of_runs(paths: &[PathBuf]) -> Result<Table> {
     let mut notes = Vec::new();
     let rows = collect_rows(&values, &mut notes);
     let mut text = format!("## {} ({task})\n\n", recipes.join(" + "));
-    text.push_str(&markdown_table(&rows, &columns_for(&task)));
+    let mut columns = columns_for(&task);
+    columns.extend_from_slice(extra);
+    text.push_str(&markdown_table(&rows, &columns));
     text.push_str(&format!(
         "\nmean ± std over seeds (population std); from {}\n",
         paths.iter().map(|p| p.display().to_string()).collect::<Vec<_>>().join(", ")

@@ -8,7 +8,7 @@ use std::time::Instant;
 use vdd_consistency::{CdConfig, CdTrainer, ConsistencyProgress};
 use vdd_diffusion::{Beso, BesoConfig, DiffusionTeacher, TeacherKind};
 
-use crate::method::{Info, Job, Method, MethodRecipe, Trained};
+use crate::method::{Budget, Info, Job, Method, MethodRecipe, Trained};
 use crate::plots::Curves;
 use crate::policy::TrainedPolicy;
 
@@ -34,7 +34,9 @@ impl Method for Cd {
         recipe.get::<bool>(FOLLOW).map(drop)
     }
     fn train(&self, job: &Job<'_>) -> crate::XResult<Trained> {
-        distil(job, |beso, follow, curves| {
+        let train = job.recipe.get::<CdConfig>("baselines.cd")?.train;
+        let budget = Budget { steps: train.steps, batch: train.batch_size };
+        let trained = distil(job, |beso, follow, curves| {
             let c = job.recipe.get("baselines.cd")?;
             let c = config_for(&c, beso.config(), job.seed, follow);
             let steps = c.sampling_steps;
@@ -44,7 +46,8 @@ impl Method for Cd {
             let model = trainer.train(&mut |p| record(curves, &bar, p))?;
             bar.finish_and_clear();
             Ok((TrainedPolicy::Consistency(Box::new(model)), steps))
-        })
+        })?;
+        Ok(Trained { budget: Some(budget), ..trained })
     }
 }
 

@@ -6,7 +6,7 @@ use vdd_consistency::{CtmConfig, CtmTrainer};
 use vdd_diffusion::TeacherKind;
 
 use super::cd;
-use crate::method::{Info, Job, Method, MethodRecipe, Trained};
+use crate::method::{Budget, Info, Job, Method, MethodRecipe, Trained};
 use crate::policy::TrainedPolicy;
 
 /// CTM.
@@ -28,7 +28,9 @@ impl Method for Ctm {
         recipe.get::<bool>(cd::FOLLOW).map(drop)
     }
     fn train(&self, job: &Job<'_>) -> crate::XResult<Trained> {
-        cd::distil(job, |beso, follow, curves| {
+        let train = job.recipe.get::<CtmConfig>("baselines.ctm")?.base.train;
+        let budget = Budget { steps: train.steps, batch: train.batch_size };
+        let trained = cd::distil(job, |beso, follow, curves| {
             let mut c: CtmConfig = job.recipe.get("baselines.ctm")?;
             c.base = cd::config_for(&c.base, beso.config(), job.seed, follow);
             let steps = c.base.sampling_steps;
@@ -38,6 +40,7 @@ impl Method for Ctm {
             let model = trainer.train(&mut |p| cd::record(curves, &bar, p))?;
             bar.finish_and_clear();
             Ok((TrainedPolicy::Trajectory(Box::new(model)), steps))
-        })
+        })?;
+        Ok(Trained { budget: Some(budget), ..trained })
     }
 }

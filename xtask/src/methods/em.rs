@@ -7,7 +7,7 @@ use indicatif::ProgressBar;
 use vdd_mixture::{Dataset, EmConfig};
 use vdd_moe::{Moe, MoeConfig};
 
-use crate::method::{Info, Job, Method, MethodRecipe, Trained};
+use crate::method::{Budget, Info, Job, Method, MethodRecipe, Trained};
 use crate::plots::Curves;
 use crate::policy::TrainedPolicy;
 
@@ -26,7 +26,9 @@ impl Method for Em {
     }
     fn train(&self, job: &Job<'_>) -> crate::XResult<Trained> {
         let config = EmConfig { seed: job.seed, ..job.recipe.get("baselines.em")? };
-        fit(job, config.iterations, |student, data, bar, curves| {
+        let budget =
+            mixture_budget(job, config.iterations, config.expert_steps_per_iter, config.batch_size);
+        let trained = fit(job, config.iterations, |student, data, bar, curves| {
             let mut em = vdd_mixture::Em::from_config(config, student, data)?;
             em.train(|m| {
                 bar.inc(1);
@@ -35,8 +37,21 @@ impl Method for Em {
                 ll.push((m.iteration as f64, m.log_likelihood));
             })?;
             Ok(em.into_student())
-        })
+        })?;
+        Ok(Trained { budget: Some(budget), ..trained })
     }
+}
+
+/// The budget of EM / IMC: `iterations · steps` expert steps of `batch` pairs (the whole
+/// dataset when `None` or larger).
+pub fn mixture_budget(
+    job: &Job<'_>,
+    iterations: usize,
+    steps: usize,
+    batch: Option<usize>,
+) -> Budget {
+    let rows = job.data.states_normalized.nrows();
+    Budget { steps: (iterations * steps) as u64, batch: batch.unwrap_or(rows).min(rows) }
 }
 
 /// Fits a new mixture (`student`'s configuration with the data's dimensions; the trainer

@@ -21,7 +21,10 @@ impl Method for Imc {
     }
     fn train(&self, job: &Job<'_>) -> crate::XResult<Trained> {
         let config = ImcConfig { seed: job.seed, ..job.recipe.get("baselines.imc")? };
-        super::em::fit(job, config.iterations, |student, data, bar, curves| {
+        let (its, steps, batch) =
+            (config.iterations, config.expert_steps_per_iter, config.batch_size);
+        let budget = super::em::mixture_budget(job, its, steps, batch);
+        let trained = super::em::fit(job, config.iterations, |student, data, bar, curves| {
             let mut imc = vdd_mixture::Imc::from_config(config, student, data)?;
             imc.train(|m| {
                 bar.inc(1);
@@ -32,6 +35,7 @@ impl Method for Imc {
                 curves.entry("IMC objective".into()).or_default().push((x, m.objective));
             })?;
             Ok(imc.into_student())
-        })
+        })?;
+        Ok(Trained { budget: Some(budget), ..trained })
     }
 }

@@ -7,14 +7,18 @@
 
 use crate::method::Method;
 
+mod beso_d3il;
 mod cd;
 mod ctm;
 mod em;
 mod imc;
+mod imc_authors;
 mod teacher;
 mod vdd;
+mod vdd_learned;
 
-/// Every method, in the paper's table order.
+/// Every method, in the paper's table order, then the paper's own configurations beside ours
+/// (D3IL's BESO teacher and its rows, VDD-BESO with a learned gating, the authors' IMC).
 pub static REGISTRY: &[&dyn Method] = &[
     &teacher::DDPM,
     &teacher::BESO,
@@ -27,6 +31,11 @@ pub static REGISTRY: &[&dyn Method] = &[
     &vdd::VDD_DDPM,
     &vdd::VDD_BESO,
     &vdd::VDD_EXACT,
+    &beso_d3il::BESO_D3IL,
+    &beso_d3il::BESO_D3IL_1,
+    &vdd_learned::VddBesoLearned,
+    &beso_d3il::VDD_BESO_D3IL,
+    &imc_authors::ImcAuthors,
 ];
 
 /// The method called `name`.
@@ -101,8 +110,24 @@ mod tests {
         let all = parse_methods(&["all".into()], "avoiding").unwrap();
         assert_eq!(
             names(&all),
-            ["ddpm", "beso", "ddpm-1", "beso-1", "cd", "ctm", "em", "imc", "vdd-ddpm", "vdd-beso"],
-            "the paper's ten methods in table order"
+            [
+                "ddpm",
+                "beso",
+                "ddpm-1",
+                "beso-1",
+                "cd",
+                "ctm",
+                "em",
+                "imc",
+                "vdd-ddpm",
+                "vdd-beso",
+                "beso-d3il",
+                "beso-d3il-1",
+                "vdd-beso-learned",
+                "vdd-beso-d3il",
+                "imc-authors"
+            ],
+            "the paper's ten methods in table order, then the paper's configurations"
         );
         assert_eq!(
             names(&parse_methods(&["all".into()], "toy-conditional").unwrap()),

@@ -4,13 +4,13 @@
 
 use vdd_diffusion::TeacherKind;
 
-use crate::method::{Info, Job, Method, MethodRecipe, Trained};
+use crate::method::{Budget, Info, Job, Method, MethodRecipe, Trained};
 use crate::plots::Curves;
 use crate::policy::TrainedPolicy;
 use crate::teachers;
 
 /// A learned teacher sampling with its default steps, or with one.
-pub struct TeacherRow(Info, bool);
+pub struct TeacherRow(pub(super) Info, pub(super) bool);
 
 const fn row(name: &'static str, kind: TeacherKind, one_step: bool) -> TeacherRow {
     TeacherRow(Info { name, teacher: Some(kind), tasks: &["avoiding"], keys: &[] }, one_step)
@@ -42,7 +42,16 @@ impl Method for TeacherRow {
         let kind = teachers::kind_name(teacher.kind());
         let curves = Curves::from([(format!("{kind} teacher loss"), loss)]);
         let steps = teacher.steps();
+        let train = match teacher.kind() {
+            TeacherKind::Beso => &job.recipe.teachers.beso.train,
+            TeacherKind::Ddpm => &job.recipe.teachers.ddpm.train,
+        };
+        let budget = Budget { steps: train.steps, batch: train.batch_size };
         let policy = TrainedPolicy::Teacher(Box::new(teacher));
-        Ok(Trained { sampling_steps: Some(steps), ..Trained::new(policy, t.train_seconds, curves) })
+        Ok(Trained {
+            sampling_steps: Some(steps),
+            budget: Some(budget),
+            ..Trained::new(policy, t.train_seconds, curves)
+        })
     }
 }

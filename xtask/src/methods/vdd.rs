@@ -20,7 +20,7 @@ use vdd_core::{Affine, ClampedDenoiser, ScoreModel};
 use vdd_diffusion::TeacherKind;
 use vdd_moe::{ActMode, GatingKind, MoeConfig};
 
-use crate::method::{Info, Job, Method, MethodRecipe, Trained};
+use crate::method::{Budget, Info, Job, Method, MethodRecipe, Trained};
 use crate::plots::Curves;
 use crate::policy::TrainedPolicy;
 use crate::recipe;
@@ -29,7 +29,7 @@ use vdd_moe::cache::{CachedStudent, STUDENT_CACHE_VERSION};
 use vdd_nn::checkpoint::CheckpointDir;
 
 /// VDD distilling one teacher, with the key of its settings below `vdd`.
-pub struct VddMethod(Info, &'static str);
+pub struct VddMethod(pub(super) Info, pub(super) &'static str);
 
 const LEARNED: &[&str] = &["avoiding", "toy-gmm"];
 
@@ -64,9 +64,9 @@ pub const VDD_EXACT: VddMethod = VddMethod(
     "exact",
 );
 
-const CLIP: &str = "vdd.clip_margin";
-const GREEDY: &str = "vdd.greedy_gating";
-const SAMPLE: &str = "vdd.sample_action";
+pub(super) const CLIP: &str = "vdd.clip_margin";
+pub(super) const GREEDY: &str = "vdd.greedy_gating";
+pub(super) const SAMPLE: &str = "vdd.sample_action";
 
 /// The settings of one VDD method.
 struct Settings {
@@ -119,6 +119,7 @@ impl Method for VddMethod {
         mc.action_dim = actions.ncols();
         mc.gating = s.gating.unwrap_or(mc.gating);
         let iterations = vc.iterations;
+        let budget = Budget { steps: iterations as u64, batch: vc.batch_size };
         let cache = match (job.students, teacher) {
             (Some(cache), Some(t)) => {
                 let teachers = &job.recipe.teachers;
@@ -173,6 +174,7 @@ impl Method for VddMethod {
             teacher_seconds: teacher.map(|t| t.train_seconds),
             iterations: Some(iterations),
             noise_level,
+            budget: Some(budget),
             ..Trained::new(TrainedPolicy::Moe(Box::new(student)), train_seconds, curves)
         })
     }

@@ -6,7 +6,8 @@
 //! the run seed drives teacher training, student initialisation and training, and the
 //! evaluation rollouts (`vdd_tasks::avoiding::EvalProtocol`: the same episode seeds for every
 //! method of a seed, so methods are compared on the same episodes). Every `seed` field inside the
-//! component configurations is replaced by the run seed.
+//! component configurations is replaced by the run seed. Tuning runs (seeds 100–104,
+//! `--tuning`) use their own demonstrations and are logged: [`crate::tuning`].
 
 use std::time::Instant;
 
@@ -25,9 +26,10 @@ use crate::method::{Trained, TrainingData};
 use crate::pipeline::{self, Datasets, Entry, Task, TaskRecipe};
 use crate::plots::{self, Curves, TrajectoryPanel};
 use crate::policy::TrainedPolicy;
-use crate::recipe;
+use crate::recipe::{self, Overrides};
 use crate::report::{self, Row};
 use crate::teachers::{self, TeachersConfig};
+use crate::tuning;
 use vdd_moe::cache::StudentCache;
 
 /// A recipe of the Avoiding task (see `recipes/avoiding.toml`): the schema of the recipe files;
@@ -194,6 +196,22 @@ impl Task for Avoiding {
         "avoiding"
     }
 
+    /// `--tuning`: the tuning seeds (unless given) and the tuning demonstrations.
+    fn apply_shorthands(
+        &self,
+        given: &[(String, String)],
+        o: &mut Overrides,
+    ) -> Result<(), String> {
+        for (k, _) in given {
+            if k != "tuning" {
+                return Err(format!("option --{k} does not apply to task `avoiding`"));
+            }
+            o.seeds.get_or_insert_with(|| tuning::TUNING_SEEDS.collect());
+            o.sets.insert(0, ("data.seed".into(), tuning::TUNING_DATA_SEED.to_string()));
+        }
+        Ok(())
+    }
+
     fn run(&self, ctx: &RunContext) -> crate::XResult {
         let resolved = recipe::resolve(&AvoidingRecipe::defaults()?, &ctx.file, &ctx.overrides)?;
         let base = &resolved.base;
@@ -204,7 +222,23 @@ impl Task for Avoiding {
             cfg.eval.protocol().check().map_err(|e| format!("eval: {e}"))?;
             cfg.data.deploy_spec().validate().map_err(|e| format!("data: {e}"))?;
         }
-        let dir = ctx.run_dir(&base.header.seeds);
+        let mut is_tuning = None;
+        for (_, cfg) in resolved.configs() {
+            let t = tuning::is_tuning_run(&cfg.header.seeds, cfg.data.seed)?;
+            if is_tuning.replace(t).is_some_and(|before| before != t) {
+                return Err("variants mix tuning and reporting demonstrations".into());
+            }
+        }
+        let is_tuning = is_tuning.unwrap_or(false);
+        let dir = match (&ctx.out, is_tuning) {
+            (None, true) => recipe::repo_root()
+                .join("results/tuning")
+                .join(&ctx.name)
+                .join(crate::context::run_name(&base.header.seeds, &ctx.overrides)),
+            _ => ctx.run_dir(&base.header.seeds),
+        };
+        let log_path = tuning::log_path("avoiding");
+        let log = tuning::read_log(&log_path)?;
         ctx.write_resolved(&dir, &resolved.to_toml()?)?;
         crate::progress::log(format!(
             "recipe `{}`: {} method run(s) x {} seed(s) -> {}",
@@ -251,9 +285,51 @@ impl Task for Avoiding {
             time_seed(&plan, &data, si, seed, timed, &mut out.rows)?;
             stages.add("timing", t0.elapsed().as_secs_f64());
         }
+        let entries = tuning_entries(ctx, &plan, &log, &dir, &mut out.rows)?;
         let summary = data.get(0, 0).summary.clone();
-        write_outputs(ctx, &dir, base, out, summary, trainings.teachers.log, jobs, &mut stages)
+        write_outputs(ctx, &dir, base, out, summary, trainings.teachers.log, jobs, &mut stages)?;
+        if is_tuning {
+            let n = entries.len();
+            tuning::append_log(&log_path, entries)?;
+            println!("tuning log: {n} entries appended to {}", teachers::rel(&log_path));
+        }
+        Ok(())
     }
+}
+
+/// Adds `tuning_configs` (the method's configurations in the tuning `log`) to every row and
+/// returns the run's tuning-log entries, one per method.
+fn tuning_entries(
+    ctx: &RunContext,
+    plan: &[Entry<'_, AvoidingRecipe>],
+    log: &[tuning::LogEntry],
+    dir: &std::path::Path,
+    rows: &mut [(String, Vec<Row>)],
+) -> crate::XResult<Vec<tuning::LogEntry>> {
+    let (revision, dirty) = crate::context::git_revision();
+    let revision = if dirty == Some(true) { format!("{revision}+dirty") } else { revision };
+    let mut entries = Vec::with_capacity(plan.len());
+    for (e, (_, rows)) in plan.iter().zip(rows.iter_mut()) {
+        let n = tuning::configs_tried(log, &e.label);
+        rows.iter_mut().for_each(|r| drop(r.insert("tuning_configs".into(), json!(n))));
+        let all = |k: &str| rows.iter().filter_map(|r| r.get(k)?.as_f64()).collect::<Vec<_>>();
+        let first = |k: &str| rows.first().and_then(|r| r.get(k)?.as_u64());
+        entries.push(tuning::LogEntry {
+            method: e.label.clone(),
+            config: tuning::method_config_hash(e.method, &e.recipe(), &e.cfg.data)?,
+            recipe: ctx.name.clone(),
+            command: ctx.command.clone(),
+            revision: revision.clone(),
+            seeds: rows.iter().filter_map(|r| r.get("seed")?.as_u64()).collect(),
+            success_rate: all("success_rate"),
+            task_entropy: all("task_entropy"),
+            train_steps: first("train_steps"),
+            train_batch: first("train_batch"),
+            train_seconds: all("train_seconds"),
+            run: teachers::rel(dir),
+        });
+    }
+    Ok(entries)
 }
 
 /// Rolls out one trained method on raw observations through the recipe's features and windows,
@@ -319,6 +395,10 @@ fn evaluate(
     }
     if let Some(s) = trained.sampling_steps {
         row.insert("sampling_steps".into(), json!(s));
+    }
+    if let Some(b) = trained.budget {
+        row.insert("train_steps".into(), json!(b.steps));
+        row.insert("train_batch".into(), json!(b.batch));
     }
     out.curves.insert(format!("{label}/seed{seed}"), serde_json::to_value(&trained.curves)?);
 

@@ -211,3 +211,57 @@ fn bad_inputs_are_rejected() {
     assert!(Imc::new(ImcConfig::toy(), wrong_dims, data3).is_err());
     assert!(Curricula::uniform(0, 2).is_err());
 }
+
+/// The authors' IMC: unit-variance experts settle on the clusters' centres, one each; every
+/// point keeps a curriculum (none is dropped); the gating is fitted at the end only, to the
+/// clusters' shares.
+#[test]
+fn the_authors_variant_covers_every_cluster_and_fits_the_gating_last() {
+    let sizes = [40, 60, 80];
+    let (data, _) = clusters(sizes, 0.3, 2);
+    let n = data.len();
+    let config = ImcConfig {
+        variant: ImcVariant::Authors,
+        eta: 1.0,
+        iterations: 40,
+        expert_steps_per_iter: 10,
+        gating_steps_per_iter: 10,
+        batch_size: Some(128),
+        gating_batch_size: Some(128),
+        expert_optimizer: AdamConfig { lr: 1e-2, ..AdamConfig::default() },
+        gating_optimizer: AdamConfig { lr: 1e-2, ..AdamConfig::default() },
+        ..ImcConfig::toy()
+    };
+    let mut imc = Imc::new(config, small_moe(ExpertKind::Diagonal, 3, 0), data).unwrap();
+    let mut gating = Vec::new();
+    let mut coverage = 0.0;
+    imc.train(|m| {
+        gating.push(m.gating_loss.is_some());
+        coverage = m.effective_data_fraction;
+    })
+    .unwrap();
+    assert_eq!(gating.iter().filter(|g| **g).count(), 1, "gating fitted once");
+    assert!(gating[gating.len() - 1], "the gating is fitted after the last iteration");
+    assert!(coverage > 0.5, "the per-point curricula keep the data: {coverage}");
+    let mut student = imc.into_student();
+    student.forward(Mat::zeros(1, 1).as_ref()).unwrap();
+    let out = student.output();
+    let mut owners = [usize::MAX; 3];
+    for z in 0..3 {
+        let mean = out.mean(0, z);
+        let (k, d) = test_support::CLUSTER_MEANS
+            .iter()
+            .map(|c| ((c[0] - mean[0]).powi(2) + (c[1] - mean[1]).powi(2)).sqrt())
+            .enumerate()
+            .min_by(|a, b| a.1.total_cmp(&b.1))
+            .unwrap();
+        assert!(d < 0.3, "expert {z} at {mean:?} is {d} from cluster {k}");
+        assert_eq!(owners[k], usize::MAX, "two experts on cluster {k}");
+        owners[k] = z;
+    }
+    for (k, &z) in owners.iter().enumerate() {
+        let w = out.log_gating_row(0)[z].exp();
+        let expect = sizes[k] as f32 / n as f32;
+        assert!((w - expect).abs() < 0.05, "gating weight of expert {z}: {w} vs {expect}");
+    }
+}

@@ -1,0 +1,44 @@
+//! `vdd-beso-learned`: the paper's VDD-BESO, with a learned gating, beside the headline
+//! `vdd-beso` (uniform gating). Everything else is `vdd-beso`'s (`vdd.beso` and the shared VDD
+//! keys); only `vdd.beso_gating` is replaced by `"learned"`, so a `--set vdd.beso...` changes
+//! both rows alike. It reads no key of its own.
+
+use toml::Value;
+use vdd_diffusion::TeacherKind;
+
+use super::vdd::VDD_BESO;
+use crate::method::{Info, Job, Method, MethodRecipe, Trained};
+
+/// `vdd-beso-learned`.
+pub struct VddBesoLearned;
+
+const INFO: Info = Info {
+    name: "vdd-beso-learned",
+    teacher: Some(TeacherKind::Beso),
+    tasks: &["avoiding"],
+    keys: &[],
+};
+
+/// `tree` with `vdd.beso_gating = "learned"`.
+fn learned(tree: &toml::Table) -> crate::XResult<toml::Table> {
+    let mut tree = tree.clone();
+    let vdd = tree.entry("vdd").or_insert_with(|| Value::Table(Default::default()));
+    let vdd = vdd.as_table_mut().ok_or("the recipe's `vdd` is not a table")?;
+    vdd.insert("beso_gating".into(), Value::String("learned".into()));
+    Ok(tree)
+}
+
+impl Method for VddBesoLearned {
+    fn info(&self) -> &Info {
+        &INFO
+    }
+    fn check(&self, recipe: &MethodRecipe<'_>) -> crate::XResult {
+        let tree = learned(recipe.tree)?;
+        VDD_BESO.check(&MethodRecipe { tree: &tree, ..*recipe })
+    }
+    fn train(&self, job: &Job<'_>) -> crate::XResult<Trained> {
+        let tree = learned(job.recipe.tree)?;
+        let recipe = MethodRecipe { tree: &tree, ..job.recipe };
+        VDD_BESO.train(&Job { recipe, ..*job })
+    }
+}
