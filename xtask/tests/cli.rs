@@ -35,8 +35,9 @@ fn bad_settings_fail_before_any_work_and_leave_nothing() {
             .collect::<Vec<_>>()
     };
     for (set, needle) in [
-        ("student.num_experts=100000000", "memory"),
-        ("student.experts_network.hidden_dim=1000000", "memory"),
+        ("student.num_experts=100000000", "num_experts must be in"),
+        ("student.experts_network.hidden_dim=1000000", "hidden_dim must be in"),
+        ("student.experts_network.hidden_dim=60000", "memory"),
         ("eval.kl_samples=0", "kl_samples"),
         ("eval.coverage_radius=nan", "coverage_radius"),
         ("vdd.exact.expert_optimizer.eps=-1", "eps"),

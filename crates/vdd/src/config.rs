@@ -169,8 +169,9 @@ impl VddConfig {
     /// use vdd::{MoeConfig, VddConfig};
     /// let student = MoeConfig::toy(1, 2, 8);
     /// assert!(VddConfig::toy().check(&student).is_ok());
-    /// let wide = VddConfig { vi_samples: 1 << 40, ..VddConfig::toy() };
-    /// assert!(wide.check(&student).unwrap_err().to_string().contains("memory"));
+    /// let wide = MoeConfig { num_experts: 4000, ..student.clone() };
+    /// let wide = VddConfig { batch_size: 4096, vi_samples: 256, ..VddConfig::toy() }.check(&wide);
+    /// assert!(wide.unwrap_err().to_string().contains("memory"));
     /// ```
     pub fn check(&self, student: &MoeConfig) -> Result<(), CoreError> {
         use vdd_core::memory::{check_fits, product};
