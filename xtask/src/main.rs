@@ -5,7 +5,8 @@
 //!                                 [--set k.path=v]... [--quick] [--out DIR] [--fresh]
 //! cargo xtask table [RUN_DIR...] [--out FILE]
 //! cargo xtask compare RUN_DIR_A RUN_DIR_B
-//! cargo xtask bench nn|teachers
+//! cargo xtask bench nn|teachers|import
+//! cargo xtask import lerobot|diffusion-policy INPUT --out FILE
 //! cargo xtask demos avoiding --n 200 --seed 0 --out DIR
 //! ```
 //!
@@ -18,6 +19,7 @@ mod bench_teachers;
 mod context;
 mod demos;
 mod experiment;
+mod import;
 mod method;
 mod methods;
 mod pipeline;
@@ -52,6 +54,9 @@ enum Cli {
     /// Scripted demonstrations.
     #[command(subcommand)]
     Demos(Demos),
+    /// PyTorch teachers into one teacher file.
+    #[command(subcommand)]
+    Import(import::Import),
 }
 
 /// `cargo xtask bench ...`.
@@ -61,6 +66,8 @@ enum Bench {
     Nn(bench_nn::Args),
     /// Acceptance checks and sampling latency of the learned toy teachers.
     Teachers(bench_teachers::Args),
+    /// Imported PyTorch networks against their fixtures: max_abs_diff, rows/s against torch.
+    Import(import::BenchArgs),
 }
 
 /// `cargo xtask demos ...`.
@@ -109,6 +116,8 @@ fn main() {
         Cli::Compare(a) => report::run_compare(&a),
         Cli::Bench(Bench::Nn(a)) => bench_nn::run(&a),
         Cli::Bench(Bench::Teachers(a)) => bench_teachers::run(&a),
+        Cli::Bench(Bench::Import(a)) => import::bench(&a),
+        Cli::Import(a) => import::run(&a),
         Cli::Demos(Demos::Avoiding(a)) => demos::avoiding(&a),
     };
     if let Err(e) = result {
@@ -181,6 +190,8 @@ mod tests {
         assert!(matches!(nn, Cli::Bench(Bench::Nn(a)) if a.batch == 8 && a.layer_norm));
         let t = parse(&words("bench teachers --noise-mean -1.2 --retrain")).unwrap();
         assert!(matches!(t, Cli::Bench(Bench::Teachers(a)) if a.noise_mean == -1.2 && a.retrain));
+        let i = parse(&words("import lerobot d --out f")).unwrap();
+        assert!(matches!(i, Cli::Import(import::Import::Lerobot(a)) if a.out.ends_with("f")));
         let d = parse(&words("demos avoiding --n 5 --seed 2 --out /tmp/d")).unwrap();
         assert!(matches!(d, Cli::Demos(Demos::Avoiding(a)) if a.n == 5 && a.seed == 2));
         // Help is not an error; bad input is.
