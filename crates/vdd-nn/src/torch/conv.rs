@@ -92,6 +92,16 @@ impl Conv1d {
         self.out_ch
     }
 
+    /// The last output.
+    pub(crate) fn output(&self) -> &Mat<f32> {
+        &self.out
+    }
+
+    /// The last output, mutably.
+    pub(crate) fn output_mut(&mut self) -> &mut Mat<f32> {
+        &mut self.out
+    }
+
     /// Output length for an input of length `len` (0 when the kernel does not fit).
     pub fn out_len(&self, len: usize) -> usize {
         let padded = len + 2 * self.padding;
@@ -105,6 +115,15 @@ impl Conv1d {
         x: MatRef<'_, f32>,
         batch: usize,
     ) -> Result<MatRef<'_, f32>, NnError> {
+        Ok(self.forward_mut(x, batch)?.as_ref())
+    }
+
+    /// [`Conv1d::forward`], the output buffer handed out mutably (for in-place layers after it).
+    pub(crate) fn forward_mut(
+        &mut self,
+        x: MatRef<'_, f32>,
+        batch: usize,
+    ) -> Result<&mut Mat<f32>, NnError> {
         if batch == 0 || x.nrows() % batch != 0 || x.ncols() != self.in_ch {
             return Err(NnError::Config(format!(
                 "Conv1d: input {}x{} is not (batch {batch} · len) x {}",
@@ -131,7 +150,7 @@ impl Conv1d {
         let wt = MatRef::from_column_major_slice(&self.weight.value, k_in, self.out_ch);
         if self.kernel == 1 && self.stride == 1 && self.padding == 0 {
             matmul(self.out.as_mut(), Accum::Add, x, wt, 1.0, Par::Seq);
-            return Ok(self.out.as_ref());
+            return Ok(&mut self.out);
         }
         ensure(&mut self.cols, rows, k_in);
         let (s, p) = (self.stride, self.padding as isize);
@@ -162,7 +181,7 @@ impl Conv1d {
             }
         }
         matmul(self.out.as_mut(), Accum::Add, self.cols.as_ref(), wt, 1.0, Par::Seq);
-        Ok(self.out.as_ref())
+        Ok(&mut self.out)
     }
 }
 

@@ -18,12 +18,10 @@ pub const GROUP_NORM_EPS: f32 = 1e-5;
 /// assert!((m - 0.865_098_4).abs() < 1e-6);
 /// assert_eq!(vdd_nn::torch::mish(30.0), 30.0);
 /// ```
-#[inline]
+#[inline(always)]
 pub fn mish(x: f32) -> f32 {
-    if x > 20.0 {
-        return x;
-    }
-    let e = x.exp();
+    // Branch-free so loops vectorise; beyond 20, n/(n + 2) rounds to 1 in f32.
+    let e = vdd_core::gaussian::exp_fast(x.min(20.0));
     let n = e * (e + 2.0);
     x * n / (n + 2.0)
 }
@@ -113,6 +111,16 @@ impl GroupNorm {
 
     /// Normalises `x` (`(batch · len) × channels`) in place.
     pub fn forward_inplace(&self, x: &mut Mat<f32>, batch: usize) -> Result<(), NnError> {
+        self.run(x, batch, false)
+    }
+
+    /// Normalises `x` in place and applies [`mish`] (`Conv1dBlock`'s GroupNorm → Mish in one
+    /// pass).
+    pub fn forward_mish_inplace(&self, x: &mut Mat<f32>, batch: usize) -> Result<(), NnError> {
+        self.run(x, batch, true)
+    }
+
+    fn run(&self, x: &mut Mat<f32>, batch: usize, then_mish: bool) -> Result<(), NnError> {
         let ch = self.weight.len();
         if batch == 0 || x.nrows() % batch != 0 || x.ncols() != ch {
             return Err(NnError::Config(format!(
@@ -128,26 +136,31 @@ impl GroupNorm {
             let rows = b * len..(b + 1) * len;
             for g in 0..self.groups {
                 let chans = g * cpg..(g + 1) * cpg;
+                // Per-channel runs summed in f32 (short), accumulated in f64.
                 let mut sum = 0.0f64;
                 for c in chans.clone() {
-                    sum +=
-                        x.col_as_slice(c)[rows.clone()].iter().map(|&v| f64::from(v)).sum::<f64>();
+                    sum += f64::from(x.col_as_slice(c)[rows.clone()].iter().sum::<f32>());
                 }
                 let mean = sum / count;
+                let m32 = mean as f32;
                 let mut ss = 0.0f64;
                 for c in chans.clone() {
-                    ss += x.col_as_slice(c)[rows.clone()]
-                        .iter()
-                        .map(|&v| (f64::from(v) - mean).powi(2))
-                        .sum::<f64>();
+                    let seg = &x.col_as_slice(c)[rows.clone()];
+                    ss += f64::from(seg.iter().map(|&v| (v - m32) * (v - m32)).sum::<f32>());
                 }
-                let inv = 1.0 / ((ss / count) + f64::from(self.eps)).sqrt();
+                // Σ(x − m32)² = Σ(x − mean)² + n (mean − m32)², the rounding of the mean.
+                let dm = mean - f64::from(m32);
+                let var = (ss / count - dm * dm).max(0.0);
+                let inv = 1.0 / (var + f64::from(self.eps)).sqrt();
                 for c in chans {
                     let w = f64::from(self.weight.value[c]);
                     let a = (inv * w) as f32;
                     let s = (f64::from(self.bias.value[c]) - mean * inv * w) as f32;
-                    for v in &mut x.col_as_slice_mut(c)[rows.clone()] {
-                        *v = *v * a + s;
+                    let seg = &mut x.col_as_slice_mut(c)[rows.clone()];
+                    if then_mish {
+                        seg.iter_mut().for_each(|v| *v = mish(*v * a + s));
+                    } else {
+                        seg.iter_mut().for_each(|v| *v = *v * a + s);
                     }
                 }
             }

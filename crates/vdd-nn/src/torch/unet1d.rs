@@ -90,25 +90,25 @@ impl Unet1dConfig {
 struct ConvBlock {
     conv: Conv1d,
     norm: GroupNorm,
-    out: Mat<f32>,
 }
 
 impl ConvBlock {
     fn new(cin: usize, cout: usize, k: usize, groups: usize) -> Result<Self, NnError> {
-        Ok(Self {
-            conv: Conv1d::new(cin, cout, k, 1, k / 2)?,
-            norm: GroupNorm::new(groups, cout)?,
-            out: Mat::new(),
-        })
+        Ok(Self { conv: Conv1d::new(cin, cout, k, 1, k / 2)?, norm: GroupNorm::new(groups, cout)? })
     }
 
+    /// Runs the block; the output is left in [`ConvBlock::out`].
     fn forward(&mut self, x: MatRef<'_, f32>, batch: usize) -> Result<(), NnError> {
-        let y = self.conv.forward(x, batch)?;
-        ensure(&mut self.out, y.nrows(), y.ncols());
-        self.out.copy_from(y);
-        self.norm.forward_inplace(&mut self.out, batch)?;
-        mish_mat(self.out.as_mut());
-        Ok(())
+        let y = self.conv.forward_mut(x, batch)?;
+        self.norm.forward_mish_inplace(y, batch)
+    }
+
+    fn out(&self) -> &Mat<f32> {
+        self.conv.output()
+    }
+
+    fn out_mut(&mut self) -> &mut Mat<f32> {
+        self.conv.output_mut()
     }
 
     fn visit(&self, p: &str, f: &mut dyn FnMut(&str, &Param)) {
@@ -170,7 +170,6 @@ struct ResBlock {
     cond: Dense,
     residual: Option<Conv1d>,
     film_scale: bool,
-    out: Mat<f32>,
 }
 
 impl ResBlock {
@@ -182,7 +181,6 @@ impl ResBlock {
             cond: Dense::new(cond_dim, if c.film_scale { 2 * cout } else { cout }),
             residual: if cin != cout { Some(Conv1d::new(cin, cout, 1, 1, 0)?) } else { None },
             film_scale: c.film_scale,
-            out: Mat::new(),
         })
     }
 
@@ -195,7 +193,7 @@ impl ResBlock {
     ) -> Result<MatRef<'_, f32>, NnError> {
         self.conv1.forward(x, batch)?;
         let emb = self.cond.forward(mish_cond);
-        let h = &mut self.conv1.out;
+        let h = self.conv1.out_mut();
         let (rows, cout) = (h.nrows(), h.ncols());
         let len = rows / batch;
         for c in 0..cout {
@@ -211,18 +209,18 @@ impl ResBlock {
                 }
             }
         }
-        self.conv2.forward(self.conv1.out.as_ref(), batch)?;
-        ensure(&mut self.out, rows, cout);
-        match &mut self.residual {
-            Some(r) => self.out.copy_from(r.forward(x, batch)?),
-            None => self.out.copy_from(x),
-        }
+        self.conv2.forward(self.conv1.out().as_ref(), batch)?;
+        let out = self.conv2.out_mut();
+        let res = match &mut self.residual {
+            Some(r) => r.forward(x, batch)?,
+            None => x,
+        };
+        let mut scratch = Vec::new();
         for c in 0..cout {
-            let dst = self.out.col_as_slice_mut(c);
-            let src = self.conv2.out.col_as_slice(c);
-            dst.iter_mut().zip(src).for_each(|(d, s)| *d += s);
+            let src = super::conv::column(res, c, &mut scratch);
+            out.col_as_slice_mut(c).iter_mut().zip(src).for_each(|(d, s)| *d += s);
         }
-        Ok(self.out.as_ref())
+        Ok(self.conv2.out().as_ref())
     }
 
     fn names(layout: UnetLayout) -> (&'static str, &'static str) {
@@ -442,7 +440,7 @@ impl ConditionalUnet1d {
             self.x.copy_from(y);
         }
         self.final_block.forward(self.x.as_ref(), batch)?;
-        let out = self.final_conv.forward(self.final_block.out.as_ref(), batch)?;
+        let out = self.final_conv.forward(self.final_block.out().as_ref(), batch)?;
         Ok(out)
     }
 }
