@@ -5,9 +5,9 @@
 //!                                 [--set k.path=v]... [--quick] [--out DIR] [--fresh]
 //! cargo xtask table [RUN_DIR...] [--out FILE]
 //! cargo xtask compare RUN_DIR_A RUN_DIR_B
-//! cargo xtask bench nn|teachers
+//! cargo xtask bench nn|teachers|import
+//! cargo xtask import lerobot|diffusion-policy|beso INPUT --out FILE
 //! cargo xtask demos avoiding --n 200 --seed 0 --out DIR
-//! cargo xtask import beso RUN_DIR --out FILE
 //! ```
 //!
 //! `cargo xtask help [COMMAND]` describes every option (the parser is `clap`'s derive API; bad
@@ -73,6 +73,8 @@ enum Bench {
     Nn(bench_nn::Args),
     /// Acceptance checks and sampling latency of the learned toy teachers.
     Teachers(bench_teachers::Args),
+    /// Imported PyTorch networks against their fixtures: max_abs_diff, rows/s against torch.
+    Import(import::BenchArgs),
 }
 
 /// `cargo xtask demos ...`.
@@ -121,8 +123,9 @@ fn main() {
         Cli::Compare(a) => report::run_compare(&a),
         Cli::Bench(Bench::Nn(a)) => bench_nn::run(&a),
         Cli::Bench(Bench::Teachers(a)) => bench_teachers::run(&a),
+        Cli::Bench(Bench::Import(a)) => import::bench(&a),
+        Cli::Import(a) => import::run(&a),
         Cli::Demos(Demos::Avoiding(a)) => demos::avoiding(&a),
-        Cli::Import(c) => import::run(&c),
         Cli::Fuzz(a) => fuzz::run(&a),
         Cli::FuzzCase(a) => fuzz::case(&a),
     };
@@ -196,6 +199,8 @@ mod tests {
         assert!(matches!(nn, Cli::Bench(Bench::Nn(a)) if a.batch == 8 && a.layer_norm));
         let t = parse(&words("bench teachers --noise-mean -1.2 --retrain")).unwrap();
         assert!(matches!(t, Cli::Bench(Bench::Teachers(a)) if a.noise_mean == -1.2 && a.retrain));
+        let i = parse(&words("import lerobot d --out f")).unwrap();
+        assert!(matches!(i, Cli::Import(import::Import::Lerobot(a)) if a.out.ends_with("f")));
         let d = parse(&words("demos avoiding --n 5 --seed 2 --out /tmp/d")).unwrap();
         assert!(matches!(d, Cli::Demos(Demos::Avoiding(a)) if a.n == 5 && a.seed == 2));
         // Help is not an error; bad input is.

@@ -2,14 +2,34 @@
 //!
 //! Diffusion policies trained in PyTorch, imported as [`vdd_core::ScoreModel`]s (to distil)
 //! and [`vdd_core::Policy`]s (to roll out with their own samplers):
-//! - LeRobot's and diffusion_policy's 1-D conditional U-Net and diffusion_policy's transformer,
-//!   with diffusers' DDPM/DDIM scheduler conventions;
+//! - LeRobot's and diffusion_policy's 1-D conditional U-Net ([`UnetTeacher`], importers
+//!   [`import_lerobot`] and [`import_diffusion_policy`]), with diffusers' DDPM/DDIM scheduler
+//!   conventions ([`diffusers`]);
 //! - BESO/D3IL's GPT and ResNet-MLP score networks with Karras (EDM) preconditioning.
 //!
 //! The networks themselves (forward only) live in [`vdd_nn::torch`]; this crate reads the
 //! packages' files (safetensors, JSON, YAML), checks them, and wires network, noise process and
-//! normalisers into one teacher.
+//! normalisers into one teacher, saved to and loaded from one teacher file ([`load_teacher`]).
 #![warn(missing_docs)]
+
+pub mod bench;
+pub mod diffusers;
+mod diffusion_policy;
+mod error;
+mod file;
+pub mod fixture;
+mod json;
+mod lerobot;
+pub mod normalize;
+mod teacher;
+mod unet_teacher;
+
+pub use diffusion_policy::import_diffusion_policy;
+pub use error::ImportError;
+pub use file::{KIND_KEY, KIND_UNET1D, SPEC_KEY, load_teacher, save_unet_teacher};
+pub use lerobot::import_lerobot;
+pub use teacher::ImportedTeacher;
+pub use unet_teacher::{UnetTeacher, UnetTeacherSpec};
 
 mod beso;
 mod beso_error;

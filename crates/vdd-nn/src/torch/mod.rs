@@ -13,3 +13,11 @@ pub use resnet_mlp::{BlockNorm, MlpActivation, ResMlpScore, ResMlpScoreConfig, S
 pub use transformer_dp::{
     TransformerForDiffusion, TransformerForDiffusionConfig, transformer_for_diffusion_buffer_names,
 };
+
+mod conv;
+mod norm;
+mod unet1d;
+
+pub use conv::{Conv1d, ConvTranspose1d};
+pub use norm::{GROUP_NORM_EPS, GroupNorm, mish, mish_inplace, mish_mat, sinusoidal_embedding};
+pub use unet1d::{ConditionalUnet1d, Unet1dConfig, UnetLayout};

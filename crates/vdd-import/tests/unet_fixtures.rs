@@ -1,0 +1,123 @@
+//! The imported U-Nets against the outputs LeRobot and diffusion_policy recorded.
+
+use std::path::{Path, PathBuf};
+
+use faer::Mat;
+use vdd_core::{Policy, ScoreModel};
+use vdd_import::fixture::check_unet_fixture;
+use vdd_import::{ImportError, import_lerobot, load_teacher, save_unet_teacher};
+
+const TOL: f32 = 1e-4;
+
+fn fixture(name: &str) -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR")).join("../../tests/fixtures/import").join(name)
+}
+
+fn scratch(name: &str) -> PathBuf {
+    let d = std::env::temp_dir().join(format!("vdd-import-test-{}-{name}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&d);
+    std::fs::create_dir_all(&d).unwrap();
+    d
+}
+
+fn check(name: &str) {
+    let (_, c) = check_unet_fixture(&fixture(name)).unwrap();
+    assert!(c.unet_max_abs_diff < TOL, "{name}: U-Net differs by {}", c.unet_max_abs_diff);
+    assert!(c.sample_max_abs_diff < TOL, "{name}: sampling differs by {}", c.sample_max_abs_diff);
+}
+
+#[test]
+fn lerobot_ddpm_epsilon_cosine_film_scale_matches_pytorch() {
+    check("lerobot_unet_ddpm");
+}
+
+#[test]
+fn lerobot_ddim_sample_linear_mean_std_matches_pytorch() {
+    check("lerobot_unet_ddim");
+}
+
+#[test]
+fn diffusion_policy_lowdim_unet_matches_pytorch() {
+    check("diffusion_policy_unet");
+}
+
+#[test]
+fn the_teacher_file_round_trips_and_acts_as_score_model_and_policy() {
+    let dir = scratch("roundtrip");
+    let mut t = import_lerobot(&fixture("lerobot_unet_ddpm")).unwrap();
+    let path = dir.join("teacher.safetensors");
+    save_unet_teacher(&path, &t).unwrap();
+    let mut back = load_teacher(&path).unwrap();
+    let (n, ad, sd) = (3, ScoreModel::action_dim(&t), ScoreModel::state_dim(&t));
+    assert_eq!((ScoreModel::action_dim(&back), back.state_dim()), (ad, sd));
+    let a = Mat::from_fn(n, ad, |i, j| ((i * 7 + j) % 5) as f32 * 0.2 - 0.4);
+    let s = Mat::from_fn(n, sd, |i, j| ((i + 3 * j) % 4) as f32 * 0.3 - 0.5);
+    let levels = [1.0, 30.0, 100.0];
+    let (mut x, mut y) = (Mat::zeros(n, ad), Mat::zeros(n, ad));
+    t.score(a.as_ref(), s.as_ref(), &levels, x.as_mut()).unwrap();
+    back.score(a.as_ref(), s.as_ref(), &levels, y.as_mut()).unwrap();
+    assert_eq!(x, y);
+    assert!(x.col_iter().all(|c| c.iter().all(|v| v.is_finite())));
+    // Step by step on raw observations: a chunk of n_action_steps actions, then a new one.
+    let mut policy = back.into_policy().unwrap();
+    policy.seed(3);
+    let od = policy.obs_dim();
+    assert_eq!((od, policy.action_dim()), (7, 2));
+    for _ in 0..10 {
+        let act = policy.act(&vec![0.2; od]).unwrap();
+        assert!(act.iter().all(|v| v.is_finite()));
+    }
+    std::fs::remove_dir_all(dir).unwrap();
+}
+
+fn copy_fixture(name: &str, to: &Path) {
+    for e in std::fs::read_dir(fixture(name)).unwrap() {
+        let e = e.unwrap();
+        std::fs::copy(e.path(), to.join(e.file_name())).unwrap();
+    }
+}
+
+#[test]
+fn malformed_lerobot_directories_are_refused_naming_the_key() {
+    let dir = scratch("malformed");
+    copy_fixture("lerobot_unet_ddpm", &dir);
+    let cfg = std::fs::read_to_string(dir.join("config.json")).unwrap();
+    let edit = |from: &str, to: &str| {
+        std::fs::write(dir.join("config.json"), cfg.replacen(from, to, 1)).unwrap();
+        import_lerobot(&dir).unwrap_err()
+    };
+    let e = edit("\"horizon\"", "\"horizon_\"");
+    assert!(matches!(&e, ImportError::MissingKey { key, .. } if key == "horizon"), "{e}");
+    let e = edit("\"squaredcos_cap_v2\"", "\"sigmoid\"");
+    assert!(e.to_string().contains("beta_schedule"), "{e}");
+    let e = edit("\"down_dims\": [\n        16,", "\"down_dims\": [\n        24,");
+    assert!(e.to_string().contains("diffusion.unet."), "{e}");
+    // A tensor missing from the weights.
+    std::fs::write(dir.join("config.json"), &cfg).unwrap();
+    let w = std::fs::read(dir.join("model.safetensors")).unwrap();
+    let st = safetensors::SafeTensors::deserialize(&w).unwrap();
+    let gone = "diffusion.unet.mid_modules.1.conv2.block.1.bias";
+    let kept: Vec<(String, safetensors::tensor::TensorView<'_>)> =
+        st.tensors().into_iter().filter(|(k, _)| k != gone).collect();
+    std::fs::write(dir.join("model.safetensors"), safetensors::serialize(kept, None).unwrap())
+        .unwrap();
+    let e = import_lerobot(&dir).unwrap_err();
+    assert!(e.to_string().contains(gone), "{e}");
+    // Non-finite statistics.
+    copy_fixture("lerobot_unet_ddpm", &dir);
+    let f = dir.join("policy_preprocessor_step_3_normalizer_processor.safetensors");
+    let b = std::fs::read(&f).unwrap();
+    let st = safetensors::SafeTensors::deserialize(&b).unwrap();
+    let nan = [f32::NAN; 4].iter().flat_map(|v| v.to_le_bytes()).collect::<Vec<u8>>();
+    let mut ts: Vec<(String, safetensors::tensor::TensorView<'_>)> = st.tensors();
+    for (k, v) in ts.iter_mut() {
+        if k == "observation.state.min" {
+            *v = safetensors::tensor::TensorView::new(safetensors::Dtype::F32, vec![4], &nan)
+                .unwrap();
+        }
+    }
+    std::fs::write(&f, safetensors::serialize(ts, None).unwrap()).unwrap();
+    let e = import_lerobot(&dir).unwrap_err();
+    assert!(e.to_string().contains("observation.state"), "{e}");
+    std::fs::remove_dir_all(dir).unwrap();
+}
