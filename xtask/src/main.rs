@@ -5,7 +5,7 @@
 //!                                 [--set k.path=v]... [--quick] [--out DIR] [--fresh]
 //! cargo xtask table [RUN_DIR...] [--out FILE]
 //! cargo xtask compare RUN_DIR_A RUN_DIR_B
-//! cargo xtask bench nn|teachers
+//! cargo xtask bench nn|teachers|robustness
 //! cargo xtask demos avoiding --n 200 --seed 0 --out DIR
 //! ```
 //!
@@ -14,6 +14,7 @@
 //! [`recipe`] for how they resolve and [`experiment`] for the run directory layout).
 
 mod bench_nn;
+mod bench_robust;
 mod bench_teachers;
 mod context;
 mod demos;
@@ -61,6 +62,8 @@ enum Bench {
     Nn(bench_nn::Args),
     /// Acceptance checks and sampling latency of the learned toy teachers.
     Teachers(bench_teachers::Args),
+    /// VDD with library defaults on a seeded family of exact-mixture teachers.
+    Robustness(bench_robust::Args),
 }
 
 /// `cargo xtask demos ...`.
@@ -109,6 +112,7 @@ fn main() {
         Cli::Compare(a) => report::run_compare(&a),
         Cli::Bench(Bench::Nn(a)) => bench_nn::run(&a),
         Cli::Bench(Bench::Teachers(a)) => bench_teachers::run(&a),
+        Cli::Bench(Bench::Robustness(a)) => bench_robust::run(&a),
         Cli::Demos(Demos::Avoiding(a)) => demos::avoiding(&a),
     };
     if let Err(e) = result {

@@ -1,5 +1,9 @@
 //! Exact-density evaluation of a distilled mixture on problems whose target density is known
-//! (the toy tasks): Monte-Carlo reverse and forward KL, and mode coverage.
+//! (the toy tasks): Monte-Carlo reverse and forward KL, and mode coverage; against an exact
+//! Gaussian mixture in raw units, [`evaluate_against_mixture`].
+
+mod mixture;
+pub use mixture::{MixtureEval, evaluate_against_mixture};
 
 use faer::{Mat, MatRef};
 use rand::Rng as _;
