@@ -11,8 +11,13 @@ use std::time::Instant;
 
 use serde_json::{Value, json};
 use vdd::eval::evaluate_against_mixture;
-use vdd::gmm::family::{MixtureProblem, robustness_family};
-use vdd::{AutoOptions, DistillData, Seeds, Trainer, Vdd};
+use vdd::faer::Mat;
+use vdd::gmm::GmmTeacher;
+use vdd::gmm::family::{MixtureProblem, ProblemInfo, robustness_family};
+use vdd::{
+    AutoOptions, DistillData, ExpertKind, GatingKind, InitKind, MoeConfig, Seeds, Trainer, Vdd,
+    VddConfig,
+};
 
 /// The command line of `bench robustness`.
 #[derive(Debug, Clone, clap::Args)]
@@ -26,16 +31,60 @@ pub struct Args {
     /// Parallel runs.
     #[arg(long, default_value_t = 2)]
     pub threads: usize,
+    /// Skip the paper's toy.
+    #[arg(long)]
+    pub no_toy: bool,
     /// Monte-Carlo samples per state for each KL estimate.
     #[arg(long, default_value_t = 20_000)]
     pub samples: usize,
+    /// What to run instead of the library defaults, for comparisons: `toy` (VddConfig::toy and
+    /// MoeConfig::toy with full-covariance experts, raw units), `uniform-gating`,
+    /// `official-init`, `no-anneal`.
+    #[arg(long, default_value = "default")]
+    pub variant: String,
+    /// Only these problem indices (comma-separated; for investigating one problem).
+    #[arg(long, value_delimiter = ',')]
+    pub only: Vec<usize>,
 }
 
-fn run_one(p: &MixtureProblem, seed: u64, experts: usize, samples: usize) -> crate::XResult<Value> {
+/// The paper's 2-D toy (8 modes on a circle of radius 2, std 0.5, 5000 zero states) through
+/// the same defaults.
+fn toy() -> MixtureProblem {
+    let teacher = GmmTeacher::circle_toy();
+    let info = ProblemInfo {
+        name: "paper-toy".into(),
+        index: usize::MAX,
+        action_dim: 2,
+        components: 8,
+        conditional: false,
+        scale: 1.0,
+        offset_norm: 0.0,
+        condition: 1.0,
+        min_weight: 0.125,
+    };
+    let (train_states, eval_states) = (Mat::zeros(5000, 1), Mat::zeros(1, 1));
+    MixtureProblem { info, teacher, train_states, eval_states }
+}
+
+fn run_one(p: &MixtureProblem, seed: u64, experts: usize, args: &Args) -> crate::XResult<Value> {
+    let samples = args.samples;
     let data = DistillData::from_states(p.train_states.clone())?;
-    let options = AutoOptions::new(experts, seed);
+    let mut options = AutoOptions::new(experts, seed);
+    match args.variant.as_str() {
+        "default" | "toy" => {}
+        "uniform-gating" => options.gating = GatingKind::Uniform,
+        "official-init" => options.init = InitKind::Official,
+        "no-anneal" => options.start_noise_factor = 0.0,
+        other => return Err(format!("unknown --variant {other}").into()),
+    }
     let t0 = Instant::now();
-    let mut vdd = Vdd::auto(p.teacher.clone(), data, &options)?;
+    let mut vdd = if args.variant == "toy" {
+        let (ds, d) = (p.train_states.ncols(), p.info.action_dim);
+        let mc = MoeConfig { expert_kind: ExpertKind::Full, ..MoeConfig::toy(ds, d, experts) };
+        Vdd::from_config(VddConfig { seed, ..VddConfig::toy() }, p.teacher.clone(), mc, data)?
+    } else {
+        Vdd::auto(p.teacher.clone(), data, &options)?
+    };
     let t1 = Instant::now();
     vdd.train(|_| {})?;
     let ms_per_iter = t1.elapsed().as_secs_f64() * 1e3 / options.iterations as f64;
@@ -75,6 +124,7 @@ pub fn run(args: &Args) -> crate::XResult {
     let (n, seeds): (usize, &[u64]) = if args.quick { (8, &[0]) } else { (24, &[0, 1, 2]) };
     let problems = robustness_family(n, 0)?;
     let jobs: Vec<(usize, u64, usize)> = (0..n)
+        .filter(|p| args.only.is_empty() || args.only.contains(p))
         .flat_map(|p| seeds.iter().flat_map(move |&s| [1, 2].map(|m| (p, s, m))))
         .map(|(p, s, m)| (p, s, m * problems[p].info.components))
         .collect();
@@ -86,6 +136,14 @@ pub fn run(args: &Args) -> crate::XResult {
         args.threads
     ));
     let t0 = Instant::now();
+    // The paper's toy first, one run at a time (its ms/iter is a single-threaded figure).
+    let toy_problem = toy();
+    let mut toy_runs = Vec::new();
+    for seed in 0..if args.no_toy { 0 } else { 3 } {
+        let r = run_one(&toy_problem, seed, 8, args)?;
+        crate::progress::log(format!("[toy] {r}"));
+        toy_runs.push(r);
+    }
     let next = AtomicUsize::new(0);
     let results: Mutex<Vec<Option<Value>>> = Mutex::new(vec![None; jobs.len()]);
     let done = AtomicUsize::new(0);
@@ -94,7 +152,7 @@ pub fn run(args: &Args) -> crate::XResult {
             scope.spawn(|| loop {
                 let i = next.fetch_add(1, Ordering::SeqCst);
                 let Some(&(p, seed, experts)) = jobs.get(i) else { break };
-                let r = run_one(&problems[p], seed, experts, args.samples)
+                let r = run_one(&problems[p], seed, experts, args)
                     .unwrap_or_else(|e| json!({"problem": problems[p].info.name, "seed": seed, "experts": experts, "error": e.to_string()}));
                 let k = done.fetch_add(1, Ordering::SeqCst) + 1;
                 crate::progress::log(format!(
@@ -123,9 +181,11 @@ pub fn run(args: &Args) -> crate::XResult {
         "median_reverse_kl_2x": quantile(kl(2), 0.5), "p90_reverse_kl_2x": quantile(kl(2), 0.9),
         "wall_seconds": t0.elapsed().as_secs_f64(), "threads": args.threads,
         "load_start": load_start, "load_end": load(), "quick": args.quick,
+        "variant": args.variant,
     });
     let problems_info: Vec<_> = problems.iter().map(|p| &p.info).collect();
-    let doc = json!({"summary": summary, "problems": problems_info, "runs": runs});
+    let doc =
+        json!({"summary": summary, "problems": problems_info, "runs": runs, "paper_toy": toy_runs});
     std::fs::write(args.out.join("robustness.json"), serde_json::to_string_pretty(&doc)?)?;
     println!("{}", serde_json::to_string_pretty(&summary)?);
     Ok(())

@@ -185,6 +185,8 @@ mod tests {
         assert!(matches!(nn, Cli::Bench(Bench::Nn(a)) if a.batch == 8 && a.layer_norm));
         let t = parse(&words("bench teachers --noise-mean -1.2 --retrain")).unwrap();
         assert!(matches!(t, Cli::Bench(Bench::Teachers(a)) if a.noise_mean == -1.2 && a.retrain));
+        let r = parse(&words("bench robustness --quick --out /tmp/r")).unwrap();
+        assert!(matches!(r, Cli::Bench(Bench::Robustness(a)) if a.quick && a.threads == 2));
         let d = parse(&words("demos avoiding --n 5 --seed 2 --out /tmp/d")).unwrap();
         assert!(matches!(d, Cli::Demos(Demos::Avoiding(a)) if a.n == 5 && a.seed == 2));
         // Help is not an error; bad input is.

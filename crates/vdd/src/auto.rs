@@ -23,7 +23,7 @@
 //!   regressed linearly on the states (the part of the modes' motion all modes share), and a
 //!   mixture of as many full-covariance Gaussians as there are experts is fitted to the
 //!   residuals in the student's space (k-means++, then EM; empty components re-seeded at the
-//!   worst-explained sample). Each expert starts as one fitted component: its mean head outputs
+//!   worst-explained sample; the most likely of 4 such fits). Each expert starts as one fitted component: its mean head outputs
 //!   the component's mean plus the shared linear motion (a ridge fit of the output layer on the
 //!   trunk's features), its scale head the component's Cholesky factor; the learned gating
 //!   starts at the fitted weights. [`InitKind::Official`] keeps the official initialisation
@@ -345,7 +345,7 @@ impl AutoPlan {
             .collect();
         let mut fit_rng = seeds.stream("fit");
         let fitted =
-            fit::fit_mixture(&residuals, n, d, options.num_experts, 30, 1e-6, &mut fit_rng);
+            fit::fit_best(&residuals, n, d, options.num_experts, 30, 1e-6, 4, &mut fit_rng);
 
         let student = MoeConfig {
             expert_kind: options.expert_kind,

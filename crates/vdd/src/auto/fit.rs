@@ -125,6 +125,45 @@ fn log_normal(x: &[f64], mean: &[f64], l: &[f64], work: &mut [f64]) -> f64 {
     -0.5 * maha - log_det - 0.5 * d as f64 * (2.0 * std::f64::consts::PI).ln()
 }
 
+/// The best (highest mean log-likelihood) of `restarts` fits by [`fit_mixture`].
+#[allow(clippy::too_many_arguments)]
+pub(crate) fn fit_best(
+    x: &[f64],
+    n: usize,
+    d: usize,
+    z: usize,
+    em_steps: usize,
+    reg: f64,
+    restarts: usize,
+    rng: &mut Rng,
+) -> Fitted {
+    let mut best: Option<(f64, Fitted)> = None;
+    for _ in 0..restarts.max(1) {
+        let f = fit_mixture(x, n, d, z, em_steps, reg, rng);
+        let ll = mean_log_likelihood(x, n, d, &f);
+        if best.as_ref().is_none_or(|(b, _)| ll > *b) {
+            best = Some((ll, f));
+        }
+    }
+    best.expect("at least one fit").1
+}
+
+/// Mean log-likelihood of the samples under `f`.
+pub(crate) fn mean_log_likelihood(x: &[f64], n: usize, d: usize, f: &Fitted) -> f64 {
+    let mut work = vec![0.0f64; d];
+    let mut lp = vec![0.0f64; f.weights.len()];
+    let mut total = 0.0;
+    for i in 0..n {
+        for c in 0..lp.len() {
+            lp[c] = f.weights[c].max(1e-300).ln()
+                + log_normal(&x[i * d..(i + 1) * d], &f.means[c], &f.chols[c], &mut work);
+        }
+        let max = lp.iter().copied().fold(f64::NEG_INFINITY, f64::max);
+        total += max + lp.iter().map(|v| (v - max).exp()).sum::<f64>().ln();
+    }
+    total / n.max(1) as f64
+}
+
 /// k-means++ seeding, 10 Lloyd steps and `em_steps` EM steps of a `z`-component
 /// full-covariance mixture on the `n x d` row-major samples `x`. Covariances get `reg · I`
 /// added; a component left with (almost) no samples is re-seeded at the sample the mixture
