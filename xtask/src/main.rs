@@ -5,7 +5,7 @@
 //!                                 [--set k.path=v]... [--quick] [--out DIR] [--fresh]
 //! cargo xtask table [RUN_DIR...] [--out FILE]
 //! cargo xtask compare RUN_DIR_A RUN_DIR_B
-//! cargo xtask bench nn|teachers|import
+//! cargo xtask bench nn|teachers|import|robustness
 //! cargo xtask import lerobot|diffusion-policy|beso INPUT --out FILE
 //! cargo xtask demos avoiding --n 200 --seed 0 --out DIR
 //! ```
@@ -15,6 +15,7 @@
 //! [`recipe`] for how they resolve and [`experiment`] for the run directory layout).
 
 mod bench_nn;
+mod bench_robust;
 mod bench_teachers;
 mod context;
 mod demos;
@@ -75,6 +76,8 @@ enum Bench {
     Teachers(bench_teachers::Args),
     /// Imported PyTorch networks against their fixtures: max_abs_diff, rows/s against torch.
     Import(import::BenchArgs),
+    /// VDD with library defaults on a seeded family of exact-mixture teachers.
+    Robustness(bench_robust::Args),
 }
 
 /// `cargo xtask demos ...`.
@@ -125,6 +128,7 @@ fn main() {
         Cli::Bench(Bench::Teachers(a)) => bench_teachers::run(&a),
         Cli::Bench(Bench::Import(a)) => import::bench(&a),
         Cli::Import(a) => import::run(&a),
+        Cli::Bench(Bench::Robustness(a)) => bench_robust::run(&a),
         Cli::Demos(Demos::Avoiding(a)) => demos::avoiding(&a),
         Cli::Fuzz(a) => fuzz::run(&a),
         Cli::FuzzCase(a) => fuzz::case(&a),
@@ -201,6 +205,8 @@ mod tests {
         assert!(matches!(t, Cli::Bench(Bench::Teachers(a)) if a.noise_mean == -1.2 && a.retrain));
         let i = parse(&words("import lerobot d --out f")).unwrap();
         assert!(matches!(i, Cli::Import(import::Import::Lerobot(a)) if a.out.ends_with("f")));
+        let r = parse(&words("bench robustness --quick --out /tmp/r")).unwrap();
+        assert!(matches!(r, Cli::Bench(Bench::Robustness(a)) if a.quick && a.threads == 2));
         let d = parse(&words("demos avoiding --n 5 --seed 2 --out /tmp/d")).unwrap();
         assert!(matches!(d, Cli::Demos(Demos::Avoiding(a)) if a.n == 5 && a.seed == 2));
         // Help is not an error; bad input is.

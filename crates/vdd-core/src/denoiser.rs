@@ -185,6 +185,9 @@ impl<S: ScoreModel> ScoreModel for ClampedDenoiser<S> {
     fn denoiser_form(&self, level: f32) -> Option<DenoiserForm> {
         self.inner.denoiser_form(level)
     }
+    fn noise_range(&self) -> Option<(f32, f32)> {
+        self.inner.noise_range()
+    }
 }
 
 #[cfg(test)]

@@ -44,6 +44,14 @@ impl ScaleActivation {
         softplus(x + self.shift) + self.min_std
     }
 
+    /// The raw value that [`ScaleActivation::apply`] maps to `std` (clamped just above
+    /// `min_std`, where the activation has no inverse).
+    pub fn inverse(&self, std: f32) -> f32 {
+        let y = f64::from(std - self.min_std).max(1e-12);
+        // softplus⁻¹(y) = y + log(1 − exp(−y)).
+        (y + (-(-y).exp_m1()).ln()) as f32 - self.shift
+    }
+
     /// The derivative `sigmoid(x + shift)`.
     #[inline]
     pub fn derivative(&self, x: f32) -> f32 {

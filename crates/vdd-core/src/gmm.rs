@@ -725,7 +725,13 @@ impl ScoreModel for GmmTeacher {
     fn denoiser_form(&self, sigma: f32) -> Option<DenoiserForm> {
         Some(DenoiserForm::ve(sigma))
     }
+
+    /// `(0, ∞)`: the score is exact at every level.
+    fn noise_range(&self) -> Option<(f32, f32)> {
+        Some((0.0, f32::INFINITY))
+    }
 }
 
+pub mod family;
 #[cfg(test)]
 mod tests;

@@ -239,6 +239,14 @@ pub trait ScoreModel {
     fn denoiser_form(&self, _level: f32) -> Option<DenoiserForm> {
         None
     }
+
+    /// The range `(min, max)` of noise levels (in the teacher's [`NoiseConvention`]) at which
+    /// the score is trustworthy: the levels a learned teacher was trained at, or `(0, ∞)` for
+    /// an exact score. Automatic schedules (`vdd::VddConfig::for_teacher`) end at `min`.
+    /// The default is `None` (unknown).
+    fn noise_range(&self) -> Option<(f32, f32)> {
+        None
+    }
 }
 
 impl<T: ScoreModel + ?Sized> ScoreModel for &mut T {
@@ -279,6 +287,9 @@ impl<T: ScoreModel + ?Sized> ScoreModel for &mut T {
     }
     fn denoiser_form(&self, level: f32) -> Option<DenoiserForm> {
         (**self).denoiser_form(level)
+    }
+    fn noise_range(&self) -> Option<(f32, f32)> {
+        (**self).noise_range()
     }
 }
 

@@ -147,6 +147,59 @@ impl ExpertFamily {
     }
 }
 
+impl DiagonalExpert {
+    /// The raw outputs that [`Expert::decode`] maps to `mean` and the diagonal of `scale_tril`
+    /// (stds at or below `min_std` are clamped just above it).
+    pub fn encode(&self, mean: &[f32], scale_tril: &[f32], raw: &mut [f32]) {
+        let d = self.dim;
+        raw[..d].copy_from_slice(mean);
+        for i in 0..d {
+            raw[d + i] = self.scale.inverse(scale_tril[i * d + i]);
+        }
+    }
+}
+
+impl FullExpert {
+    /// The raw outputs that [`Expert::decode`] maps to `mean` and `scale_tril` (diagonal
+    /// entries at or below `min_std` are clamped just above it).
+    pub fn encode(&self, mean: &[f32], scale_tril: &[f32], raw: &mut [f32]) {
+        let d = self.dim;
+        raw[..d].copy_from_slice(mean);
+        let mut k = d;
+        for i in 0..d {
+            for j in 0..=i {
+                let l = scale_tril[i * d + j];
+                raw[k] = if i == j { self.scale.inverse(l) } else { l };
+                k += 1;
+            }
+        }
+    }
+}
+
+impl ExpertFamily {
+    /// The raw outputs that decode to `mean` and `scale_tril` (the diagonal family keeps the
+    /// diagonal of `scale_tril`).
+    ///
+    /// ```
+    /// use vdd_core::Expert;
+    /// use vdd_moe::{ExpertFamily, ExpertKind};
+    /// let e = ExpertFamily::new(ExpertKind::Full, 2, 1.0, 1e-4).unwrap();
+    /// let (mean, l) = ([0.5, -1.0], [0.3, 0.0, 0.2, 2.0]);
+    /// let mut raw = [0.0; 5];
+    /// e.encode(&mean, &l, &mut raw);
+    /// let (mut m2, mut l2) = ([0.0; 2], [0.0; 4]);
+    /// e.decode(&raw, &mut m2, &mut l2);
+    /// assert_eq!(m2, mean);
+    /// assert!(l2.iter().zip(&l).all(|(a, b)| (a - b).abs() < 1e-5));
+    /// ```
+    pub fn encode(&self, mean: &[f32], scale_tril: &[f32], raw: &mut [f32]) {
+        match self {
+            Self::Diagonal(e) => e.encode(mean, scale_tril, raw),
+            Self::Full(e) => e.encode(mean, scale_tril, raw),
+        }
+    }
+}
+
 macro_rules! dispatch {
     ($self:ident, $e:ident => $body:expr) => {
         match $self {

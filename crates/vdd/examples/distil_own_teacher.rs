@@ -1,23 +1,24 @@
 //! Distils a teacher of your own into a mixture of experts, and prints what the student does.
 //!
 //! The teacher is any `vdd::ScoreModel`; here three Gaussian modes around (5, 5) in the
-//! environment's units, with their exact score. The student normalises its actions (offset 5,
-//! scale 2); the trainer queries the teacher in the teacher's own (raw) units, so the student
-//! acts around (5, 5). Only the `vdd` crate is needed.
+//! environment's units, with their exact score and a sampler. `Vdd::auto`'s plan
+//! (`AutoPlan::inspect`) looks at the teacher's samples and picks the student's normalisers,
+//! the noise schedule and the experts' starting points; the trainer queries the teacher in its
+//! own (raw) units, so the student acts around (5, 5). Only the `vdd` crate is needed.
 //!
 //! ```text
 //! cargo run --release -p vdd --example distil_own_teacher [SEED [ITERATIONS]]
 //! ```
 //!
-//! With the default seed 2 every mode holds about a third of the actions (each Gaussian has
-//! 96% of its mass within 1.0 of its mean); with seeds 0 and 1 one expert sits between the two
-//! lower modes, a local optimum of the reverse KL.
+//! Every mode holds about a third of the actions (each Gaussian has 96% of its mass within 1.0
+//! of its mean). With the paper's toy settings instead (`VddConfig::toy`, `MoeConfig::toy` with
+//! six experts and a learned gating), seeds 0 and 1 left one expert between the two lower
+//! modes, a local optimum of the reverse KL; `docs/when-vdd-struggles.md` says why.
 
 use vdd::faer::{Mat, MatMut, MatRef};
 use vdd::rand::RngCore;
 use vdd::{
-    ActMode, Affine, CoreError, DistillData, GatingKind, Moe, MoeConfig, Policy, ScoreModel,
-    Trainer, Vdd, VddConfig,
+    ActMode, AutoOptions, AutoPlan, CoreError, DistillData, Policy, ScoreModel, Trainer, Vdd,
 };
 
 /// Three equally weighted isotropic Gaussians of standard deviation `std` (state ignored).
@@ -89,20 +90,19 @@ impl ScoreModel for ThreeModes {
 
 fn main() -> Result<(), Box<dyn std::error::Error>> {
     let centre = [5.0, 5.0];
-    let teacher = ThreeModes::around(centre, 2.0, 0.4);
+    let mut teacher = ThreeModes::around(centre, 2.0, 0.4);
     let modes = teacher.means;
 
     // One seed for the run: the trainer's draws and the student's initialisation.
     let seed = std::env::args().nth(1).map_or(Ok(2), |s| s.parse())?;
     let iterations = std::env::args().nth(2).map_or(Ok(600), |s| s.parse())?;
-    let config = VddConfig { iterations, seed, ..VddConfig::toy() };
-    // Six experts and a learned gating q(z|s), trained on the teacher's samples.
-    let mc = MoeConfig { gating: GatingKind::Learned, ..MoeConfig::toy(1, 2, 6) };
-    let mut student = Moe::from_config(mc, config.seed)?;
-    // The student's own space: actions centred on (5, 5) and halved.
-    student.set_normalizers(None, Some(Affine::new(centre.to_vec(), vec![2.0, 2.0])?))?;
+    // Defaults picked from the teacher: normalisers, noise schedule, and three experts started
+    // on a mixture fitted to the teacher's samples (see `vdd::auto`).
+    let options = AutoOptions { iterations, ..AutoOptions::new(3, seed) };
     let data = DistillData::from_states(Mat::zeros(32, 1))?; // raw states (one, repeated)
-    let mut vdd = Vdd::new(config, teacher, student, data)?;
+    let plan = AutoPlan::inspect(&mut teacher, &data, &options)?;
+    println!("picked: {}", plan.summary());
+    let mut vdd = Vdd::from_plan(&plan, teacher, data)?;
     let mut last = None;
     vdd.run(|m| last = Some(*m))?;
     let mut student = vdd.finish()?;

@@ -28,6 +28,10 @@ pub struct VddConfig {
     pub vi_samples: usize,
     /// Teacher noise levels used in the expert step (in the teacher's convention).
     pub noise: NoiseSchedule,
+    /// With an [`NoiseSchedule::Annealed`] schedule: the fraction of the run over which the
+    /// level goes from `start` to `end`; it then stays at `end`. `None`: the whole run.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub noise_anneal_until: Option<f32>,
     /// Weighting of the experts' objectives.
     pub expert_weighting: ExpertWeighting,
     /// Expert updates per iteration (all against the same E-step snapshot).
@@ -70,6 +74,7 @@ impl VddConfig {
             batch_size: 32,
             vi_samples: 64,
             noise: NoiseSchedule::Fixed { level: 0.0 },
+            noise_anneal_until: None,
             expert_weighting: ExpertWeighting::Gating,
             expert_steps_per_iter: 1,
             gating_steps_per_iter: 1,
@@ -82,6 +87,15 @@ impl VddConfig {
             max_grad_norm: None,
             student_ema: None,
             seed: 0,
+        }
+    }
+
+    /// Training progress in `[0, 1]` at which the noise schedule is read at `progress`
+    /// (the run's progress, rescaled by [`VddConfig::noise_anneal_until`]).
+    pub fn noise_progress(&self, progress: f32) -> f32 {
+        match self.noise_anneal_until {
+            Some(f) => (progress / f).min(1.0),
+            None => progress,
         }
     }
 
@@ -148,6 +162,13 @@ impl VddConfig {
         if let Some(m) = self.max_grad_norm {
             if !(m.is_finite() && m > 0.0) {
                 return Err(CoreError::Config("max_grad_norm must be positive".into()));
+            }
+        }
+        if let Some(f) = self.noise_anneal_until {
+            if !(f > 0.0 && f <= 1.0) {
+                return Err(CoreError::Config(format!(
+                    "noise_anneal_until must be in (0, 1], got {f}"
+                )));
             }
         }
         if let Some(d) = self.student_ema {

@@ -1,6 +1,12 @@
 //! Exact-density evaluation of a distilled mixture on problems whose target density is known
-//! (the toy tasks): Monte-Carlo reverse and forward KL, and mode coverage; [`against_gmm`]
-//! does all three against an exact Gaussian mixture in raw coordinates.
+//! (the toy tasks): Monte-Carlo reverse and forward KL, and mode coverage. [`against_gmm`]
+//! does all three against an exact Gaussian mixture in raw coordinates with the toy recipes'
+//! coverage rule (an expert mean near each mode); [`evaluate_against_mixture`] with the
+//! robustness benchmark's rule (a component covered when >= 1 % of student samples have it as
+//! their most likely component).
+
+mod mixture;
+pub use mixture::{MixtureEval, evaluate_against_mixture};
 
 use std::cell::RefCell;
 

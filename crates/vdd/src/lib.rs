@@ -52,12 +52,14 @@
 //!   (soft cross-entropy to responsibilities), checkpoints and resume;
 //! * [`spaces`]: the raw, student's and teacher's spaces, and [`TeacherSpace`];
 //! * [`config`]: [`VddConfig`] with the paper's toy defaults;
+//! * [`auto`]: defaults picked from the teacher ([`Vdd::auto`], [`VddConfig::for_teacher`]);
 //! * [`eval`]: Monte-Carlo reverse/forward KL and mode coverage for toy problems.
 //!
 //! `examples/distil_own_teacher.rs` distils a user-defined teacher end to end
 //! (`cargo run --release -p vdd --example distil_own_teacher`).
 #![warn(missing_docs)]
 
+pub mod auto;
 pub mod config;
 mod error;
 pub mod eval;
@@ -68,6 +70,7 @@ pub mod trainer;
 #[cfg(test)]
 mod test_support;
 
+pub use auto::{AutoOptions, AutoPlan, InitKind, SampleSource};
 pub use config::{
     ExpertWeighting, MAX_BATCH_SIZE, MAX_ITERATIONS, MAX_SAMPLES_PER_EXPERT, MAX_SAMPLES_PER_STEP,
     MAX_STEPS_PER_ITER, MAX_VI_SAMPLES, VddConfig,
@@ -77,6 +80,8 @@ pub use spaces::TeacherSpace;
 pub use trainer::{DistillData, IterationMetrics, Vdd};
 
 // The front door: everything a user of the trainer names, from one dependency.
+/// Exact Gaussian-mixture teachers ([`vdd_core::gmm`]), the robustness family among them.
+pub use vdd_core::gmm;
 pub use vdd_core::{
     Affine, ClampedDenoiser, CoreError, DenoiserForm, Expert, NoiseConvention, NoiseSchedule,
     Policy, Rng, ScaleActivation, ScoreModel, Seeds, Trainer, check_act_args, check_finite,

@@ -161,6 +161,9 @@ impl<S: ScoreModel + ?Sized> ScoreModel for MappedTeacher<'_, S> {
     ) {
         self.teacher.draw_noise_levels(schedule, progress, rng, out)
     }
+    fn noise_range(&self) -> Option<(f32, f32)> {
+        self.teacher.noise_range()
+    }
 }
 
 #[cfg(test)]

@@ -24,9 +24,9 @@ use crate::spaces::{ActionMap, MappedTeacher, TeacherSpace, normalize_rows, same
 /// normalises its actions agree without further ado.
 #[derive(Debug, Clone)]
 pub struct DistillData {
-    states: Mat<f32>,
-    actions: Option<Mat<f32>>,
-    teacher_space: TeacherSpace,
+    pub(crate) states: Mat<f32>,
+    pub(crate) actions: Option<Mat<f32>>,
+    pub(crate) teacher_space: TeacherSpace,
 }
 
 impl DistillData {
@@ -58,6 +58,11 @@ impl DistillData {
     /// The raw states.
     pub fn states(&self) -> MatRef<'_, f32> {
         self.states.as_ref()
+    }
+
+    /// The raw dataset actions, if given.
+    pub fn actions(&self) -> Option<MatRef<'_, f32>> {
+        self.actions.as_ref().map(|a| a.as_ref())
     }
 
     /// The space the teacher works in.
@@ -328,7 +333,7 @@ impl<S: ScoreModel, E: Expert> Vdd<S, E> {
     /// beyond the steps that already completed, and the iteration counter does not advance.
     pub fn step(&mut self) -> Result<IterationMetrics, VddError> {
         let it = self.iteration;
-        let progress = it as f32 / self.config.iterations.max(1) as f32;
+        let progress = self.config.noise_progress(it as f32 / self.config.iterations.max(1) as f32);
 
         // State minibatch.
         let mut rng = self.seeds.stream_indexed("state-batch", it as u64);

@@ -308,6 +308,18 @@ impl<E: Expert> Moe<E> {
         &mut self.experts
     }
 
+    /// The experts' residual MLPs with, for each, the experts whose raw outputs it emits (a
+    /// shared trunk emits all `Z`, expert `z` in output columns `z·raw_dim..(z+1)·raw_dim`;
+    /// separate networks one each), for custom initialisation.
+    pub fn expert_trunks_mut(&mut self) -> Vec<(&mut ResidualMlp, std::ops::Range<usize>)> {
+        match &mut self.experts.0 {
+            ExpertNets::Shared(net) => vec![(&mut **net, 0..self.config.num_experts)],
+            ExpertNets::Separate(nets) => {
+                nets.iter_mut().enumerate().map(|(z, n)| (n, z..z + 1)).collect()
+            }
+        }
+    }
+
     /// The gating network, if learned (for an optimiser).
     pub fn gating_network_mut(&mut self) -> Option<&mut ResidualMlp> {
         self.gating.as_mut()
