@@ -96,6 +96,8 @@ fn crate_dependency_rules_hold() {
         ("vdd-recipe", &[]),
         // PyTorch teachers are networks plus noise processes; they know no student or trainer.
         ("vdd-import", &["vdd-core", "vdd-nn", "vdd-diffusion", "vdd-data"]),
+        // The Python package binds the deployed student, the trainer and the learned teachers.
+        ("vdd-py", &["vdd-core", "vdd-data", "vdd-moe", "vdd", "vdd-diffusion"]),
     ];
     let mut broken = Vec::new();
     for (krate, deps) in &deps {
