@@ -7,6 +7,7 @@
 //! cargo xtask compare RUN_DIR_A RUN_DIR_B
 //! cargo xtask bench nn|teachers
 //! cargo xtask demos avoiding --n 200 --seed 0 --out DIR
+//! cargo xtask export-onnx MODEL --out policy.onnx
 //! ```
 //!
 //! `cargo xtask help [COMMAND]` describes every option (the parser is `clap`'s derive API; bad
@@ -18,6 +19,7 @@ mod bench_teachers;
 mod context;
 mod demos;
 mod experiment;
+mod export_onnx;
 mod method;
 mod methods;
 mod pipeline;
@@ -52,6 +54,8 @@ enum Cli {
     /// Scripted demonstrations.
     #[command(subcommand)]
     Demos(Demos),
+    /// Export a saved policy as an ONNX graph (obs in; log_gating, means, scale_tril out).
+    ExportOnnx(export_onnx::Args),
 }
 
 /// `cargo xtask bench ...`.
@@ -110,6 +114,7 @@ fn main() {
         Cli::Bench(Bench::Nn(a)) => bench_nn::run(&a),
         Cli::Bench(Bench::Teachers(a)) => bench_teachers::run(&a),
         Cli::Demos(Demos::Avoiding(a)) => demos::avoiding(&a),
+        Cli::ExportOnnx(a) => export_onnx::run(&a),
     };
     if let Err(e) = result {
         eprintln!("error: {e}");

@@ -46,10 +46,10 @@ impl PyScore {
             ))
         })?;
         let score = score.as_array();
-        if score.dim() != (a.nrows(), self.action_dim) {
+        let (rows, cols) = score.dim();
+        if (rows, cols) != (a.nrows(), self.action_dim) {
             return Err(PyValueError::new_err(format!(
-                "score_fn returned shape {:?}, expected ({}, {})",
-                score.shape(),
+                "score_fn returned shape ({rows}, {cols}), expected ({}, {})",
                 a.nrows(),
                 self.action_dim
             )));

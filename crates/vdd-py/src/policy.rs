@@ -130,6 +130,40 @@ impl PyPolicy {
         py.detach(|| moe.save(&path)).py_err(py)
     }
 
+    /// Writes the policy as an ONNX graph (`vdd_onnx`): input `obs`
+    /// `(n, obs_window · obs_dim)`, outputs `log_gating`, `means`, `scale_tril` equal to
+    /// `components(obs)`.
+    fn export_onnx(&self, py: Python<'_>, path: PathBuf) -> PyResult<()> {
+        let moe = self.inner.inner();
+        py.detach(|| {
+            let bytes = vdd_onnx::export(moe)?;
+            std::fs::write(&path, bytes)
+                .map_err(|source| vdd_onnx::OnnxError::Io { path: path.clone(), source })
+        })
+        .py_err(py)
+    }
+
+    /// Rust's own µs per `act` call for this policy (`vdd_tasks::timing::us_per_action`, the
+    /// recipes' measurement: the median of 5 timed rounds of single-observation calls over
+    /// the episode `obs` `(T, obs_dim)`, again and again), on a copy of the policy.
+    #[pyo3(signature = (obs, calls = 2000, warmup = 100, min_round_ms = 20.0))]
+    fn rust_us_per_act(
+        &self,
+        py: Python<'_>,
+        obs: PyArrayLike2<'_, f32, AllowTypeChange>,
+        calls: usize,
+        warmup: usize,
+        min_round_ms: f64,
+    ) -> PyResult<f64> {
+        let episode = matrix(obs.as_array(), self.inner.obs_dim(), "obs")?;
+        let timing = vdd_tasks::timing::Timing { calls, warmup, min_round_ms };
+        let mut copies = [self.inner.clone()];
+        let us = py
+            .detach(|| vdd_tasks::timing::us_per_action(&mut copies, &[episode], timing, 0))
+            .py_err(py)?;
+        Ok(us[0])
+    }
+
     /// Dimension of one raw observation.
     #[getter]
     fn obs_dim(&self) -> usize {
