@@ -8,6 +8,7 @@
 //! cargo xtask bench nn|teachers|import|robustness
 //! cargo xtask import lerobot|diffusion-policy|beso INPUT --out FILE
 //! cargo xtask demos avoiding --n 200 --seed 0 --out DIR
+//! cargo xtask export-onnx MODEL --out policy.onnx
 //! ```
 //!
 //! `cargo xtask help [COMMAND]` describes every option (the parser is `clap`'s derive API; bad
@@ -20,6 +21,7 @@ mod bench_teachers;
 mod context;
 mod demos;
 mod experiment;
+mod export_onnx;
 mod fuzz;
 mod import;
 mod method;
@@ -65,6 +67,8 @@ enum Cli {
     /// One fuzz case, run in a child process by `fuzz`.
     #[command(hide = true)]
     FuzzCase(fuzz::CaseArgs),
+    /// Export a saved policy as an ONNX graph (obs in; log_gating, means, scale_tril out).
+    ExportOnnx(export_onnx::Args),
 }
 
 /// `cargo xtask bench ...`.
@@ -132,6 +136,7 @@ fn main() {
         Cli::Demos(Demos::Avoiding(a)) => demos::avoiding(&a),
         Cli::Fuzz(a) => fuzz::run(&a),
         Cli::FuzzCase(a) => fuzz::case(&a),
+        Cli::ExportOnnx(a) => export_onnx::run(&a),
     };
     if let Err(e) = result {
         eprintln!("error: {e}");

@@ -33,6 +33,12 @@ impl ScaleActivation {
         Ok(Self { shift: shift as f32, min_std })
     }
 
+    /// The shift inside the softplus (`softplus⁻¹(init_std − min_std)`): for exporters that
+    /// rebuild the activation elsewhere (ONNX).
+    pub fn shift(&self) -> f32 {
+        self.shift
+    }
+
     /// The smallest standard deviation this activation can produce.
     pub fn min_std(&self) -> f32 {
         self.min_std

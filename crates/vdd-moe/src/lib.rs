@@ -27,6 +27,7 @@ pub mod step;
 pub use error::MoeError;
 pub use experts::{DiagonalExpert, ExpertFamily, ExpertKind, FullExpert};
 pub use moe::{
-    ActMode, DeployedPolicy, ExpertNetworks, GatingKind, MAX_ACTION_DIM, MAX_EXPERTS,
-    MAX_SCALE_ENTRIES, MAX_STD, Moe, MoeConfig, MoeOutput, NetworkConfig, load_policy,
+    ActMode, Components, DeployedPolicy, ExpertNetworks, GatingKind, MAX_ACTION_DIM, MAX_EXPERTS,
+    MAX_SCALE_ENTRIES, MAX_STD, Moe, MoeConfig, MoeOutput, NetworkConfig, deployed_components,
+    deployed_log_likelihood, load_policy, mixture_observations,
 };

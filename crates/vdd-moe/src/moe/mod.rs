@@ -1,5 +1,6 @@
 //! The mixture of experts `q(a|s) = Σ_z q(z|s) N(a; μ_z(s), L_z(s) L_z(s)ᵀ)`.
 
+mod components;
 mod config;
 mod deploy;
 mod forward;
@@ -9,6 +10,9 @@ mod policy;
 #[cfg(test)]
 mod tests;
 
+pub use components::{
+    Components, deployed_components, deployed_log_likelihood, mixture_observations,
+};
 pub use config::{
     ActMode, GatingKind, MAX_ACTION_DIM, MAX_EXPERTS, MAX_SCALE_ENTRIES, MAX_STD, MoeConfig,
     NetworkConfig,

@@ -206,6 +206,7 @@ fn assert_close(got: f64, want: f64, tol: f64, what: &str) {
 }
 
 mod acting;
+mod components;
 mod errors;
 mod gradients;
 mod hostile;

@@ -1,0 +1,72 @@
+"""vdd.distill: a NumPy teacher drives the Rust trainer; its errors surface in Python."""
+
+import traceback
+
+import numpy as np
+import pytest
+
+import vdd
+from conftest import MODES, four_modes_score
+
+
+def test_distilling_four_gaussians_covers_all_four_modes(four_modes_policy):
+    lg, mu, L = four_modes_policy.components(np.zeros((1, 1), dtype=np.float32))
+    # Every mode has an expert whose mean sits on it.
+    dist = np.linalg.norm(mu[0][:, None, :] - MODES[None, :, :], axis=2)  # (experts, modes)
+    assert np.all(dist.min(axis=0) < 0.3), dist.min(axis=0)
+    # And the policy's actions land on every mode.
+    four_modes_policy.seed(0)
+    actions = four_modes_policy.act_batch(np.zeros((2000, 1), dtype=np.float32))
+    nearest = np.linalg.norm(actions[:, None, :] - MODES[None], axis=2).argmin(axis=1)
+    share = np.bincount(nearest, minlength=4) / len(actions)
+    assert np.all(share > 0.1), share
+
+
+def test_an_exception_in_score_fn_surfaces_with_its_traceback():
+    def broken_teacher(actions, states, sigma):
+        raise KeyError("the teacher's server is down")
+
+    with pytest.raises(KeyError, match="server is down") as info:
+        vdd.distill(broken_teacher, np.zeros((4, 1)), action_dim=2, iterations=3)
+    frames = [f.name for f in traceback.extract_tb(info.value.__traceback__)]
+    assert "broken_teacher" in frames, frames
+
+
+def test_a_score_of_the_wrong_shape_is_a_value_error():
+    with pytest.raises(ValueError, match=r"score_fn returned shape \(.*, 3\)"):
+        vdd.distill(
+            lambda a, s, sig: np.zeros((len(a), 3)), np.zeros((4, 1)), action_dim=2, iterations=1
+        )
+
+
+def test_settings_map_onto_the_configurations_and_unknown_ones_are_named():
+    p = vdd.distill(
+        four_modes_score,
+        np.zeros((4, 1)),
+        action_dim=2,
+        experts=2,
+        iterations=2,
+        expert_kind="full",
+        noise={"kind": "fixed", "level": 0.1},
+        experts_network={"hidden_dim": 8, "num_blocks": 1, "activation": "relu"},
+    )
+    assert p.num_experts == 2
+    with pytest.raises(ValueError, match="unknown setting `hidden`"):
+        vdd.distill(four_modes_score, np.zeros((4, 1)), action_dim=2, hidden=3)
+    with pytest.raises(ValueError, match="give it as experts="):
+        vdd.distill(four_modes_score, np.zeros((4, 1)), action_dim=2, num_experts=2)
+    with pytest.raises(ValueError, match="invalid student setting: unknown variant `round`"):
+        vdd.distill(four_modes_score, np.zeros((4, 1)), action_dim=2, expert_kind="round")
+
+
+def test_the_score_fn_gets_float32_arrays_of_the_documented_shapes():
+    seen = []
+
+    def teacher(actions, states, sigma):
+        seen.append((actions.shape, states.shape, sigma.shape, actions.dtype))
+        return four_modes_score(actions, states, sigma)
+
+    vdd.distill(teacher, np.zeros((4, 3)), action_dim=2, experts=2, iterations=1, batch_size=4,
+                vi_samples=5)
+    (a, s, sig, dtype) = seen[0]
+    assert a[1] == 2 and s[1] == 3 and a[0] == s[0] == sig[0] and dtype == np.float32
