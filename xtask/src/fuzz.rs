@@ -79,13 +79,10 @@ pub fn case(a: &CaseArgs) -> ! {
             std::process::exit(loaded.exit_code())
         }
         Err(e) => {
-            let mut chain: Vec<String> = vec![e.to_string()];
-            let mut source = std::error::Error::source(&e);
-            while let Some(s) = source {
-                chain.push(s.to_string());
-                source = s.source();
+            match std::error::Error::source(&e) {
+                Some(source) => eprintln!("error: {e}: {source}"),
+                None => eprintln!("error: {e}"),
             }
-            eprintln!("error: {}", chain.join(": "));
             std::process::exit(1)
         }
     }
