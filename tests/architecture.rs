@@ -103,6 +103,8 @@ fn crate_dependency_rules_hold() {
         ),
         // ONNX export reads a saved student; it knows no teacher, trainer or task.
         ("vdd-onnx", &["vdd-core", "vdd-nn", "vdd-data", "vdd-moe"]),
+        // The fuzzer's engine exercises the loaders it fuzzes; no task, recipe or tool code.
+        ("vdd-fuzz", &["vdd-core", "vdd-nn", "vdd-data", "vdd-moe", "vdd-diffusion", "vdd"]),
     ];
     let mut broken = Vec::new();
     for (krate, deps) in &deps {

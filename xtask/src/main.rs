@@ -62,7 +62,7 @@ enum Cli {
     /// Teachers trained in PyTorch, into teacher files.
     #[command(subcommand)]
     Import(import::Import),
-    /// Mutation fuzzing of the file loaders (see xtask/src/fuzz/mod.rs).
+    /// Mutation fuzzing of the file loaders (see xtask/src/fuzz.rs, crates/vdd-fuzz).
     Fuzz(fuzz::Args),
     /// One fuzz case, run in a child process by `fuzz`.
     #[command(hide = true)]

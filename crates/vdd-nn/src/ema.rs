@@ -116,7 +116,8 @@ impl Ema {
         }
         self.check(model)?;
         for (name, p) in self.names.iter().zip(&self.shadow) {
-            if p.value.len() != p.shape.iter().product::<usize>() {
+            let size = p.shape.iter().try_fold(1usize, |n, &d| n.checked_mul(d));
+            if size != Some(p.value.len()) {
                 return Err(mismatch(format!(
                     "`{name}` has shape {:?} but {} values",
                     p.shape,
@@ -263,5 +264,15 @@ mod tests {
         let mut layer = Linear::new(2, 4, &mut vdd_core::Seeds::new(0).stream("i"));
         assert!(matches!(ema.copy_to(&mut layer), Err(NnError::ModelMismatch(_))));
         assert!(Ema::new(&layer, 1.5).is_err() && Ema::new(&layer, f32::NAN).is_err());
+    }
+
+    #[test]
+    fn a_restored_shape_that_overflows_is_an_error() {
+        let layer = Linear::new(2, 3, &mut vdd_core::Seeds::new(0).stream("i"));
+        let mut json = serde_json::to_value(Ema::new(&layer, 0.9).unwrap()).unwrap();
+        let huge = 1usize << (usize::BITS / 2 + 1);
+        json["shadow"][0]["shape"] = serde_json::json!([huge, huge, 6]);
+        let restored: Ema = serde_json::from_value(json).unwrap();
+        assert!(matches!(restored.validate(&layer), Err(NnError::ModelMismatch(_))));
     }
 }

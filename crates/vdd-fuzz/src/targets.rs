@@ -13,14 +13,12 @@ use vdd_core::{Affine, NoiseSchedule, Policy, ScoreModel, Seeds};
 use vdd_data::{DeploySpec, Episodes};
 use vdd_moe::{ExpertKind, GatingKind, Moe, MoeConfig};
 
-use super::mutate;
-use crate::XResult;
+use crate::{BoxError, Target, mutate};
 
-/// Every target, in the order `all` runs them.
-pub const TARGETS: &[&str] =
-    &["npy", "npz", "safetensors", "moe", "teacher", "checkpoint", "recipe"];
+type Result<T = (), E = BoxError> = std::result::Result<T, E>;
 
 /// What a case did when it loaded: every output finite, or a non-finite one returned as `Ok`.
+#[derive(Debug, Clone, PartialEq, Eq)]
 pub enum Loaded {
     /// Loaded and used; every output finite.
     Finite,
@@ -28,30 +26,41 @@ pub enum Loaded {
     NonFinite(String),
 }
 
+impl Loaded {
+    /// The exit code of a child whose case ended so (0 finite, 3 non-finite; see
+    /// [`Outcome::from_exit_code`](crate::Outcome::from_exit_code)).
+    pub fn exit_code(&self) -> i32 {
+        match self {
+            Loaded::Finite => 0,
+            Loaded::NonFinite(_) => crate::report::EXIT_NONFINITE,
+        }
+    }
+}
+
 /// Writes the seed inputs of `target` under `dir`, one directory each.
-pub fn write_seeds(target: &str, dir: &Path) -> XResult<Vec<PathBuf>> {
-    let seed_dir = |k: usize| -> XResult<PathBuf> {
+pub(crate) fn write_seeds(target: Target, dir: &Path) -> Result<Vec<PathBuf>> {
+    let seed_dir = |k: usize| -> Result<PathBuf> {
         let d = dir.join(format!("seed{k}"));
         std::fs::create_dir_all(&d)?;
         Ok(d)
     };
     let mut out = Vec::new();
     match target {
-        "npy" | "npz" => {
+        Target::Npy | Target::Npz => {
             let episodes = (0..3)
                 .map(|i| Mat::from_fn(4 + i, 2, |r, c| (r + 2 * c + i) as f32 * 0.1))
                 .collect::<Vec<_>>();
             let acts = episodes.iter().map(|m| Mat::from_fn(m.nrows(), 2, |r, c| m[(r, c)] - 0.5));
             let e = Episodes::from_episodes(episodes.clone(), acts.collect())?;
             let d = seed_dir(0)?;
-            if target == "npy" {
+            if target == Target::Npy {
                 e.save_npy_dir(&d)?
             } else {
                 e.save_npz(&d.join("data.npz"))?
             }
             out.push(d);
         }
-        "safetensors" => {
+        Target::Safetensors => {
             let cfg = net_config();
             let net = vdd_nn::ResidualMlp::new(&cfg, &mut Seeds::new(0).stream("init"))?;
             let meta = [("config".to_owned(), serde_json::to_string(&cfg)?)].into();
@@ -59,7 +68,7 @@ pub fn write_seeds(target: &str, dir: &Path) -> XResult<Vec<PathBuf>> {
             vdd_nn::io::save_safetensors(&d.join("net.safetensors"), &net, &meta)?;
             out.push(d);
         }
-        "moe" => {
+        Target::Moe => {
             let d = seed_dir(0)?;
             Moe::from_config(MoeConfig::toy(2, 2, 4), 0)?.save(&d.join("policy.safetensors"))?;
             out.push(d);
@@ -79,7 +88,7 @@ pub fn write_seeds(target: &str, dir: &Path) -> XResult<Vec<PathBuf>> {
             moe.save(&d.join("policy.safetensors"))?;
             out.push(d);
         }
-        "teacher" => {
+        Target::Teacher => {
             use vdd_diffusion::{Beso, BesoConfig, Ddpm, DdpmConfig, NetConfig};
             let net =
                 NetConfig { hidden_dim: 8, num_blocks: 1, embed_dim: 4, ..Default::default() };
@@ -93,8 +102,8 @@ pub fn write_seeds(target: &str, dir: &Path) -> XResult<Vec<PathBuf>> {
             Ddpm::new(&ddpm, s, a, 0)?.save(&d.join("teacher.safetensors"))?;
             out.push(d);
         }
-        "checkpoint" => {
-            let (config, teacher, data) = checkpoint_run();
+        Target::Checkpoint => {
+            let (config, teacher, data) = checkpoint_run()?;
             let mut mc = MoeConfig::toy(1, 2, 3);
             mc.gating = GatingKind::Learned;
             mc.experts_network.hidden_dim = 8;
@@ -106,12 +115,11 @@ pub fn write_seeds(target: &str, dir: &Path) -> XResult<Vec<PathBuf>> {
             v.write_checkpoint(&d)?;
             out.push(d);
         }
-        "recipe" => {
+        Target::Recipe => {
             let d = seed_dir(0)?;
             std::fs::write(d.join("recipe.toml"), include_str!("../../../recipes/toy-gmm.toml"))?;
             out.push(d);
         }
-        other => return Err(format!("unknown fuzz target `{other}`").into()),
     }
     Ok(out)
 }
@@ -128,8 +136,8 @@ fn net_config() -> vdd_nn::ResidualMlpConfig {
 }
 
 /// The toy run the checkpoint seeds come from and the cases resume.
-fn checkpoint_run() -> (vdd::VddConfig, vdd_core::gmm::GmmTeacher, vdd::DistillData) {
-    let gmm = vdd_core::gmm::Gmm::circle(4, 2.0, 0.5, 0.0).expect("a valid mixture");
+fn checkpoint_run() -> Result<(vdd::VddConfig, vdd_core::gmm::GmmTeacher, vdd::DistillData)> {
+    let gmm = vdd_core::gmm::Gmm::circle(4, 2.0, 0.5, 0.0)?;
     let config = vdd::VddConfig {
         iterations: 4,
         batch_size: 4,
@@ -137,8 +145,8 @@ fn checkpoint_run() -> (vdd::VddConfig, vdd_core::gmm::GmmTeacher, vdd::DistillD
         gating_batch_size: 8,
         ..vdd::VddConfig::toy()
     };
-    let data = vdd::DistillData::from_states(Mat::zeros(8, 1)).expect("valid states");
-    (config, vdd_core::gmm::GmmTeacher::fixed(gmm, 1), data)
+    let data = vdd::DistillData::from_states(Mat::zeros(8, 1))?;
+    Ok((config, vdd_core::gmm::GmmTeacher::fixed(gmm, 1), data))
 }
 
 /// Keys the recipe mutations set (sizes, counts, rates and ranges).
@@ -171,9 +179,26 @@ const RECIPE_KEYS: &[&str] = &[
     "eval.kl_samples",
 ];
 
+/// Case `case` of the campaign with seed `seed`: a copy of one of `seeds`, mutated.
+pub(crate) fn prepare_case(
+    target: Target,
+    seeds: &[PathBuf],
+    seed: u64,
+    case: usize,
+    dir: &Path,
+) -> Result {
+    if seeds.is_empty() {
+        return Err("no seed inputs".into());
+    }
+    let _ = std::fs::remove_dir_all(dir);
+    let mut rng = Seeds::new(seed).stream_indexed(&format!("fuzz-{target}"), case as u64);
+    crate::copy_case(&seeds[rng.random_range(0..seeds.len())], dir)?;
+    mutate_case(target, dir, &mut rng)
+}
+
 /// Mutates one file of `case` (a copy of a seed directory) in place.
-pub fn mutate_case(target: &str, case: &Path, rng: &mut Rng) -> XResult {
-    let edit = |name: &str, f: &mut dyn FnMut(&mut Vec<u8>)| -> XResult {
+fn mutate_case(target: Target, case: &Path, rng: &mut Rng) -> Result {
+    let edit = |name: &str, f: &mut dyn FnMut(&mut Vec<u8>)| -> Result {
         let path = case.join(name);
         let mut bytes = std::fs::read(&path)?;
         f(&mut bytes);
@@ -181,30 +206,31 @@ pub fn mutate_case(target: &str, case: &Path, rng: &mut Rng) -> XResult {
         Ok(())
     };
     match target {
-        "npy" => {
+        Target::Npy => {
             let names = ["observations_seq.npy", "actions_seq.npy", "existence_mask.npy"];
             let name = names.choose(rng).copied().unwrap_or(names[0]);
             edit(name, &mut |b| mutate::npy(rng, b))
         }
-        "npz" if rng.random_bool(0.8) => {
+        Target::Npz if rng.random_bool(0.8) => {
             let path = case.join("data.npz");
             let bytes = std::fs::read(&path)?;
             std::fs::write(&path, rezip(&bytes, rng)?)?;
             Ok(())
         }
-        "npz" => edit("data.npz", &mut |b| mutate::bytes(rng, b)),
-        "safetensors" => edit("net.safetensors", &mut |b| mutate::safetensors(rng, b)),
-        "moe" => edit("policy.safetensors", &mut |b| mutate::safetensors(rng, b)),
-        "teacher" => edit("teacher.safetensors", &mut |b| mutate::safetensors(rng, b)),
-        "checkpoint" if rng.random() => edit("trainer.json", &mut |b| mutate::json_file(rng, b)),
-        "checkpoint" => edit("student.safetensors", &mut |b| mutate::safetensors(rng, b)),
-        "recipe" => edit("recipe.toml", &mut |b| mutate::toml_file(rng, b, RECIPE_KEYS)),
-        other => Err(format!("unknown fuzz target `{other}`").into()),
+        Target::Npz => edit("data.npz", &mut |b| mutate::bytes(rng, b)),
+        Target::Safetensors => edit("net.safetensors", &mut |b| mutate::safetensors(rng, b)),
+        Target::Moe => edit("policy.safetensors", &mut |b| mutate::safetensors(rng, b)),
+        Target::Teacher => edit("teacher.safetensors", &mut |b| mutate::safetensors(rng, b)),
+        Target::Checkpoint if rng.random() => {
+            edit("trainer.json", &mut |b| mutate::json_file(rng, b))
+        }
+        Target::Checkpoint => edit("student.safetensors", &mut |b| mutate::safetensors(rng, b)),
+        Target::Recipe => edit("recipe.toml", &mut |b| mutate::toml_file(rng, b, RECIPE_KEYS)),
     }
 }
 
 /// The archive with one entry mutated as an `.npy` file, rewritten stored or deflated.
-fn rezip(bytes: &[u8], rng: &mut Rng) -> XResult<Vec<u8>> {
+fn rezip(bytes: &[u8], rng: &mut Rng) -> Result<Vec<u8>> {
     let mut zin = zip::ZipArchive::new(std::io::Cursor::new(bytes))?;
     let mut entries = Vec::new();
     for i in 0..zin.len() {
@@ -231,11 +257,15 @@ fn rezip(bytes: &[u8], rng: &mut Rng) -> XResult<Vec<u8>> {
 }
 
 /// Runs one case (in the child process): loads the case's input and uses it.
-pub fn run_case(target: &str, case: &Path) -> XResult<Loaded> {
+pub(crate) fn run_case(
+    target: Target,
+    case: &Path,
+    check_recipe: impl FnOnce(&Path) -> Result,
+) -> Result<Loaded> {
     let mut outputs: Vec<f32> = Vec::new();
     match target {
-        "npy" | "npz" => {
-            let e = if target == "npy" {
+        Target::Npy | Target::Npz => {
+            let e = if target == Target::Npy {
                 Episodes::load_npy_dir(case)?
             } else {
                 Episodes::load_npz(&case.join("data.npz"))?
@@ -243,7 +273,7 @@ pub fn run_case(target: &str, case: &Path) -> XResult<Loaded> {
             outputs.extend(e.padded_observations());
             outputs.extend(e.padded_actions());
         }
-        "safetensors" => {
+        Target::Safetensors => {
             let path = case.join("net.safetensors");
             let (meta, elements) = vdd_nn::io::read_header(&path)?;
             let cfg: vdd_nn::ResidualMlpConfig =
@@ -255,7 +285,7 @@ pub fn run_case(target: &str, case: &Path) -> XResult<Loaded> {
             let y = vdd_nn::Module::forward(&mut net, x.as_ref());
             outputs.extend((0..y.nrows()).flat_map(|i| (0..y.ncols()).map(move |j| y[(i, j)])));
         }
-        "moe" => {
+        Target::Moe => {
             let path = case.join("policy.safetensors");
             let mut moe = Moe::load(&path)?;
             let obs = Mat::from_fn(3, moe.obs_dim(), |i, j| (i + j) as f32 * 0.3 - 0.5);
@@ -272,7 +302,7 @@ pub fn run_case(target: &str, case: &Path) -> XResult<Loaded> {
                 outputs.extend(policy.act(&o)?);
             }
         }
-        "teacher" => {
+        Target::Teacher => {
             let mut t =
                 vdd_diffusion::DiffusionTeacher::load(&case.join("teacher.safetensors"), 0)?;
             let (ds, da) = (ScoreModel::state_dim(&t), ScoreModel::action_dim(&t));
@@ -288,8 +318,8 @@ pub fn run_case(target: &str, case: &Path) -> XResult<Loaded> {
             let obs: Vec<f32> = (0..Policy::obs_dim(&t)).map(|j| j as f32 * 0.1).collect();
             outputs.extend(t.act(&obs)?);
         }
-        "checkpoint" => {
-            let (_, teacher, data) = checkpoint_run();
+        Target::Checkpoint => {
+            let (_, teacher, data) = checkpoint_run()?;
             let mut v = vdd::Vdd::resume(case, teacher, data)?;
             let m = v.step()?;
             outputs.extend([m.expert.expert_entropy, m.gating_entropy, m.expert_lr]);
@@ -297,11 +327,7 @@ pub fn run_case(target: &str, case: &Path) -> XResult<Loaded> {
             let mut student = v.into_student();
             outputs.extend(student.act(&[0.0])?);
         }
-        "recipe" => {
-            let file = crate::recipe::read_recipe(&case.join("recipe.toml"))?;
-            crate::tasks::check_toy_gmm(&file)?;
-        }
-        other => return Err(format!("unknown fuzz target `{other}`").into()),
+        Target::Recipe => check_recipe(&case.join("recipe.toml"))?,
     }
     Ok(match outputs.iter().position(|v| !v.is_finite()) {
         Some(i) => Loaded::NonFinite(format!("output {i} is {}", outputs[i])),

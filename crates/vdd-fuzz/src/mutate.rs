@@ -1,4 +1,4 @@
-//! The mutation engine of `cargo xtask fuzz`: seeded byte-level mutations of any file, and
+//! The mutation engine: seeded byte-level mutations of any file, and
 //! structure-aware ones for the formats the loaders read (an `.npy` header, a `safetensors`
 //! header and its JSON metadata, JSON and TOML documents), which keep the container valid so
 //! that the mutated values reach the checks behind it.

@@ -1,0 +1,172 @@
+//! The engine of the workspace's mutation fuzzer (`cargo xtask fuzz`, which runs each case in
+//! a child process with memory and time limits; that runner is xtask's).
+//!
+//! A [`Target`] is one family of files a loader reads (`npy`, `npz`, `safetensors`, `moe`,
+//! `teacher`, `checkpoint`, `recipe`). For each the crate writes valid seed inputs
+//! ([`write_seeds`]), derives a mutated case from them with a stream of the campaign's seed
+//! indexed by the case number ([`prepare_case`]: bit flips, interesting bytes and floats,
+//! truncation, extension, header and JSON/TOML field edits with huge, negative, non-finite and
+//! `1e39` values, shape and dtype edits), and runs a case: load the input, use it (act, score,
+//! forward, a training step) and check every output is finite ([`run_case`]). The child's
+//! exit code gives the case's [`Outcome`]; [`Report`] holds the counts and writes `fuzz.json`.
+//! The crate never prints.
+//!
+//! ```
+//! use vdd_fuzz::{Loaded, Outcome, Target};
+//! # fn main() -> Result<(), vdd_fuzz::Error> {
+//! let dir = std::env::temp_dir().join(format!("vdd-fuzz-doc-{}", std::process::id()));
+//! let seeds = vdd_fuzz::write_seeds(Target::Npy, &dir.join("seeds"))?;
+//! // The unmutated seed loads, and every output is finite.
+//! let ok = vdd_fuzz::run_case(Target::Npy, &seeds[0], |_| Ok(()))?;
+//! assert!(matches!(ok, Loaded::Finite));
+//! // Case 7 of the campaign with seed 1: the same files on every run.
+//! let case = dir.join("case");
+//! vdd_fuzz::prepare_case(Target::Npy, &seeds, 1, 7, &case)?;
+//! let outcome = match vdd_fuzz::run_case(Target::Npy, &case, |_| Ok(())) {
+//!     Ok(loaded) => Outcome::from_exit_code(Some(loaded.exit_code())),
+//!     Err(_) => Outcome::Err,
+//! };
+//! assert!(!outcome.is_failure());
+//! # std::fs::remove_dir_all(&dir).ok();
+//! # Ok(())
+//! # }
+//! ```
+#![warn(missing_docs)]
+
+mod mutate;
+mod report;
+mod targets;
+
+use std::path::{Path, PathBuf};
+
+pub use report::{Counts, Outcome, Report, TargetReport};
+pub use targets::Loaded;
+
+/// What a target's case code returns before it is attributed to a target.
+pub type BoxError = Box<dyn std::error::Error>;
+
+/// Errors of the fuzzer's engine.
+#[derive(Debug, thiserror::Error)]
+pub enum Error {
+    /// A target name that is none of [`Target::ALL`].
+    #[error("unknown fuzz target `{0}` (npy, npz, safetensors, moe, teacher, checkpoint, recipe)")]
+    UnknownTarget(String),
+    /// Writing seeds, mutating or running a case of `target` failed (for a case: the loader
+    /// refused the input, the expected outcome of most mutations).
+    #[error("fuzz target {target}")]
+    Target {
+        /// The target.
+        target: Target,
+        /// What failed.
+        #[source]
+        source: BoxError,
+    },
+}
+
+/// A family of files the fuzzer mutates, and the loader that reads them.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord, Hash)]
+pub enum Target {
+    /// An episode directory of `.npy` files (`Episodes::load_npy_dir`).
+    Npy,
+    /// An episode `.npz` archive (`Episodes::load_npz`).
+    Npz,
+    /// A residual MLP in a `safetensors` file with its config in the metadata.
+    Safetensors,
+    /// A mixture-of-experts policy file (`Moe::load`, `load_policy`).
+    Moe,
+    /// A diffusion teacher file (`DiffusionTeacher::load`).
+    Teacher,
+    /// A VDD trainer checkpoint directory (`Vdd::resume`, then a step).
+    Checkpoint,
+    /// A toy-gmm recipe (`recipe.toml`); its check is the caller's (see [`run_case`]).
+    Recipe,
+}
+
+impl Target {
+    /// Every target, in the order `all` runs them.
+    pub const ALL: [Target; 7] = [
+        Target::Npy,
+        Target::Npz,
+        Target::Safetensors,
+        Target::Moe,
+        Target::Teacher,
+        Target::Checkpoint,
+        Target::Recipe,
+    ];
+
+    /// The target's name on the command line and in `fuzz.json`.
+    pub fn name(self) -> &'static str {
+        match self {
+            Target::Npy => "npy",
+            Target::Npz => "npz",
+            Target::Safetensors => "safetensors",
+            Target::Moe => "moe",
+            Target::Teacher => "teacher",
+            Target::Checkpoint => "checkpoint",
+            Target::Recipe => "recipe",
+        }
+    }
+}
+
+impl std::fmt::Display for Target {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.pad(self.name())
+    }
+}
+
+impl std::str::FromStr for Target {
+    type Err = Error;
+    fn from_str(s: &str) -> Result<Self, Error> {
+        Target::ALL
+            .into_iter()
+            .find(|t| t.name() == s)
+            .ok_or_else(|| Error::UnknownTarget(s.into()))
+    }
+}
+
+fn at<T>(target: Target, r: Result<T, BoxError>) -> Result<T, Error> {
+    r.map_err(|source| Error::Target { target, source })
+}
+
+/// Writes the valid seed inputs of `target` under `dir`, one directory each, and returns them.
+pub fn write_seeds(target: Target, dir: &Path) -> Result<Vec<PathBuf>, Error> {
+    at(target, targets::write_seeds(target, dir))
+}
+
+/// Writes case `case` of a campaign with seed `seed` into `dir`: a copy of one of `seeds` (as
+/// returned by [`write_seeds`]) with one file mutated. The same arguments give the same files.
+pub fn prepare_case(
+    target: Target,
+    seeds: &[PathBuf],
+    seed: u64,
+    case: usize,
+    dir: &Path,
+) -> Result<(), Error> {
+    at(target, targets::prepare_case(target, seeds, seed, case, dir))
+}
+
+/// Runs one case: loads the input in `dir`, uses it and checks the outputs. A refused input
+/// is an `Err`. For [`Target::Recipe`], `check_recipe` is called with the recipe file: a
+/// recipe's meaning is the tool's that runs it, not the loaders'.
+pub fn run_case(
+    target: Target,
+    dir: &Path,
+    check_recipe: impl FnOnce(&Path) -> Result<(), BoxError>,
+) -> Result<Loaded, Error> {
+    at(target, targets::run_case(target, dir, check_recipe))
+}
+
+/// Copies the files (not subdirectories) of `from` into `to`, creating it.
+pub fn copy_case(from: &Path, to: &Path) -> std::io::Result<()> {
+    std::fs::create_dir_all(to)?;
+    for e in std::fs::read_dir(from)? {
+        let e = e?;
+        if e.file_type()?.is_file() {
+            std::fs::copy(e.path(), to.join(e.file_name()))?;
+        }
+    }
+    Ok(())
+}
+
+#[cfg(test)]
+mod tests;

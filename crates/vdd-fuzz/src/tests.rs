@@ -1,0 +1,88 @@
+use std::path::{Path, PathBuf};
+
+use crate::{Loaded, Outcome, Target};
+
+fn scratch(name: &str) -> PathBuf {
+    let d = std::env::temp_dir().join(format!("vdd-fuzz-test-{}-{name}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&d);
+    d
+}
+
+fn files(dir: &Path) -> Vec<(std::ffi::OsString, Vec<u8>)> {
+    let mut out: Vec<_> = std::fs::read_dir(dir)
+        .unwrap()
+        .map(|e| e.unwrap())
+        .map(|e| (e.file_name(), std::fs::read(e.path()).unwrap()))
+        .collect();
+    out.sort();
+    out
+}
+
+#[test]
+fn mutations_are_deterministic_for_a_seed() {
+    let dir = scratch("determinism");
+    for target in [Target::Npz, Target::Moe, Target::Recipe] {
+        let seeds = crate::write_seeds(target, &dir.join(target.name())).unwrap();
+        let original: Vec<_> = seeds.iter().map(|s| files(s)).collect();
+        let case = |seed, k| {
+            let d = dir.join(format!("{target}-{seed}-{k}"));
+            crate::prepare_case(target, &seeds, seed, k, &d).unwrap();
+            files(&d)
+        };
+        for k in 0..4 {
+            assert_eq!(case(3, k), case(3, k), "{target} case {k}");
+        }
+        // Some case differs from every seed input, and cases differ between seeds.
+        assert!((0..4).any(|k| !original.contains(&case(3, k))), "{target}: nothing mutated");
+        assert!((0..4).any(|k| case(3, k) != case(4, k)), "{target}: the seed is ignored");
+    }
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+#[test]
+fn every_targets_seed_inputs_load_with_finite_outputs() {
+    let dir = scratch("seeds");
+    for target in Target::ALL {
+        let seeds = crate::write_seeds(target, &dir.join(target.name())).unwrap();
+        assert!(!seeds.is_empty());
+        for s in &seeds {
+            let mut checked = false;
+            let loaded = crate::run_case(target, s, |p| {
+                checked = p.is_file();
+                Ok(())
+            });
+            assert_eq!(loaded.unwrap(), Loaded::Finite, "{target} {}", s.display());
+            assert_eq!(checked, target == Target::Recipe, "{target}");
+        }
+    }
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+#[test]
+fn a_truncated_input_is_a_clean_error() {
+    let dir = scratch("truncated");
+    let seeds = crate::write_seeds(Target::Moe, &dir).unwrap();
+    let file = seeds[0].join("policy.safetensors");
+    std::fs::write(&file, &std::fs::read(&file).unwrap()[..100]).unwrap();
+    let err = crate::run_case(Target::Moe, &seeds[0], |_| Ok(())).unwrap_err();
+    assert!(matches!(err, crate::Error::Target { target: Target::Moe, .. }), "{err}");
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+#[test]
+fn names_parse_and_exit_codes_classify() {
+    for t in Target::ALL {
+        assert_eq!(t.name().parse::<Target>().unwrap(), t);
+    }
+    assert!("npyy".parse::<Target>().is_err());
+    let nonfinite = Loaded::NonFinite("output 0 is NaN".into()).exit_code();
+    assert_eq!(Outcome::from_exit_code(Some(nonfinite)), Outcome::OkNonfinite);
+    assert_eq!(Outcome::from_exit_code(Some(Loaded::Finite.exit_code())), Outcome::Ok);
+    assert_eq!(Outcome::from_exit_code(Some(101)), Outcome::Panic);
+    assert_eq!(Outcome::from_exit_code(None), Outcome::Abort);
+    let mut c = crate::Counts::default();
+    for o in [Outcome::Ok, Outcome::Err, Outcome::Hang] {
+        c.add(o);
+    }
+    assert_eq!((c.get(Outcome::Ok), c.failures()), (1, 1));
+}
