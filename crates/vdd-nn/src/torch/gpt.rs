@@ -3,13 +3,15 @@
 //! self-attention, pre-norm blocks (LayerNorm, GELU MLP) and the action tokens' outputs read
 //! out by a linear head (or `Linear → SiLU → Linear` when `linear_output` is false).
 
-use faer::{MatMut, MatRef};
+use faer::{Mat, MatMut, MatRef};
 use serde::{Deserialize, Serialize};
 
-use super::ops::{
-    add_assign, affine_rows, attention, causal_limits, gather_rows, gelu, layer_norm_rows,
+use super::cols::{
+    Act, Cols, activate, add_row, affine_into, attention, causal_limits, layer_norm, linear,
+    linear_add,
 };
-use crate::{Activation, LayerNorm, Linear, NnError, Param, Parameters, join_name};
+use super::conv::ensure;
+use crate::{LayerNorm, Linear, NnError, Param, Parameters, join_name};
 
 /// The constructor arguments of `DiffusionGPT` that fix its weights' shapes and its forward.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -76,20 +78,33 @@ fn zero_linear(i: usize, o: usize) -> Linear {
 }
 
 /// Scratch buffers of one forward pass, kept between calls.
-#[derive(Debug, Clone, Default)]
+#[derive(Debug, Clone)]
 struct Buffers {
-    input: Vec<f32>,
-    emb: Vec<f32>,
-    x: Vec<f32>,
-    h: Vec<f32>,
-    q: Vec<f32>,
-    k: Vec<f32>,
-    v: Vec<f32>,
-    y: Vec<f32>,
-    f: Vec<f32>,
+    x: Mat<f32>,
+    h: Mat<f32>,
+    q: Mat<f32>,
+    k: Mat<f32>,
+    v: Mat<f32>,
+    y: Mat<f32>,
+    f: Mat<f32>,
     p: Vec<f32>,
     limits: Vec<usize>,
-    out: Vec<f32>,
+}
+
+impl Default for Buffers {
+    fn default() -> Self {
+        Self {
+            x: Mat::new(),
+            h: Mat::new(),
+            q: Mat::new(),
+            k: Mat::new(),
+            v: Mat::new(),
+            y: Mat::new(),
+            f: Mat::new(),
+            p: Vec::new(),
+            limits: Vec::new(),
+        }
+    }
 }
 
 /// BESO/D3IL's `DiffusionGPT` (forward only), with PyTorch's parameter names.
@@ -202,82 +217,61 @@ impl DiffusionGpt {
         let len = 1 + g + 2 * t;
         let rows = n * len;
         let b = &mut self.buf;
-        b.x.resize(rows * d, 0.0);
+        ensure(&mut b.x, rows, d);
         let pos = &self.pos_emb.value;
-        // σ token: sigma_emb(ln σ / 4).
-        for (i, &s) in sigma.iter().enumerate() {
-            let z = s.ln() / 4.0;
-            let row = &mut b.x[i * len * d..(i * len + 1) * d];
-            for (j, x) in row.iter_mut().enumerate() {
-                *x = self.sigma_emb.weight.value[j] * z + self.sigma_emb.bias.value[j];
+        // σ token (rows 0..n): sigma_emb(ln σ / 4).
+        for (j, (&w, &bias)) in
+            self.sigma_emb.weight.value.iter().zip(&self.sigma_emb.bias.value).enumerate()
+        {
+            let col = &mut b.x.col_as_slice_mut(j)[..n];
+            for (x, &s) in col.iter_mut().zip(sigma) {
+                *x = w * (s.ln() / 4.0) + bias;
             }
         }
-        // Goal tokens (positions 0..g), then state/action pairs (positions g..g+t).
+        // Goal tokens (positions 0..g), then state/action pairs (positions g..g+t), each token
+        // one row block written by one product.
+        let mut embed = |m: MatRef<'_, f32>, lin: &Linear, token: usize, p: usize| {
+            let block = b.x.as_mut().submatrix_mut(token * n, 0, n, d);
+            affine_into(lin.weight_t(), &lin.bias.value, m, block);
+            add_row(&mut b.x, token * n, n, &pos[p * d..(p + 1) * d]);
+        };
         if let Some(gm) = goals {
-            gather_rows(gm, &mut b.input);
-            affine_rows(&self.tok_emb, &b.input, n * g, &mut b.emb);
-            for i in 0..n {
-                for k in 0..g {
-                    let dst = (i * len + 1 + k) * d;
-                    let src = (i * g + k) * d;
-                    for j in 0..d {
-                        b.x[dst + j] = b.emb[src + j] + pos[k * d + j];
-                    }
-                }
+            for k in 0..g {
+                embed(gm.subcols(k * sd, sd), &self.tok_emb, 1 + k, k);
             }
         }
-        for (m, lin, off) in [(states, &self.tok_emb, 0usize), (actions, &self.action_emb, 1)] {
-            gather_rows(m, &mut b.input);
-            affine_rows(lin, &b.input, n * t, &mut b.emb);
-            for i in 0..n {
-                for k in 0..t {
-                    let dst = (i * len + 1 + g + 2 * k + off) * d;
-                    let (src, p) = ((i * t + k) * d, (g + k) * d);
-                    for j in 0..d {
-                        b.x[dst + j] = b.emb[src + j] + pos[p + j];
-                    }
-                }
-            }
+        for k in 0..t {
+            embed(states.subcols(k * sd, sd), &self.tok_emb, 1 + g + 2 * k, g + k);
+            embed(actions.subcols(k * ad, ad), &self.action_emb, 2 + g + 2 * k, g + k);
         }
-        b.p.resize(len, 0.0);
-        b.y.resize(rows * d, 0.0);
         causal_limits(len, &mut b.limits);
         for blk in &self.blocks {
-            layer_norm_rows(&blk.ln1, &b.x, &mut b.h);
-            affine_rows(&blk.query, &b.h, rows, &mut b.q);
-            affine_rows(&blk.key, &b.h, rows, &mut b.k);
-            affine_rows(&blk.value, &b.h, rows, &mut b.v);
-            for i in 0..n {
-                let r = i * len * d..(i + 1) * len * d;
-                let (q, k, v) = (&b.q[r.clone()], &b.k[r.clone()], &b.v[r.clone()]);
-                attention((q, d), (k, d), (v, d), &b.limits, d, c.n_heads, &mut b.p, &mut b.y[r]);
-            }
-            affine_rows(&blk.proj, &b.y, rows, &mut b.h);
-            add_assign(&mut b.x, &b.h);
-            layer_norm_rows(&blk.ln2, &b.x, &mut b.h);
-            affine_rows(&blk.fc1, &b.h, rows, &mut b.f);
-            b.f.iter_mut().for_each(|v| *v = gelu(*v));
-            affine_rows(&blk.fc2, &b.f, rows, &mut b.h);
-            add_assign(&mut b.x, &b.h);
+            layer_norm(&blk.ln1, &b.x, 0..rows, &mut b.h);
+            linear(&blk.query, b.h.as_ref(), &mut b.q);
+            linear(&blk.key, b.h.as_ref(), &mut b.k);
+            linear(&blk.value, b.h.as_ref(), &mut b.v);
+            let qkv = (Cols::new(&b.q, 0), Cols::new(&b.k, 0), Cols::new(&b.v, 0));
+            attention(qkv, n, &b.limits, d, c.n_heads, &mut b.y, &mut b.p);
+            linear_add(&blk.proj, b.y.as_ref(), &mut b.x);
+            layer_norm(&blk.ln2, &b.x, 0..rows, &mut b.h);
+            linear(&blk.fc1, b.h.as_ref(), &mut b.f);
+            activate(Act::Gelu, &mut b.f);
+            linear_add(&blk.fc2, b.f.as_ref(), &mut b.x);
         }
-        // Only the action tokens reach the head: gather them, then ln_f.
-        b.input.resize(n * t * d, 0.0);
-        for i in 0..n {
-            for k in 0..t {
-                let src = (i * len + 2 + g + 2 * k) * d;
-                b.input[(i * t + k) * d..(i * t + k + 1) * d].copy_from_slice(&b.x[src..src + d]);
-            }
-        }
-        layer_norm_rows(&self.ln_f, &b.input, &mut b.h);
-        affine_rows(&self.head0, &b.h, n * t, &mut b.out);
-        if let Some(h2) = &self.head2 {
-            b.out.iter_mut().for_each(|v| *v = Activation::Silu.apply(*v));
-            std::mem::swap(&mut b.out, &mut b.f);
-            affine_rows(h2, &b.f, n * t, &mut b.out);
-        }
-        for i in 0..n {
-            for j in 0..t * ad {
-                out[(i, j)] = b.out[i * t * ad + j];
+        // Only the action tokens reach the head: ln_f, then the head, per token.
+        for k in 0..t {
+            let token = 2 + g + 2 * k;
+            layer_norm(&self.ln_f, &b.x, token * n..(token + 1) * n, &mut b.h);
+            let dst = out.as_mut().subcols_mut(k * ad, ad);
+            match &self.head2 {
+                None => {
+                    affine_into(self.head0.weight_t(), &self.head0.bias.value, b.h.as_ref(), dst)
+                }
+                Some(h2) => {
+                    linear(&self.head0, b.h.as_ref(), &mut b.f);
+                    activate(Act::Silu, &mut b.f);
+                    affine_into(h2.weight_t(), &h2.bias.value, b.f.as_ref(), dst);
+                }
             }
         }
         Ok(())

@@ -3,6 +3,7 @@
 //! ResNet-MLP), for teachers imported by `vdd-import`. VDD needs their scores only, so they have
 //! no backward pass; batch throughput is what matters.
 
+mod cols;
 mod gpt;
 mod ops;
 mod resnet_mlp;

@@ -2,10 +2,13 @@
 //! `model_style: true`, i.e. a `ResidualMLPNetwork` (`networks/mlps/mlps.py`) over
 //! `[state, action, (goal,) embed(ln σ / 4)]`, applied to each time step of a window alike.
 
-use faer::{MatMut, MatRef};
+use faer::linalg::matmul::matmul;
+use faer::{Accum, Mat, MatMut, MatRef, Par};
 use serde::{Deserialize, Serialize};
 
-use super::ops::{add_assign, affine_rows, gather_rows, layer_norm_rows};
+use super::cols::{Act, activate, affine, affine_into, layer_norm, linear, linear_add};
+use super::conv::ensure;
+use super::ops::affine_rows;
 use crate::{Activation, LayerNorm, Linear, NnError, Param, Parameters, join_name};
 
 /// The noise-level embedding (`embed_fn.embedding_type` of BESO's
@@ -98,17 +101,27 @@ fn zero_linear(i: usize, o: usize) -> Linear {
 }
 
 /// Scratch buffers kept between calls.
-#[derive(Debug, Clone, Default)]
+#[derive(Debug, Clone)]
 struct Buffers {
-    x: Vec<f32>,
-    h: Vec<f32>,
-    u: Vec<f32>,
-    s: Vec<f32>,
-    a: Vec<f32>,
-    g: Vec<f32>,
     e: Vec<f32>,
     e2: Vec<f32>,
-    out: Vec<f32>,
+    eh: Mat<f32>,
+    h: Mat<f32>,
+    u: Mat<f32>,
+    v: Mat<f32>,
+}
+
+impl Default for Buffers {
+    fn default() -> Self {
+        Self {
+            e: Vec::new(),
+            e2: Vec::new(),
+            eh: Mat::new(),
+            h: Mat::new(),
+            u: Mat::new(),
+            v: Mat::new(),
+        }
+    }
 }
 
 /// BESO/D3IL's ResNet-MLP score network (forward only), with PyTorch's parameter names.
@@ -266,70 +279,55 @@ impl ResMlpScore {
             b.e2.iter_mut().for_each(|v| *v = Activation::Mish.apply(*v));
             affine_rows(l2, &b.e2, n, &mut b.e);
         }
-        // Input rows [state, action, (goal,) embed], one per sample and step.
-        let (od, ad) = (c.obs_dim, c.action_dim);
-        let width = od + ad + gd + te;
+        // Token-column layout: step k of sample i is row k·n + i. The first layer's product
+        // splits along its input [state, action, (goal,) embed]; the σ embedding's share (with
+        // the bias) is the same for every step.
+        let (od, ad, hd) = (c.obs_dim, c.action_dim, c.hidden_dim);
         let rows = n * t;
-        gather_rows(states, &mut b.s);
-        gather_rows(actions, &mut b.a);
-        if let Some(g) = goals {
-            gather_rows(g, &mut b.g);
-        }
-        b.x.resize(rows * width, 0.0);
-        for r in 0..rows {
-            let x = &mut b.x[r * width..(r + 1) * width];
-            x[..od].copy_from_slice(&b.s[r * od..(r + 1) * od]);
-            x[od..od + ad].copy_from_slice(&b.a[r * ad..(r + 1) * ad]);
-            if gd > 0 {
-                x[od + ad..od + ad + gd].copy_from_slice(&b.g[r * gd..(r + 1) * gd]);
+        let wt = self.first.weight_t();
+        let e = MatRef::from_row_major_slice(&b.e, n, te);
+        affine(wt.subrows(od + ad + gd, te), &self.first.bias.value, e, &mut b.eh);
+        ensure(&mut b.h, rows, hd);
+        for k in 0..t {
+            let mut block = b.h.as_mut().subrows_mut(k * n, n);
+            block.copy_from(b.eh.as_ref());
+            let parts = [(Some(states), od, 0), (Some(actions), ad, od), (goals, gd, od + ad)];
+            for (m, w, at) in parts {
+                if let Some(m) = m.filter(|_| w > 0) {
+                    let (x, wp) = (m.subcols(k * w, w), wt.subrows(at, w));
+                    matmul(block.as_mut(), Accum::Add, x, wp, 1.0, Par::Seq);
+                }
             }
-            let i = r / t;
-            x[od + ad + gd..].copy_from_slice(&b.e[i * te..(i + 1) * te]);
         }
-        affine_rows(&self.first, &b.x, rows, &mut b.h);
-        let act = c.activation;
         for blk in &self.blocks {
-            let slope = blk.prelu.as_ref().map_or(0.25, |p| p.value[0]);
-            let apply = |v: &mut Vec<f32>| activate(act, slope, v);
-            let mut src: &Vec<f32> = &b.h;
-            if let Some(ln) = &blk.norm {
-                layer_norm_rows(ln, &b.h, &mut b.u);
-                src = &b.u;
+            let act = match c.activation {
+                MlpActivation::Relu => Act::Relu,
+                MlpActivation::Mish => Act::Mish,
+                MlpActivation::Sigmoid => Act::Sigmoid,
+                MlpActivation::Prelu => Act::Prelu(blk.prelu.as_ref().map_or(0.25, |p| p.value[0])),
+            };
+            match &blk.norm {
+                Some(ln) => layer_norm(ln, &b.h, 0..rows, &mut b.u),
+                None => {
+                    ensure(&mut b.u, rows, hd);
+                    b.u.copy_from(&b.h);
+                }
             }
-            b.x.clear();
-            b.x.extend_from_slice(src);
-            apply(&mut b.x);
-            affine_rows(&blk.l1, &b.x, rows, &mut b.u);
+            activate(act, &mut b.u);
+            linear(&blk.l1, b.u.as_ref(), &mut b.v);
             if let Some(ln) = &blk.norm {
-                layer_norm_rows(ln, &b.u, &mut b.x);
-                std::mem::swap(&mut b.x, &mut b.u);
+                layer_norm(ln, &b.v, 0..rows, &mut b.u);
+                std::mem::swap(&mut b.u, &mut b.v);
             }
-            apply(&mut b.u);
-            affine_rows(&blk.l2, &b.u, rows, &mut b.x);
-            add_assign(&mut b.h, &b.x);
+            activate(act, &mut b.v);
+            linear_add(&blk.l2, b.v.as_ref(), &mut b.h);
         }
-        affine_rows(&self.last, &b.h, rows, &mut b.out);
-        let w = t * c.output_dim;
-        for i in 0..n {
-            for j in 0..w {
-                out[(i, j)] = b.out[i * w + j];
-            }
+        let (wl, bl, w) = (self.last.weight_t(), &self.last.bias.value, c.output_dim);
+        for k in 0..t {
+            let dst = out.as_mut().subcols_mut(k * w, w);
+            affine_into(wl, bl, b.h.as_ref().subrows(k * n, n), dst);
         }
         Ok(())
-    }
-}
-
-/// Applies the activation to every element (one loop per kind, so each vectorises).
-fn activate(act: MlpActivation, slope: f32, v: &mut [f32]) {
-    match act {
-        MlpActivation::Relu => v.iter_mut().for_each(|x| *x = x.max(0.0)),
-        MlpActivation::Mish => v.iter_mut().for_each(|x| *x = Activation::Mish.apply(*x)),
-        MlpActivation::Sigmoid => {
-            v.iter_mut().for_each(|x| *x = 1.0 / (1.0 + vdd_core::gaussian::exp_fast(-*x)))
-        }
-        MlpActivation::Prelu => {
-            v.iter_mut().for_each(|x| *x = if *x >= 0.0 { *x } else { slope * *x })
-        }
     }
 }
 

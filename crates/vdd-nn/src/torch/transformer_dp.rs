@@ -5,11 +5,14 @@
 //! `Linear → Mish → Linear` when `n_cond_layers = 0`) feeding a `TransformerDecoder` over the
 //! action tokens; all layers `norm_first`, GELU, optional causal masks.
 
-use faer::{MatMut, MatRef};
+use faer::{Mat, MatMut, MatRef};
 use serde::{Deserialize, Serialize};
 
-use super::ops::{add_assign, affine_rows, attention, gather_rows, gelu, layer_norm_rows};
-use crate::{Activation, LayerNorm, Linear, NnError, Param, Parameters, join_name};
+use super::cols::{
+    Act, Cols, activate, add_row, affine, affine_into, attention, layer_norm, linear, linear_add,
+};
+use super::conv::ensure;
+use crate::{LayerNorm, Linear, NnError, Param, Parameters, join_name};
 
 /// The constructor arguments of `TransformerForDiffusion`.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -96,19 +99,33 @@ enum CondEncoder {
     Mlp(Box<(Linear, Linear)>),
 }
 
-#[derive(Debug, Clone, Default)]
+#[derive(Debug, Clone)]
 struct Buffers {
-    input: Vec<f32>,
-    emb: Vec<f32>,
-    x: Vec<f32>,
-    mem: Vec<f32>,
-    h: Vec<f32>,
-    qkv: Vec<f32>,
-    kv: Vec<f32>,
-    y: Vec<f32>,
-    f: Vec<f32>,
+    emb: Mat<f32>,
+    x: Mat<f32>,
+    mem: Mat<f32>,
+    h: Mat<f32>,
+    qkv: Mat<f32>,
+    kv: Mat<f32>,
+    y: Mat<f32>,
+    f: Mat<f32>,
     p: Vec<f32>,
-    out: Vec<f32>,
+}
+
+impl Default for Buffers {
+    fn default() -> Self {
+        Self {
+            emb: Mat::new(),
+            x: Mat::new(),
+            mem: Mat::new(),
+            h: Mat::new(),
+            qkv: Mat::new(),
+            kv: Mat::new(),
+            y: Mat::new(),
+            f: Mat::new(),
+            p: Vec::new(),
+        }
+    }
 }
 
 /// diffusion_policy's `TransformerForDiffusion` (forward only), with PyTorch's parameter names.
@@ -223,69 +240,60 @@ impl TransformerForDiffusion {
         // Sinusoidal time embedding rows (n x d), as SinusoidalPosEmb.
         let half = d / 2;
         let step = (10000f32).ln() / (half as f32 - 1.0);
-        b.emb.resize(n * d, 0.0);
-        for (i, &ts) in timestep.iter().enumerate() {
-            for k in 0..half {
-                let f = ts * (k as f32 * -step).exp();
-                b.emb[i * d + k] = f.sin();
-                b.emb[i * d + half + k] = f.cos();
+        ensure(&mut b.emb, n, d);
+        for k in 0..half {
+            let f = (k as f32 * -step).exp();
+            for (i, &ts) in timestep.iter().enumerate() {
+                b.emb[(i, k)] = (ts * f).sin();
+                b.emb[(i, half + k)] = (ts * f).cos();
             }
         }
-        gather_rows(sample, &mut b.input);
-        let mut tok = std::mem::take(&mut b.f);
-        affine_rows(&self.input_emb, &b.input, n * th, &mut tok);
         let pos = &self.pos_emb.value;
         let (causal, obs_cond) = (c.causal_attn, c.obs_as_cond());
         let decoder = self.cond_encoder.is_some();
         let len = if decoder { th } else { th + 1 };
-        b.x.resize(n * len * d, 0.0);
         let off = usize::from(!decoder);
-        for i in 0..n {
-            if !decoder {
-                for j in 0..d {
-                    b.x[i * len * d + j] = b.emb[i * d + j] + pos[j];
-                }
-            }
-            for k in 0..th {
-                let dst = (i * len + off + k) * d;
-                let p = (off + k) * d;
-                for j in 0..d {
-                    b.x[dst + j] = tok[(i * th + k) * d + j] + pos[p + j];
-                }
-            }
+        // Token-column layout: token t of sample i is row t·n + i.
+        ensure(&mut b.x, n * len, d);
+        if !decoder {
+            b.x.as_mut().subrows_mut(0, n).copy_from(b.emb.as_ref());
+            add_row(&mut b.x, 0, n, &pos[..d]);
         }
-        b.f = tok;
+        let ind = c.input_dim;
+        for k in 0..th {
+            let token = off + k;
+            let block = b.x.as_mut().submatrix_mut(token * n, 0, n, d);
+            let lin = &self.input_emb;
+            affine_into(lin.weight_t(), &lin.bias.value, sample.subcols(k * ind, ind), block);
+            add_row(&mut b.x, token * n, n, &pos[token * d..(token + 1) * d]);
+        }
         let tc = c.t_cond();
         let cond_limits = vec![tc; tc];
         if let Some(enc) = &self.cond_encoder {
             // Cond sequence [time, obs…] with its position embedding.
-            b.mem.resize(n * tc * d, 0.0);
+            ensure(&mut b.mem, n * tc, d);
             let cpos = &self.cond_pos_emb.as_ref().expect("decoder has cond_pos_emb").value;
+            b.mem.as_mut().subrows_mut(0, n).copy_from(b.emb.as_ref());
+            add_row(&mut b.mem, 0, n, &cpos[..d]);
             if let (Some(m), Some(lin)) = (cond, &self.cond_obs_emb) {
-                gather_rows(m, &mut b.input);
-                affine_rows(lin, &b.input, n * c.n_obs_steps, &mut b.out);
-            }
-            for i in 0..n {
-                for j in 0..d {
-                    b.mem[i * tc * d + j] = b.emb[i * d + j] + cpos[j];
-                }
+                let cd = c.cond_dim;
                 for k in 0..tc - 1 {
-                    let dst = (i * tc + 1 + k) * d;
-                    for j in 0..d {
-                        b.mem[dst + j] = b.out[(i * (tc - 1) + k) * d + j] + cpos[(1 + k) * d + j];
-                    }
+                    let block = b.mem.as_mut().submatrix_mut((1 + k) * n, 0, n, d);
+                    affine_into(lin.weight_t(), &lin.bias.value, m.subcols(k * cd, cd), block);
+                    add_row(&mut b.mem, (1 + k) * n, n, &cpos[(1 + k) * d..(2 + k) * d]);
                 }
             }
             match enc {
                 CondEncoder::Mlp(mlp) => {
                     let (l1, l2) = mlp.as_ref();
-                    affine_rows(l1, &b.mem, n * tc, &mut b.h);
-                    b.h.iter_mut().for_each(|v| *v = Activation::Mish.apply(*v));
-                    affine_rows(l2, &b.h, n * tc, &mut b.mem);
+                    linear(l1, b.mem.as_ref(), &mut b.h);
+                    activate(Act::Mish, &mut b.h);
+                    linear(l2, b.h.as_ref(), &mut b.mem);
                 }
                 CondEncoder::Layers(layers) => {
                     for l in layers {
-                        encoder_layer(l, b, n, &cond_limits, d, c.n_head, Which::Mem);
+                        self_attention(l, b, n, &cond_limits, c.n_head, Which::Mem);
+                        ff(&l.linear1, &l.linear2, &l.norm2, &mut b.mem, &mut b.h, &mut b.f);
                     }
                 }
             }
@@ -297,49 +305,30 @@ impl TransformerForDiffusion {
         let mem_limits: Vec<usize> =
             (0..len).map(|t| if masked { (t + 2).min(tc) } else { tc }).collect();
         for l in &self.layers {
-            encoder_layer(l, b, n, &self_limits, d, c.n_head, Which::X);
+            self_attention(l, b, n, &self_limits, c.n_head, Which::X);
             if let Some((cross, norm)) = &l.cross {
-                // x = x + MHA(norm2(x), memory, memory).
-                layer_norm_rows(&l.norm2, &b.x, &mut b.h);
-                affine_rows(&cross.in_proj, &b.h, n * len, &mut b.qkv);
-                affine_rows(&cross.in_proj, &b.mem, n * tc, &mut b.kv);
-                b.p.resize(tc.max(len), 0.0);
-                b.y.resize(n * len * d, 0.0);
-                for i in 0..n {
-                    let q = &b.qkv[i * len * 3 * d..];
-                    let kv = &b.kv[i * tc * 3 * d..(i + 1) * tc * 3 * d];
-                    let y = &mut b.y[i * len * d..(i + 1) * len * d];
-                    attention(
-                        (q, 3 * d),
-                        (&kv[d..], 3 * d),
-                        (&kv[2 * d..], 3 * d),
-                        &mem_limits,
-                        d,
-                        c.n_head,
-                        &mut b.p,
-                        y,
-                    );
-                }
-                affine_rows(&cross.out_proj, &b.y, n * len, &mut b.h);
-                add_assign(&mut b.x, &b.h);
-                feed_forward(l, norm, b, n * len);
+                // x = x + MHA(norm2(x), memory, memory): queries from x, keys and values from
+                // the memory, each through its part of the packed in_proj.
+                let (wt, bias) = (cross.in_proj.weight_t(), &cross.in_proj.bias.value);
+                layer_norm(&l.norm2, &b.x, 0..n * len, &mut b.h);
+                affine(wt.subcols(0, d), &bias[..d], b.h.as_ref(), &mut b.qkv);
+                affine(wt.subcols(d, 2 * d), &bias[d..], b.mem.as_ref(), &mut b.kv);
+                let qkv = (Cols::new(&b.qkv, 0), Cols::new(&b.kv, 0), Cols::new(&b.kv, d));
+                attention(qkv, n, &mem_limits, d, c.n_head, &mut b.y, &mut b.p);
+                linear_add(&cross.out_proj, b.y.as_ref(), &mut b.x);
+                ff(&l.linear1, &l.linear2, norm, &mut b.x, &mut b.h, &mut b.f);
             } else {
-                feed_forward(l, &l.norm2, b, n * len);
+                ff(&l.linear1, &l.linear2, &l.norm2, &mut b.x, &mut b.h, &mut b.f);
             }
         }
-        // Head on the action tokens (all of them, or all but the time token).
-        b.input.resize(n * th * d, 0.0);
-        for i in 0..n {
-            let src = (i * len + off) * d;
-            b.input[i * th * d..(i + 1) * th * d].copy_from_slice(&b.x[src..src + th * d]);
-        }
-        layer_norm_rows(&self.ln_f, &b.input, &mut b.h);
-        affine_rows(&self.head, &b.h, n * th, &mut b.out);
-        let w = th * c.output_dim;
-        for i in 0..n {
-            for j in 0..w {
-                out[(i, j)] = b.out[i * w + j];
-            }
+        // Head on the action tokens (all of them, or all but the time token), one token's
+        // row block at a time.
+        let od = c.output_dim;
+        for k in 0..th {
+            let token = off + k;
+            layer_norm(&self.ln_f, &b.x, token * n..(token + 1) * n, &mut b.h);
+            let dst = out.as_mut().subcols_mut(k * od, od);
+            affine_into(self.head.weight_t(), &self.head.bias.value, b.h.as_ref(), dst);
         }
         Ok(())
     }
@@ -352,73 +341,40 @@ enum Which {
     Mem,
 }
 
-/// `x = x + SA(norm1(x))`, then (for encoder layers) `x = x + FF(norm2(x))`.
-#[allow(clippy::too_many_arguments)]
-fn encoder_layer(
+/// `x = x + SA(norm1(x))` on the main sequence or the cond encoder's memory.
+fn self_attention(
     l: &Layer,
     b: &mut Buffers,
     n: usize,
     limits: &[usize],
-    d: usize,
     heads: usize,
     which: Which,
 ) {
-    let len = limits.len();
     let x = match which {
-        Which::X => std::mem::take(&mut b.x),
-        Which::Mem => std::mem::take(&mut b.mem),
+        Which::X => &mut b.x,
+        Which::Mem => &mut b.mem,
     };
-    let mut x = x;
-    layer_norm_rows(&l.norm1, &x, &mut b.h);
-    affine_rows(&l.self_attn.in_proj, &b.h, n * len, &mut b.qkv);
-    b.p.resize(len, 0.0);
-    b.y.resize(n * len * d, 0.0);
-    for i in 0..n {
-        let s = &b.qkv[i * len * 3 * d..(i + 1) * len * 3 * d];
-        let y = &mut b.y[i * len * d..(i + 1) * len * d];
-        attention(
-            (s, 3 * d),
-            (&s[d..], 3 * d),
-            (&s[2 * d..], 3 * d),
-            limits,
-            d,
-            heads,
-            &mut b.p,
-            y,
-        );
-    }
-    affine_rows(&l.self_attn.out_proj, &b.y, n * len, &mut b.h);
-    add_assign(&mut x, &b.h);
-    match which {
-        Which::X => b.x = x,
-        Which::Mem => {
-            b.mem = x;
-            // Encoder layers of the cond encoder finish with their feed-forward block here.
-            ff_on(&l.linear1, &l.linear2, &l.norm2, &mut b.mem, &mut b.h, &mut b.f, n * len);
-        }
-    }
-    // The main sequence's encoder-only layers get their feed-forward block from the caller.
+    let d = x.ncols();
+    layer_norm(&l.norm1, x, 0..x.nrows(), &mut b.h);
+    linear(&l.self_attn.in_proj, b.h.as_ref(), &mut b.qkv);
+    let qkv = (Cols::new(&b.qkv, 0), Cols::new(&b.qkv, d), Cols::new(&b.qkv, 2 * d));
+    attention(qkv, n, limits, d, heads, &mut b.y, &mut b.p);
+    linear_add(&l.self_attn.out_proj, b.y.as_ref(), x);
 }
 
-/// `x = x + linear2(gelu(linear1(norm(x))))` on the main sequence.
-fn feed_forward(l: &Layer, norm: &LayerNorm, b: &mut Buffers, rows: usize) {
-    ff_on(&l.linear1, &l.linear2, norm, &mut b.x, &mut b.h, &mut b.f, rows);
-}
-
-fn ff_on(
+/// `x = x + l2(gelu(l1(norm(x))))`.
+fn ff(
     l1: &Linear,
     l2: &Linear,
     norm: &LayerNorm,
-    x: &mut [f32],
-    h: &mut Vec<f32>,
-    f: &mut Vec<f32>,
-    rows: usize,
+    x: &mut Mat<f32>,
+    h: &mut Mat<f32>,
+    f: &mut Mat<f32>,
 ) {
-    layer_norm_rows(norm, x, h);
-    affine_rows(l1, h, rows, f);
-    f.iter_mut().for_each(|v| *v = gelu(*v));
-    affine_rows(l2, f, rows, h);
-    add_assign(x, h);
+    layer_norm(norm, x, 0..x.nrows(), h);
+    linear(l1, h.as_ref(), f);
+    activate(Act::Gelu, f);
+    linear_add(l2, f.as_ref(), x);
 }
 
 fn visit_layer(l: &Layer, p: &str, f: &mut dyn FnMut(&str, &Param)) {
