@@ -32,6 +32,7 @@ macro_rules! avx2_dispatch {
                 ///
                 /// # Safety
                 /// The CPU must support AVX2.
+                #[allow(clippy::too_many_arguments)]
                 #[target_feature(enable = "avx2")]
                 unsafe fn avx2($($a: $t),*) {
                     $body($($a),*)
@@ -46,6 +47,8 @@ macro_rules! avx2_dispatch {
         }
     };
 }
+
+pub(crate) use avx2_dispatch;
 
 /// `out = x Wᵀ + b` into a view, for `wt = Wᵀ` (`in × out`, e.g. a column range of
 /// [`Linear::weight_t`]) and `bias` (`out`).

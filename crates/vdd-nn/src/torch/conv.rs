@@ -152,26 +152,25 @@ impl Conv1d {
             matmul(self.out.as_mut(), Accum::Add, x, wt, 1.0, Par::Seq);
             return Ok(&mut self.out);
         }
-        ensure(&mut self.cols, rows, k_in);
+        // im2col and product a chunk of whole samples at a time, so the columns stay in cache.
+        let per_chunk = (IM2COL_FLOATS / (out_len * k_in)).clamp(1, batch);
+        ensure(&mut self.cols, per_chunk * out_len, k_in);
         let (s, p) = (self.stride, self.padding as isize);
-        for ci in 0..self.in_ch {
-            let src = column(x, ci, &mut self.scratch);
-            for k in 0..self.kernel {
-                let dst = self.cols.col_as_slice_mut(ci * self.kernel + k);
-                for b in 0..batch {
-                    let xs = &src[b * len..(b + 1) * len];
-                    let ds = &mut dst[b * out_len..(b + 1) * out_len];
+        for b0 in (0..batch).step_by(per_chunk) {
+            let nb = per_chunk.min(batch - b0);
+            let (xr, or, orows) = (b0 * len, b0 * out_len, nb * out_len);
+            for ci in 0..self.in_ch {
+                let src = &column(x, ci, &mut self.scratch)[xr..xr + nb * len];
+                for k in 0..self.kernel {
+                    let dst = &mut self.cols.col_as_slice_mut(ci * self.kernel + k)[..orows];
                     let shift = k as isize - p;
-                    if s == 1 {
-                        // t = o + shift: a shifted copy with zeros at the ends.
-                        let lo = (-shift).clamp(0, out_len as isize) as usize;
-                        let hi =
-                            (len as isize - shift).clamp(lo as isize, out_len as isize) as usize;
-                        ds[..lo].fill(0.0);
-                        let start = (lo as isize + shift) as usize;
-                        ds[lo..hi].copy_from_slice(&xs[start..start + hi - lo]);
-                        ds[hi..].fill(0.0);
-                    } else {
+                    if s == 1 && out_len == len {
+                        shifted_column(src, shift, len, dst);
+                        continue;
+                    }
+                    for b in 0..nb {
+                        let xs = &src[b * len..(b + 1) * len];
+                        let ds = &mut dst[b * out_len..(b + 1) * out_len];
                         for (o, d) in ds.iter_mut().enumerate() {
                             let t = (o * s) as isize + shift;
                             *d = if t >= 0 && (t as usize) < len { xs[t as usize] } else { 0.0 };
@@ -179,9 +178,35 @@ impl Conv1d {
                     }
                 }
             }
+            let out = self.out.as_mut().subrows_mut(or, orows);
+            matmul(out, Accum::Add, self.cols.as_ref().subrows(0, orows), wt, 1.0, Par::Seq);
         }
-        matmul(self.out.as_mut(), Accum::Add, self.cols.as_ref(), wt, 1.0, Par::Seq);
         Ok(&mut self.out)
+    }
+}
+
+/// Floats of one chunk of [`Conv1d`]'s im2col columns.
+const IM2COL_FLOATS: usize = 1 << 16;
+
+/// One im2col column of a length-preserving stride-1 convolution: `dst[b·len + t] =
+/// src[b·len + t + shift]` where `0 ≤ t + shift < len`, else zero; one copy of the whole column,
+/// then each sample's `|shift|` boundary rows zeroed.
+fn shifted_column(src: &[f32], shift: isize, len: usize, dst: &mut [f32]) {
+    let rows = dst.len();
+    let sh = shift.unsigned_abs().min(len);
+    if shift >= 0 {
+        dst[..rows - sh].copy_from_slice(&src[sh..rows]);
+        dst[rows - sh..].fill(0.0);
+    } else {
+        dst[sh..].copy_from_slice(&src[..rows - sh]);
+        dst[..sh].fill(0.0);
+    }
+    // Strided stores (a `fill` per sample would be a `memset` call per sample).
+    let first = if shift >= 0 { len - sh } else { 0 };
+    for t in first..first + sh {
+        for v in dst[t..].iter_mut().step_by(len) {
+            *v = 0.0;
+        }
     }
 }
 

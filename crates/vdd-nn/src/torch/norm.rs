@@ -4,6 +4,7 @@
 use faer::reborrow::ReborrowMut as _;
 use faer::{Mat, MatMut};
 
+use super::cols::avx2_dispatch;
 use crate::error::NnError;
 use crate::param::{Param, Parameters, join_name};
 
@@ -130,42 +131,94 @@ impl GroupNorm {
             )));
         }
         let len = x.nrows() / batch;
-        let cpg = ch / self.groups;
-        let count = (cpg * len) as f64;
-        for b in 0..batch {
-            let rows = b * len..(b + 1) * len;
-            for g in 0..self.groups {
-                let chans = g * cpg..(g + 1) * cpg;
-                // Per-channel runs summed in f32 (short), accumulated in f64.
-                let mut sum = 0.0f64;
-                for c in chans.clone() {
-                    sum += f64::from(x.col_as_slice(c)[rows.clone()].iter().sum::<f32>());
+        if len == 0 {
+            return Ok(());
+        }
+        let (w, b, eps) = (&self.weight.value[..], &self.bias.value[..], self.eps);
+        // Whole samples at a time, about GROUP_CHUNK rows, so the scratch stays in L1.
+        let per_chunk = (GROUP_CHUNK / len.max(1)).clamp(1, batch);
+        let mut scratch = vec![0.0f32; 3 * per_chunk * len];
+        let shape = (batch, len, per_chunk);
+        group_norm_dispatch(w, b, self.groups, eps, x, shape, then_mish, &mut scratch);
+        Ok(())
+    }
+}
+
+/// Rows of one chunk of [`GroupNorm`]'s pass (whole samples).
+const GROUP_CHUNK: usize = 1024;
+
+avx2_dispatch! {
+    /// [`GroupNorm`]'s kernel.
+    #[allow(clippy::too_many_arguments)]
+    fn group_norm_dispatch(
+        w: &[f32],
+        b: &[f32],
+        groups: usize,
+        eps: f32,
+        x: &mut Mat<f32>,
+        shape: (usize, usize, usize),
+        then_mish: bool,
+        scratch: &mut [f32],
+    ) => group_norm_body
+}
+
+/// Each sample's group statistics (per-row `f32` sums over the group's channels, accumulated
+/// over the sample's rows in `f64`; the variance about the `f32` mean), then every
+/// element normalised, scaled, shifted (and passed through [`mish`]) in one pass over its
+/// channel's contiguous rows, the sample's mean and inverse deviation spread over its rows.
+#[allow(clippy::too_many_arguments)]
+#[inline(always)]
+fn group_norm_body(
+    w: &[f32],
+    bias: &[f32],
+    groups: usize,
+    eps: f32,
+    x: &mut Mat<f32>,
+    (batch, len, per_chunk): (usize, usize, usize),
+    then_mish: bool,
+    scratch: &mut [f32],
+) {
+    let cpg = w.len() / groups;
+    let count = (cpg * len) as f64;
+    let (acc, rest) = scratch.split_at_mut(per_chunk * len);
+    let (mexp, iexp) = rest.split_at_mut(per_chunk * len);
+    for b0 in (0..batch).step_by(per_chunk) {
+        let nb = per_chunk.min(batch - b0);
+        let (r0, rl) = (b0 * len, nb * len);
+        let (acc, mexp, iexp) = (&mut acc[..rl], &mut mexp[..rl], &mut iexp[..rl]);
+        for g in 0..groups {
+            let chans = g * cpg..(g + 1) * cpg;
+            acc.fill(0.0);
+            for c in chans.clone() {
+                let xs = &x.col_as_slice(c)[r0..r0 + rl];
+                acc.iter_mut().zip(xs).for_each(|(a, &v)| *a += v);
+            }
+            for (a, m) in acc.chunks_exact(len).zip(mexp.chunks_exact_mut(len)) {
+                m.fill((a.iter().map(|&v| f64::from(v)).sum::<f64>() / count) as f32);
+            }
+            acc.fill(0.0);
+            for c in chans.clone() {
+                let xs = &x.col_as_slice(c)[r0..r0 + rl];
+                for ((a, &v), &m) in acc.iter_mut().zip(xs).zip(mexp.iter()) {
+                    let e = v - m;
+                    *a += e * e;
                 }
-                let mean = sum / count;
-                let m32 = mean as f32;
-                let mut ss = 0.0f64;
-                for c in chans.clone() {
-                    let seg = &x.col_as_slice(c)[rows.clone()];
-                    ss += f64::from(seg.iter().map(|&v| (v - m32) * (v - m32)).sum::<f32>());
-                }
-                // Σ(x − m32)² = Σ(x − mean)² + n (mean − m32)², the rounding of the mean.
-                let dm = mean - f64::from(m32);
-                let var = (ss / count - dm * dm).max(0.0);
-                let inv = 1.0 / (var + f64::from(self.eps)).sqrt();
-                for c in chans {
-                    let w = f64::from(self.weight.value[c]);
-                    let a = (inv * w) as f32;
-                    let s = (f64::from(self.bias.value[c]) - mean * inv * w) as f32;
-                    let seg = &mut x.col_as_slice_mut(c)[rows.clone()];
-                    if then_mish {
-                        seg.iter_mut().for_each(|v| *v = mish(*v * a + s));
-                    } else {
-                        seg.iter_mut().for_each(|v| *v = *v * a + s);
-                    }
+            }
+            for (a, i) in acc.chunks_exact(len).zip(iexp.chunks_exact_mut(len)) {
+                let var = (a.iter().map(|&v| f64::from(v)).sum::<f64>() / count).max(0.0);
+                i.fill((1.0 / (var + f64::from(eps)).sqrt()) as f32);
+            }
+            for c in chans {
+                let (wc, bc) = (w[c], bias[c]);
+                let ys = &mut x.col_as_slice_mut(c)[r0..r0 + rl];
+                let it = ys.iter_mut().zip(mexp.iter()).zip(iexp.iter());
+                if then_mish {
+                    it.for_each(|((y, &m), &i)| *y = mish((*y - m) * i * wc + bc));
+                } else {
+                    it.for_each(|((y, &m), &i)| *y = (*y - m) * i * wc + bc);
                 }
             }
         }
-        Ok(())
     }
 }
 
