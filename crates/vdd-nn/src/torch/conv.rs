@@ -168,13 +168,17 @@ impl Conv1d {
                         shifted_column(src, shift, len, dst);
                         continue;
                     }
+                    // Outputs o with 0 ≤ o·s + shift < len read the input; the rest are zero.
+                    let lo =
+                        (if shift < 0 { shift.unsigned_abs().div_ceil(s) } else { 0 }).min(out_len);
+                    let hi = (len as isize - shift).max(0) as usize;
+                    let hi = hi.div_ceil(s).clamp(lo, out_len);
+                    let start = ((lo * s) as isize + shift) as usize;
+                    dst.fill(0.0);
                     for b in 0..nb {
-                        let xs = &src[b * len..(b + 1) * len];
-                        let ds = &mut dst[b * out_len..(b + 1) * out_len];
-                        for (o, d) in ds.iter_mut().enumerate() {
-                            let t = (o * s) as isize + shift;
-                            *d = if t >= 0 && (t as usize) < len { xs[t as usize] } else { 0.0 };
-                        }
+                        let xs = &src[b * len + start.min(len)..(b + 1) * len];
+                        let ds = &mut dst[b * out_len + lo..b * out_len + hi];
+                        ds.iter_mut().zip(xs.iter().step_by(s)).for_each(|(d, &v)| *d = v);
                     }
                 }
             }
