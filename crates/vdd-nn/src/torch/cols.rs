@@ -120,30 +120,18 @@ impl<'a> Cols<'a> {
 /// `out`, resized to `rows.len() × features`.
 pub(crate) fn layer_norm(ln: &LayerNorm, x: &Mat<f32>, rows: Range<usize>, out: &mut Mat<f32>) {
     ensure(out, rows.len(), x.ncols());
-    layer_norm_dispatch(&ln.weight.value, &ln.bias.value, ln.eps(), x, rows, out);
+    layer_norm_dispatch(ln, x, rows, out);
 }
 
 avx2_dispatch! {
     /// [`layer_norm`]'s kernel.
-    fn layer_norm_dispatch(
-        w: &[f32],
-        b: &[f32],
-        eps: f32,
-        x: &Mat<f32>,
-        rows: Range<usize>,
-        out: &mut Mat<f32>,
-    ) => layer_norm_body
+    fn layer_norm_dispatch(ln: &LayerNorm, x: &Mat<f32>, rows: Range<usize>, out: &mut Mat<f32>)
+        => layer_norm_body
 }
 
 #[inline(always)]
-fn layer_norm_body(
-    w: &[f32],
-    b: &[f32],
-    eps: f32,
-    x: &Mat<f32>,
-    rows: Range<usize>,
-    out: &mut Mat<f32>,
-) {
+fn layer_norm_body(ln: &LayerNorm, x: &Mat<f32>, rows: Range<usize>, out: &mut Mat<f32>) {
+    let (w, b, eps) = (&ln.weight.value, &ln.bias.value, ln.eps());
     let d = x.ncols();
     if d == 0 {
         return;
