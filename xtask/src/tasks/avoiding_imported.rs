@@ -149,3 +149,29 @@ pub fn run(ctx: &RunContext, resolved: &Resolved<AvoidingRecipe>) -> crate::XRes
         json!({ "teacher": cfg.imported.teacher }),
     )
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::pipeline::Task;
+    use crate::recipe::{self, Overrides};
+
+    fn resolved(shorthands: &[(String, String)], mut o: Overrides) -> AvoidingRecipe {
+        super::super::avoiding::Avoiding.apply_shorthands(shorthands, &mut o).unwrap();
+        let file = recipe::read_recipe(&recipe::recipe_path("avoiding").unwrap()).unwrap();
+        recipe::resolve(&AvoidingRecipe::defaults().unwrap(), &file, &o).unwrap().base
+    }
+
+    #[test]
+    fn the_teacher_option_selects_the_imported_run_and_its_methods() {
+        let plain = resolved(&[], Overrides::default());
+        assert!(plain.imported.teacher.is_empty(), "no teacher file by default");
+        let given = [("teacher".to_owned(), r"dir with space/t\1.safetensors".to_owned())];
+        let r = resolved(&given, Overrides::default());
+        assert_eq!(r.imported.teacher, r"dir with space/t\1.safetensors");
+        assert_eq!(r.header.methods, ["teacher", "vdd"]);
+        let only = Overrides { methods: Some(vec!["vdd".into()]), ..Default::default() };
+        assert_eq!(resolved(&given, only).header.methods, ["vdd"]);
+        assert!(r.imported.vdd.validate().is_ok() && r.imported.clip_margin >= 0.0);
+    }
+}
