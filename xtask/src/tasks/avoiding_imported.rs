@@ -12,7 +12,7 @@ use std::time::Instant;
 
 use serde::{Deserialize, Serialize};
 use serde_json::json;
-use vdd::{DistillData, TeacherSpace, Vdd, VddConfig};
+use vdd::{AutoOptions, AutoPlan, DistillData, TeacherSpace, Vdd, VddConfig};
 use vdd_core::{ClampedDenoiser, Policy};
 use vdd_data::Episodes;
 use vdd_import::ImportedTeacher;
@@ -38,6 +38,10 @@ pub struct ImportedSettings {
     /// Clamp the teacher's denoised chunk to the training chunks' box (teacher's normalised
     /// units) widened by this margin; negative: no clamping.
     pub clip_margin: f32,
+    /// Start the experts from a mixture fitted to the teacher's samples, with the noise level
+    /// and normalisers `vdd::AutoPlan` picks (`imported.vdd` then gives only the iterations,
+    /// the batch and the samples per state).
+    pub init_from_teacher: bool,
 }
 
 /// Runs the imported teacher's methods of `resolved` (see the module docs).
@@ -82,7 +86,7 @@ pub fn run(ctx: &RunContext, resolved: &Resolved<AvoidingRecipe>) -> crate::XRes
                 ..cfg.student.clone()
             };
             let vc = VddConfig { seed, ..cfg.imported.vdd.clone() };
-            let mut student = Moe::from_config(mc, seed)?;
+            let mut student = Moe::from_config(mc.clone(), seed)?;
             student.set_normalizers(Some(sn.clone()), Some(an.clone()))?;
             let inner = teacher.as_ref().clone();
             let margin = cfg.imported.clip_margin;
@@ -96,7 +100,22 @@ pub fn run(ctx: &RunContext, resolved: &Resolved<AvoidingRecipe>) -> crate::XRes
             };
             let data = DistillData::new(states.clone(), Some(chunks.clone()))?
                 .with_teacher_space(TeacherSpace::normalized(sn.clone(), an.clone()));
-            let mut vdd = Vdd::new(vc.clone(), clamped, student, data)?;
+            let mut vdd = match cfg.imported.init_from_teacher {
+                false => Vdd::new(vc.clone(), clamped, student, data)?,
+                true => {
+                    let options = AutoOptions {
+                        iterations: vc.iterations,
+                        expert_kind: mc.expert_kind,
+                        gating: mc.gating,
+                        samples: 2048,
+                        ..AutoOptions::new(mc.num_experts, seed)
+                    };
+                    let mut clamped = clamped;
+                    let mut plan = AutoPlan::inspect(&mut clamped, &data, &options)?;
+                    (plan.vdd.batch_size, plan.vdd.vi_samples) = (vc.batch_size, vc.vi_samples);
+                    Vdd::from_plan(&plan, clamped, data)?
+                }
+            };
             let bar = crate::progress::bar(vc.iterations as u64, &format!("{label} s{seed}"));
             let t0 = Instant::now();
             vdd.train(|_| bar.inc(1))?;
