@@ -12,6 +12,11 @@
 //! (settings, per-episode lengths and modes, demonstrator metrics). The evaluation rollouts use
 //! a seed derived from `--seed` (`Seeds::new(seed).child("demonstrator-eval")`), so they are
 //! not the demonstrations themselves.
+//!
+//! `--export FILE` instead writes the recipe's training episodes (`recipes/defaults/avoiding.toml`'s
+//! `[data]`: its demonstrations, data seed, train/validation split and feature map;
+//! `vdd_tasks::avoiding::dataset::DatasetConfig::train_episodes`) to `FILE` (`.npz`, as above),
+//! for models trained elsewhere (`scripts/import/train_lerobot_avoiding.py`).
 
 use std::path::{Path, PathBuf};
 use std::time::Instant;
@@ -43,10 +48,28 @@ pub struct AvoidingArgs {
     /// Evaluation threads (default: all cores).
     #[arg(long)]
     pub threads: Option<usize>,
+    /// Only write the recipe's featured training episodes to this `.npz` (see the module docs).
+    #[arg(long, value_name = "FILE")]
+    pub export: Option<PathBuf>,
 }
 
 /// `cargo xtask demos avoiding`.
 pub fn avoiding(args: &AvoidingArgs) -> crate::XResult {
+    if let Some(path) = &args.export {
+        let data = crate::tasks::AvoidingRecipe::defaults()?.data;
+        let (train, _) = data.train_episodes()?;
+        train.save_npz(path)?;
+        let f = data.features.feature_map();
+        println!(
+            "wrote {} ({} training episodes of data seed {}, {} steps, features {})",
+            path.display(),
+            train.num_episodes(),
+            data.seed,
+            train.num_steps(),
+            f.id()
+        );
+        return Ok(());
+    }
     let (n, seed, out, n_eval) = (args.n, args.seed, args.out.clone(), args.eval);
     let default_threads = std::thread::available_parallelism().map_or(1, |p| p.get());
     let threads = args.threads.unwrap_or(default_threads);

@@ -58,8 +58,10 @@ pub struct ExperimentArgs {
     /// (Avoiding; see xtask/src/tuning.rs).
     #[arg(long)]
     pub tuning: bool,
-    /// toy-gmm: the teacher VDD distils (shorthand for --methods vdd-<teacher>).
-    #[arg(long, value_parser = ["exact", "ddpm", "beso"])]
+    /// toy-gmm: the teacher VDD distils (exact, ddpm, beso; shorthand for --methods
+    /// vdd-<teacher>). avoiding: a teacher file of `cargo xtask import`, rolled out and
+    /// distilled (methods teacher, vdd).
+    #[arg(long, value_name = "TEACHER")]
     pub teacher: Option<String>,
     /// Toys: VDD iterations of the distilled teacher.
     #[arg(long, value_name = "N")]
@@ -209,7 +211,6 @@ mod tests {
             "x --seeds 0..18446744073709551615",
             "x --seeds 3..3",
             "x --seeds -1",
-            "x --teacher x",
             "x --weighting w",
             "x --lr inf",
             "x --iterations -5",

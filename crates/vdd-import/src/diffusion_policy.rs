@@ -134,6 +134,7 @@ pub fn import_diffusion_policy(dir: &Path) -> Result<UnetTeacher, ImportError> {
         action_start: if flag("oa_step_convention")? { n_obs.saturating_sub(1) } else { n_obs },
         obs_features: vec![obs_norm.spec()],
         action: action_norm.spec(),
+        features: vdd_data::features::IDENTITY.id(),
     };
     spec.validate(&policy.file)?;
     let mut teacher = UnetTeacher::new(spec)?;

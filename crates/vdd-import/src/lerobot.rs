@@ -9,6 +9,7 @@ use std::path::Path;
 
 use safetensors::SafeTensors;
 use serde_json::Value;
+use vdd_data::features::FeatureMapId;
 use vdd_nn::torch::{Unet1dConfig, UnetLayout};
 
 use crate::diffusers::{BetaSchedule, Prediction, SamplerKind, SchedulerConfig};
@@ -16,6 +17,12 @@ use crate::error::ImportError;
 use crate::json::{Fields, MAX_WEIGHTS_BYTES, Prefixed, load_strict, read_bounded, read_json};
 use crate::normalize::{FeatureNorm, NormKind};
 use crate::unet_teacher::{UnetTeacher, UnetTeacherSpec};
+
+/// The file a training run may write beside LeRobot's files to record the registered feature
+/// map ([`vdd_data::features`]) its observations went through, as
+/// `{"name": "position_and_lag", "version": 1}`; absent, the policy sees raw observations.
+/// `scripts/import/train_lerobot_avoiding.py` writes it.
+pub const FEATURES_FILE: &str = "vdd_features.json";
 
 /// The observation features a state-only LeRobot diffusion policy conditions on, in order.
 const OBS_KEYS: [&str; 2] = ["observation.state", "observation.environment_state"];
@@ -114,6 +121,7 @@ pub fn import_lerobot(dir: &Path) -> Result<UnetTeacher, ImportError> {
         action_start: n_obs.saturating_sub(1),
         obs_features: Vec::new(),
         action: FeatureNorm::identity("action", adim).spec(),
+        features: read_features(dir)?,
     };
 
     let model_path = dir.join("model.safetensors");
@@ -149,6 +157,18 @@ pub fn import_lerobot(dir: &Path) -> Result<UnetTeacher, ImportError> {
     let mut view = Prefixed { inner: teacher.unet_mut(), prefix: "diffusion.unet" };
     load_strict(&model_path, &model_bytes, &mut view, &["diffusion."])?;
     Ok(teacher)
+}
+
+/// The feature map recorded in [`FEATURES_FILE`], the identity without one.
+fn read_features(dir: &Path) -> Result<FeatureMapId, ImportError> {
+    let path = dir.join(FEATURES_FILE);
+    if !path.exists() {
+        return Ok(vdd_data::features::IDENTITY.id());
+    }
+    let id: FeatureMapId = serde_json::from_value(read_json(&path)?)
+        .map_err(|e| ImportError::bad(path.display().to_string(), "feature map", e))?;
+    id.resolve().map_err(|e| ImportError::bad(path.display().to_string(), "feature map", e))?;
+    Ok(id)
 }
 
 /// The `normalization_mapping` entry of a feature's type, for the quantile variants.

@@ -15,6 +15,7 @@
 pub mod bench;
 pub mod diffusers;
 mod diffusion_policy;
+mod distil_data;
 mod error;
 mod file;
 pub mod fixture;
@@ -27,7 +28,7 @@ mod unet_teacher;
 pub use diffusion_policy::import_diffusion_policy;
 pub use error::ImportError;
 pub use file::{KIND_KEY, KIND_UNET1D, SPEC_KEY, load_teacher, save_unet_teacher};
-pub use lerobot::import_lerobot;
+pub use lerobot::{FEATURES_FILE, import_lerobot};
 pub use teacher::ImportedTeacher;
 pub use unet_teacher::{UnetTeacher, UnetTeacherSpec};
 

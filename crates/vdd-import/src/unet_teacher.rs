@@ -9,6 +9,7 @@ use serde::{Deserialize, Serialize};
 use vdd_core::{
     CoreError, DenoiserForm, NoiseConvention, NoiseSchedule, Policy, ScoreModel, check_score_args,
 };
+use vdd_data::features::FeatureMapId;
 use vdd_data::{DeploySpec, Windowed};
 use vdd_nn::torch::{ConditionalUnet1d, Unet1dConfig};
 use vdd_nn::{Param, Parameters, join_name};
@@ -43,6 +44,15 @@ pub struct UnetTeacherSpec {
     pub obs_features: Vec<FeatureNormSpec>,
     /// The action's normaliser.
     pub action: FeatureNormSpec,
+    /// The registered feature map ([`vdd_data::features`]) that turns the environment's raw
+    /// observation into the per-step observation the policy was trained on (the identity
+    /// unless the training run recorded one; see [`crate::FEATURES_FILE`]).
+    #[serde(default = "identity_features")]
+    pub features: FeatureMapId,
+}
+
+fn identity_features() -> FeatureMapId {
+    vdd_data::features::IDENTITY.id()
 }
 
 impl UnetTeacherSpec {
@@ -73,6 +83,8 @@ impl UnetTeacherSpec {
         {
             return bad("horizon", self.horizon.to_string());
         }
+        let map = self.features.resolve().map_err(|e| ImportError::bad(file, "features", e))?;
+        map.check_dim(obs_dim).map_err(|e| ImportError::bad(file, "features", e))?;
         if self.n_action_steps == 0 || self.action_start + self.n_action_steps > self.horizon {
             return bad(
                 "n_action_steps",
@@ -174,6 +186,16 @@ impl UnetTeacher {
         &self.spec
     }
 
+    /// The observation features' normalisers, in the spec's order.
+    pub fn obs_normalizers(&self) -> &[FeatureNorm] {
+        &self.obs_norms
+    }
+
+    /// The action's normaliser.
+    pub fn action_normalizer(&self) -> &FeatureNorm {
+        &self.action_norm
+    }
+
     /// The noise process.
     pub fn scheduler(&self) -> &Scheduler {
         &self.scheduler
@@ -184,10 +206,11 @@ impl UnetTeacher {
         &mut self.unet
     }
 
-    /// How the package acts with it: no feature map, a window of `n_obs_steps`, chunks of the
-    /// `n_action_steps` executed actions.
+    /// How the package acts with it: the spec's feature map, a window of `n_obs_steps`, chunks
+    /// of the `n_action_steps` executed actions (the [`Policy`] returns only those).
     pub fn deploy_spec(&self) -> DeploySpec {
         DeploySpec {
+            features: self.spec.features.clone(),
             obs_window: self.spec.n_obs_steps,
             action_chunk: self.spec.n_action_steps,
             execute_steps: self.spec.n_action_steps,

@@ -16,7 +16,8 @@
 //! Acting with the outputs: pick an expert `z` with probability `exp(log_gating[i, z])` (or
 //! `argmax` for greedy gating), then take `a = means[i, z]` (the mean, what the recipes
 //! evaluate) or sample `a = means[i, z] + scale_tril[i, z] · ε` with `ε ~ N(0, I)`. Execute the
-//! first `execute_steps` actions of a chunk before asking again.
+//! `execute_steps` actions of a chunk, from index `chunk_start` (`DeploySpec::chunk_start`, 0
+//! unless set), before asking again.
 //!
 //! Supported: both expert families, shared or separate expert networks, learned or uniform
 //! gating, every [`vdd_nn::Activation`], and the linear feature maps of `vdd_data::features`

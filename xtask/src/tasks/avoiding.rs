@@ -21,6 +21,7 @@ use vdd_tasks::avoiding::EvalProtocol;
 use vdd_tasks::avoiding::dataset::DatasetConfig;
 use vdd_tasks::timing::{Timing, us_per_action};
 
+use super::avoiding_imported::{self, ImportedSettings};
 use crate::context::{RunContext, StageTimes};
 use crate::method::{Trained, TrainingData};
 use crate::pipeline::{self, Datasets, Entry, Task, TaskRecipe};
@@ -57,6 +58,8 @@ pub struct AvoidingRecipe {
     pub eval: AvoidingEval,
     /// Figures.
     pub plots: PlotSettings,
+    /// A teacher imported from PyTorch (`--teacher FILE`; [`super::avoiding_imported`]).
+    pub imported: ImportedSettings,
 }
 
 /// Evaluation.
@@ -80,12 +83,12 @@ pub struct AvoidingEval {
 
 impl AvoidingEval {
     /// The rollouts' protocol (episodes and lockstep batch; the seed comes from the run seed).
-    fn protocol(&self) -> EvalProtocol {
+    pub(super) fn protocol(&self) -> EvalProtocol {
         EvalProtocol { rollouts: self.rollouts, lockstep_batch: self.lockstep_batch }
     }
 
     /// The settings of `us_per_action`.
-    fn timing(&self) -> Timing {
+    pub(super) fn timing(&self) -> Timing {
         Timing {
             calls: self.timing_calls,
             warmup: self.timing_warmup,
@@ -196,13 +199,19 @@ impl Task for Avoiding {
         "avoiding"
     }
 
-    /// `--tuning`: the tuning seeds (unless given) and the tuning demonstrations.
+    /// `--tuning`: the tuning seeds (unless given) and the tuning demonstrations; `--teacher
+    /// FILE`: an imported teacher and its VDD student (methods `teacher,vdd` unless given).
     fn apply_shorthands(
         &self,
         given: &[(String, String)],
         o: &mut Overrides,
     ) -> Result<(), String> {
-        for (k, _) in given {
+        for (k, v) in given {
+            if k == "teacher" {
+                o.sets.insert(0, ("imported.teacher".into(), format!("{v:?}")));
+                o.methods.get_or_insert_with(|| vec!["teacher".into(), "vdd".into()]);
+                continue;
+            }
             if k != "tuning" {
                 return Err(format!("option --{k} does not apply to task `avoiding`"));
             }
@@ -215,6 +224,9 @@ impl Task for Avoiding {
     fn run(&self, ctx: &RunContext) -> crate::XResult {
         let resolved = recipe::resolve(&AvoidingRecipe::defaults()?, &ctx.file, &ctx.overrides)?;
         let base = &resolved.base;
+        if !base.imported.teacher.is_empty() {
+            return avoiding_imported::run(ctx, &resolved);
+        }
         let plan = pipeline::plan(&resolved, "avoiding")?;
         for (_, cfg) in resolved.configs() {
             // Before any training: a bad setting would otherwise fail after it.

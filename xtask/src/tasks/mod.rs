@@ -9,9 +9,11 @@
 use crate::pipeline::Task;
 
 mod avoiding;
+mod avoiding_imported;
 mod toy;
 mod toy_eval;
 
+pub use avoiding::AvoidingRecipe;
 pub use toy::check_toy_gmm;
 
 /// Every task.

@@ -423,7 +423,8 @@ mod tests {
         let teacher = [("teacher".into(), "beso".into())];
         assert!(TOY_CONDITIONAL.apply_shorthands(&teacher, &mut Overrides::default()).is_err());
         let avoiding = crate::tasks::find("avoiding").unwrap();
-        assert!(avoiding.apply_shorthands(&teacher, &mut Overrides::default()).is_err());
+        let toy_only = [("iterations".into(), "7".into())];
+        assert!(avoiding.apply_shorthands(&toy_only, &mut Overrides::default()).is_err());
         let mut o = Overrides::default();
         let sh = [("weighting".into(), "uniform".into()), ("experts".into(), "8".into())];
         TOY_CONDITIONAL.apply_shorthands(&sh, &mut o).unwrap();

@@ -11,7 +11,8 @@ use crate::features::{self, FeatureMap, FeatureMapId};
 
 /// How a policy trained on samples of this crate's convention acts on raw observations: the
 /// feature map applied to each raw observation, the observation window `W`, the action chunk
-/// `C` and the actions of each chunk executed before predicting again (`1 ≤ execute_steps ≤ C`).
+/// `C` and the actions of each chunk executed before predicting again, from index
+/// `chunk_start` of the chunk (`chunk_start < C`, `1 ≤ execute_steps ≤ C − chunk_start`).
 ///
 /// A model saved with its spec needs nothing else to act in its environment (`vdd-moe` saves
 /// one in every mixture file; [`Windowed`] applies it).
@@ -44,8 +45,19 @@ pub struct DeploySpec {
     pub obs_window: usize,
     /// Action chunk `C`: the policy predicts `C` actions at once.
     pub action_chunk: usize,
-    /// Actions of each chunk executed before the policy is asked again (`1..=C`).
+    /// Actions of each chunk executed before the policy is asked again
+    /// (`1..=C − chunk_start`).
     pub execute_steps: usize,
+    /// Index in the chunk of the first executed action (`0..C`; 0 unless set). A chunk that
+    /// also predicts the steps of the observation window before the current one, as LeRobot's
+    /// and diffusion_policy's chunks do (they execute from `n_obs_steps − 1`), starts there.
+    /// Absent from saved specs when 0, so files of earlier versions read as before.
+    #[serde(default, skip_serializing_if = "is_zero")]
+    pub chunk_start: usize,
+}
+
+fn is_zero(x: &usize) -> bool {
+    *x == 0
 }
 
 impl Default for DeploySpec {
@@ -59,7 +71,13 @@ impl DeploySpec {
     /// Raw observations in, one action out: the identity map, `W = C = 1`, executing 1. A
     /// model saved without a spec acts this way.
     pub fn identity() -> Self {
-        Self { features: features::IDENTITY.id(), obs_window: 1, action_chunk: 1, execute_steps: 1 }
+        Self {
+            features: features::IDENTITY.id(),
+            obs_window: 1,
+            action_chunk: 1,
+            execute_steps: 1,
+            chunk_start: 0,
+        }
     }
 
     /// The same spec with `map` as its feature map.
@@ -68,8 +86,9 @@ impl DeploySpec {
         self
     }
 
-    /// Checks the ranges (`W ≥ 1`, `C ≥ 1`, `1 ≤ execute_steps ≤ C`) and that the feature map
-    /// is registered; returns the map. Errors name the setting and its value.
+    /// Checks the ranges (`W ≥ 1`, `C ≥ 1`, `chunk_start < C`,
+    /// `1 ≤ execute_steps ≤ C − chunk_start`) and that the feature map is registered; returns
+    /// the map. Errors name the setting and its value.
     pub fn validate(&self) -> Result<FeatureMap> {
         let bad = |key, value: usize, reason: String| {
             Err(DataError::Spec { key, value: value.to_string(), reason })
@@ -80,8 +99,19 @@ impl DeploySpec {
         if self.action_chunk == 0 {
             return bad("action_chunk", 0, "must be at least 1".into());
         }
-        if self.execute_steps == 0 || self.execute_steps > self.action_chunk {
-            let reason = format!("must be between 1 and action_chunk = {}", self.action_chunk);
+        if self.chunk_start >= self.action_chunk {
+            let reason = format!("must be below action_chunk = {}", self.action_chunk);
+            return bad("chunk_start", self.chunk_start, reason);
+        }
+        let room = self.action_chunk - self.chunk_start;
+        if self.execute_steps == 0 || self.execute_steps > room {
+            let reason = match self.chunk_start {
+                0 => format!("must be between 1 and action_chunk = {}", self.action_chunk),
+                s => format!(
+                    "must be between 1 and action_chunk − chunk_start = {} − {s}",
+                    self.action_chunk
+                ),
+            };
             return bad("execute_steps", self.execute_steps, reason);
         }
         self.features.resolve().map_err(|e| DataError::Spec {
@@ -128,7 +158,8 @@ impl DeploySpec {
 /// of them (the first one repeated at the start of an episode, as
 /// [`WindowConfig::pad_start`](crate::WindowConfig::pad_start) builds training windows) form
 /// the inner policy's observation, and the first `execute_steps` actions of each predicted
-/// chunk are returned one per step before the inner policy is asked again.
+/// chunk (from index [`DeploySpec::chunk_start`]) are returned one per step before the inner
+/// policy is asked again.
 ///
 /// State is kept per batch row, so lockstep evaluation (one `act_batch` per step, row `i`
 /// always the same environment between `reset`s) works; `act_into` uses row 0. With the
@@ -276,7 +307,7 @@ impl<P: Policy> Policy for Windowed<P> {
         if self.rows.len() != n {
             self.rows = vec![RowState::default(); n];
         }
-        let execute = self.spec.execute_steps;
+        let end = self.spec.chunk_start + self.spec.execute_steps;
         let mut o = vec![0.0f32; self.obs_dim];
         self.need.clear();
         for i in 0..n {
@@ -288,7 +319,7 @@ impl<P: Policy> Policy for Windowed<P> {
             }
             self.push_obs(i, &mut o);
             let r = &self.rows[i];
-            if r.chunk.is_empty() || r.next >= execute {
+            if r.chunk.is_empty() || r.next >= end {
                 self.need.push(i);
             }
         }
@@ -312,7 +343,7 @@ impl<P: Policy> Policy for Windowed<P> {
                 let r = &mut self.rows[i];
                 r.chunk.clear();
                 r.chunk.extend((0..chunk_dim).map(|j| self.batch_act[(b, j)]));
-                r.next = 0;
+                r.next = self.spec.chunk_start;
             }
         }
         for i in 0..n {
@@ -379,6 +410,21 @@ mod tests {
     }
 
     #[test]
+    fn chunks_are_executed_from_their_start_offset() {
+        // Chunk [sum of window, call count, t]; execute 2 from index 1: the count, then t.
+        let s = DeploySpec { chunk_start: 1, ..spec(2, 3, 2) };
+        let mut w = Windowed::new(Probe { calls: 0.0 }, s).unwrap();
+        assert_eq!(w.act(&[1.0, 2.0]).unwrap(), [1.0]); // first chunk, index 1: call count 1
+        assert_eq!(w.act(&[3.0, 4.0]).unwrap(), [2002.0]); // index 2 of the same chunk
+        assert_eq!(w.act(&[5.0, 6.0]).unwrap(), [2.0]); // a new chunk (call 2), index 1
+        let one = DeploySpec { chunk_start: 2, ..spec(2, 3, 1) };
+        let mut w = Windowed::new(Probe { calls: 0.0 }, one).unwrap();
+        for (x, want) in [(1.0f32, 2002.0f32), (3.0, 2004.0), (5.0, 4006.0)] {
+            assert_eq!(w.act(&[x, x + 1.0]).unwrap(), [want], "a new chunk every step");
+        }
+    }
+
+    #[test]
     fn batched_rows_keep_their_own_state() {
         let mut w = Windowed::new(Probe { calls: 0.0 }, spec(2, 3, 3)).unwrap();
         let obs = faer::mat![[1.0f32, 0.0], [2.0, 0.0]];
@@ -432,6 +478,14 @@ mod tests {
             (spec(1, 0, 1), "`action_chunk` = 0: must be at least 1"),
             (spec(1, 3, 0), "`execute_steps` = 0: must be between 1 and action_chunk = 3"),
             (spec(2, 3, 4), "`execute_steps` = 4: must be between 1 and action_chunk = 3"),
+            (
+                DeploySpec { chunk_start: 3, ..spec(2, 3, 1) },
+                "`chunk_start` = 3: must be below action_chunk = 3",
+            ),
+            (
+                DeploySpec { chunk_start: 1, ..spec(2, 3, 3) },
+                "`execute_steps` = 3: must be between 1 and action_chunk − chunk_start = 3 − 1",
+            ),
             (spec(3, 3, 1), "`obs_window` = 3: the policy's observation dimension 4"),
             (spec(2, 2, 1), "`action_chunk` = 2: the policy's action dimension 3"),
             (
@@ -466,5 +520,17 @@ mod tests {
         let extra = json.replace("\"obs_window\"", "\"window\":1,\"obs_window\"");
         assert!(serde_json::from_str::<DeploySpec>(&extra).is_err());
         assert_eq!(DeploySpec::default(), DeploySpec::identity());
+        // A start offset is saved when set, and read back; hostile offsets fail validation.
+        let offset = DeploySpec { chunk_start: 1, ..spec(2, 4, 3) };
+        let json = serde_json::to_string(&offset).unwrap();
+        assert!(json.ends_with(r#""execute_steps":3,"chunk_start":1}"#), "{json}");
+        let back: DeploySpec = serde_json::from_str(&json).unwrap();
+        assert_eq!(back, offset);
+        back.validate().unwrap();
+        for bad in [r#""chunk_start":4"#, r#""chunk_start":2"#] {
+            let s: DeploySpec =
+                serde_json::from_str(&json.replace(r#""chunk_start":1"#, bad)).unwrap();
+            assert!(s.validate().is_err(), "{bad}");
+        }
     }
 }

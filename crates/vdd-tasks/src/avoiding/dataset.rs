@@ -117,17 +117,37 @@ impl DatasetConfig {
         .with_features(self.features.feature_map())
     }
 
-    /// Generates the demonstrations and builds the training matrices.
-    pub fn build(&self) -> Result<Dataset, DatasetError> {
+    /// The training episodes (the demonstrations less the held-out share) with their
+    /// observations through [`Self::features`], and their raw observations: what the recipes
+    /// train on, and what `cargo xtask demos avoiding --export` writes for models trained
+    /// elsewhere.
+    ///
+    /// ```
+    /// use vdd_tasks::avoiding::dataset::DatasetConfig;
+    ///
+    /// let config = DatasetConfig { demonstrations: 4, validation_fraction: 0.25, ..Default::default() };
+    /// let (train, raw) = config.train_episodes().unwrap();
+    /// assert_eq!((train.num_episodes(), raw.len()), (3, 3));
+    /// let (o, r) = (train.observations(0), &raw[0]);
+    /// assert_eq!(o[(5, 0)], r[(5, 2)]); // position_and_lag: (c, d − c)
+    /// assert_eq!(o[(5, 2)], r[(5, 0)] - r[(5, 2)]);
+    /// ```
+    pub fn train_episodes(&self) -> Result<(Episodes, Vec<Mat<f32>>), DatasetError> {
         let demos = generate_demonstrations(self.demonstrations, self.seed, &self.demonstrator)?;
-        let episodes = Episodes::from_episodes(demos.observations, demos.actions)?;
+        self.featured_train(demos.observations, demos.actions)
+    }
+
+    fn featured_train(
+        &self,
+        observations: Vec<Mat<f32>>,
+        actions: Vec<Mat<f32>>,
+    ) -> Result<(Episodes, Vec<Mat<f32>>), DatasetError> {
+        let episodes = Episodes::from_episodes(observations, actions)?;
         let train = if self.validation_fraction > 0.0 {
             episodes.split(self.validation_fraction, self.seed)?.train
         } else {
             episodes
         };
-        // The models train on the features; the raw observations are kept for timing, which
-        // feeds them through the deployed policy (that applies the features itself).
         let (episode_observations, episode_actions) = train.to_episode_matrices();
         let features = self.features.feature_map();
         let train = if features.is_identity() {
@@ -137,16 +157,26 @@ impl DatasetConfig {
                 episode_observations.iter().map(|o| features.apply_rows(o.as_ref())).collect();
             Episodes::from_episodes(obs?, episode_actions)?
         };
+        Ok((train, episode_observations))
+    }
+
+    /// Generates the demonstrations and builds the training matrices.
+    pub fn build(&self) -> Result<Dataset, DatasetError> {
+        let demos = generate_demonstrations(self.demonstrations, self.seed, &self.demonstrator)?;
+        let mut mode_counts = vec![0usize; N_MODES];
+        for m in &demos.modes {
+            mode_counts[m.index()] += 1;
+        }
+        // The models train on the features; the raw observations are kept for timing, which
+        // feeds them through the deployed policy (that applies the features itself).
+        let (train, episode_observations) =
+            self.featured_train(demos.observations, demos.actions)?;
         let window =
             WindowConfig::new(self.obs_window, self.action_chunk).with_pad_start(self.pad_start);
         let (states, actions) = SequenceDataset::new(train.clone(), window)?.to_matrices();
         let norm = Normalization::fit(&train, NormalizationKind::standard())?;
         let (states_normalized, actions_normalized) =
             SequenceDataset::new(train.normalized(&norm)?, window)?.to_matrices();
-        let mut mode_counts = vec![0usize; N_MODES];
-        for m in &demos.modes {
-            mode_counts[m.index()] += 1;
-        }
         Ok(Dataset {
             states,
             actions,

@@ -180,6 +180,30 @@ fn a_saved_then_loaded_policy_acts_bit_identically_on_raw_observations() {
 }
 
 #[test]
+fn a_chunk_start_offset_is_saved_and_applied_after_loading() {
+    let mut moe = built(config(4, 3, ExpertKind::Diagonal, GatingKind::Uniform, true), 26);
+    let offset = DeploySpec { chunk_start: 1, ..windowed_spec() };
+    moe.set_act_mode(ActMode { greedy_gating: true, sample_action: false });
+    moe.set_deploy_spec(offset.clone()).unwrap();
+    let path = scratch("deploy-offset.safetensors");
+    moe.save(&path).unwrap();
+    let mut loaded = crate::load_policy(&path).unwrap();
+    assert_eq!(loaded.spec(), &offset);
+    // Executed from index 1 of the chunk: the first action is the mixture's second.
+    moe.seed(4);
+    loaded.seed(4);
+    let first = loaded.act(&[0.5, -0.5]).unwrap();
+    let window = [0.5f32, -0.5, 0.5, -0.5];
+    let mut mapped = window;
+    for step in mapped.chunks_mut(2) {
+        vdd_data::features::POSITION_AND_LAG.apply(step);
+    }
+    let chunk = moe.act(&mapped).unwrap();
+    assert_eq!(first, [chunk[1]]);
+    assert_eq!(loaded.act(&[0.5, -0.5]).unwrap(), [chunk[2]]);
+}
+
+#[test]
 fn a_file_without_a_spec_loads_with_the_identity_spec() {
     let mut moe = built(config(2, 3, ExpertKind::Diagonal, GatingKind::Learned, true), 24);
     let path = scratch("spec-before.safetensors");
@@ -227,6 +251,7 @@ fn bad_specs_are_refused_naming_the_setting_and_its_value() {
             r#"{{"features":{features},"obs_window":{w},"action_chunk":{c},"execute_steps":{e}}}"#
         )
     };
+    let with_start = |s: String, k: usize| format!("{},\"chunk_start\":{k}}}", &s[..s.len() - 1]);
     let pal = r#"{"name":"position_and_lag","version":1}"#;
     let cases = [
         (
@@ -240,6 +265,11 @@ fn bad_specs_are_refused_naming_the_setting_and_its_value() {
         (spec(pal, 4, 3, 1), "`features` = position_and_lag v1: needs"),
         ("{not json".to_owned(), "bad `deploy_spec` metadata"),
         (spec(pal, 2, 3, 2).replace("obs_window", "window"), "unknown field `window`"),
+        (with_start(spec(pal, 2, 3, 1), 3), "`chunk_start` = 3: must be below action_chunk = 3"),
+        (
+            with_start(spec(pal, 2, 3, 2), 2),
+            "`execute_steps` = 2: must be between 1 and action_chunk − chunk_start = 3 − 2",
+        ),
     ];
     for (bad, want) in &cases {
         let e = load(bad);

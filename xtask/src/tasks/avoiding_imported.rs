@@ -1,0 +1,196 @@
+//! `cargo xtask experiment avoiding --teacher FILE [--methods teacher,vdd]`: a diffusion policy
+//! imported from PyTorch (a `vdd_import` teacher file, `cargo xtask import`) rolled out in
+//! Avoiding (row `<source>`, e.g. `lerobot`) and distilled with VDD into a mixture that emits its
+//! whole chunk (row `vdd-<source>`), on the recipe's demonstrations (`data`; the window, chunk
+//! and feature map are the teacher's), student (`student`, gating `imported.gating`), VDD
+//! settings (`imported.vdd`) and evaluation (`eval`). This file only wires the crates: the
+//! teacher's samples, space and deployment are `vdd_import`'s, the trainer `vdd`'s, rollouts
+//! and timing `vdd_tasks`'.
+
+use std::path::Path;
+use std::time::Instant;
+
+use serde::{Deserialize, Serialize};
+use serde_json::json;
+use vdd::{AutoOptions, AutoPlan, DistillData, TeacherSpace, Vdd, VddConfig};
+use vdd_core::{ClampedDenoiser, Policy};
+use vdd_data::Episodes;
+use vdd_import::ImportedTeacher;
+use vdd_moe::{GatingKind, Moe, MoeConfig};
+use vdd_tasks::avoiding::EvalProtocol;
+use vdd_tasks::timing::us_per_action;
+
+use super::avoiding::AvoidingRecipe;
+use crate::context::RunContext;
+use crate::recipe::Resolved;
+use crate::report::{self, Row};
+
+/// The `[imported]` table of the Avoiding recipes.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ImportedSettings {
+    /// The teacher file (`--teacher FILE`); empty: the recipe's own teachers and methods.
+    pub teacher: String,
+    /// VDD's settings (noise levels in the teacher's convention; `seed` is the run seed).
+    pub vdd: VddConfig,
+    /// The student's gating.
+    pub gating: GatingKind,
+    /// Clamp the teacher's denoised chunk to the training chunks' box (teacher's normalised
+    /// units) widened by this margin; negative: no clamping.
+    pub clip_margin: f32,
+    /// Start the experts from a mixture fitted to the teacher's samples, with the noise level
+    /// and normalisers `vdd::AutoPlan` picks (`imported.vdd` then gives only the iterations,
+    /// the batch and the samples per state).
+    pub init_from_teacher: bool,
+}
+
+/// Runs the imported teacher's methods of `resolved` (see the module docs).
+pub fn run(ctx: &RunContext, resolved: &Resolved<AvoidingRecipe>) -> crate::XResult {
+    if !resolved.variants.is_empty() {
+        return Err("--teacher runs take no recipe variants".into());
+    }
+    let cfg = &resolved.base;
+    let (seeds, methods) = (&cfg.header.seeds, &cfg.header.methods);
+    if let Some(m) = methods.iter().find(|m| !["teacher", "vdd"].contains(&m.as_str())) {
+        return Err(format!("method `{m}` with --teacher (teacher, vdd)").into());
+    }
+    let ImportedTeacher::Unet1d(teacher) =
+        vdd_import::load_teacher(Path::new(&cfg.imported.teacher))?;
+    let src = teacher.spec().source.clone();
+    let map = teacher.spec().features.resolve()?;
+    let (train, raw_obs) = cfg.data.train_episodes()?;
+    let featured: Result<Vec<_>, _> = raw_obs.iter().map(|o| map.apply_rows(o.as_ref())).collect();
+    let episodes = Episodes::from_episodes(featured?, train.to_episode_matrices().1)?;
+    let (states, chunks) = teacher.training_windows(&episodes)?;
+    let (sn, an) = teacher.teacher_space()?;
+
+    let dir = ctx.run_dir(seeds);
+    ctx.write_resolved(&dir, &resolved.to_toml()?)?;
+    let threads = std::thread::available_parallelism().map_or(1, |p| p.get());
+    let protocol = cfg.eval.protocol();
+    let mut rows: Vec<(String, Vec<Row>)> = Vec::new();
+    for &seed in seeds {
+        let mut timed: Vec<Box<dyn Policy + Send>> = Vec::new();
+        let mut results = Vec::new();
+        if methods.iter().any(|m| m == "teacher") {
+            let policy = ImportedTeacher::Unet1d(teacher.clone()).into_policy()?;
+            results.push((src.clone(), protocol.evaluate(&policy, seed, threads, false)?, None));
+            timed.push(Box::new(policy));
+        }
+        if methods.iter().any(|m| m == "vdd") {
+            let label = format!("vdd-{src}");
+            let mc = MoeConfig {
+                state_dim: states.ncols(),
+                action_dim: chunks.ncols(),
+                gating: cfg.imported.gating,
+                ..cfg.student.clone()
+            };
+            let vc = VddConfig { seed, ..cfg.imported.vdd.clone() };
+            let mut student = Moe::from_config(mc.clone(), seed)?;
+            student.set_normalizers(Some(sn.clone()), Some(an.clone()))?;
+            let inner = teacher.as_ref().clone();
+            let margin = cfg.imported.clip_margin;
+            let clamped = match margin >= 0.0 {
+                true => ClampedDenoiser::around_data(
+                    inner,
+                    an.normalize_rows(chunks.as_ref())?.as_ref(),
+                    margin,
+                )?,
+                false => ClampedDenoiser::unclamped(inner),
+            };
+            let data = DistillData::new(states.clone(), Some(chunks.clone()))?
+                .with_teacher_space(TeacherSpace::normalized(sn.clone(), an.clone()));
+            let mut vdd = match cfg.imported.init_from_teacher {
+                false => Vdd::new(vc.clone(), clamped, student, data)?,
+                true => {
+                    let options = AutoOptions {
+                        iterations: vc.iterations,
+                        expert_kind: mc.expert_kind,
+                        gating: mc.gating,
+                        samples: 2048,
+                        ..AutoOptions::new(mc.num_experts, seed)
+                    };
+                    let mut clamped = clamped;
+                    let mut plan = AutoPlan::inspect(&mut clamped, &data, &options)?;
+                    (plan.vdd.batch_size, plan.vdd.vi_samples) = (vc.batch_size, vc.vi_samples);
+                    Vdd::from_plan(&plan, clamped, data)?
+                }
+            };
+            let bar = crate::progress::bar(vc.iterations as u64, &format!("{label} s{seed}"));
+            let t0 = Instant::now();
+            vdd.train(|_| bar.inc(1))?;
+            let secs = t0.elapsed().as_secs_f64();
+            bar.finish_and_clear();
+            let mut student = vdd.into_student();
+            student.set_deploy_spec(teacher.chunk_deploy_spec())?;
+            std::fs::create_dir_all(dir.join("models"))?;
+            student.save(&dir.join("models").join(format!("{label}-s{seed}.safetensors")))?;
+            let policy = student.into_policy()?;
+            results.push((
+                label.clone(),
+                protocol.evaluate(&policy, seed, threads, false)?,
+                Some(secs),
+            ));
+            timed.push(Box::new(policy));
+        }
+        let us = us_per_action(&mut timed, &raw_obs, cfg.eval.timing(), EvalProtocol::seed(seed))?;
+        for ((label, ev, secs), us) in results.into_iter().zip(us) {
+            let m = &ev.metrics;
+            crate::progress::log(format!(
+                "[{label} s{seed}] success {:.3}, entropy {:.3} ({} modes), {us:.1} µs per action",
+                m.success_rate, m.task_entropy, m.modes_reached
+            ));
+            let row: Row = serde_json::from_value(json!({
+                "seed": seed, "success_rate": m.success_rate, "task_entropy": m.task_entropy,
+                "us_per_action": report::json_f64(us), "rollouts": m.rollouts,
+                "modes_reached": m.modes_reached, "collisions": m.collisions, "timeouts": m.timeouts,
+                "train_seconds": secs.map_or(serde_json::Value::Null, report::json_f64),
+            }))?;
+            match rows.iter_mut().find(|(l, _)| *l == label) {
+                Some((_, r)) => r.push(row),
+                None => rows.push((label, vec![row])),
+            }
+        }
+    }
+    let metrics = report::metrics_json(&ctx.name, "avoiding", seeds, &rows);
+    let table = format!(
+        "## {} (Avoiding, imported teacher {})\n\n{}\n\nmean ± std over seeds {seeds:?}; {} rollouts per method and seed; µs per action: single-threaded `Policy::act` on one observation.\n",
+        ctx.name,
+        cfg.imported.teacher,
+        report::markdown_table(&rows, &report::columns_for("avoiding")),
+        cfg.eval.rollouts
+    );
+    crate::pipeline::write_results(
+        ctx,
+        &dir,
+        &metrics,
+        &table,
+        json!({ "teacher": cfg.imported.teacher }),
+    )
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::pipeline::Task;
+    use crate::recipe::{self, Overrides};
+
+    fn resolved(shorthands: &[(String, String)], mut o: Overrides) -> AvoidingRecipe {
+        super::super::avoiding::Avoiding.apply_shorthands(shorthands, &mut o).unwrap();
+        let file = recipe::read_recipe(&recipe::recipe_path("avoiding").unwrap()).unwrap();
+        recipe::resolve(&AvoidingRecipe::defaults().unwrap(), &file, &o).unwrap().base
+    }
+
+    #[test]
+    fn the_teacher_option_selects_the_imported_run_and_its_methods() {
+        let plain = resolved(&[], Overrides::default());
+        assert!(plain.imported.teacher.is_empty(), "no teacher file by default");
+        let given = [("teacher".to_owned(), r"dir with space/t\1.safetensors".to_owned())];
+        let r = resolved(&given, Overrides::default());
+        assert_eq!(r.imported.teacher, r"dir with space/t\1.safetensors");
+        assert_eq!(r.header.methods, ["teacher", "vdd"]);
+        let only = Overrides { methods: Some(vec!["vdd".into()]), ..Default::default() };
+        assert_eq!(resolved(&given, only).header.methods, ["vdd"]);
+        assert!(r.imported.vdd.validate().is_ok() && r.imported.clip_margin >= 0.0);
+    }
+}
