@@ -15,14 +15,15 @@ use faer::Mat;
 use serde::{Deserialize, Serialize};
 use serde_json::{Value, json};
 use toml::Table;
-use vdd_data::Windowed;
+use vdd_data::{DeploySpec, Windowed};
 use vdd_moe::MoeConfig;
-use vdd_tasks::avoiding::EvalProtocol;
+
 use vdd_tasks::avoiding::dataset::DatasetConfig;
+use vdd_tasks::avoiding::{CurveProtocol, EvalProtocol};
 use vdd_tasks::timing::{Timing, us_per_action};
 
 use crate::context::{RunContext, StageTimes};
-use crate::method::{Trained, TrainingData};
+use crate::method::{BudgetRole, CurveEval, Trained, TrainingData};
 use crate::pipeline::{self, Datasets, Entry, Task, TaskRecipe};
 use crate::plots::{self, Curves, TrajectoryPanel};
 use crate::policy::TrainedPolicy;
@@ -76,12 +77,27 @@ pub struct AvoidingEval {
     /// The shortest timing round in milliseconds: a fast policy makes more than
     /// `timing_calls / 5` calls a round (see `vdd_tasks::timing::us_per_action`).
     pub timing_min_round_ms: f64,
+    /// Curves over training: evaluations per training run of every method trained in the run
+    /// (0: none; see [`CurveProtocol`]).
+    pub curve_points: usize,
+    /// Episodes per curve evaluation (held out from the final evaluation's), stepped
+    /// `lockstep_batch` at a time on one thread.
+    pub curve_rollouts: usize,
 }
 
 impl AvoidingEval {
     /// The rollouts' protocol (episodes and lockstep batch; the seed comes from the run seed).
     fn protocol(&self) -> EvalProtocol {
         EvalProtocol { rollouts: self.rollouts, lockstep_batch: self.lockstep_batch }
+    }
+
+    /// The curves over training.
+    fn curves(&self) -> CurveProtocol {
+        CurveProtocol {
+            points: self.curve_points,
+            rollouts: self.curve_rollouts,
+            lockstep_batch: self.lockstep_batch,
+        }
     }
 
     /// The settings of `us_per_action`.
@@ -182,6 +198,45 @@ fn prepare(data: &DatasetConfig) -> crate::XResult<Prepared> {
     Ok(Prepared { training, episodes_obs: d.episode_observations, summary })
 }
 
+/// Curves over training on Avoiding: a [`CurveProtocol`] through the recipe's features and
+/// windows.
+struct AvoidingCurves {
+    protocol: CurveProtocol,
+    spec: DeploySpec,
+}
+
+impl AvoidingCurves {
+    /// The curves of a configuration, `None` when `eval.curve_points` is 0.
+    fn of(cfg: &AvoidingRecipe) -> Option<Box<dyn CurveEval>> {
+        let protocol = cfg.eval.curves();
+        protocol.enabled().then(|| {
+            Box::new(Self { protocol, spec: cfg.data.deploy_spec() }) as Box<dyn CurveEval>
+        })
+    }
+}
+
+impl CurveEval for AvoidingCurves {
+    fn checkpoints(&self, iterations: usize) -> Vec<usize> {
+        self.protocol.checkpoints(iterations)
+    }
+    fn evaluate(&self, policy: &TrainedPolicy, seed: u64) -> crate::XResult<Vec<(String, f64)>> {
+        let wrapped = Windowed::new(policy.clone(), self.spec.clone())?;
+        let m = self.protocol.evaluate(&wrapped, seed)?;
+        Ok(vec![
+            (CURVE_SUCCESS.to_owned(), m.success_rate),
+            (CURVE_ENTROPY.to_owned(), m.task_entropy),
+        ])
+    }
+    fn key(&self) -> Value {
+        json!({ "protocol": self.protocol, "spec": self.spec })
+    }
+}
+
+/// The series of the curves over training in `curves.json`.
+const CURVE_SUCCESS: &str = "held-out success rate";
+#[allow(missing_docs)]
+const CURVE_ENTROPY: &str = "held-out task entropy";
+
 /// What the evaluation collects for the outputs.
 #[derive(Default)]
 struct Collected {
@@ -220,6 +275,7 @@ impl Task for Avoiding {
             // Before any training: a bad setting would otherwise fail after it.
             cfg.eval.timing().check().map_err(|e| format!("eval: {e}"))?;
             cfg.eval.protocol().check().map_err(|e| format!("eval: {e}"))?;
+            cfg.eval.curves().check().map_err(|e| format!("eval: {e}"))?;
             cfg.data.deploy_spec().validate().map_err(|e| format!("data: {e}"))?;
         }
         let mut is_tuning = None;
@@ -264,7 +320,7 @@ impl Task for Avoiding {
             &base.header.seeds,
             &data,
             jobs,
-            Some(students),
+            (Some(students), &AvoidingCurves::of),
             &mut stages,
         )?;
 
@@ -397,8 +453,10 @@ fn evaluate(
         row.insert("sampling_steps".into(), json!(s));
     }
     if let Some(b) = trained.budget {
-        row.insert("train_steps".into(), json!(b.steps));
-        row.insert("train_batch".into(), json!(b.batch));
+        row.extend(report::budget_fields(b.steps, b.batch, b.role == BudgetRole::Student));
+    }
+    if trained.curve_seconds > 0.0 {
+        row.insert("curve_seconds".into(), report::json_f64(trained.curve_seconds));
     }
     out.curves.insert(format!("{label}/seed{seed}"), serde_json::to_value(&trained.curves)?);
 
@@ -463,6 +521,10 @@ fn write_outputs(
 ) -> crate::XResult {
     let mut metrics = report::metrics_json(&ctx.name, "avoiding", &base.header.seeds, &out.rows);
     metrics.insert("data".into(), data_summary.clone());
+    if let Some(w) = report::unequal_budgets(&out.rows) {
+        eprintln!("\nWARNING: unequal budgets: {w}\n");
+        metrics.insert("budget_warning".into(), json!(w));
+    }
     let curves = serde_json::to_string(&out.curves)?;
     vdd_nn::io::write_atomic(&dir.join("curves.json"), curves.as_bytes())?;
     let table = format!(
@@ -549,6 +611,7 @@ mod tests {
             "avoiding-ablation-experts",
             "avoiding-ablation-gating",
             "avoiding-ablation-noise",
+            "avoiding-deviations",
         ] {
             let path = recipe::recipe_path(name).unwrap();
             let file = recipe::read_recipe(&path).unwrap();
