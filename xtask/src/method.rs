@@ -305,3 +305,92 @@ impl Trained {
         }
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use vdd_moe::Moe;
+
+    /// Counts iterations; its snapshot is a mixture whose seed is the iteration.
+    struct Count(usize);
+
+    impl Trainer for Count {
+        type Report = ();
+        type Output = usize;
+        type Error = std::fmt::Error;
+        fn step(&mut self) -> Result<(), Self::Error> {
+            self.0 += 1;
+            Ok(())
+        }
+        fn iteration(&self) -> usize {
+            self.0
+        }
+        fn iterations(&self) -> usize {
+            9
+        }
+        fn finish(self) -> Result<usize, Self::Error> {
+            Ok(self.0)
+        }
+    }
+
+    impl Snapshot for Count {
+        fn snapshot(&self) -> Result<usize, Self::Error> {
+            Ok(self.0)
+        }
+    }
+
+    /// Reports the number of experts of the policy as its "success".
+    struct Experts;
+
+    impl CurveEval for Experts {
+        fn checkpoints(&self, iterations: usize) -> Vec<usize> {
+            vdd_core::trainer::checkpoints(iterations, 3)
+        }
+        fn evaluate(&self, p: &TrainedPolicy, seed: u64) -> crate::XResult<Vec<(String, f64)>> {
+            let TrainedPolicy::Moe(m) = p else { return Err("not a mixture".into()) };
+            Ok(vec![("experts".into(), m.num_experts() as f64), ("seed".into(), seed as f64)])
+        }
+        fn key(&self) -> serde_json::Value {
+            serde_json::json!(3)
+        }
+    }
+
+    #[test]
+    fn the_probe_evaluates_snapshots_at_the_task_checkpoints() {
+        let data = TrainingData::raw(Mat::zeros(2, 1), Mat::zeros(2, 2), None);
+        use vdd_diffusion::cache::{BesoTeacherConfig, DdpmTeacherConfig};
+        let train = vdd_diffusion::TrainConfig::default();
+        let teachers = TeachersConfig {
+            beso: BesoTeacherConfig { config: Default::default(), train: train.clone() },
+            ddpm: DdpmTeacherConfig { config: Default::default(), train },
+        };
+        let student = vdd_moe::MoeConfig::toy(1, 2, 2);
+        let tree = Table::new();
+        let recipe = MethodRecipe { teachers: &teachers, student: &student, tree: &tree };
+        let job = Job {
+            seed: 7,
+            label: "t",
+            data: &data,
+            teacher: None,
+            recipe,
+            students: None,
+            checkpoints: (std::path::Path::new("."), false),
+            curves: Some(&Experts),
+        };
+        let mut probe = CurveProbe::new(&job);
+        assert_eq!(probe.checkpoints(9), [3, 6, 9]);
+        let mut reports = 0;
+        let policy = |it: usize| -> crate::XResult<TrainedPolicy> {
+            let config = vdd_moe::MoeConfig::toy(1, 2, it);
+            Ok(TrainedPolicy::Moe(Box::new(Moe::from_config(config, 0)?)))
+        };
+        probe.run(&mut Count(0), |_| reports += 1, policy).unwrap();
+        assert_eq!(reports, 9);
+        let mut curves = Curves::from([("experts".to_owned(), vec![(0.0, 1.0)])]);
+        probe.take_into(&mut curves);
+        assert_eq!(curves["experts"], [(0.0, 1.0), (3.0, 3.0), (6.0, 6.0), (9.0, 9.0)]);
+        assert_eq!(curves["seed"], [(3.0, 7.0), (6.0, 7.0), (9.0, 7.0)], "the run seed");
+        let none = CurveProbe::new(&Job { curves: None, ..job });
+        assert!(none.checkpoints(9).is_empty());
+    }
+}

@@ -625,6 +625,54 @@ mod tests {
     }
 
     #[test]
+    fn the_students_get_equal_budgets_in_the_default_and_the_quick_run() {
+        let file = recipe::read_recipe(&recipe::recipe_path("avoiding").unwrap()).unwrap();
+        for quick in [false, true] {
+            let o = recipe::Overrides { quick, ..Default::default() };
+            let r = recipe::resolve(&AvoidingRecipe::defaults().unwrap(), &file, &o).unwrap();
+            let tree = recipe::to_tree(&r.base).unwrap();
+            let get = |path: &str| -> u64 {
+                let mut v = tree.get(path.split('.').next().unwrap()).unwrap();
+                for p in path.split('.').skip(1) {
+                    v = v.get(p).unwrap_or_else(|| panic!("{path}"));
+                }
+                v.as_integer().unwrap() as u64
+            };
+            let vdd = |t: &str| {
+                let (it, b, v) = (
+                    format!("vdd.{t}.iterations"),
+                    format!("vdd.{t}.batch_size"),
+                    format!("vdd.{t}.vi_samples"),
+                );
+                get(&it) * get(&b) * get(&v)
+            };
+            let mixture = |m: &str| {
+                get(&format!("baselines.{m}.iterations"))
+                    * get(&format!("baselines.{m}.expert_steps_per_iter"))
+                    * get(&format!("baselines.{m}.batch_size"))
+            };
+            let budgets = [
+                ("vdd-beso", vdd("beso")),
+                ("vdd-ddpm", vdd("ddpm")),
+                ("vdd-beso-d3il", vdd("beso_d3il")),
+                ("cd", get("baselines.cd.train.steps") * get("baselines.cd.train.batch_size")),
+                (
+                    "ctm",
+                    get("baselines.ctm.base.train.steps")
+                        * get("baselines.ctm.base.train.batch_size"),
+                ),
+                ("em", mixture("em")),
+                ("imc", mixture("imc")),
+                ("imc-authors", mixture("imc_authors")),
+            ];
+            let expected = if quick { 3_072_000 } else { 7_680_000 };
+            for (m, b) in budgets {
+                assert_eq!(b, expected, "{m} (quick: {quick})");
+            }
+        }
+    }
+
+    #[test]
     fn method_keys_are_checked() {
         let file = recipe::read_recipe(&recipe::recipe_path("avoiding").unwrap()).unwrap();
         let defaults = AvoidingRecipe::defaults().unwrap();
