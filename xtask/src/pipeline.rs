@@ -18,7 +18,7 @@ use vdd_diffusion::TeacherKind;
 use vdd_moe::MoeConfig;
 
 use crate::context::{RunContext, StageTimes};
-use crate::method::{Job, Method, MethodRecipe, Trained, TrainingData};
+use crate::method::{CurveEval, Job, Method, MethodRecipe, Trained, TrainingData};
 use crate::recipe::{self, Header, Overrides, Resolved};
 use crate::report::Row;
 use crate::teachers::{self, TeachersConfig, TrainedTeacher};
@@ -221,15 +221,19 @@ pub struct Trainings {
     pub teachers: TeacherStore,
 }
 
+/// How a task takes curves over training for a configuration ([`Job::curves`]; `None`: none).
+pub type CurvesFor<'a, R> = &'a (dyn Fn(&R) -> Option<Box<dyn CurveEval>> + Sync);
+
 /// Trains every entry of `plan` for every seed (see the module docs for the phases; the stages
-/// `teachers` and `students`). `students`: the student cache, for tasks that use it.
+/// `teachers` and `students`). `students`: the student cache, for tasks that use it; `curves`:
+/// the curves over training of a configuration.
 pub fn train_all<R: TaskRecipe, P: AsRef<TrainingData> + Sync>(
     ctx: &RunContext,
     plan: &[Entry<'_, R>],
     seeds: &[u64],
     data: &Datasets<P>,
     jobs: usize,
-    students: Option<StudentCache<'_>>,
+    (students, curves): (Option<StudentCache<'_>>, CurvesFor<'_, R>),
     stages: &mut StageTimes,
 ) -> XResult<Trainings> {
     let mut teacher_jobs: Vec<(String, TeacherKind, usize, usize)> = Vec::new();
@@ -274,7 +278,9 @@ pub fn train_all<R: TaskRecipe, P: AsRef<TrainingData> + Sync>(
         let teacher = teacher.transpose().map_err(|e| e.to_string())?;
         let checkpoints = (ck.as_path(), ctx.resume);
         let (data, recipe) = (d, e.recipe());
-        let job = Job { seed, label: &label, data, teacher, recipe, students, checkpoints };
+        let curve = curves(e.cfg);
+        let curves = curve.as_deref();
+        let job = Job { seed, label: &label, data, teacher, recipe, students, checkpoints, curves };
         let t = e.method.train(&job).map_err(|e| format!("{label}: {e}"))?;
         Ok(Done::Method((si, pi), Box::new(t)))
     };

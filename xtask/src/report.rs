@@ -4,6 +4,7 @@
 
 use std::path::PathBuf;
 
+pub use vdd_report::budget::*;
 pub use vdd_report::compare::*;
 pub use vdd_report::metrics::*;
 pub use vdd_report::table::*;
@@ -17,8 +18,8 @@ pub struct TableArgs {
     /// Also write the tables to FILE.
     #[arg(long, value_name = "FILE")]
     pub out: Option<PathBuf>,
-    /// Add the budget columns: training steps, batch and configurations tried on the tuning
-    /// seeds.
+    /// Add the budget columns: training steps, batch, steps × batch and configurations tried
+    /// on the tuning seeds (beside the training seconds).
     #[arg(long)]
     pub budgets: bool,
 }

@@ -76,4 +76,4 @@ pub use error::ConsistencyError;
 pub use network::{BoundaryPreconditioning, network_from_teacher};
 pub use policy::{DistilledPolicy, SampleScratch, Sampling};
 pub use teacher::{ConsistencyTeacher, DenoiserFn, ScoreTeacher};
-pub use trainer::ConsistencyTrainer;
+pub use trainer::{ConsistencyTrainer, LossMeter};

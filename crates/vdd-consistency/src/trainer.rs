@@ -9,7 +9,7 @@ use std::time::Instant;
 
 use faer::{Mat, MatMut, MatRef};
 use rand::Rng as _;
-use vdd_core::{CoreError, Seeds, Trainer, check_finite, check_len};
+use vdd_core::{CoreError, Seeds, Snapshot, Trainer, check_finite, check_len};
 use vdd_diffusion::{DenoiserNet, DiffusionError, SamplerBuffers};
 use vdd_nn::{Adam, Ema, Parameters};
 
@@ -174,6 +174,13 @@ impl<T: ConsistencyTeacher, O: Objective<T>> Trainer for ConsistencyTrainer<T, O
 
     /// The distilled policy ([`ConsistencyTrainer::model`]).
     fn finish(self) -> Result<Self::Output, ConsistencyError> {
+        self.model()
+    }
+}
+
+/// The current student ([`ConsistencyTrainer::model`]).
+impl<T: ConsistencyTeacher, O: Objective<T>> Snapshot for ConsistencyTrainer<T, O> {
+    fn snapshot(&self) -> Result<Self::Output, ConsistencyError> {
         self.model()
     }
 }
@@ -367,9 +374,21 @@ impl Optimisation {
     }
 }
 
-/// Accumulates the loss terms between progress reports.
+/// Accumulates the loss terms of [`Trainer::step`] reports between progress reports (what
+/// [`ConsistencyTrainer::train`] reports, for loops that step the trainer themselves).
+///
+/// ```
+/// use vdd_consistency::{ConsistencyStep, LossMeter};
+/// let mut m = LossMeter::default();
+/// for loss in [1.0, 3.0] {
+///     m.add(&ConsistencyStep { step: 0, loss, consistency_loss: loss, dsm_loss: 0.0, lr: 0.1 });
+/// }
+/// let p = m.report(2, 10, 0.1, 0.5);
+/// assert_eq!((p.loss, p.step, p.total_steps), (2.0, 2, 10));
+/// assert_eq!(m.report(2, 10, 0.1, 0.5).loss, 0.0, "reset after a report");
+/// ```
 #[derive(Debug, Clone, Default)]
-struct LossMeter {
+pub struct LossMeter {
     total: f64,
     consistency: f64,
     dsm: f64,
@@ -377,15 +396,17 @@ struct LossMeter {
 }
 
 impl LossMeter {
-    fn add(&mut self, step: &ConsistencyStep) {
+    /// Adds one step's loss terms.
+    pub fn add(&mut self, step: &ConsistencyStep) {
         self.total += f64::from(step.loss);
         self.consistency += f64::from(step.consistency_loss);
         self.dsm += f64::from(step.dsm_loss);
         self.count += 1;
     }
 
-    /// The report for `step` of `total_steps`, resetting the averages.
-    fn report(
+    /// The report for `step` of `total_steps` (means since the last report), resetting the
+    /// averages.
+    pub fn report(
         &mut self,
         step: u64,
         total_steps: u64,

@@ -29,7 +29,7 @@ mod normalize;
 mod policy;
 mod score;
 mod seed;
-mod trainer;
+pub mod trainer;
 
 pub use denoiser::{ClampedDenoiser, data_box};
 pub use error::{CoreError, Result, check_finite, check_finite_slice, check_len, check_shape};
@@ -38,7 +38,7 @@ pub use normalize::Affine;
 pub use policy::{Policy, check_act_args};
 pub use score::{DenoiserForm, NoiseConvention, NoiseSchedule, ScoreModel, check_score_args};
 pub use seed::{Rng, Seeds, fill_standard_normal, standard_normal};
-pub use trainer::Trainer;
+pub use trainer::{Snapshot, Trainer};
 
 /// Re-export of `faer` so downstream crates and users name the same version.
 pub use faer;

@@ -19,7 +19,7 @@
 //! batch.
 
 use serde::{Deserialize, Serialize};
-use vdd_core::{CoreError, Expert, Trainer};
+use vdd_core::{CoreError, Expert, Snapshot, Trainer};
 use vdd_moe::{ExpertFamily, Moe, MoeConfig};
 use vdd_nn::{AdamConfig, LrSchedule};
 
@@ -289,6 +289,13 @@ impl<E: Expert> Trainer for Em<E> {
 
     fn finish(self) -> Result<Moe<E>, MixtureError> {
         Ok(self.into_student())
+    }
+}
+
+/// A copy of the mixture as it is now.
+impl<E: Expert> Snapshot for Em<E> {
+    fn snapshot(&self) -> Result<Moe<E>, MixtureError> {
+        Ok(self.fit.student.clone())
     }
 }
 

@@ -76,7 +76,7 @@
 //! EM). Implementations that hold the experts' scales fixed can use `η = 1`.
 
 use serde::{Deserialize, Serialize};
-use vdd_core::{CoreError, Expert, Trainer, check_len};
+use vdd_core::{CoreError, Expert, Snapshot, Trainer, check_len};
 use vdd_moe::{ExpertFamily, Moe, MoeConfig};
 use vdd_nn::{AdamConfig, LrSchedule};
 
@@ -588,6 +588,13 @@ impl<E: Expert> Trainer for Imc<E> {
 
     fn finish(self) -> Result<Moe<E>, MixtureError> {
         Ok(self.into_student())
+    }
+}
+
+/// A copy of the mixture as it is now (with the authors' variant, the gating as it is before its final fit).
+impl<E: Expert> Snapshot for Imc<E> {
+    fn snapshot(&self) -> Result<Moe<E>, MixtureError> {
+        Ok(self.fit.student.clone())
     }
 }
 

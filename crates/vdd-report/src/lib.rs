@@ -2,6 +2,7 @@
 //!
 //! * [`metrics`]: one method's per-seed values ([`Row`](metrics::Row)) summarised into mean and
 //!   population std over seeds, and the `metrics.json` layout the recipes write;
+//! * [`budget`]: training budgets (`train_steps` × `train_batch`) and the equal-budget check;
 //! * [`table`]: markdown tables of those summaries, for one run or several run directories;
 //! * [`compare`]: whether two runs' `metrics.json` agree apart from wall-clock timings;
 //! * [`plots`]: figures (SVG and optionally PNG): trajectories coloured by the acting expert,
@@ -27,6 +28,7 @@
 
 #![warn(missing_docs)]
 
+pub mod budget;
 pub mod compare;
 mod error;
 pub mod metrics;

@@ -12,7 +12,7 @@
 //!
 //! Every numeric per-seed value gets a mean and a standard deviation over seeds (population
 //! std, `ddof = 0`, as numpy's default). Timing values (keys in [`TIMING_KEYS`]: `us_per_action`,
-//! `train_seconds`, `teacher_seconds`, `ms_per_iter`, and their `_std`) are wall-clock
+//! `train_seconds`, `teacher_seconds`, `ms_per_iter`, `curve_seconds`, and their `_std`) are wall-clock
 //! measurements; everything else is a deterministic function of the resolved recipe and the
 //! seed, so two runs of the same recipe and seeds give `metrics.json` files that are identical
 //! apart from the timing values ([`compare::compare_runs`](crate::compare::compare_runs)
@@ -29,8 +29,8 @@ use crate::{Error, Result};
 pub type Row = Map<String, Value>;
 
 /// Keys holding wall-clock measurements (excluded from the reproducibility guarantee).
-pub const TIMING_KEYS: [&str; 4] =
-    ["us_per_action", "train_seconds", "teacher_seconds", "ms_per_iter"];
+pub const TIMING_KEYS: [&str; 5] =
+    ["us_per_action", "train_seconds", "teacher_seconds", "ms_per_iter", "curve_seconds"];
 
 /// Whether `key` (or its `_std`) is a timing value.
 ///

@@ -54,24 +54,26 @@ pub fn columns_for(task: &str) -> Vec<Column> {
     }
 }
 
-/// The budget columns (`--budgets` of `cargo xtask table`): optimiser steps and batch of a
-/// method's own training, and the configurations tried on the tuning seeds. Their cells show
+/// The budget columns (`--budgets` of `cargo xtask table`): optimiser steps, batch and their
+/// product ([`crate::budget::samples`]) of a method's own training, and the configurations
+/// tried on the tuning seeds (the wall clock is the task's `train s` column). Their cells show
 /// the value when every seed agrees, else the range ([`budget_cell`]).
 ///
 /// ```
 /// let keys: Vec<_> = vdd_report::table::budget_columns().iter().map(|c| c.key).collect();
-/// assert_eq!(keys, ["train_steps", "train_batch", "tuning_configs"]);
+/// assert_eq!(keys, ["train_steps", "train_batch", "train_samples", "tuning_configs"]);
 /// ```
 pub fn budget_columns() -> Vec<Column> {
     BUDGET_KEYS
         .iter()
-        .zip(["train steps", "batch", "configs tried"])
+        .zip(["train steps", "batch", "steps × batch", "configs tried"])
         .map(|(&k, h)| col(k, h, 0))
         .collect()
 }
 
 /// The keys of [`budget_columns`].
-pub const BUDGET_KEYS: [&str; 3] = ["train_steps", "train_batch", "tuning_configs"];
+pub const BUDGET_KEYS: [&str; 4] =
+    ["train_steps", "train_batch", "train_samples", "tuning_configs"];
 
 /// A budget cell: the value when all agree, `min–max` otherwise, `–` when missing.
 ///
@@ -132,7 +134,13 @@ pub fn markdown_table(rows: &[(String, Vec<Row>)], columns: &[Column]) -> String
     for (name, per_seed) in rows {
         s.push_str(&format!("| {name} | {} |", per_seed.len()));
         for c in columns {
-            let xs: Vec<f64> = per_seed.iter().filter_map(|r| r.get(c.key)?.as_f64()).collect();
+            let xs: Vec<f64> = per_seed
+                .iter()
+                .filter_map(|r| match c.key {
+                    "train_samples" => crate::budget::samples(r),
+                    k => r.get(k)?.as_f64(),
+                })
+                .collect();
             let cell = if BUDGET_KEYS.contains(&c.key) {
                 budget_cell(&xs)
             } else {

@@ -72,6 +72,42 @@ use crate::error::VddError;
 use crate::trainer::{DistillData, Vdd};
 use fit::Fitted;
 
+/// Re-initialises a fresh `student` as the official VDD code does ([`InitKind::Official`]):
+/// every linear layer orthogonal with gain 0.01, the mean head's output weights zero (so each
+/// expert's mean starts at its bias, `U[−w, w]` from [`MoeConfig::mean_bias_init`]), the scale
+/// outputs' biases zero. Draws from `Seeds::new(seed).stream("auto-init")`.
+///
+/// ```
+/// use vdd::{Moe, MoeConfig, init_official};
+/// let mut student = Moe::from_config(MoeConfig::toy(1, 2, 4), 0)?;
+/// init_official(&mut student, 0)?;
+/// # Ok::<(), Box<dyn std::error::Error>>(())
+/// ```
+pub fn init_official(student: &mut Moe, seed: u64) -> Result<(), VddError> {
+    let mut rng = Seeds::new(seed).stream("auto-init");
+    let family = *student.expert();
+    let d = student.config().action_dim;
+    let r = vdd_core::Expert::raw_dim(&family);
+    for (net, experts) in student.expert_trunks_mut() {
+        net.init_weights(Init::Orthogonal { gain: 0.01 }, &mut rng)?;
+        let out = net.output_layer_mut();
+        let cols = out.weight.value.len() / out.bias.value.len();
+        for e in 0..experts.len() {
+            for j in 0..d {
+                let row = e * r + j;
+                out.weight.value[row * cols..(row + 1) * cols].fill(0.0);
+            }
+            for k in d..r {
+                out.bias.value[e * r + k] = 0.0;
+            }
+        }
+    }
+    if let Some(g) = student.gating_network_mut() {
+        g.init_weights(Init::Orthogonal { gain: 0.01 }, &mut rng)?;
+    }
+    Ok(())
+}
+
 /// How the student's networks are initialised.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, Default)]
 #[serde(rename_all = "snake_case")]
@@ -409,30 +445,11 @@ impl AutoPlan {
             Some(self.state_normalizer.clone()),
             Some(self.action_normalizer.clone()),
         )?;
-        let mut rng = Seeds::new(self.vdd.seed).stream("auto-init");
         let family = *student.expert();
         let (d, ds) = (self.student.action_dim, self.student.state_dim);
         let r = vdd_core::Expert::raw_dim(&family);
         match self.init {
-            InitKind::Official => {
-                for (net, experts) in student.expert_trunks_mut() {
-                    net.init_weights(Init::Orthogonal { gain: 0.01 }, &mut rng)?;
-                    let out = net.output_layer_mut();
-                    let cols = out.weight.value.len() / out.bias.value.len();
-                    for e in 0..experts.len() {
-                        for j in 0..d {
-                            let row = e * r + j;
-                            out.weight.value[row * cols..(row + 1) * cols].fill(0.0);
-                        }
-                        for k in d..r {
-                            out.bias.value[e * r + k] = 0.0;
-                        }
-                    }
-                }
-                if let Some(g) = student.gating_network_mut() {
-                    g.init_weights(Init::Orthogonal { gain: 0.01 }, &mut rng)?;
-                }
-            }
+            InitKind::Official => init_official(&mut student, self.vdd.seed)?,
             InitKind::FromTeacher => {
                 let f = &self.fitted;
                 let mut raw = vec![0.0f32; r];

@@ -3,7 +3,7 @@
 use faer::{Mat, MatRef};
 use rand::Rng as _;
 use serde::{Deserialize, Serialize};
-use vdd_core::{CoreError, Expert, ScoreModel, Seeds, Trainer, check_finite, check_len};
+use vdd_core::{CoreError, Expert, ScoreModel, Seeds, Snapshot, Trainer, check_finite, check_len};
 use vdd_moe::step::clip_or_fail;
 use vdd_moe::{ExpertFamily, Moe, MoeConfig, MoeOutput};
 use vdd_nn::{Adam, Ema, Parameters};
@@ -565,6 +565,18 @@ impl<S: ScoreModel, E: Expert> Trainer for Vdd<S, E> {
             ema.copy_to(&mut self.student)?;
         }
         Ok(self.student)
+    }
+}
+
+/// The student [`Trainer::finish`] would return now (the moving average when
+/// [`VddConfig::student_ema`] is set), as a copy.
+impl<S: ScoreModel, E: Expert> Snapshot for Vdd<S, E> {
+    fn snapshot(&self) -> Result<Moe<E>, VddError> {
+        let mut student = self.student.clone();
+        if let Some(ema) = &self.student_ema {
+            ema.copy_to(&mut student)?;
+        }
+        Ok(student)
     }
 }
 

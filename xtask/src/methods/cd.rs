@@ -5,10 +5,11 @@
 
 use std::time::Instant;
 
-use vdd_consistency::{CdConfig, CdTrainer, ConsistencyProgress};
+use vdd_consistency::{CdConfig, CdTrainer, ConsistencyProgress, ConsistencyStep, LossMeter};
+use vdd_core::Snapshot;
 use vdd_diffusion::{Beso, BesoConfig, DiffusionTeacher, TeacherKind};
 
-use crate::method::{Budget, Info, Job, Method, MethodRecipe, Trained};
+use crate::method::{Budget, CurveProbe, Info, Job, Method, MethodRecipe, Trained};
 use crate::plots::Curves;
 use crate::policy::TrainedPolicy;
 
@@ -35,27 +36,33 @@ impl Method for Cd {
     }
     fn train(&self, job: &Job<'_>) -> crate::XResult<Trained> {
         let train = job.recipe.get::<CdConfig>("baselines.cd")?.train;
-        let budget = Budget { steps: train.steps, batch: train.batch_size };
-        let trained = distil(job, |beso, follow, curves| {
+        let budget = Budget::student(train.steps, train.batch_size);
+        let trained = distil(job, |beso, follow, curves, probe| {
             let c = job.recipe.get("baselines.cd")?;
             let c = config_for(&c, beso.config(), job.seed, follow);
-            let steps = c.sampling_steps;
-            let bar = crate::progress::bar(c.train.steps, job.label);
+            let (steps, every) = (c.sampling_steps, c.train.log_every);
             let (states, actions) = (job.data.states.as_ref(), job.data.actions.as_ref());
             let mut trainer = CdTrainer::new(c, beso, states, actions)?;
-            let model = trainer.train(&mut |p| record(curves, &bar, p))?;
-            bar.finish_and_clear();
+            let model = run_trainer(&mut trainer, every, job, (curves, probe), |m| {
+                Ok(TrainedPolicy::Consistency(Box::new(m)))
+            })?;
             Ok((TrainedPolicy::Consistency(Box::new(model)), steps))
         })?;
         Ok(Trained { budget: Some(budget), ..trained })
     }
 }
 
-/// Runs `train` (given the BESO teacher, `consistency_follows_teacher` and the curves to fill;
-/// returning the policy and its sampling steps) and times it: CD and CTM.
+/// Runs `train` (given the BESO teacher, `consistency_follows_teacher`, the curves to fill and
+/// the probe of the curves over training; returning the policy and its sampling steps) and
+/// times it: CD and CTM.
 pub fn distil(
     job: &Job<'_>,
-    train: impl FnOnce(Beso, bool, &mut Curves) -> crate::XResult<(TrainedPolicy, usize)>,
+    train: impl FnOnce(
+        Beso,
+        bool,
+        &mut Curves,
+        &mut CurveProbe<'_>,
+    ) -> crate::XResult<(TrainedPolicy, usize)>,
 ) -> crate::XResult<Trained> {
     let t = job.teacher()?;
     let DiffusionTeacher::Beso(beso) = t.teacher.clone() else {
@@ -64,12 +71,41 @@ pub fn distil(
     let follow = job.recipe.get(FOLLOW)?;
     let mut curves = Curves::default();
     let t0 = Instant::now();
-    let (policy, steps) = train(beso, follow, &mut curves)?;
+    let mut probe = CurveProbe::new(job);
+    let (policy, steps) = train(beso, follow, &mut curves, &mut probe)?;
+    let curve_seconds = probe.take_into(&mut curves);
     Ok(Trained {
         teacher_seconds: Some(t.train_seconds),
         sampling_steps: Some(steps),
-        ..Trained::new(policy, t0.elapsed().as_secs_f64(), curves)
+        curve_seconds,
+        ..Trained::new(policy, t0.elapsed().as_secs_f64() - curve_seconds, curves)
     })
+}
+
+/// Trains a CD / CTM `trainer` to its end with a progress bar, the loss curves (means over
+/// `log_every` steps) and the curves over training (`policy` makes a snapshot a policy);
+/// returns the distilled model.
+pub fn run_trainer<T: Snapshot<Report = ConsistencyStep>>(
+    trainer: &mut T,
+    log_every: u64,
+    job: &Job<'_>,
+    (curves, probe): (&mut Curves, &mut CurveProbe<'_>),
+    policy: impl Fn(T::Output) -> crate::XResult<TrainedPolicy>,
+) -> crate::XResult<T::Output> {
+    let total = trainer.iterations() as u64;
+    let every = log_every.max(1);
+    let bar = crate::progress::bar(total, job.label);
+    let (mut meter, t0) = (LossMeter::default(), Instant::now());
+    let report = |s: &ConsistencyStep| {
+        meter.add(s);
+        let done = s.step + 1;
+        if done % every == 0 || done == total {
+            record(curves, &bar, &meter.report(done, total, s.lr, t0.elapsed().as_secs_f64()));
+        }
+    };
+    probe.run(trainer, report, policy)?;
+    bar.finish_and_clear();
+    Ok(trainer.snapshot()?)
 }
 
 /// A CD / CTM configuration for `seed`, with (`follow_teacher`) the teacher's architecture and

@@ -29,16 +29,16 @@ impl Method for Ctm {
     }
     fn train(&self, job: &Job<'_>) -> crate::XResult<Trained> {
         let train = job.recipe.get::<CtmConfig>("baselines.ctm")?.base.train;
-        let budget = Budget { steps: train.steps, batch: train.batch_size };
-        let trained = cd::distil(job, |beso, follow, curves| {
+        let budget = Budget::student(train.steps, train.batch_size);
+        let trained = cd::distil(job, |beso, follow, curves, probe| {
             let mut c: CtmConfig = job.recipe.get("baselines.ctm")?;
             c.base = cd::config_for(&c.base, beso.config(), job.seed, follow);
-            let steps = c.base.sampling_steps;
-            let bar = crate::progress::bar(c.base.train.steps, job.label);
+            let (steps, every) = (c.base.sampling_steps, c.base.train.log_every);
             let (states, actions) = (job.data.states.as_ref(), job.data.actions.as_ref());
             let mut trainer = CtmTrainer::new(c, beso, states, actions)?;
-            let model = trainer.train(&mut |p| cd::record(curves, &bar, p))?;
-            bar.finish_and_clear();
+            let model = cd::run_trainer(&mut trainer, every, job, (curves, probe), |m| {
+                Ok(TrainedPolicy::Trajectory(Box::new(m)))
+            })?;
             Ok((TrainedPolicy::Trajectory(Box::new(model)), steps))
         })?;
         Ok(Trained { budget: Some(budget), ..trained })

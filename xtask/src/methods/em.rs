@@ -7,7 +7,7 @@ use indicatif::ProgressBar;
 use vdd_mixture::{Dataset, EmConfig};
 use vdd_moe::{Moe, MoeConfig};
 
-use crate::method::{Budget, Info, Job, Method, MethodRecipe, Trained};
+use crate::method::{Budget, CurveProbe, Info, Job, Method, MethodRecipe, Trained};
 use crate::plots::Curves;
 use crate::policy::TrainedPolicy;
 
@@ -28,14 +28,15 @@ impl Method for Em {
         let config = EmConfig { seed: job.seed, ..job.recipe.get("baselines.em")? };
         let budget =
             mixture_budget(job, config.iterations, config.expert_steps_per_iter, config.batch_size);
-        let trained = fit(job, config.iterations, |student, data, bar, curves| {
+        let trained = fit(job, config.iterations, |student, data, bar, curves, probe| {
             let mut em = vdd_mixture::Em::from_config(config, student, data)?;
-            em.train(|m| {
+            let report = |m: &vdd_mixture::EmMetrics| {
                 bar.inc(1);
                 bar.set_message(format!("log-lik {:.3}", m.log_likelihood));
                 let ll = curves.entry("log-likelihood (nats)".into()).or_default();
                 ll.push((m.iteration as f64, m.log_likelihood));
-            })?;
+            };
+            probe.run(&mut em, report, |s| snapshot_policy(job, s))?;
             Ok(em.into_student())
         })?;
         Ok(Trained { budget: Some(budget), ..trained })
@@ -51,17 +52,30 @@ pub fn mixture_budget(
     batch: Option<usize>,
 ) -> Budget {
     let rows = job.data.states_normalized.nrows();
-    Budget { steps: (iterations * steps) as u64, batch: batch.unwrap_or(rows).min(rows) }
+    Budget::student((iterations * steps) as u64, batch.unwrap_or(rows).min(rows))
+}
+
+/// A snapshot of a mixture trained on the task's normalised data, acting on raw states.
+pub fn snapshot_policy(job: &Job<'_>, mut student: Moe) -> crate::XResult<TrainedPolicy> {
+    let (sn, an) = (&job.data.state_normalizer, &job.data.action_normalizer);
+    student.set_normalizers(Some(sn.clone()), Some(an.clone()))?;
+    Ok(TrainedPolicy::Moe(Box::new(student)))
 }
 
 /// Fits a new mixture (`student`'s configuration with the data's dimensions; the trainer
 /// initialises it from the run seed) to the task's normalised data with `train` (given the
-/// mixture's configuration, the data, a progress bar of `iterations` and the curves to fill)
-/// and sets the data's normalisers on it: EM and IMC.
+/// mixture's configuration, the data, a progress bar of `iterations`, the curves to fill and
+/// the probe of the curves over training) and sets the data's normalisers on it: EM and IMC.
 pub fn fit(
     job: &Job<'_>,
     iterations: usize,
-    train: impl FnOnce(MoeConfig, Dataset, &ProgressBar, &mut Curves) -> crate::XResult<Moe>,
+    train: impl FnOnce(
+        MoeConfig,
+        Dataset,
+        &ProgressBar,
+        &mut Curves,
+        &mut CurveProbe<'_>,
+    ) -> crate::XResult<Moe>,
 ) -> crate::XResult<Trained> {
     let d = job.data;
     let data = Dataset::new(d.states_normalized.clone(), d.actions_normalized.clone())?;
@@ -71,9 +85,11 @@ pub fn fit(
     let t0 = Instant::now();
     let bar = crate::progress::bar(iterations as u64, job.label);
     let mut curves = Curves::default();
-    let mut student = train(mc, data, &bar, &mut curves)?;
+    let mut probe = CurveProbe::new(job);
+    let student = train(mc, data, &bar, &mut curves, &mut probe)?;
     bar.finish_and_clear();
-    let train_seconds = t0.elapsed().as_secs_f64();
-    student.set_normalizers(Some(d.state_normalizer.clone()), Some(d.action_normalizer.clone()))?;
-    Ok(Trained::new(TrainedPolicy::Moe(Box::new(student)), train_seconds, curves))
+    let curve_seconds = probe.take_into(&mut curves);
+    let train_seconds = t0.elapsed().as_secs_f64() - curve_seconds;
+    let policy = snapshot_policy(job, student)?;
+    Ok(Trained { curve_seconds, ..Trained::new(policy, train_seconds, curves) })
 }

@@ -31,23 +31,13 @@ impl Method for ImcAuthors {
     }
     fn train(&self, job: &Job<'_>) -> crate::XResult<Trained> {
         let config = ImcConfig { seed: job.seed, ..config(&job.recipe)? };
-        let (its, steps, batch) =
-            (config.iterations, config.expert_steps_per_iter, config.batch_size);
-        let budget = super::em::mixture_budget(job, its, steps, batch);
-        let trained = super::em::fit(job, config.iterations, |student, data, bar, curves| {
-            let mut imc = vdd_mixture::Imc::from_config(config, student, data)?;
-            imc.train(|m| {
-                bar.inc(1);
-                bar.set_message(format!("log-lik {:.3}", m.log_likelihood));
-                let x = m.iteration as f64;
-                let ll = curves.entry("log-likelihood, unit variances (nats)".into()).or_default();
-                ll.push((x, m.log_likelihood));
-                let cover = curves.entry("effective data fraction".into()).or_default();
-                cover.push((x, m.effective_data_fraction));
-            })?;
-            Ok(imc.into_student())
-        })?;
-        Ok(Trained { budget: Some(budget), ..trained })
+        super::imc::train(job, config, |curves, m| {
+            let x = m.iteration as f64;
+            let ll = curves.entry("log-likelihood, unit variances (nats)".into()).or_default();
+            ll.push((x, m.log_likelihood));
+            let cover = curves.entry("effective data fraction".into()).or_default();
+            cover.push((x, m.effective_data_fraction));
+        })
     }
 }
 

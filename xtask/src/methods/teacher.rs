@@ -4,7 +4,7 @@
 
 use vdd_diffusion::TeacherKind;
 
-use crate::method::{Budget, Info, Job, Method, MethodRecipe, Trained};
+use crate::method::{Budget, BudgetRole, Info, Job, Method, MethodRecipe, Trained};
 use crate::plots::Curves;
 use crate::policy::TrainedPolicy;
 use crate::teachers;
@@ -46,7 +46,8 @@ impl Method for TeacherRow {
             TeacherKind::Beso => &job.recipe.teachers.beso.train,
             TeacherKind::Ddpm => &job.recipe.teachers.ddpm.train,
         };
-        let budget = Budget { steps: train.steps, batch: train.batch_size };
+        let budget =
+            Budget { steps: train.steps, batch: train.batch_size, role: BudgetRole::Teacher };
         let policy = TrainedPolicy::Teacher(Box::new(teacher));
         Ok(Trained {
             sampling_steps: Some(steps),

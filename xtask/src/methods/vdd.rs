@@ -5,6 +5,8 @@
 //! optional `<teacher>_gating` (the student's gating when it differs from `student.gating`),
 //! `clip_margin` (clamp the teacher's denoised estimate to the training actions' bounding box,
 //! in the student's normalised units, widened by this margin: [`ClampedDenoiser`]),
+//! `clamp_denoiser` (`false`: the raw score whatever `clip_margin` says), `official_init`
+//! (initialise the student as the official code does: [`vdd::init_official`]),
 //! `greedy_gating` and `sample_action` (how the student acts).
 //!
 //! The student works in the teacher's normalised space (the exact teacher's is the raw one).
@@ -16,11 +18,12 @@ use std::time::Instant;
 use faer::Mat;
 use serde_json::json;
 use vdd::{DistillData, Vdd, VddConfig};
+use vdd_core::Snapshot;
 use vdd_core::{Affine, ClampedDenoiser, ScoreModel};
 use vdd_diffusion::TeacherKind;
-use vdd_moe::{ActMode, GatingKind, MoeConfig};
+use vdd_moe::{ActMode, GatingKind, Moe, MoeConfig};
 
-use crate::method::{Budget, Info, Job, Method, MethodRecipe, Trained};
+use crate::method::{Budget, CurveProbe, Info, Job, Method, MethodRecipe, Trained};
 use crate::plots::Curves;
 use crate::policy::TrainedPolicy;
 use crate::recipe;
@@ -39,7 +42,7 @@ pub const VDD_DDPM: VddMethod = VddMethod(
         name: "vdd-ddpm",
         teacher: Some(TeacherKind::Ddpm),
         tasks: LEARNED,
-        keys: &["vdd.ddpm", "vdd.ddpm_gating", CLIP, GREEDY, SAMPLE],
+        keys: &["vdd.ddpm", "vdd.ddpm_gating", CLIP, CLAMP, INIT, GREEDY, SAMPLE],
     },
     "ddpm",
 );
@@ -49,7 +52,7 @@ pub const VDD_BESO: VddMethod = VddMethod(
         name: "vdd-beso",
         teacher: Some(TeacherKind::Beso),
         tasks: LEARNED,
-        keys: &["vdd.beso", "vdd.beso_gating", CLIP, GREEDY, SAMPLE],
+        keys: &["vdd.beso", "vdd.beso_gating", CLIP, CLAMP, INIT, GREEDY, SAMPLE],
     },
     "beso",
 );
@@ -59,12 +62,14 @@ pub const VDD_EXACT: VddMethod = VddMethod(
         name: "vdd-exact",
         teacher: None,
         tasks: &["toy-gmm", "toy-conditional"],
-        keys: &["vdd.exact", "vdd.exact_gating", CLIP, GREEDY, SAMPLE],
+        keys: &["vdd.exact", "vdd.exact_gating", CLIP, CLAMP, INIT, GREEDY, SAMPLE],
     },
     "exact",
 );
 
 pub(super) const CLIP: &str = "vdd.clip_margin";
+pub(super) const CLAMP: &str = "vdd.clamp_denoiser";
+pub(super) const INIT: &str = "vdd.official_init";
 pub(super) const GREEDY: &str = "vdd.greedy_gating";
 pub(super) const SAMPLE: &str = "vdd.sample_action";
 
@@ -73,16 +78,19 @@ struct Settings {
     vdd: VddConfig,
     gating: Option<GatingKind>,
     clip_margin: Option<f32>,
+    official_init: bool,
     act: ActMode,
 }
 
 impl VddMethod {
     fn settings(&self, r: &MethodRecipe<'_>) -> crate::XResult<Settings> {
         let flag = |k: &str| r.get_opt::<bool>(k).map(|b| b.unwrap_or(false));
+        let clamp = r.get_opt::<bool>(CLAMP)?.unwrap_or(true);
         Ok(Settings {
             vdd: r.get(&format!("vdd.{}", self.1))?,
             gating: r.get_opt(&format!("vdd.{}_gating", self.1))?,
-            clip_margin: r.get_opt(CLIP)?,
+            clip_margin: if clamp { r.get_opt(CLIP)? } else { None },
+            official_init: flag(INIT)?,
             act: ActMode { greedy_gating: flag(GREEDY)?, sample_action: flag(SAMPLE)? },
         })
     }
@@ -119,7 +127,7 @@ impl Method for VddMethod {
         mc.action_dim = actions.ncols();
         mc.gating = s.gating.unwrap_or(mc.gating);
         let iterations = vc.iterations;
-        let budget = Budget { steps: iterations as u64, batch: vc.batch_size };
+        let budget = Budget::student(vc.expert_steps(), vc.batch_size * vc.vi_samples);
         let cache = match (job.students, teacher) {
             (Some(cache), Some(t)) => {
                 let teachers = &job.recipe.teachers;
@@ -127,7 +135,7 @@ impl Method for VddMethod {
                     TeacherKind::Beso => serde_json::to_value(&teachers.beso)?,
                     TeacherKind::Ddpm => serde_json::to_value(&teachers.ddpm)?,
                 };
-                let key = json!({
+                let mut key = json!({
                     "version": STUDENT_CACHE_VERSION,
                     "teacher": teacher_config,
                     "teacher_hash": t.hash,
@@ -135,6 +143,13 @@ impl Method for VddMethod {
                     "vdd": vc,
                     "clip_margin": s.clip_margin,
                 });
+                if let Some(c) = job.curves {
+                    // Cached students carry their curves over training.
+                    key["curves"] = c.key();
+                }
+                if s.official_init {
+                    key["official_init"] = json!(true);
+                }
                 Some((cache, recipe::config_hash(&key)?))
             }
             _ => None,
@@ -143,18 +158,29 @@ impl Method for VddMethod {
             Some((c, hash)) => c.load(self.0.name, hash)?,
             None => None,
         };
-        let (trained, noise_level) = match hit {
+        let (trained, noise_level, curve_seconds) = match hit {
             Some(c) => {
                 crate::progress::log(format!("[{label}] student loaded from the cache"));
-                (c, None)
+                (c, None, 0.0)
             }
             None => {
                 let clip = s.clip_margin;
-                let (c, noise) = match teacher {
-                    Some(t) => distill(vc, t.teacher.clone(), mc, states, actions, clip, job)?,
+                let (sn, an, act) = (sn.clone(), an.clone(), s.act);
+                let policy = move |mut student: Moe| -> crate::XResult<TrainedPolicy> {
+                    student.set_normalizers(Some(sn.clone()), Some(an.clone()))?;
+                    student.set_act_mode(act);
+                    Ok(TrainedPolicy::Moe(Box::new(student)))
+                };
+                let data = (states, actions);
+                let mut student = Moe::from_config(mc, vc.seed)?;
+                if s.official_init {
+                    vdd::init_official(&mut student, vc.seed)?;
+                }
+                let (c, noise, curve_seconds) = match teacher {
+                    Some(t) => distill(vc, t.teacher.clone(), student, data, clip, job, &policy)?,
                     None => {
                         let exact = d.exact.clone().ok_or("the task has no exact teacher")?;
-                        distill(vc, exact, mc, states, actions, clip, job)?
+                        distill(vc, exact, student, data, clip, job, &policy)?
                     }
                 };
                 if let Some((cache, hash)) = &cache {
@@ -164,7 +190,7 @@ impl Method for VddMethod {
                         "[{label}] trained in {secs:.1} s; cached as {path}"
                     ));
                 }
-                (c, Some(noise))
+                (c, Some(noise), curve_seconds)
             }
         };
         let CachedStudent { mut student, train_seconds, curves } = trained;
@@ -175,6 +201,7 @@ impl Method for VddMethod {
             iterations: Some(iterations),
             noise_level,
             budget: Some(budget),
+            curve_seconds,
             ..Trained::new(TrainedPolicy::Moe(Box::new(student)), train_seconds, curves)
         })
     }
@@ -183,23 +210,25 @@ impl Method for VddMethod {
 /// Seconds of VDD training between checkpoints.
 const CHECKPOINT_SECONDS: u64 = 10;
 
-/// Distils `teacher` into a new mixture of configuration `mc` with VDD (states and actions in
+/// Distils `teacher` into `student`, freshly initialised, with VDD (states and actions in
 /// the student's normalised space; the student initialised from the run seed `vc.seed`), with a
 /// progress bar and learning curves; also returns the mean noise level of the teacher queries.
 ///
 /// The run commits a checkpoint every [`CHECKPOINT_SECONDS`] of training to
 /// `<run>/checkpoints/<label>/` (a [`CheckpointDir`]; with the curves, noise sum and training
 /// seconds so far in `progress.json`), resumes from there under `--resume` (refusing a
-/// checkpoint of other settings), and removes it when done. Commits are not training time.
+/// checkpoint of other settings), and removes it when done. Commits are not training time,
+/// nor are the curves over training ([`CurveProbe`]; `policy` makes a snapshot of the student
+/// a policy on raw states).
 fn distill<S: ScoreModel>(
     vc: VddConfig,
     teacher: S,
-    mc: MoeConfig,
-    states: Mat<f32>,
-    actions: Mat<f32>,
+    student: Moe,
+    (states, actions): (Mat<f32>, Mat<f32>),
     clip_margin: Option<f32>,
     job: &Job<'_>,
-) -> crate::XResult<(CachedStudent, f32)> {
+    policy: &dyn Fn(Moe) -> crate::XResult<TrainedPolicy>,
+) -> crate::XResult<(CachedStudent, f32, f64)> {
     let label = job.label;
     let teacher = match clip_margin {
         Some(m) => ClampedDenoiser::around_data(teacher, actions.as_ref(), m)?,
@@ -217,19 +246,27 @@ fn distill<S: ScoreModel>(
             let (c, n, t): (Curves, f64, f64) =
                 serde_json::from_slice(&std::fs::read(generation.join("progress.json"))?)?;
             let vdd = Vdd::resume(&generation, teacher, data)?;
-            if vdd.config() != &vc || vdd.student().config() != &mc {
+            if vdd.config() != &vc || vdd.student().config() != student.config() {
                 return Err(format!("{}: written with other settings", root.display()).into());
             }
             (c, n, t, vdd)
         }
-        None => (Curves::default(), 0.0, 0.0, Vdd::from_config(vc, teacher, mc, data)?),
+        None => (Curves::default(), 0.0, 0.0, Vdd::new(vc, teacher, student, data)?),
     };
     let bar = crate::progress::bar(iterations as u64, label);
     bar.set_position(vdd.iteration() as u64);
     let every = (iterations / 200).max(1);
+    let mut probe = CurveProbe::new(job);
+    let at = probe.checkpoints(iterations);
     let mut t0 = Instant::now();
     while vdd.iteration() < iterations {
         let m = vdd.step()?;
+        if at.contains(&vdd.iteration()) {
+            train_seconds += t0.elapsed().as_secs_f64();
+            probe.record(vdd.iteration(), &policy(vdd.snapshot()?)?)?;
+            probe.take_into(&mut curves);
+            t0 = Instant::now(); // the curves are not training time
+        }
         bar.inc(1);
         noise_sum += f64::from(m.expert.noise_level);
         if m.iteration % every == 0 || m.iteration + 1 == iterations {
@@ -260,5 +297,6 @@ fn distill<S: ScoreModel>(
     std::fs::remove_dir_all(&root)?;
     let _ = std::fs::remove_dir(job.checkpoints.0); // when empty
     let noise = (noise_sum / iterations.max(1) as f64) as f32;
-    Ok((CachedStudent { student: vdd.into_student(), train_seconds, curves }, noise))
+    let student = CachedStudent { student: vdd.into_student(), train_seconds, curves };
+    Ok((student, noise, probe.seconds))
 }

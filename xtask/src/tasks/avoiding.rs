@@ -15,15 +15,16 @@ use faer::Mat;
 use serde::{Deserialize, Serialize};
 use serde_json::{Value, json};
 use toml::Table;
-use vdd_data::Windowed;
+use vdd_data::{DeploySpec, Windowed};
 use vdd_moe::MoeConfig;
-use vdd_tasks::avoiding::EvalProtocol;
+
 use vdd_tasks::avoiding::dataset::DatasetConfig;
+use vdd_tasks::avoiding::{CurveProtocol, EvalProtocol};
 use vdd_tasks::timing::{Timing, us_per_action};
 
 use super::avoiding_imported::{self, ImportedSettings};
 use crate::context::{RunContext, StageTimes};
-use crate::method::{Trained, TrainingData};
+use crate::method::{BudgetRole, CurveEval, Trained, TrainingData};
 use crate::pipeline::{self, Datasets, Entry, Task, TaskRecipe};
 use crate::plots::{self, Curves, TrajectoryPanel};
 use crate::policy::TrainedPolicy;
@@ -79,12 +80,27 @@ pub struct AvoidingEval {
     /// The shortest timing round in milliseconds: a fast policy makes more than
     /// `timing_calls / 5` calls a round (see `vdd_tasks::timing::us_per_action`).
     pub timing_min_round_ms: f64,
+    /// Curves over training: evaluations per training run of every method trained in the run
+    /// (0: none; see [`CurveProtocol`]).
+    pub curve_points: usize,
+    /// Episodes per curve evaluation (held out from the final evaluation's), stepped
+    /// `lockstep_batch` at a time on one thread.
+    pub curve_rollouts: usize,
 }
 
 impl AvoidingEval {
     /// The rollouts' protocol (episodes and lockstep batch; the seed comes from the run seed).
     pub(super) fn protocol(&self) -> EvalProtocol {
         EvalProtocol { rollouts: self.rollouts, lockstep_batch: self.lockstep_batch }
+    }
+
+    /// The curves over training.
+    fn curves(&self) -> CurveProtocol {
+        CurveProtocol {
+            points: self.curve_points,
+            rollouts: self.curve_rollouts,
+            lockstep_batch: self.lockstep_batch,
+        }
     }
 
     /// The settings of `us_per_action`.
@@ -185,6 +201,45 @@ fn prepare(data: &DatasetConfig) -> crate::XResult<Prepared> {
     Ok(Prepared { training, episodes_obs: d.episode_observations, summary })
 }
 
+/// Curves over training on Avoiding: a [`CurveProtocol`] through the recipe's features and
+/// windows.
+struct AvoidingCurves {
+    protocol: CurveProtocol,
+    spec: DeploySpec,
+}
+
+impl AvoidingCurves {
+    /// The curves of a configuration, `None` when `eval.curve_points` is 0.
+    fn of(cfg: &AvoidingRecipe) -> Option<Box<dyn CurveEval>> {
+        let protocol = cfg.eval.curves();
+        protocol.enabled().then(|| {
+            Box::new(Self { protocol, spec: cfg.data.deploy_spec() }) as Box<dyn CurveEval>
+        })
+    }
+}
+
+impl CurveEval for AvoidingCurves {
+    fn checkpoints(&self, iterations: usize) -> Vec<usize> {
+        self.protocol.checkpoints(iterations)
+    }
+    fn evaluate(&self, policy: &TrainedPolicy, seed: u64) -> crate::XResult<Vec<(String, f64)>> {
+        let wrapped = Windowed::new(policy.clone(), self.spec.clone())?;
+        let m = self.protocol.evaluate(&wrapped, seed)?;
+        Ok(vec![
+            (CURVE_SUCCESS.to_owned(), m.success_rate),
+            (CURVE_ENTROPY.to_owned(), m.task_entropy),
+        ])
+    }
+    fn key(&self) -> Value {
+        json!({ "protocol": self.protocol, "spec": self.spec })
+    }
+}
+
+/// The series of the curves over training in `curves.json`.
+const CURVE_SUCCESS: &str = "held-out success rate";
+#[allow(missing_docs)]
+const CURVE_ENTROPY: &str = "held-out task entropy";
+
 /// What the evaluation collects for the outputs.
 #[derive(Default)]
 struct Collected {
@@ -232,6 +287,7 @@ impl Task for Avoiding {
             // Before any training: a bad setting would otherwise fail after it.
             cfg.eval.timing().check().map_err(|e| format!("eval: {e}"))?;
             cfg.eval.protocol().check().map_err(|e| format!("eval: {e}"))?;
+            cfg.eval.curves().check().map_err(|e| format!("eval: {e}"))?;
             cfg.data.deploy_spec().validate().map_err(|e| format!("data: {e}"))?;
         }
         let mut is_tuning = None;
@@ -276,7 +332,7 @@ impl Task for Avoiding {
             &base.header.seeds,
             &data,
             jobs,
-            Some(students),
+            (Some(students), &AvoidingCurves::of),
             &mut stages,
         )?;
 
@@ -409,8 +465,10 @@ fn evaluate(
         row.insert("sampling_steps".into(), json!(s));
     }
     if let Some(b) = trained.budget {
-        row.insert("train_steps".into(), json!(b.steps));
-        row.insert("train_batch".into(), json!(b.batch));
+        row.extend(report::budget_fields(b.steps, b.batch, b.role == BudgetRole::Student));
+    }
+    if trained.curve_seconds > 0.0 {
+        row.insert("curve_seconds".into(), report::json_f64(trained.curve_seconds));
     }
     out.curves.insert(format!("{label}/seed{seed}"), serde_json::to_value(&trained.curves)?);
 
@@ -475,6 +533,10 @@ fn write_outputs(
 ) -> crate::XResult {
     let mut metrics = report::metrics_json(&ctx.name, "avoiding", &base.header.seeds, &out.rows);
     metrics.insert("data".into(), data_summary.clone());
+    if let Some(w) = report::unequal_budgets(&out.rows) {
+        eprintln!("\nWARNING: unequal budgets: {w}\n");
+        metrics.insert("budget_warning".into(), json!(w));
+    }
     let curves = serde_json::to_string(&out.curves)?;
     vdd_nn::io::write_atomic(&dir.join("curves.json"), curves.as_bytes())?;
     let table = format!(
@@ -561,6 +623,7 @@ mod tests {
             "avoiding-ablation-experts",
             "avoiding-ablation-gating",
             "avoiding-ablation-noise",
+            "avoiding-deviations",
         ] {
             let path = recipe::recipe_path(name).unwrap();
             let file = recipe::read_recipe(&path).unwrap();
@@ -569,6 +632,54 @@ mod tests {
                 let r = recipe::resolve(&AvoidingRecipe::defaults().unwrap(), &file, &o)
                     .unwrap_or_else(|e| panic!("{name}: {e}"));
                 pipeline::plan(&r, "avoiding").unwrap_or_else(|e| panic!("{name}: {e}"));
+            }
+        }
+    }
+
+    #[test]
+    fn the_students_get_equal_budgets_in_the_default_and_the_quick_run() {
+        let file = recipe::read_recipe(&recipe::recipe_path("avoiding").unwrap()).unwrap();
+        for quick in [false, true] {
+            let o = recipe::Overrides { quick, ..Default::default() };
+            let r = recipe::resolve(&AvoidingRecipe::defaults().unwrap(), &file, &o).unwrap();
+            let tree = recipe::to_tree(&r.base).unwrap();
+            let get = |path: &str| -> u64 {
+                let mut v = tree.get(path.split('.').next().unwrap()).unwrap();
+                for p in path.split('.').skip(1) {
+                    v = v.get(p).unwrap_or_else(|| panic!("{path}"));
+                }
+                v.as_integer().unwrap() as u64
+            };
+            let vdd = |t: &str| {
+                let (it, b, v) = (
+                    format!("vdd.{t}.iterations"),
+                    format!("vdd.{t}.batch_size"),
+                    format!("vdd.{t}.vi_samples"),
+                );
+                get(&it) * get(&b) * get(&v)
+            };
+            let mixture = |m: &str| {
+                get(&format!("baselines.{m}.iterations"))
+                    * get(&format!("baselines.{m}.expert_steps_per_iter"))
+                    * get(&format!("baselines.{m}.batch_size"))
+            };
+            let budgets = [
+                ("vdd-beso", vdd("beso")),
+                ("vdd-ddpm", vdd("ddpm")),
+                ("vdd-beso-d3il", vdd("beso_d3il")),
+                ("cd", get("baselines.cd.train.steps") * get("baselines.cd.train.batch_size")),
+                (
+                    "ctm",
+                    get("baselines.ctm.base.train.steps")
+                        * get("baselines.ctm.base.train.batch_size"),
+                ),
+                ("em", mixture("em")),
+                ("imc", mixture("imc")),
+                ("imc-authors", mixture("imc_authors")),
+            ];
+            let expected = if quick { 3_072_000 } else { 7_680_000 };
+            for (m, b) in budgets {
+                assert_eq!(b, expected, "{m} (quick: {quick})");
             }
         }
     }

@@ -195,8 +195,15 @@ impl Task for Toy {
         let key = |cfg: &ToyRecipe, seed| Ok(format!("{}-{seed}", recipe::config_hash(&cfg.data)?));
         let prepare = |cfg: &ToyRecipe, seed| self.prepare(cfg, seed);
         let data = Datasets::build(&plan, &base.header.seeds, &mut stages, key, prepare)?;
-        let mut trainings =
-            pipeline::train_all(ctx, &plan, &base.header.seeds, &data, 1, None, &mut stages)?;
+        let mut trainings = pipeline::train_all(
+            ctx,
+            &plan,
+            &base.header.seeds,
+            &data,
+            1,
+            (None, &|_| None),
+            &mut stages,
+        )?;
 
         let mut rows = pipeline::empty_rows(&plan);
         let mut panels = Vec::new();

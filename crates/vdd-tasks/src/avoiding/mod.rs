@@ -56,12 +56,14 @@ use vdd_core::{CoreError, check_len};
 
 use crate::{Result, TaskError};
 
+mod curves;
 pub mod dataset;
 pub mod demonstrator;
 mod features;
 pub mod protocol;
 pub mod rollout;
 
+pub use curves::{CurveProtocol, MAX_CURVE_POINTS};
 pub use features::ObsFeatures;
 pub use protocol::EvalProtocol;
 

@@ -1,0 +1,97 @@
+//! Training budgets in the per-seed rows: `train_steps` (optimiser steps), `train_batch` (rows
+//! per step), `train_samples` (their product, the budget compared) and `train_role`
+//! (`"teacher"`: a teacher's own budget; `"student"`: a method trained from a teacher or the
+//! data, whose budget must equal every other student's in a comparison).
+
+use std::collections::BTreeSet;
+
+use serde_json::Value;
+
+use crate::metrics::Row;
+
+/// The budget fields of a row.
+///
+/// ```
+/// let f = vdd_report::budget::budget_fields(60_000, 128, true);
+/// assert_eq!(f["train_samples"], serde_json::json!(7_680_000));
+/// assert_eq!(f["train_role"], "student");
+/// ```
+pub fn budget_fields(steps: u64, batch: usize, student: bool) -> Row {
+    let mut r = Row::new();
+    r.insert("train_steps".into(), Value::from(steps));
+    r.insert("train_batch".into(), Value::from(batch));
+    r.insert("train_samples".into(), Value::from(steps.saturating_mul(batch as u64)));
+    r.insert("train_role".into(), Value::from(if student { "student" } else { "teacher" }));
+    r
+}
+
+/// A row's `train_samples`, or `train_steps · train_batch` for rows written before it.
+///
+/// ```
+/// use serde_json::json;
+/// let old = json!({"train_steps": 4000, "train_batch": 256}).as_object().unwrap().clone();
+/// assert_eq!(vdd_report::budget::samples(&old), Some(1_024_000.0));
+/// ```
+pub fn samples(row: &Row) -> Option<f64> {
+    row.get("train_samples")
+        .and_then(Value::as_f64)
+        .or_else(|| Some(row.get("train_steps")?.as_f64()? * row.get("train_batch")?.as_f64()?))
+}
+
+/// `None` when every student row (`train_role = "student"`) of `rows` has the same
+/// `train_samples`; else a message naming each student's `steps × batch`.
+///
+/// ```
+/// use serde_json::json;
+/// use vdd_report::budget::{budget_fields, unequal_budgets};
+/// let rows = |cd_steps| vec![
+///     ("beso".to_string(), vec![budget_fields(96_000, 256, false)]),
+///     ("cd".to_string(), vec![budget_fields(cd_steps, 256, true)]),
+///     ("vdd-beso".to_string(), vec![budget_fields(60_000, 128, true)]),
+/// ];
+/// assert_eq!(unequal_budgets(&rows(30_000)), None);
+/// let w = unequal_budgets(&rows(4_000)).unwrap();
+/// assert!(w.contains("cd 4000 × 256 = 1024000") && w.contains("vdd-beso"), "{w}");
+/// ```
+pub fn unequal_budgets(rows: &[(String, Vec<Row>)]) -> Option<String> {
+    let mut seen = BTreeSet::new();
+    let mut parts = Vec::new();
+    for (label, per_seed) in rows {
+        let students = per_seed.iter().filter(|r| r.get("train_role") == Some(&"student".into()));
+        let mut mine = BTreeSet::new();
+        for r in students {
+            let Some(s) = samples(r) else { continue };
+            if mine.insert(s as u64) {
+                let n = |k: &str| r.get(k).and_then(Value::as_u64).unwrap_or(0);
+                let (steps, batch) = (n("train_steps"), n("train_batch"));
+                parts.push(format!("{label} {steps} × {batch} = {}", s as u64));
+            }
+        }
+        seen.extend(mine);
+    }
+    (seen.len() > 1)
+        .then(|| format!("the students' optimiser steps × batch differ: {}", parts.join(", ")))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn teachers_and_rows_without_budgets_do_not_count() {
+        let mut no_role = budget_fields(1, 1, true);
+        no_role.remove("train_role");
+        let rows = vec![
+            ("beso".to_string(), vec![budget_fields(96_000, 256, false)]),
+            ("old".to_string(), vec![no_role, Row::new()]),
+            ("em".to_string(), vec![budget_fields(30_000, 256, true)]),
+            ("vdd".to_string(), vec![budget_fields(60_000, 128, true); 3]),
+        ];
+        assert_eq!(unequal_budgets(&rows), None);
+        let mut uneven = rows.clone();
+        uneven[3].1[2] = budget_fields(60_000, 64, true);
+        let w = unequal_budgets(&uneven).unwrap();
+        assert!(w.contains("vdd 60000 × 64 = 3840000"), "{w}");
+        assert!(!w.contains("beso"), "{w}");
+    }
+}
