@@ -602,4 +602,27 @@ mod tests {
         assert!((whole[0] - chunked[0]).abs() <= 1e-6 * whole[0], "{whole:?} vs {chunked:?}");
         assert!(TrainConfig { chunks: 0, ..Default::default() }.validate().is_err());
     }
+
+    #[test]
+    fn teachers_fork_into_copies_with_the_same_scores() {
+        use crate::{Beso, BesoConfig, DiffusionTeacher, NetConfig, TeacherTrainer};
+        use vdd_core::{ClampedDenoiser, ScoreModel, Trainer};
+        let states = Mat::from_fn(16, 1, |i, _| (i % 3) as f32);
+        let actions = Mat::from_fn(16, 2, |i, j| ((i + j) % 5) as f32 / 2.0 - 1.0);
+        let net = NetConfig { hidden_dim: 8, num_blocks: 1, ..Default::default() };
+        let config = BesoConfig { net, ..Default::default() };
+        let train = TrainConfig { steps: 3, batch_size: 8, ..Default::default() };
+        let (s, a) = (states.as_ref(), actions.as_ref());
+        let mut trainer = TeacherTrainer::new(&config, &train, s, a, 0).unwrap();
+        trainer.run(|_| {}).unwrap();
+        let beso: Beso = trainer.finish().unwrap();
+        let teacher = DiffusionTeacher::from(beso);
+        let mut clamped = ClampedDenoiser::around_data(teacher, a, 0.1).unwrap();
+        let mut fork = clamped.fork().expect("learned teachers fork");
+        let levels: Vec<f32> = (0..16).map(|i| 0.05 + 0.1 * i as f32).collect();
+        let (mut ours, mut theirs) = (Mat::zeros(16, 2), Mat::zeros(16, 2));
+        clamped.score(a, s, &levels, ours.as_mut()).unwrap();
+        fork.score(a, s, &levels, theirs.as_mut()).unwrap();
+        assert!(ours == theirs);
+    }
 }

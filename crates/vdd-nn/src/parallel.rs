@@ -110,6 +110,10 @@ impl Workers {
         match &self.pool {
             Pool::Inline => items.iter_mut().enumerate().for_each(|(c, t)| f(c, t)),
             Pool::Own(p) => p.install(|| run(items)),
+            // A process-wide pool of one thread: no hand-over to it.
+            Pool::Global if rayon::current_num_threads() == 1 => {
+                items.iter_mut().enumerate().for_each(|(c, t)| f(c, t))
+            }
             Pool::Global => run(items),
         }
     }
