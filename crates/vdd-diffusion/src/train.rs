@@ -38,7 +38,7 @@ pub struct TrainConfig {
     /// ([`vdd_nn::parallel`]). The results depend on the number of chunks, never on the number
     /// of threads ([`crate::TeacherTrainer::set_threads`]); with one chunk (the default) the
     /// whole batch runs in the calling thread.
-    #[serde(default = "one_chunk", skip_serializing_if = "is_one_chunk")]
+    #[serde(default = "one_chunk")]
     pub chunks: usize,
 }
 
@@ -47,10 +47,6 @@ pub const MAX_CHUNKS: usize = 256;
 
 fn one_chunk() -> usize {
     1
-}
-
-fn is_one_chunk(c: &usize) -> bool {
-    *c == 1
 }
 
 impl Default for TrainConfig {

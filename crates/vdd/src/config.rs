@@ -69,16 +69,12 @@ pub struct VddConfig {
     /// gradients are summed in chunk order. The student depends on the number of chunks,
     /// never on the number of threads ([`crate::Vdd::set_threads`]); with one chunk (the
     /// default) the whole batch runs in the calling thread.
-    #[serde(default = "one_chunk", skip_serializing_if = "is_one_chunk")]
+    #[serde(default = "one_chunk")]
     pub chunks: usize,
 }
 
 fn one_chunk() -> usize {
     1
-}
-
-fn is_one_chunk(c: &usize) -> bool {
-    *c == 1
 }
 
 impl VddConfig {
