@@ -235,6 +235,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
             ema_decay: 0.999,
             grad_clip: Some(1.0),
             log_every: teacher_steps.div_ceil(4),
+            chunks: 1,
         };
         let (mut beso, secs) = train_teacher("BESO", teacher_steps, |progress| {
             Beso::train(

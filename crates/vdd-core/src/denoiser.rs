@@ -188,6 +188,11 @@ impl<S: ScoreModel> ScoreModel for ClampedDenoiser<S> {
     fn noise_range(&self) -> Option<(f32, f32)> {
         self.inner.noise_range()
     }
+    /// A clamped fork of the wrapped teacher (with the same bounds), when it forks.
+    fn fork(&self) -> Option<Box<dyn ScoreModel + Send>> {
+        let inner = self.inner.fork()?;
+        Some(Box::new(ClampedDenoiser { inner, bounds: self.bounds.clone() }))
+    }
 }
 
 #[cfg(test)]

@@ -730,6 +730,9 @@ impl ScoreModel for GmmTeacher {
     fn noise_range(&self) -> Option<(f32, f32)> {
         Some((0.0, f32::INFINITY))
     }
+    fn fork(&self) -> Option<Box<dyn ScoreModel + Send>> {
+        Some(Box::new(self.clone()))
+    }
 }
 
 pub mod family;

@@ -247,51 +247,70 @@ pub trait ScoreModel {
     fn noise_range(&self) -> Option<(f32, f32)> {
         None
     }
+
+    /// An independent copy of this teacher that computes the same scores, bit for bit, so
+    /// that a trainer can query chunks of a batch from several threads at once. The default
+    /// is `None` (the teacher cannot be copied): trainers then query this one for every chunk
+    /// in turn, with the same results.
+    fn fork(&self) -> Option<Box<dyn ScoreModel + Send>> {
+        None
+    }
 }
 
-impl<T: ScoreModel + ?Sized> ScoreModel for &mut T {
-    fn action_dim(&self) -> usize {
-        (**self).action_dim()
-    }
-    fn state_dim(&self) -> usize {
-        (**self).state_dim()
-    }
-    fn noise_convention(&self) -> NoiseConvention {
-        (**self).noise_convention()
-    }
-    fn score(
-        &mut self,
-        actions: MatRef<'_, f32>,
-        states: MatRef<'_, f32>,
-        noise_levels: &[f32],
-        out: MatMut<'_, f32>,
-    ) -> Result<()> {
-        (**self).score(actions, states, noise_levels, out)
-    }
-    fn draw_noise_levels(
-        &self,
-        schedule: &NoiseSchedule,
-        progress: f32,
-        rng: &mut dyn RngCore,
-        out: &mut [f32],
-    ) {
-        (**self).draw_noise_levels(schedule, progress, rng, out)
-    }
-    fn sample_actions(
-        &mut self,
-        states: MatRef<'_, f32>,
-        rng: &mut dyn RngCore,
-        out: MatMut<'_, f32>,
-    ) -> Result<()> {
-        (**self).sample_actions(states, rng, out)
-    }
-    fn denoiser_form(&self, level: f32) -> Option<DenoiserForm> {
-        (**self).denoiser_form(level)
-    }
-    fn noise_range(&self) -> Option<(f32, f32)> {
-        (**self).noise_range()
-    }
+/// `ScoreModel` for a pointer to a score model: every method forwarded to the pointee.
+macro_rules! forward_score_model {
+    ($($pointer:tt)*) => {
+        impl<T: ScoreModel + ?Sized> ScoreModel for $($pointer)* {
+            fn action_dim(&self) -> usize {
+                (**self).action_dim()
+            }
+            fn state_dim(&self) -> usize {
+                (**self).state_dim()
+            }
+            fn noise_convention(&self) -> NoiseConvention {
+                (**self).noise_convention()
+            }
+            fn score(
+                &mut self,
+                actions: MatRef<'_, f32>,
+                states: MatRef<'_, f32>,
+                noise_levels: &[f32],
+                out: MatMut<'_, f32>,
+            ) -> Result<()> {
+                (**self).score(actions, states, noise_levels, out)
+            }
+            fn draw_noise_levels(
+                &self,
+                schedule: &NoiseSchedule,
+                progress: f32,
+                rng: &mut dyn RngCore,
+                out: &mut [f32],
+            ) {
+                (**self).draw_noise_levels(schedule, progress, rng, out)
+            }
+            fn sample_actions(
+                &mut self,
+                states: MatRef<'_, f32>,
+                rng: &mut dyn RngCore,
+                out: MatMut<'_, f32>,
+            ) -> Result<()> {
+                (**self).sample_actions(states, rng, out)
+            }
+            fn denoiser_form(&self, level: f32) -> Option<DenoiserForm> {
+                (**self).denoiser_form(level)
+            }
+            fn noise_range(&self) -> Option<(f32, f32)> {
+                (**self).noise_range()
+            }
+            fn fork(&self) -> Option<Box<dyn ScoreModel + Send>> {
+                (**self).fork()
+            }
+        }
+    };
 }
+
+forward_score_model!(Box<T>);
+forward_score_model!(&mut T);
 
 /// Validates the arguments of [`ScoreModel::score`]: shapes agree with the model's dimensions.
 pub fn check_score_args<S: ScoreModel + ?Sized>(

@@ -122,6 +122,7 @@ impl ToyTeachers {
             ema_decay: self.ema,
             grad_clip: Some(1.0),
             log_every: (steps / 4).max(1),
+            chunks: 1,
         }
     }
 

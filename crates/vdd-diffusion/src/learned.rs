@@ -29,7 +29,7 @@ use crate::train::{self, DsmNoise, TrainConfig, TrainProgress};
 ///
 /// Sealed: implemented by the DDPM (VP, `ε`-prediction) and BESO (VE, EDM denoiser)
 /// processes of this crate only.
-pub trait Process: DsmNoise + Clone + Debug + Send + Sized {
+pub trait Process: DsmNoise + Clone + Debug + Send + Sized + 'static {
     /// The teacher's configuration (saved with the weights).
     type Config: Clone + Debug + PartialEq + Serialize + DeserializeOwned;
     /// The samplers it offers.
@@ -385,6 +385,14 @@ impl<P: Process> TeacherTrainer<P> {
         let run = train::DsmLoop::new(net, train, data, &seeds)?;
         Ok(Self { config: config.clone(), train: train.clone(), seed, process, run })
     }
+
+    /// Runs the chunks of each step ([`TrainConfig::chunks`]) on `threads` threads: 1 in the
+    /// calling thread, more on a pool of that many threads of its own, 0 (the default) on the
+    /// process-wide pool (`RAYON_NUM_THREADS` threads, default one per core), shared with the
+    /// other trainings of the process. The trained teacher is the same whatever the count.
+    pub fn set_threads(&mut self, threads: usize) -> Result<()> {
+        self.run.set_threads(threads)
+    }
 }
 
 impl<P: Process> Trainer for TeacherTrainer<P> {
@@ -475,6 +483,11 @@ impl<P: Process> ScoreModel for LearnedTeacher<P> {
     /// VE (BESO): `D = a + σ² s`; VP (DDPM): `x̂₀ = (a + (1 − ᾱ(t)) s)/√ᾱ(t)`.
     fn denoiser_form(&self, level: f32) -> Option<DenoiserForm> {
         Some(self.process.denoiser_form(level))
+    }
+
+    /// A copy of the teacher (its network, normalisers and buffers).
+    fn fork(&self) -> Option<Box<dyn ScoreModel + Send>> {
+        Some(Box::new(self.clone()))
     }
 }
 

@@ -172,6 +172,9 @@ impl ScoreModel for DiffusionTeacher {
     fn denoiser_form(&self, level: f32) -> Option<DenoiserForm> {
         delegate!(self, t => t.denoiser_form(level))
     }
+    fn fork(&self) -> Option<Box<dyn ScoreModel + Send>> {
+        delegate!(self, t => t.fork())
+    }
 }
 
 impl Policy for DiffusionTeacher {

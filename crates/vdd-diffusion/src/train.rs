@@ -6,6 +6,7 @@ use faer::{Mat, MatRef};
 use rand::Rng as _;
 use serde::{Deserialize, Serialize};
 use vdd_core::{Affine, Seeds};
+use vdd_nn::parallel::{Workers, add_grads, chunk_range, copy_values};
 use vdd_nn::{Adam, AdamConfig, LrSchedule, Parameters, clip_grad_norm};
 
 use crate::error::{DiffusionError, Result};
@@ -31,6 +32,21 @@ pub struct TrainConfig {
     pub grad_clip: Option<f32>,
     /// Report progress every this many steps (and after the last step).
     pub log_every: u64,
+    /// Chunks each minibatch is split into for the gradient (at most [`MAX_CHUNKS`]): each
+    /// chunk's forward and backward pass runs on its own replica of the network, possibly on
+    /// another thread, and the chunks' gradients are summed in chunk order
+    /// ([`vdd_nn::parallel`]). The results depend on the number of chunks, never on the number
+    /// of threads ([`crate::TeacherTrainer::set_threads`]); with one chunk (the default) the
+    /// whole batch runs in the calling thread.
+    #[serde(default = "one_chunk")]
+    pub chunks: usize,
+}
+
+/// Largest [`TrainConfig::chunks`].
+pub const MAX_CHUNKS: usize = 256;
+
+fn one_chunk() -> usize {
+    1
 }
 
 impl Default for TrainConfig {
@@ -44,6 +60,7 @@ impl Default for TrainConfig {
             ema_decay: 0.999,
             grad_clip: Some(1.0),
             log_every: 500,
+            chunks: 1,
         }
     }
 }
@@ -65,7 +82,8 @@ impl TrainConfig {
             && self.final_lr_factor >= 0.0
             && (0.0..1.0).contains(&self.ema_decay)
             && self.grad_clip.is_none_or(|g| g.is_finite() && g > 0.0)
-            && self.log_every > 0;
+            && self.log_every > 0
+            && (1..=MAX_CHUNKS).contains(&self.chunks);
         if ok {
             Ok(())
         } else {
@@ -230,31 +248,100 @@ impl Dsm {
         backward: bool,
     ) -> f32 {
         let (n, d) = (actions.nrows(), actions.ncols());
-        for j in 0..d {
-            let (eps, x) = (self.eps.col_as_slice(j), self.x.col_as_slice_mut(j));
-            for i in 0..n {
-                let r = &self.rows[i];
-                x[i] = r.input_a * actions[(i, j)] + r.input_eps * eps[i];
-            }
-        }
-        let f = net.forward(self.x.as_ref(), states, &self.c_noise);
         let scale = 1.0 / (n * d) as f32;
-        let mut total = 0.0f64;
-        for j in 0..d {
-            let (g, eps) = (self.grad.col_as_slice_mut(j), self.eps.col_as_slice(j));
-            for i in 0..n {
-                let row = &self.rows[i];
-                let target = row.target_a * actions[(i, j)] + row.target_eps * eps[i];
-                let r = f[(i, j)] - target;
-                total += f64::from(r * r);
-                g[i] = 2.0 * r * scale;
-            }
-        }
-        if backward {
-            net.backward(self.grad.as_ref());
-        }
+        let (rows, c_noise, eps) = (&self.rows[..], &self.c_noise[..], self.eps.as_ref());
+        let io = DsmBuffers { x: &mut self.x, grad: &mut self.grad };
+        let total =
+            dsm_rows(net, DsmInputs { rows, c_noise, eps, actions, states }, io, scale, backward);
         (total * f64::from(scale)) as f32
     }
+
+    /// The rows `range` of the drawn batch (`actions`, `states` of the whole batch) on `chunk`:
+    /// the sum of the squared residuals, and the gradient of `scale ·` that sum accumulated into
+    /// the chunk's network.
+    fn chunk_total(
+        &self,
+        chunk: &mut DsmChunk,
+        range: std::ops::Range<usize>,
+        actions: MatRef<'_, f32>,
+        states: MatRef<'_, f32>,
+        scale: f32,
+    ) -> f64 {
+        let (start, len) = (range.start, range.len());
+        let inputs = DsmInputs {
+            rows: &self.rows[range.clone()],
+            c_noise: &self.c_noise[range],
+            eps: self.eps.as_ref().subrows(start, len),
+            actions: actions.subrows(start, len),
+            states: states.subrows(start, len),
+        };
+        let io = DsmBuffers { x: &mut chunk.x, grad: &mut chunk.grad };
+        dsm_rows(&mut chunk.net, inputs, io, scale, true)
+    }
+}
+
+/// The drawn noise and data of some rows of a batch.
+struct DsmInputs<'a> {
+    rows: &'a [DsmRow],
+    c_noise: &'a [f32],
+    eps: MatRef<'a, f32>,
+    actions: MatRef<'a, f32>,
+    states: MatRef<'a, f32>,
+}
+
+/// The network input and output gradient buffers of some rows (resized when needed).
+struct DsmBuffers<'a> {
+    x: &'a mut Mat<f32>,
+    grad: &'a mut Mat<f32>,
+}
+
+/// The denoising loss of some rows: returns the sum of their squared residuals and, with
+/// `backward`, accumulates the gradient of `scale ·` that sum into `net`.
+fn dsm_rows(
+    net: &mut DenoiserNet,
+    inp: DsmInputs<'_>,
+    io: DsmBuffers<'_>,
+    scale: f32,
+    backward: bool,
+) -> f64 {
+    let (n, d) = (inp.actions.nrows(), inp.actions.ncols());
+    if io.x.nrows() != n || io.x.ncols() != d {
+        *io.x = Mat::zeros(n, d);
+        *io.grad = Mat::zeros(n, d);
+    }
+    for j in 0..d {
+        let x = io.x.col_as_slice_mut(j);
+        for i in 0..n {
+            let r = &inp.rows[i];
+            x[i] = r.input_a * inp.actions[(i, j)] + r.input_eps * inp.eps[(i, j)];
+        }
+    }
+    let f = net.forward(io.x.as_ref(), inp.states, inp.c_noise);
+    let mut total = 0.0f64;
+    for j in 0..d {
+        let g = io.grad.col_as_slice_mut(j);
+        for i in 0..n {
+            let row = &inp.rows[i];
+            let target = row.target_a * inp.actions[(i, j)] + row.target_eps * inp.eps[(i, j)];
+            let r = f[(i, j)] - target;
+            total += f64::from(r * r);
+            g[i] = 2.0 * r * scale;
+        }
+    }
+    if backward {
+        net.backward(io.grad.as_ref());
+    }
+    total
+}
+
+/// One chunk of a minibatch ([`TrainConfig::chunks`]): a replica of the network and its
+/// buffers, and the chunk's sum of squared residuals.
+struct DsmChunk {
+    net: DenoiserNet,
+    x: Mat<f32>,
+    grad: Mat<f32>,
+    flat: Vec<f32>,
+    total: f64,
 }
 
 fn gather_rows(src: &Mat<f32>, idx: &[usize], dst: &mut Mat<f32>) {
@@ -289,6 +376,9 @@ pub(crate) struct DsmLoop {
     loss_count: u64,
     start: Instant,
     step: u64,
+    chunks: Vec<DsmChunk>,
+    workers: Workers,
+    flat: Vec<f32>,
 }
 
 impl DsmLoop {
@@ -304,7 +394,22 @@ impl DsmLoop {
         let n = data.actions.nrows();
         let (da, ds) = (data.actions.ncols(), data.states.ncols());
         let b = config.batch_size.min(n);
+        let chunks = match config.chunks.min(b) {
+            1 => Vec::new(),
+            c => (0..c)
+                .map(|_| DsmChunk {
+                    net: net.clone(),
+                    x: Mat::zeros(0, 0),
+                    grad: Mat::zeros(0, 0),
+                    flat: Vec::new(),
+                    total: 0.0,
+                })
+                .collect(),
+        };
         Ok(Self {
+            chunks,
+            workers: Workers::default(),
+            flat: Vec::new(),
             ema_net: net.clone(),
             net,
             ema: Ema::new(config.ema_decay),
@@ -325,6 +430,13 @@ impl DsmLoop {
             config: config.clone(),
             data,
         })
+    }
+
+    /// Runs the chunks of a step on `threads` threads ([`Workers::new`]; the default 0 is the
+    /// process-wide pool). The results do not depend on it.
+    pub(crate) fn set_threads(&mut self, threads: usize) -> Result<()> {
+        self.workers = Workers::new(threads).map_err(|e| DiffusionError::Config(e.to_string()))?;
+        Ok(())
     }
 
     /// Steps done so far.
@@ -353,7 +465,27 @@ impl DsmLoop {
         let b = self.idx.len();
         self.net.zero_grad();
         self.dsm.draw(noise, b, da, &mut self.noise_rng);
-        let loss = self.dsm.loss(&mut self.net, self.a_batch.as_ref(), self.s_batch.as_ref(), true);
+        let loss = if self.chunks.is_empty() {
+            self.dsm.loss(&mut self.net, self.a_batch.as_ref(), self.s_batch.as_ref(), true)
+        } else {
+            // Each chunk on its replica (the live weights copied in), then the gradients
+            // summed in chunk order: the same bits for any number of threads.
+            let scale = 1.0 / (b * da) as f32;
+            let (dsm, net, n_chunks) = (&self.dsm, &self.net, self.chunks.len());
+            let (actions, states) = (self.a_batch.as_ref(), self.s_batch.as_ref());
+            self.workers.for_each_mut(&mut self.chunks, |c, chunk| {
+                copy_values(net, &mut chunk.net, &mut chunk.flat);
+                chunk.net.zero_grad();
+                let range = chunk_range(b, n_chunks, c);
+                chunk.total = dsm.chunk_total(chunk, range, actions, states, scale);
+            });
+            let mut total = 0.0f64;
+            for chunk in &self.chunks {
+                add_grads(&chunk.net, &mut self.net, &mut self.flat);
+                total += chunk.total;
+            }
+            (total * f64::from(scale)) as f32
+        };
         if !loss.is_finite() {
             return Err(DiffusionError::Diverged { step: step + 1, loss });
         }
@@ -429,5 +561,64 @@ mod tests {
         ] {
             assert!(c.validate().is_err(), "{c:?}");
         }
+    }
+
+    /// Trains a small BESO teacher with `chunks` chunks on `threads` threads; returns its EMA
+    /// parameters and the reported losses.
+    fn chunked_run(chunks: usize, threads: usize, steps: u64) -> (Vec<f32>, Vec<f32>) {
+        use crate::{Beso, BesoConfig, NetConfig, TeacherTrainer};
+        use vdd_core::Trainer;
+        let states = Mat::from_fn(64, 1, |i, _| (i % 5) as f32);
+        let actions = Mat::from_fn(64, 2, |i, j| ((i * 3 + j) % 7) as f32 / 3.0 - 1.0);
+        let net = NetConfig { hidden_dim: 16, num_blocks: 1, ..Default::default() };
+        let config = BesoConfig { net, ..Default::default() };
+        let train =
+            TrainConfig { steps, batch_size: 40, log_every: 1, chunks, ..Default::default() };
+        let (s, a) = (states.as_ref(), actions.as_ref());
+        let mut trainer = TeacherTrainer::new(&config, &train, s, a, 0).unwrap();
+        trainer.set_threads(threads).unwrap();
+        let mut losses = Vec::new();
+        trainer.run(|r| losses.extend(r.map(|p| p.loss))).unwrap();
+        let teacher: Beso = trainer.finish().unwrap();
+        let mut values = Vec::new();
+        teacher.net.visit_params("", &mut |_, p| values.extend_from_slice(&p.value));
+        (values, losses)
+    }
+
+    #[test]
+    fn chunked_teachers_do_not_depend_on_the_threads() {
+        // 40 rows in 3 chunks (14, 13 and 13 rows).
+        let one = chunked_run(3, 1, 25);
+        for threads in [0, 2, 3] {
+            assert!(one == chunked_run(3, threads, 25), "{threads} threads");
+        }
+        assert!(chunked_run(1, 1, 25) == chunked_run(1, 2, 25));
+        // The chunks' loss is the batch's, up to the order of the sums.
+        let (whole, chunked) = (chunked_run(1, 1, 1).1, chunked_run(4, 2, 1).1);
+        assert!((whole[0] - chunked[0]).abs() <= 1e-6 * whole[0], "{whole:?} vs {chunked:?}");
+        assert!(TrainConfig { chunks: 0, ..Default::default() }.validate().is_err());
+    }
+
+    #[test]
+    fn teachers_fork_into_copies_with_the_same_scores() {
+        use crate::{Beso, BesoConfig, DiffusionTeacher, NetConfig, TeacherTrainer};
+        use vdd_core::{ClampedDenoiser, ScoreModel, Trainer};
+        let states = Mat::from_fn(16, 1, |i, _| (i % 3) as f32);
+        let actions = Mat::from_fn(16, 2, |i, j| ((i + j) % 5) as f32 / 2.0 - 1.0);
+        let net = NetConfig { hidden_dim: 8, num_blocks: 1, ..Default::default() };
+        let config = BesoConfig { net, ..Default::default() };
+        let train = TrainConfig { steps: 3, batch_size: 8, ..Default::default() };
+        let (s, a) = (states.as_ref(), actions.as_ref());
+        let mut trainer = TeacherTrainer::new(&config, &train, s, a, 0).unwrap();
+        trainer.run(|_| {}).unwrap();
+        let beso: Beso = trainer.finish().unwrap();
+        let teacher = DiffusionTeacher::from(beso);
+        let mut clamped = ClampedDenoiser::around_data(teacher, a, 0.1).unwrap();
+        let mut fork = clamped.fork().expect("learned teachers fork");
+        let levels: Vec<f32> = (0..16).map(|i| 0.05 + 0.1 * i as f32).collect();
+        let (mut ours, mut theirs) = (Mat::zeros(16, 2), Mat::zeros(16, 2));
+        clamped.score(a, s, &levels, ours.as_mut()).unwrap();
+        fork.score(a, s, &levels, theirs.as_mut()).unwrap();
+        assert!(ours == theirs);
     }
 }

@@ -25,6 +25,7 @@ mod mlp;
 mod module;
 mod norm;
 mod optim;
+pub mod parallel;
 mod param;
 mod schedule;
 pub mod torch;

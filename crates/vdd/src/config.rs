@@ -62,6 +62,19 @@ pub struct VddConfig {
     /// Root seed of every random draw of the run, including the student's initialisation
     /// when the trainer builds the student ([`crate::Vdd::from_config`]).
     pub seed: u64,
+    /// Chunks the state batch of an expert step is split into (at most [`MAX_CHUNKS`]; more
+    /// than `batch_size` count as `batch_size`): each chunk's forward pass, teacher queries
+    /// and backward pass run on their own replica of the student and fork of the teacher
+    /// ([`vdd_core::ScoreModel::fork`]), possibly on another thread, and the chunks'
+    /// gradients are summed in chunk order. The student depends on the number of chunks,
+    /// never on the number of threads ([`crate::Vdd::set_threads`]); with one chunk (the
+    /// default) the whole batch runs in the calling thread.
+    #[serde(default = "one_chunk")]
+    pub chunks: usize,
+}
+
+fn one_chunk() -> usize {
+    1
 }
 
 impl VddConfig {
@@ -87,6 +100,7 @@ impl VddConfig {
             max_grad_norm: None,
             student_ema: None,
             seed: 0,
+            chunks: 1,
         }
     }
 
@@ -125,6 +139,7 @@ impl VddConfig {
             ("vi_samples", self.vi_samples),
             ("expert_steps_per_iter", self.expert_steps_per_iter),
             ("gating_batch_size", self.gating_batch_size),
+            ("chunks", self.chunks),
         ];
         for (name, v) in positive {
             if v == 0 {
@@ -138,6 +153,7 @@ impl VddConfig {
             ("vi_samples", self.vi_samples, MAX_VI_SAMPLES),
             ("expert_steps_per_iter", self.expert_steps_per_iter, MAX_STEPS_PER_ITER),
             ("gating_steps_per_iter", self.gating_steps_per_iter, MAX_STEPS_PER_ITER),
+            ("chunks", self.chunks, MAX_CHUNKS),
         ];
         for (name, v, max) in bounded {
             if v > max {
@@ -214,6 +230,8 @@ impl VddConfig {
 pub const MAX_ITERATIONS: usize = 1 << 30;
 /// Largest `batch_size` and `gating_batch_size`.
 pub const MAX_BATCH_SIZE: usize = 1 << 16;
+/// Largest [`VddConfig::chunks`].
+pub const MAX_CHUNKS: usize = 256;
 /// Largest `vi_samples`.
 pub const MAX_VI_SAMPLES: usize = 1 << 12;
 /// Largest `expert_steps_per_iter` and `gating_steps_per_iter`.

@@ -50,13 +50,13 @@ pub struct ExpertStepBuffers {
     lanes: LaneScratch,
 }
 
-/// Scratch of the corrected-score kernel for the `V` samples of one (state, expert), in
-/// structure-of-arrays layout: every per-sample quantity is a lane `[..][t]` with the sample
-/// index `t < V` innermost, so all arithmetic is element-wise over samples and vectorises (no
+/// Scratch of the corrected-score kernel for the samples of one pass (some experts of one
+/// state, [`LANES_PER_PASS`]), in structure-of-arrays layout: every per-sample quantity is a
+/// lane `[..][t]` with the sample index `t` innermost, so all arithmetic is element-wise over samples and vectorises (no
 /// horizontal reductions over experts per sample).
 #[derive(Debug, Default, Clone)]
 struct LaneScratch {
-    /// Actions, `ε` and teacher scores as `[j][t]` (`d x V` each).
+    /// Actions, `ε` and teacher scores as `[j][t]` (`d x` samples each).
     actions: Vec<f32>,
     eps: Vec<f32>,
     score: Vec<f32>,
@@ -111,7 +111,18 @@ struct StateBlockOut<'a> {
     lanes: &'a mut LaneScratch,
 }
 
+/// Most samples the corrected-score kernel treats in one pass: the samples of
+/// `max(1, LANES_PER_PASS / V)` experts of a state, so that the lanes are long even with few
+/// samples per expert (`V = 1`: all `Z` experts of the state at once) while the scratch stays
+/// small with many.
+const LANES_PER_PASS: usize = 256;
+
 impl StateBlock<'_> {
+    /// Experts per pass of the kernel (see [`LANES_PER_PASS`]).
+    fn group(&self) -> usize {
+        (LANES_PER_PASS / self.v_n).clamp(1, self.z_n)
+    }
+
     /// Accumulates `E_ε[g]` and `E_ε[g εᵀ]` for every expert at this state; returns the sums
     /// of `log q̃(z|a)` and of `|g|²` over the samples (monitoring).
     #[inline(always)]
@@ -120,38 +131,62 @@ impl StateBlock<'_> {
         let (v_n, inv_v) = (self.v_n, 1.0 / self.v_n as f32);
         let (mut sum_log_resp, mut sum_g2) = (0.0f64, 0.0f64);
         let c = out.lanes;
-        for z in 0..z_n {
-            // Gather expert z's samples into `[j][t]`.
-            for t in 0..v_n {
-                let i = z * v_n + t;
+        let group = self.group();
+        let mut z0 = 0;
+        while z0 < z_n {
+            let z1 = (z0 + group).min(z_n);
+            let n = (z1 - z0) * v_n;
+            // Gather the samples of experts z0..z1 into `[j][t]`, `t = (z − z0)·V + v`.
+            for t in 0..n {
+                let i = z0 * v_n + t;
                 for j in 0..d {
-                    c.actions[j * v_n + t] = self.actions[i * d + j];
-                    c.eps[j * v_n + t] = self.eps[i * d + j];
-                    c.score[j * v_n + t] = self.score[i * d + j];
+                    c.actions[j * n + t] = self.actions[i * d + j];
+                    c.eps[j * n + t] = self.eps[i * d + j];
+                    c.score[j * n + t] = self.score[i * d + j];
                 }
             }
-            let (lr, g2) = self.corrected_score(d, z_n, z, c);
-            sum_log_resp += lr;
-            sum_g2 += g2;
-            // E[g] and E[g εᵀ].
-            let mg = &mut out.mean_g[z * d..(z + 1) * d];
-            let mge = &mut out.mean_g_eps[z * d * d..(z + 1) * d * d];
-            for r in 0..d {
-                let gr = &c.g[r * v_n..(r + 1) * v_n];
-                mg[r] = gr.iter().sum::<f32>() * inv_v;
-                for col in 0..d {
-                    mge[r * d + col] = dot(gr, &c.eps[col * v_n..(col + 1) * v_n]) * inv_v;
+            self.corrected_scores(d, z_n, z0, z1, c);
+            for z in z0..z1 {
+                let r = (z - z0) * v_n..(z - z0 + 1) * v_n;
+                // Σ log q̃(z|a) = Σ (joint_z − max) − ln Π total: the logs of the totals are
+                // taken once per many samples (each total is in [1, Z], so the f64 product
+                // stays finite).
+                sum_log_resp += f64::from(c.log_resp[r.clone()].iter().sum::<f32>());
+                let mut product = 1.0f64;
+                for &t in &c.total[r.clone()] {
+                    product *= f64::from(t);
+                    if product > 1e200 {
+                        sum_log_resp -= product.ln();
+                        product = 1.0;
+                    }
                 }
+                sum_log_resp -= product.ln();
+                // |g|², E[g] and E[g εᵀ].
+                let mut g2 = 0.0f32;
+                let mg = &mut out.mean_g[z * d..(z + 1) * d];
+                let mge = &mut out.mean_g_eps[z * d * d..(z + 1) * d * d];
+                for row in 0..d {
+                    let gr = &c.g[row * n..(row + 1) * n][r.clone()];
+                    g2 += dot(gr, gr);
+                    mg[row] = gr.iter().sum::<f32>() * inv_v;
+                    for col in 0..d {
+                        let e = &c.eps[col * n..(col + 1) * n][r.clone()];
+                        mge[row * d + col] = dot(gr, e) * inv_v;
+                    }
+                }
+                sum_g2 += f64::from(g2);
             }
+            z0 = z1;
         }
         (sum_log_resp, sum_g2)
     }
 
-    /// The corrected score `g` of expert `z`'s samples (gathered in `c`) into `c.g`; returns
-    /// the sums over the samples of `log q̃(z|a)` and `|g|²`.
+    /// The corrected scores `g` of the samples of experts `z0..z1` (gathered in `c`, `n` of
+    /// them) into `c.g`, with `log q̃(z|a) + ln(total)` in `c.log_resp` and the totals of the
+    /// unnormalised responsibilities in `c.total`.
     #[inline(always)]
-    fn corrected_score(&self, d: usize, z_n: usize, z: usize, c: &mut LaneScratch) -> (f64, f64) {
-        let n = self.v_n;
+    fn corrected_scores(&self, d: usize, z_n: usize, z0: usize, z1: usize, c: &mut LaneScratch) {
+        let (v_n, n) = (self.v_n, (z1 - z0) * self.v_n);
         let lane = |i: usize| i * n..(i + 1) * n;
         // Per frozen expert k: y = L̃_k⁻¹ (a − μ̃_k), log q̃(k) N(a; μ̃_k, Σ̃_k) = c_k − ½|y|²,
         // ∇_a log N = −L̃_k⁻ᵀ y.
@@ -178,43 +213,37 @@ impl StateBlock<'_> {
             }
         }
         // Responsibilities q̃(k|a) = joint_k / Σ_k joint_k, stabilised by the max over k.
-        c.max.fill(f32::NEG_INFINITY);
+        c.max[..n].fill(f32::NEG_INFINITY);
         for k in 0..z_n {
-            max_into(&mut c.max, &c.joint[lane(k)]);
+            max_into(&mut c.max[..n], &c.joint[lane(k)]);
         }
-        c.log_resp.copy_from_slice(&c.joint[lane(z)]);
-        add_scaled(&mut c.log_resp, -1.0, &c.max);
-        c.total.fill(0.0);
+        for z in z0..z1 {
+            let r = (z - z0) * v_n..(z - z0 + 1) * v_n;
+            let own = &c.joint[lane(z)][r.clone()];
+            c.log_resp[r.clone()].copy_from_slice(own);
+            add_scaled(&mut c.log_resp[r.clone()], -1.0, &c.max[r]);
+        }
+        c.total[..n].fill(0.0);
         for k in 0..z_n {
-            exp_shifted(&mut c.joint[lane(k)], &c.max, &mut c.total);
+            exp_shifted(&mut c.joint[lane(k)], &c.max[..n], &mut c.total[..n]);
         }
-        // Σ log q̃(z|a) = Σ (joint_z − max) − ln Π total: the logs of the totals are taken
-        // once per many samples (each total is in [1, Z], so the f64 product stays finite).
-        let mut sum_log_resp = f64::from(c.log_resp.iter().sum::<f32>());
-        let mut product = 1.0f64;
-        for &t in &c.total {
-            product *= f64::from(t);
-            if product > 1e200 {
-                sum_log_resp -= product.ln();
-                product = 1.0;
-            }
-        }
-        sum_log_resp -= product.ln();
         // g = score + ∇ log N(a; μ̃_z, Σ̃_z) − Σ_k q̃(k|a) ∇ log N(a; μ̃_k, Σ̃_k).
-        let mut g2 = 0.0f32;
         for j in 0..d {
             let g = &mut c.g[lane(j)];
             g.fill(0.0);
             for k in 0..z_n {
                 add_product(g, &c.joint[lane(k)], &c.grad[lane(k * d + j)]);
             }
-            let (gz, score, total) = (&c.grad[lane(z * d + j)], &c.score[lane(j)], &c.total[..n]);
-            for t in 0..n {
-                g[t] = score[t] + gz[t] - g[t] / total[t];
+            for z in z0..z1 {
+                let r = (z - z0) * v_n..(z - z0 + 1) * v_n;
+                let gz = &c.grad[lane(z * d + j)][r.clone()];
+                let (score, total) = (&c.score[lane(j)][r.clone()], &c.total[r.clone()]);
+                let g = &mut g[r];
+                for t in 0..v_n {
+                    g[t] = score[t] + gz[t] - g[t] / total[t];
+                }
             }
-            g2 += dot(g, g);
         }
-        (sum_log_resp, f64::from(g2))
     }
 }
 
@@ -236,7 +265,9 @@ pub struct ExpertStepStats {
 /// `buf.mean_g_eps`.
 ///
 /// `states` (`B x d_s`) are the states both `current` (the live student) and `snapshot` (the
-/// frozen E-step copy `q̃`) were evaluated on.
+/// frozen E-step copy `q̃`) were evaluated on. This is [`draw_sample_noise`] (the `ε` and the
+/// noise levels, in this order from `rng`), [`moments_from_noise`] and
+/// [`MomentSums::stats`].
 #[allow(clippy::too_many_arguments)]
 pub fn corrected_score_moments<S: ScoreModel + ?Sized>(
     teacher: &mut S,
@@ -249,23 +280,95 @@ pub fn corrected_score_moments<S: ScoreModel + ?Sized>(
     rng: &mut dyn RngCore,
     buf: &mut ExpertStepBuffers,
 ) -> Result<ExpertStepStats, CoreError> {
+    let n = current.n * current.num_experts * vi_samples;
+    let (eps, levels) = (&mut buf.eps, &mut buf.noise_levels);
+    draw_sample_noise(&*teacher, noise, progress, rng, n, current.action_dim, eps, levels);
+    let sums = moments_from_noise(teacher, current, snapshot, states, vi_samples, buf)?;
+    Ok(sums.stats(&buf.noise_levels, current.n * current.num_experts))
+}
+
+/// Draws the randomness of an expert step with `samples` samples of `d` dimensions: first
+/// `ε ~ N(0, I)` into `eps` (`samples · d`), then the teacher's noise levels from `noise` at
+/// `progress` into `levels` (`samples`); both are resized.
+#[allow(clippy::too_many_arguments)]
+pub fn draw_sample_noise<S: ScoreModel + ?Sized>(
+    teacher: &S,
+    noise: &NoiseSchedule,
+    progress: f32,
+    rng: &mut dyn RngCore,
+    samples: usize,
+    d: usize,
+    eps: &mut Vec<f32>,
+    levels: &mut Vec<f32>,
+) {
+    eps.resize(samples * d, 0.0);
+    levels.resize(samples, 0.0);
+    vdd_core::fill_standard_normal(rng, eps);
+    teacher.draw_noise_levels(noise, progress, rng, levels);
+}
+
+/// Sums over the samples and (state, expert) pairs of one [`moments_from_noise`], from which
+/// [`MomentSums::stats`] makes the step's statistics; the sums of several chunks of a batch
+/// add up ([`MomentSums::add`]).
+#[derive(Debug, Clone, Copy, Default, PartialEq)]
+pub struct MomentSums {
+    /// `Σ log q̃(z|a,s)` over the samples.
+    pub log_responsibility: f64,
+    /// `Σ |g|²` over the samples.
+    pub g2: f64,
+    /// `Σ H[q(a|s,z)]` over the (state, expert) pairs.
+    pub entropy: f32,
+}
+
+impl MomentSums {
+    /// Adds the sums of another chunk.
+    pub fn add(&mut self, other: &MomentSums) {
+        self.log_responsibility += other.log_responsibility;
+        self.g2 += other.g2;
+        self.entropy += other.entropy;
+    }
+
+    /// The statistics of a step whose samples were drawn at the noise levels `levels` (one per
+    /// sample) from `pairs` (state, expert) pairs.
+    pub fn stats(&self, levels: &[f32], pairs: usize) -> ExpertStepStats {
+        let n = levels.len();
+        ExpertStepStats {
+            noise_level: (levels.iter().map(|&l| f64::from(l)).sum::<f64>() / n as f64) as f32,
+            log_responsibility: (self.log_responsibility / n as f64) as f32,
+            expert_entropy: self.entropy / pairs as f32,
+            corrected_score_rms: (self.g2 / n as f64).sqrt() as f32,
+        }
+    }
+}
+
+/// [`corrected_score_moments`] with the `ε` and noise levels already in `buf.eps` and
+/// `buf.noise_levels` (`B·Z·V · d` and `B·Z·V`, as [`draw_sample_noise`] writes them): the
+/// samples, one batched teacher call, and the moments into `buf.mean_g` and
+/// `buf.mean_g_eps`. Returns the sums of the step's statistics.
+pub fn moments_from_noise<S: ScoreModel + ?Sized>(
+    teacher: &mut S,
+    current: &MoeOutput,
+    snapshot: &MoeOutput,
+    states: MatRef<'_, f32>,
+    vi_samples: usize,
+    buf: &mut ExpertStepBuffers,
+) -> Result<MomentSums, CoreError> {
     let (b_n, z_n, d, v_n) = (current.n, current.num_experts, current.action_dim, vi_samples);
     let ds = states.ncols();
     let n = b_n * z_n * v_n;
-    buf.eps.resize(n * d, 0.0);
+    vdd_core::check_len("expert step noise", buf.eps.len(), n * d)?;
+    vdd_core::check_len("expert step noise levels", buf.noise_levels.len(), n)?;
     buf.actions.resize(n * d, 0.0);
     buf.states.resize(n * ds, 0.0);
-    buf.noise_levels.resize(n, 0.0);
     buf.score.resize(n * d, 0.0);
     buf.mean_g.resize(b_n * z_n * d, 0.0);
     buf.mean_g_eps.resize(b_n * z_n * d * d, 0.0);
     buf.snap_linv.resize(z_n * d * d, 0.0);
     buf.snap_log_norm.resize(z_n, 0.0);
-    buf.lanes.resize(d, z_n, v_n);
+    buf.lanes.resize(d, z_n, (LANES_PER_PASS / v_n).clamp(1, z_n) * v_n);
     buf.diff_dd.resize(d * d, 0.0);
 
     // Reparameterised samples a = μ_z(s) + L_z(s) ε and their states.
-    vdd_core::fill_standard_normal(rng, &mut buf.eps);
     for b in 0..b_n {
         for z in 0..z_n {
             let (mu, l) = (current.mean(b, z), current.scale(b, z));
@@ -285,7 +388,6 @@ pub fn corrected_score_moments<S: ScoreModel + ?Sized>(
     }
 
     // One batched teacher call for every sample.
-    teacher.draw_noise_levels(noise, progress, rng, &mut buf.noise_levels);
     teacher.score(
         MatRef::from_row_major_slice(&buf.actions, n, d),
         MatRef::from_row_major_slice(&buf.states, n, ds),
@@ -354,15 +456,8 @@ pub fn corrected_score_moments<S: ScoreModel + ?Sized>(
         sum_g2 += g2;
     }
     let entropy: f32 =
-        (0..b_n * z_n).map(|k| gaussian::entropy(current.scale(k / z_n, k % z_n), d)).sum::<f32>()
-            / (b_n * z_n) as f32;
-    Ok(ExpertStepStats {
-        noise_level: (buf.noise_levels.iter().map(|&l| f64::from(l)).sum::<f64>() / n as f64)
-            as f32,
-        log_responsibility: (sum_log_resp / n as f64) as f32,
-        expert_entropy: entropy,
-        corrected_score_rms: (sum_g2 / n as f64).sqrt() as f32,
-    })
+        (0..b_n * z_n).map(|k| gaussian::entropy(current.scale(k / z_n, k % z_n), d)).sum::<f32>();
+    Ok(MomentSums { log_responsibility: sum_log_resp, g2: sum_g2, entropy })
 }
 
 /// Gradient of the experts' loss `L = −(1/B) Σ_b Σ_z w_z(s_b) J_z(s_b)` with respect to the
@@ -375,9 +470,23 @@ pub fn raw_gradients<E: Expert>(
     weights: &[f32],
     buf: &mut ExpertStepBuffers,
 ) {
-    let (b_n, z_n, d, r) = (current.n, current.num_experts, current.action_dim, expert.raw_dim());
-    buf.grad_raw.resize(b_n * z_n * r, 0.0);
-    for bz in 0..b_n * z_n {
+    raw_gradients_of_chunk(expert, current, weights, current.n, buf)
+}
+
+/// [`raw_gradients`] for a chunk of the states of a batch of `batch_size` states: `current`
+/// and `weights` hold the chunk's states only, and the loss is still the batch's mean.
+pub fn raw_gradients_of_chunk<E: Expert>(
+    expert: &E,
+    current: &MoeOutput,
+    weights: &[f32],
+    batch_size: usize,
+    buf: &mut ExpertStepBuffers,
+) {
+    let (z_n, d, r) = (current.num_experts, current.action_dim, expert.raw_dim());
+    let b_n = batch_size;
+    let rows = current.n;
+    buf.grad_raw.resize(rows * z_n * r, 0.0);
+    for bz in 0..rows * z_n {
         let out = &mut buf.grad_raw[bz * r..(bz + 1) * r];
         expert.expert_step_grad(
             &current.raw[bz * r..(bz + 1) * r],

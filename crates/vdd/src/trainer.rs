@@ -6,6 +6,7 @@ use serde::{Deserialize, Serialize};
 use vdd_core::{CoreError, Expert, ScoreModel, Seeds, Snapshot, Trainer, check_finite, check_len};
 use vdd_moe::step::clip_or_fail;
 use vdd_moe::{ExpertFamily, Moe, MoeConfig, MoeOutput};
+use vdd_nn::parallel::Workers;
 use vdd_nn::{Adam, Ema, Parameters};
 
 use crate::config::{ExpertWeighting, VddConfig};
@@ -155,6 +156,11 @@ pub struct Vdd<S: ScoreModel, E: Expert = ExpertFamily> {
     teacher_batch: Mat<f32>,
     teacher_gating_states: Mat<f32>,
     map_scratch: Vec<f32>,
+    /// The state batch's chunks ([`VddConfig::chunks`]; empty for one chunk) and the threads
+    /// they run on.
+    chunks: Vec<chunks::Chunk<E>>,
+    workers: Workers,
+    flat: Vec<f32>,
 }
 
 impl<S: ScoreModel> Vdd<S, ExpertFamily> {
@@ -254,7 +260,14 @@ impl<S: ScoreModel, E: Expert> Vdd<S, E> {
             .into());
         }
         let student_ema = config.student_ema.map(|decay| Ema::new(&student, decay)).transpose()?;
+        let chunks = match config.chunks.min(config.batch_size) {
+            1 => Vec::new(),
+            c => (0..c).map(|_| chunks::Chunk::new(&student)).collect(),
+        };
         Ok(Self {
+            chunks,
+            workers: Workers::default(),
+            flat: Vec::new(),
             expert_optimizer: Adam::new(config.expert_optimizer),
             gating_optimizer: Adam::new(config.gating_optimizer),
             student_ema,
@@ -309,9 +322,20 @@ impl<S: ScoreModel, E: Expert> Vdd<S, E> {
         &mut self.student
     }
 
-    /// The teacher.
+    /// The teacher. (The chunks' copies of it, [`VddConfig::chunks`], are made anew at the
+    /// next step.)
     pub fn teacher_mut(&mut self) -> &mut S {
+        self.chunks.iter_mut().for_each(chunks::Chunk::forget_teacher);
         &mut self.teacher
+    }
+
+    /// Runs the chunks of each step ([`VddConfig::chunks`]) on `threads` threads: 1 in the
+    /// calling thread, more on a pool of that many threads of its own, 0 (the default) on the
+    /// process-wide pool (`RAYON_NUM_THREADS` threads, default one per core), shared with the
+    /// other trainings of the process. The student is the same whatever the count.
+    pub fn set_threads(&mut self, threads: usize) -> Result<(), VddError> {
+        self.workers = Workers::new(threads)?;
+        Ok(())
     }
 
     /// Ends training and returns the student: the moving average of its parameters when
@@ -350,6 +374,47 @@ impl<S: ScoreModel, E: Expert> Vdd<S, E> {
             }
         }
 
+        let (stats, gating_entropy, expert_lr) = match self.chunks.is_empty() {
+            true => self.expert_steps(it, progress)?,
+            false => self.chunked_expert_steps(it, progress)?,
+        };
+
+        // Gating steps.
+        let mut gating_loss = None;
+        let mut gating_lr = 0.0;
+        let frozen = self.config.freeze_gating_after.is_some_and(|n| it >= n);
+        if self.student.has_learned_gating() && !frozen {
+            for k in 0..self.config.gating_steps_per_iter {
+                let stream = (it * self.config.gating_steps_per_iter + k) as u64;
+                let total = self.config.gating_steps();
+                let factor =
+                    self.config.gating_lr_schedule.factor(self.gating_optimizer.steps(), total);
+                gating_lr = self.config.gating_optimizer.lr * factor;
+                gating_loss = self.gating_step(it, stream, factor)?;
+            }
+        }
+
+        if let Some(ema) = &mut self.student_ema {
+            ema.update(&self.student)?;
+        }
+        self.iteration += 1;
+        Ok(IterationMetrics {
+            iteration: it,
+            expert: stats,
+            gating_loss,
+            gating_entropy,
+            expert_lr,
+            gating_lr,
+        })
+    }
+
+    /// The E-step snapshot and the expert steps of iteration `it` on the whole batch; returns
+    /// the last step's statistics, the mean gating entropy and the last learning rate.
+    fn expert_steps(
+        &mut self,
+        it: usize,
+        progress: f32,
+    ) -> Result<(ExpertStepStats, f32, f32), VddError> {
         // E-step: freeze a copy of the student on this batch.
         self.student.forward(self.batch.as_ref())?;
         self.snapshot.clone_from(self.student.output());
@@ -426,33 +491,7 @@ impl<S: ScoreModel, E: Expert> Vdd<S, E> {
             self.expert_optimizer.step(nets, factor)?;
         }
 
-        // Gating steps.
-        let mut gating_loss = None;
-        let mut gating_lr = 0.0;
-        let frozen = self.config.freeze_gating_after.is_some_and(|n| it >= n);
-        if self.student.has_learned_gating() && !frozen {
-            for k in 0..self.config.gating_steps_per_iter {
-                let stream = (it * self.config.gating_steps_per_iter + k) as u64;
-                let total = self.config.gating_steps();
-                let factor =
-                    self.config.gating_lr_schedule.factor(self.gating_optimizer.steps(), total);
-                gating_lr = self.config.gating_optimizer.lr * factor;
-                gating_loss = self.gating_step(it, stream, factor)?;
-            }
-        }
-
-        if let Some(ema) = &mut self.student_ema {
-            ema.update(&self.student)?;
-        }
-        self.iteration += 1;
-        Ok(IterationMetrics {
-            iteration: it,
-            expert: stats,
-            gating_loss,
-            gating_entropy,
-            expert_lr,
-            gating_lr,
-        })
+        Ok((stats, gating_entropy, expert_lr))
     }
 
     /// One gating step ([`vdd_moe::step::gating_step`] with learning-rate factor `factor`) on
@@ -581,9 +620,12 @@ impl<S: ScoreModel, E: Expert> Snapshot for Vdd<S, E> {
 }
 
 mod checkpoint;
+mod chunks;
 #[cfg(test)]
 mod tests;
 #[cfg(test)]
 mod tests_checkpoint;
+#[cfg(test)]
+mod tests_chunks;
 #[cfg(test)]
 mod tests_spaces;
