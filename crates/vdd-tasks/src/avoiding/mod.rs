@@ -58,6 +58,7 @@ use crate::{Result, TaskError};
 
 pub mod dataset;
 pub mod demonstrator;
+pub mod demos;
 mod features;
 pub mod protocol;
 pub mod rollout;
