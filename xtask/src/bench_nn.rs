@@ -44,8 +44,14 @@ pub fn run(args: &Args) -> crate::XResult {
         return Err("--batch, --width and --reps must be positive".into());
     }
     let (in_dim, hidden_dim, out_dim, layer_norm) = (width, width, width, args.layer_norm);
-    let cfg =
-        ResidualMlpConfig { in_dim, hidden_dim, num_blocks: blocks, out_dim, activation, layer_norm };
+    let cfg = ResidualMlpConfig {
+        in_dim,
+        hidden_dim,
+        num_blocks: blocks,
+        out_dim,
+        activation,
+        layer_norm,
+    };
     let b = mlp_vs_matmul(&cfg, batch, reps)?;
     let (net_gflops, bare_gflops) = b.best_gflops();
     let (k, cols) = (b.k, b.cols);

@@ -38,7 +38,14 @@ pub struct Args {
 /// Runs the benchmark.
 pub fn run(a: &Args) -> crate::XResult {
     let (quick, threads, no_toy, samples) = (a.quick, a.threads, a.no_toy, a.samples);
-    let o = RobustnessOptions { quick, threads, no_toy, samples, variant: a.variant, only: a.only.clone() };
+    let o = RobustnessOptions {
+        quick,
+        threads,
+        no_toy,
+        samples,
+        variant: a.variant,
+        only: a.only.clone(),
+    };
     std::fs::create_dir_all(&a.out)?;
     let doc = robustness(&o, |line: String| crate::progress::log(line))?;
     std::fs::write(a.out.join("robustness.json"), serde_json::to_string_pretty(&doc)?)?;

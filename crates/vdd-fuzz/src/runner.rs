@@ -186,7 +186,8 @@ mod tests {
     use super::*;
 
     fn campaign(name: &str, cases: usize, timeout: f64) -> Campaign {
-        let out = std::env::temp_dir().join(format!("vdd-fuzz-runner-{name}-{}", std::process::id()));
+        let out =
+            std::env::temp_dir().join(format!("vdd-fuzz-runner-{name}-{}", std::process::id()));
         Campaign { cases, seed: 0, out, timeout, memory_mib: 0, jobs: 2 }
     }
 

@@ -98,10 +98,13 @@ pub fn bench_fixtures(
             torch_rows_per_s: check.torch_rows_per_s,
         };
         let (u, s) = (check.unet_max_abs_diff, check.sample_max_abs_diff);
-        row(&r, &format!(
-            "{:24} max_abs_diff {:.2e} (U-Net {u:.2e}, sampling {s:.2e})  rows/s {:>9.0}  torch {:>9.0}",
-            r.fixture, r.max_abs_diff, r.rows_per_s, r.torch_rows_per_s
-        ));
+        row(
+            &r,
+            &format!(
+                "{:24} max_abs_diff {:.2e} (U-Net {u:.2e}, sampling {s:.2e})  rows/s {:>9.0}  torch {:>9.0}",
+                r.fixture, r.max_abs_diff, r.rows_per_s, r.torch_rows_per_s
+            ),
+        );
         records.push(r);
     }
     let mut push = |fixture: &str, architecture: String, diff: f64, ours: f64, torch: f64| {
@@ -112,7 +115,12 @@ pub fn bench_fixtures(
             rows_per_s: ours,
             torch_rows_per_s: torch,
         };
-        row(&r, &format!("{fixture:24} max_abs_diff {diff:.2e}  rows/s {ours:>9.0}  torch {torch:>9.0}"));
+        row(
+            &r,
+            &format!(
+                "{fixture:24} max_abs_diff {diff:.2e}  rows/s {ours:>9.0}  torch {torch:>9.0}"
+            ),
+        );
         records.push(r);
     };
     for name in crate::BESO_FIXTURES {

@@ -84,7 +84,9 @@ pub use resolve::{
     read_recipe, resolve,
 };
 pub use seeds::{MAX_SEEDS, parse_seeds};
-pub use tree::{expand_dotted, from_tree, get_path, merge, parse_value, set_path, to_tree, unknown_keys};
+pub use tree::{
+    expand_dotted, from_tree, get_path, merge, parse_value, set_path, to_tree, unknown_keys,
+};
 
 #[cfg(test)]
 mod tests;

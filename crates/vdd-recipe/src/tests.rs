@@ -257,9 +257,8 @@ fn values_are_read_at_dotted_paths_and_errors_name_the_path() {
     struct Em {
         iterations: u32,
     }
-    let tree: toml::Table = "[baselines.em]\niterations = 3\n[baselines.x]\nbad = 1\nn = 2"
-        .parse()
-        .unwrap();
+    let tree: toml::Table =
+        "[baselines.em]\niterations = 3\n[baselines.x]\nbad = 1\nn = 2".parse().unwrap();
     assert_eq!(get_path::<Em>(&tree, "baselines.em").unwrap(), Some(Em { iterations: 3 }));
     assert_eq!(get_path::<u32>(&tree, "baselines.em.iterations").unwrap(), Some(3));
     assert_eq!(get_path::<u32>(&tree, "baselines.imc.iterations").unwrap(), None);

@@ -15,10 +15,10 @@ use std::time::Instant;
 
 use faer::Mat;
 use serde_json::{Value, json};
-use vdd_core::{Seeds, Trainer as _};
 use vdd_core::gmm::GmmTeacher;
 use vdd_core::gmm::family::{MixtureProblem, ProblemInfo, robustness_family};
 use vdd_core::parallel::parallel_map;
+use vdd_core::{Seeds, Trainer as _};
 use vdd_moe::{ExpertKind, GatingKind, MoeConfig};
 
 use crate::eval::evaluate_against_mixture;
@@ -191,8 +191,13 @@ pub fn robustness(o: &RobustnessOptions, log: impl Fn(String) + Sync) -> Result<
         let f = |key: &str| r[key].as_f64().unwrap_or(f64::NAN);
         log(format!(
             "[{k}/{}] {name} seed {seed} experts {experts}: reverse KL {:.4} forward KL {:.4} covered {}/{} {:.1} ms/iter {}",
-            jobs.len(), f("reverse_kl"), f("forward_kl"), r["components_covered"], r["components"],
-            f("ms_per_iter"), r.get("error").map_or(String::new(), |e| e.to_string()),
+            jobs.len(),
+            f("reverse_kl"),
+            f("forward_kl"),
+            r["components_covered"],
+            r["components"],
+            f("ms_per_iter"),
+            r.get("error").map_or(String::new(), |e| e.to_string()),
         ));
         Ok::<_, Infallible>(r)
     });

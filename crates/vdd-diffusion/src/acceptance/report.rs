@@ -45,18 +45,17 @@ fn pass(ok: bool) -> &'static str {
 /// [`Thresholds::check`]) and the score cosine at `sigma` (and, for information, at `sigma /
 /// 2`); then, for information, every other sampler at 16, 8 and 1 steps (2000 samples each).
 /// The teachers' samplers are restored.
-pub fn circle_section(
-    ts: &mut [DiffusionTeacher; 2],
-    seed: u64,
-    sigma: f32,
-) -> Result<Section> {
+pub fn circle_section(ts: &mut [DiffusionTeacher; 2], seed: u64, sigma: f32) -> Result<Section> {
     let thresholds = Thresholds::default();
     let reference = CircleReference::new(2000, seed)?;
     let (baseline, exact) = (reference.baseline, &reference.exact);
     let bar = thresholds.mmd2_bar(baseline);
     let mut out = Section::default();
     let text = &mut out.text;
-    line!(text, "\n== acceptance: 2-D toy (8 modes on a circle of radius 2, std 0.5; 5000 pairs) ==");
+    line!(
+        text,
+        "\n== acceptance: 2-D toy (8 modes on a circle of radius 2, std 0.5; 5000 pairs) =="
+    );
     line!(
         text,
         "MMD² (RBF, bandwidth 1), two independent true sets of 2000: {baseline:.5}; bar 3x = {bar:.5}"
@@ -147,7 +146,10 @@ pub fn rotating_section(
 ) -> Result<Section> {
     let mut out = Section::default();
     let text = &mut out.text;
-    line!(text, "min share of 2000 samples over the 8 modes at state s (MMD² to 1000 true samples):");
+    line!(
+        text,
+        "min share of 2000 samples over the 8 modes at state s (MMD² to 1000 true samples):"
+    );
     line!(text, "{:>7} {:>22} {:>22}", "s", "DDPM", "BESO");
     let thresholds = Thresholds::default();
     let mut worst = [f32::INFINITY; 2];
@@ -184,8 +186,14 @@ pub fn rotating_section(
 /// teacher's default. The teachers end with their default samplers.
 pub fn latency_section(ts: &mut [DiffusionTeacher; 2], min_secs: f64) -> Result<String> {
     let mut text = String::new();
-    line!(text, "\n== sampling latency: µs per action (act_batch, single thread, best of 5 rounds) ==");
-    line!(text, "(2-D toy teachers; wall clock on a shared machine: other jobs inflate these figures)");
+    line!(
+        text,
+        "\n== sampling latency: µs per action (act_batch, single thread, best of 5 rounds) =="
+    );
+    line!(
+        text,
+        "(2-D toy teachers; wall clock on a shared machine: other jobs inflate these figures)"
+    );
     let steps = [1usize, 2, 4, 8, 16];
     for batch in [1usize, 256] {
         line!(text, "\nbatch {batch}:");

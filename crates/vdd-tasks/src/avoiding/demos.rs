@@ -203,7 +203,8 @@ pub fn check_round_trip(episodes: &Episodes, path: &Path) -> Result<(), DemosErr
     }
     let again = path.with_extension("roundtrip.npz");
     loaded.save_npz(&again)?;
-    let same = std::fs::read(path).map_err(io(path))? == std::fs::read(&again).map_err(io(&again))?;
+    let same =
+        std::fs::read(path).map_err(io(path))? == std::fs::read(&again).map_err(io(&again))?;
     std::fs::remove_file(&again).map_err(io(&again))?;
     if !same {
         let e = format!("re-saving the loaded {} changes its bytes", path.display());
