@@ -9,10 +9,9 @@
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 
-use serde_json::json;
 use toml::Table;
 
-use crate::recipe::{self, Overrides};
+use crate::recipe::{self, Overrides, run};
 
 /// Everything a task pipeline needs to run a recipe.
 #[derive(Debug, Clone)]
@@ -58,32 +57,17 @@ impl RunContext {
             *CREATED.lock().unwrap_or_else(|e| e.into_inner()) = Some(dir.to_owned());
         }
         std::fs::create_dir_all(dir).map_err(|e| format!("creating {}: {e}", dir.display()))?;
-        let header = format!(
-            "# Resolved configuration of recipe `{}`.\n# Command: {}\n# Re-run: cargo xtask experiment {}/resolved.toml\n\n",
-            self.name,
-            self.command,
-            dir.display()
-        );
+        let header = run::resolved_header(&self.name, &self.command, dir);
         vdd_nn::io::write_atomic(&dir.join("resolved.toml"), (header + resolved_toml).as_bytes())?;
         Ok(())
     }
 
-    /// Writes `run.json` (command, git revision, wall time, `extra`) into `dir`.
+    /// Writes `run.json` ([`vdd_recipe::run::run_info`]) into `dir`.
     pub fn write_run_info(&self, dir: &Path, extra: serde_json::Value) -> crate::XResult {
-        let (revision, dirty) = git_revision();
-        let info = json!({
-            "recipe": self.name,
-            "command": self.command,
-            "git": { "revision": revision, "dirty": dirty },
-            "wall_seconds": self.started.elapsed().as_secs_f64(),
-            "cpu_seconds": cpu_seconds(),
-            "threads_available": std::thread::available_parallelism().map_or(1, |p| p.get()),
-            "details": extra,
-        });
-        vdd_nn::io::write_atomic(
-            &dir.join("run.json"),
-            serde_json::to_string_pretty(&info)?.as_bytes(),
-        )?;
+        let times = (self.started.elapsed().as_secs_f64(), cpu_seconds());
+        let info = run::run_info(&self.name, &self.command, &recipe::repo_root(), times, extra);
+        let text = serde_json::to_string_pretty(&info)?;
+        vdd_nn::io::write_atomic(&dir.join("run.json"), text.as_bytes())?;
         Ok(())
     }
 }

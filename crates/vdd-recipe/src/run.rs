@@ -55,6 +55,36 @@ pub fn run_name(seeds: &[u64], o: &Overrides) -> String {
     name
 }
 
+/// The first lines of a run's `resolved.toml`: the recipe, the command, and how to run the
+/// file in `dir` again.
+pub fn resolved_header(recipe: &str, command: &str, dir: &Path) -> String {
+    format!(
+        "# Resolved configuration of recipe `{recipe}`.\n# Command: {command}\n# Re-run: cargo xtask experiment {}/resolved.toml\n\n",
+        dir.display()
+    )
+}
+
+/// A run's `run.json`: the recipe, the command, the revision of the repository at `root`
+/// ([`git_revision`]), wall and CPU seconds, the threads available and `details`.
+pub fn run_info(
+    recipe: &str,
+    command: &str,
+    root: &Path,
+    (wall_seconds, cpu_seconds): (f64, Option<f64>),
+    details: serde_json::Value,
+) -> serde_json::Value {
+    let (revision, dirty) = git_revision(root);
+    serde_json::json!({
+        "recipe": recipe,
+        "command": command,
+        "git": { "revision": revision, "dirty": dirty },
+        "wall_seconds": wall_seconds,
+        "cpu_seconds": cpu_seconds,
+        "threads_available": std::thread::available_parallelism().map_or(1, |p| p.get()),
+        "details": details,
+    })
+}
+
 /// `(git rev-parse HEAD, working tree dirty)` of the repository at `root`, or
 /// `("unknown", None)` without git.
 pub fn git_revision(root: &Path) -> (String, Option<bool>) {
@@ -95,6 +125,24 @@ mod tests {
         let e = find_recipe(&dir, "c").unwrap_err().to_string();
         assert!(e.contains("no recipe `c`") && e.ends_with("available: a, b"), "{e}");
         std::fs::remove_dir_all(&dir).unwrap();
+    }
+
+    #[test]
+    fn run_records_name_the_recipe_command_and_revision() {
+        let dir = Path::new("results/toy/seed0");
+        let h = resolved_header("toy", "cargo xtask experiment toy", dir);
+        assert!(h.starts_with("# Resolved configuration of recipe `toy`.\n# Command: cargo"));
+        assert!(h.ends_with("experiment results/toy/seed0/resolved.toml\n\n"), "{h}");
+        let root = std::env::temp_dir().join(format!("vdd-recipe-run-{}", std::process::id()));
+        std::fs::create_dir_all(&root).unwrap();
+        let info = run_info("toy", "c", &root, (1.5, None), serde_json::json!({"jobs": 2}));
+        assert_eq!(
+            (info["recipe"].as_str(), info["wall_seconds"].as_f64()),
+            (Some("toy"), Some(1.5))
+        );
+        assert!(info["cpu_seconds"].is_null() && info["git"]["revision"].is_string());
+        assert_eq!(info["details"]["jobs"], 2);
+        std::fs::remove_dir_all(&root).unwrap();
     }
 
     #[test]
