@@ -221,8 +221,8 @@ mod tests {
     #[test]
     fn tuning_and_reporting_runs_stay_apart() {
         let err = |s: &[u64], d| is_tuning_run(s, d).unwrap_err().to_string();
-        assert_eq!(is_tuning_run(&[100, 104], TUNING_DATA_SEED).unwrap(), true);
-        assert_eq!(is_tuning_run(&[0, 1, 2], 0).unwrap(), false);
+        assert!(is_tuning_run(&[100, 104], TUNING_DATA_SEED).unwrap());
+        assert!(!is_tuning_run(&[0, 1, 2], 0).unwrap());
         assert!(err(&[0, 100], TUNING_DATA_SEED).contains("mix"));
         assert!(err(&[100], 0).contains("--tuning"));
         assert!(err(&[3], TUNING_DATA_SEED).contains("tuning data"));
