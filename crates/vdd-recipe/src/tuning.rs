@@ -195,7 +195,7 @@ pub fn configs_tried(entries: &[LogEntry], method: &str) -> usize {
 /// A hash ([`config_hash`](crate::config_hash)) of what a method trains on and with: its
 /// `name`, the `data` configuration, its `teachers` (when it has any), the `student` and the
 /// values of its own recipe `keys`.
-pub fn method_config_hash<D: Serialize, T: Serialize, S: Serialize>(
+pub fn method_config_hash<D: Serialize + ?Sized, T: Serialize + ?Sized, S: Serialize + ?Sized>(
     name: &str,
     data: &D,
     teachers: Option<&T>,

@@ -183,6 +183,9 @@ pub fn against_circle<E: Expert>(
     Ok(out)
 }
 
+/// An arrow of a figure: its position and its vector, in raw action coordinates.
+pub type Arrow = ((f32, f32), (f32, f32));
+
 /// The score field of `teacher` (2-D actions, scalar state) for a figure: its score at noise
 /// level `sigma` at the centres of a `k x k` grid (`k` at least 2) over the raw square
 /// `[−extent, extent]²` at raw state `s`, the teacher seeing normalised states and actions
@@ -208,7 +211,7 @@ pub fn score_arrows(
     extent: f32,
     k: usize,
     sigma: f32,
-) -> Result<Vec<((f32, f32), (f32, f32))>, vdd_core::CoreError> {
+) -> Result<Vec<Arrow>, vdd_core::CoreError> {
     let (an, e, k) = (action_norm, extent, k.max(2));
     check_len("state normaliser", state_norm.dim(), 1)?;
     check_len("action normaliser", an.dim(), 2)?;
