@@ -9,7 +9,7 @@
 use faer::Mat;
 use serde::Serialize;
 use serde::de::DeserializeOwned;
-use toml::{Table, Value};
+use toml::Table;
 use vdd_core::Affine;
 use vdd_core::gmm::GmmTeacher;
 use vdd_diffusion::TeacherKind;
@@ -72,26 +72,12 @@ impl MethodRecipe<'_> {
         self.get_opt(path)?.ok_or_else(|| format!("the recipe has no `{path}`").into())
     }
 
-    /// The value at `path`, `None` when the key is absent.
+    /// The value at `path`, `None` when the key is absent ([`recipe::get_path`]).
     pub fn get_opt<T: Serialize + DeserializeOwned>(
         &self,
         path: &str,
     ) -> crate::XResult<Option<T>> {
-        let mut parts = path.split('.');
-        let first = parts.next().unwrap_or_default();
-        let mut cur = self.tree.get(first);
-        for p in parts {
-            cur = match cur {
-                Some(Value::Table(t)) => t.get(p),
-                _ => None,
-            };
-        }
-        let parsed = match cur {
-            None => return Ok(None),
-            Some(Value::Table(t)) => recipe::from_tree(t).map_err(|e| e.to_string()),
-            Some(v) => v.clone().try_into().map_err(|e: toml::de::Error| e.to_string()),
-        };
-        parsed.map(Some).map_err(|e| format!("`{path}`: {e}").into())
+        Ok(recipe::get_path(self.tree, path)?)
     }
 }
 

@@ -16,35 +16,13 @@ pub fn repo_root() -> PathBuf {
 }
 
 /// The recipe file for `name`: an existing `.toml` path, or `recipes/<name>.toml`.
-pub fn recipe_path(name: &str) -> Result<PathBuf, String> {
-    let direct = Path::new(name);
-    if name.ends_with(".toml") && direct.is_file() {
-        return Ok(direct.to_path_buf());
-    }
-    let p = repo_root().join("recipes").join(format!("{name}.toml"));
-    if p.is_file() {
-        Ok(p)
-    } else {
-        Err(format!("no recipe `{name}` ({} does not exist); available: {}", p.display(), {
-            available_recipes().join(", ")
-        }))
-    }
+pub fn recipe_path(name: &str) -> RecipeResult<PathBuf> {
+    run::find_recipe(&repo_root().join("recipes"), name)
 }
 
 /// Names of the recipes in `recipes/`.
 pub fn available_recipes() -> Vec<String> {
-    let mut names: Vec<String> = std::fs::read_dir(repo_root().join("recipes"))
-        .map(|rd| {
-            rd.filter_map(|e| e.ok())
-                .filter_map(|e| {
-                    let p = e.path();
-                    (p.extension()? == "toml").then(|| p.file_stem()?.to_str().map(String::from))?
-                })
-                .collect()
-        })
-        .unwrap_or_default();
-    names.sort();
-    names
+    run::recipes_in(&repo_root().join("recipes"))
 }
 
 /// Test helper: the defaults `files` deserialise into `R` and state every key that `R`

@@ -30,37 +30,23 @@ pub struct TableArgs {
 pub fn run_table(args: &TableArgs) -> crate::XResult {
     let (paths, out) = (&args.runs, &args.out);
     let extra = if args.budgets { budget_columns() } else { Vec::new() };
-    let text = if paths.is_empty() {
-        let groups = find_runs(&crate::recipe::repo_root().join("results"));
-        if groups.is_empty() {
-            return Err("no results/<recipe>/<run>/metrics.json found; run `cargo xtask \
-                        experiment <recipe>` first or pass run directories"
-                .into());
-        }
-        let mut text = String::new();
-        for (_, runs) in groups {
-            text.push_str(&table_text(&runs, &extra)?);
-            text.push('\n');
-        }
-        text
+    let Table { text, notes } = if paths.is_empty() {
+        tables_of_all_runs(&crate::recipe::repo_root().join("results"), &extra)?
     } else {
-        table_text(paths, &extra)?
+        table_of_runs_with(paths, &extra)?
     };
+    if text.is_empty() {
+        return Err("no results/<recipe>/<run>/metrics.json found; run `cargo xtask \
+                    experiment <recipe>` first or pass run directories"
+            .into());
+    }
+    notes.iter().for_each(|n| eprintln!("note: {n}"));
     print!("{text}");
     if let Some(out) = out {
         std::fs::write(out, &text).map_err(|e| format!("writing {}: {e}", out.display()))?;
         eprintln!("wrote {}", out.display());
     }
     Ok(())
-}
-
-/// The table of the runs at `paths`, its notes printed to stderr.
-fn table_text(paths: &[PathBuf], extra: &[Column]) -> crate::XResult<String> {
-    let Table { text, notes } = table_of_runs_with(paths, extra)?;
-    for n in &notes {
-        eprintln!("note: {n}");
-    }
-    Ok(text)
 }
 
 /// The command line of `compare`.

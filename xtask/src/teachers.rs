@@ -54,16 +54,9 @@ pub fn train_or_load(
     Ok(t)
 }
 
-/// A `run.json` entry for a teacher: kind, seed, cache hash, whether it came from the cache
-/// and its training seconds.
+/// A `run.json` entry for a teacher ([`TrainedTeacher::log_entry`]).
 pub fn cache_entry(kind: TeacherKind, seed: u64, t: &TrainedTeacher) -> serde_json::Value {
-    serde_json::json!({
-        "teacher": kind_name(kind),
-        "seed": seed,
-        "hash": t.hash,
-        "cached": t.cached,
-        "train_seconds": t.train_seconds,
-    })
+    t.log_entry(kind, seed)
 }
 
 /// `path` relative to the current directory when possible.

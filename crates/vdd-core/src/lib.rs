@@ -12,7 +12,8 @@
 //!   from the paper, for learned teachers that extrapolate far from their data);
 //! * shared helpers: [`Seeds`] (independent ChaCha streams per purpose), the stable hash
 //!   [`hash::fnv1a`] (seed purposes, cache keys, config hashes), Gaussian kernels in
-//!   [`gaussian`], element-wise [`lanes`] kernels for batched mixtures, shape and finiteness checks, and [`CoreError`].
+//!   [`gaussian`], element-wise [`lanes`] kernels for batched mixtures, independent jobs on a few threads
+//!   ([`parallel::parallel_map`]), shape and finiteness checks, and [`CoreError`].
 //!
 //! Batches are `faer` matrices with one row per sample (`n x dim`), `f32` throughout.
 #![warn(missing_docs)]
@@ -26,6 +27,7 @@ pub mod hash;
 pub mod lanes;
 pub mod memory;
 mod normalize;
+pub mod parallel;
 mod policy;
 mod score;
 mod seed;

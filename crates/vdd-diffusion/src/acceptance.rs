@@ -12,7 +12,8 @@
 //!   [`Thresholds::min_score_cosine`].
 //!
 //! `cargo xtask bench teachers` runs these checks on the circle and rotating toys and prints
-//! the sampler tables ([`SamplerSetting`], [`act_batch_latency_us`]).
+//! the sampler tables ([`SamplerSetting`], [`act_batch_latency_us`]); [`report`] builds its
+//! sections.
 //!
 //! ```
 //! use vdd_diffusion::acceptance::{Measures, Thresholds};
@@ -25,6 +26,8 @@
 //! ```
 
 use std::time::Instant;
+
+pub mod report;
 
 use faer::{Mat, MatRef};
 use rand::Rng as _;

@@ -98,6 +98,20 @@ pub struct CachedTeacher {
     pub path: PathBuf,
 }
 
+impl CachedTeacher {
+    /// A record of where the teacher of `kind` and `seed` came from (for a run's `run.json`):
+    /// `{"teacher", "seed", "hash", "cached", "train_seconds"}`.
+    pub fn log_entry(&self, kind: TeacherKind, seed: u64) -> serde_json::Value {
+        serde_json::json!({
+            "teacher": kind_name(kind),
+            "seed": seed,
+            "hash": self.hash,
+            "cached": self.cached,
+            "train_seconds": self.train_seconds,
+        })
+    }
+}
+
 /// What determines a cached teacher's weights; serialise it (fields in declaration order) and
 /// hash the JSON to get the cache key hash.
 #[derive(Debug, Clone, Serialize)]

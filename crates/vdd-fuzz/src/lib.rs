@@ -1,5 +1,5 @@
-//! The engine of the workspace's mutation fuzzer (`cargo xtask fuzz`, which runs each case in
-//! a child process with memory and time limits; that runner is xtask's).
+//! The engine of the workspace's mutation fuzzer (`cargo xtask fuzz`) and its runner
+//! ([`runner`]: each case in a child process with memory and time limits).
 //!
 //! A [`Target`] is one family of files a loader reads (`npy`, `npz`, `safetensors`, `moe`,
 //! `teacher`, `checkpoint`, `recipe`). For each the crate writes valid seed inputs
@@ -35,6 +35,7 @@
 
 mod mutate;
 mod report;
+pub mod runner;
 mod targets;
 
 use std::path::{Path, PathBuf};
@@ -61,6 +62,18 @@ pub enum Error {
         #[source]
         source: BoxError,
     },
+    /// The runner could not write a case, start, wait for or keep a child.
+    #[error("fuzz runner: {}: {source}", .path.display())]
+    Io {
+        /// The file, directory or program.
+        path: PathBuf,
+        /// The underlying error.
+        #[source]
+        source: std::io::Error,
+    },
+    /// Settings the runner cannot use.
+    #[error("invalid fuzz settings: {0}")]
+    Settings(&'static str),
 }
 
 /// A family of files the fuzzer mutates, and the loader that reads them.

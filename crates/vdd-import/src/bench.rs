@@ -1,7 +1,14 @@
-//! The record `cargo xtask bench import` writes per fixture architecture (shared by every
-//! importer's fixtures).
+//! `cargo xtask bench import`: every fixture architecture's agreement with PyTorch and its
+//! throughput against PyTorch's ([`bench_fixtures`], one [`ImportBenchRecord`] each).
 
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+use faer::Mat;
 use serde::{Deserialize, Serialize};
+
+use crate::fixture::check_unet_fixture;
+use crate::{BesoError, ImportError, UnetTeacher};
 
 /// One fixture architecture's agreement with PyTorch and throughput.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -20,3 +27,112 @@ pub struct ImportBenchRecord {
 
 /// The batch the throughput is measured at.
 pub const BENCH_BATCH: usize = 1024;
+
+/// Errors of [`bench_fixtures`]: the fixtures' directory, or an importer's error.
+#[derive(Debug, thiserror::Error)]
+pub enum BenchError {
+    /// The fixtures' directory could not be listed.
+    #[error("{}: {source}", .path.display())]
+    Io {
+        /// The directory.
+        path: PathBuf,
+        /// The underlying error.
+        #[source]
+        source: std::io::Error,
+    },
+    /// A U-Net fixture failed.
+    #[error(transparent)]
+    Import(#[from] ImportError),
+    /// A BESO or diffusion_policy transformer fixture failed.
+    #[error(transparent)]
+    Beso(#[from] BesoError),
+}
+
+/// Rows per second of `teacher`'s U-Net forward at batch `batch` on the calling thread: the
+/// best of 5 timed calls after one warm-up call, on fixed inputs.
+pub fn unet_rows_per_s(teacher: &mut UnetTeacher, batch: usize) -> Result<f64, ImportError> {
+    let s = teacher.spec();
+    let (w, g) = (s.horizon * s.unet.input_dim, s.unet.global_cond_dim);
+    let x = Mat::from_fn(batch, w, |i, j| ((i * 31 + j * 7) % 17) as f32 / 8.0 - 1.0);
+    let c = Mat::from_fn(batch, g, |i, j| ((i * 13 + j * 5) % 11) as f32 / 5.0 - 1.0);
+    let t: Vec<f32> = (0..batch).map(|i| (i % 100) as f32).collect();
+    let mut out = Mat::zeros(batch, w);
+    teacher.predict(x.as_ref(), &t, c.as_ref(), out.as_mut())?;
+    let mut best = f64::INFINITY;
+    for _ in 0..5 {
+        let t0 = Instant::now();
+        teacher.predict(x.as_ref(), &t, c.as_ref(), out.as_mut())?;
+        best = best.min(t0.elapsed().as_secs_f64());
+    }
+    Ok(batch as f64 / best)
+}
+
+/// Checks every fixture under `dir` against PyTorch's recorded outputs and times our forward
+/// at [`BENCH_BATCH`] rows on this thread: the U-Net fixtures (directories `lerobot_unet*`,
+/// `diffusion_policy_unet*` with an `expected.safetensors`), then [`crate::BESO_FIXTURES`]
+/// and [`crate::DP_TRANSFORMER_FIXTURES`]. `row` receives each record with a one-line
+/// summary as it is measured.
+pub fn bench_fixtures(
+    dir: &Path,
+    mut row: impl FnMut(&ImportBenchRecord, &str),
+) -> Result<Vec<ImportBenchRecord>, BenchError> {
+    let io = |source| BenchError::Io { path: dir.to_owned(), source };
+    let mut dirs: Vec<PathBuf> = std::fs::read_dir(dir)
+        .map_err(io)?
+        .filter_map(|e| e.ok().map(|e| e.path()))
+        .filter(|p| p.join("expected.safetensors").is_file())
+        .collect();
+    dirs.sort();
+    let mut records = Vec::new();
+    for dir in dirs {
+        let name = dir.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
+        if !(name.starts_with("lerobot_unet") || name.starts_with("diffusion_policy_unet")) {
+            continue;
+        }
+        let (mut teacher, check) = check_unet_fixture(&dir)?;
+        let r = ImportBenchRecord {
+            fixture: name,
+            architecture: check.architecture,
+            max_abs_diff: check.unet_max_abs_diff.max(check.sample_max_abs_diff),
+            rows_per_s: unet_rows_per_s(&mut teacher, BENCH_BATCH)?,
+            torch_rows_per_s: check.torch_rows_per_s,
+        };
+        let (u, s) = (check.unet_max_abs_diff, check.sample_max_abs_diff);
+        row(
+            &r,
+            &format!(
+                "{:24} max_abs_diff {:.2e} (U-Net {u:.2e}, sampling {s:.2e})  rows/s {:>9.0}  torch {:>9.0}",
+                r.fixture, r.max_abs_diff, r.rows_per_s, r.torch_rows_per_s
+            ),
+        );
+        records.push(r);
+    }
+    let mut push = |fixture: &str, architecture: String, diff: f64, ours: f64, torch: f64| {
+        let r = ImportBenchRecord {
+            fixture: fixture.into(),
+            architecture,
+            max_abs_diff: diff as f32,
+            rows_per_s: ours,
+            torch_rows_per_s: torch,
+        };
+        row(
+            &r,
+            &format!(
+                "{fixture:24} max_abs_diff {diff:.2e}  rows/s {ours:>9.0}  torch {torch:>9.0}"
+            ),
+        );
+        records.push(r);
+    };
+    for name in crate::BESO_FIXTURES {
+        let (report, mut teacher) = crate::check_beso_fixture(dir, name)?;
+        let ours = crate::beso_rows_per_s(&mut teacher, BENCH_BATCH, 2.0)?;
+        let arch = format!("beso_{}", report.arch);
+        push(name, arch, report.max_abs_diff(), ours, report.torch_rows_per_s);
+    }
+    for name in crate::DP_TRANSFORMER_FIXTURES {
+        let (diff, torch, mut net) = crate::check_dp_transformer_fixture(dir, name)?;
+        let ours = crate::dp_transformer_rows_per_s(&mut net, BENCH_BATCH, 2.0)?;
+        push(name, "diffusion_policy_transformer".into(), diff, ours, torch);
+    }
+    Ok(records)
+}

@@ -41,6 +41,16 @@ pub enum ImportError {
         /// The offending value.
         value: String,
     },
+    /// An external converter (`scripts/import/*.py`) ran and failed.
+    #[error("{} failed on {} ({status})", .script.display(), .input.display())]
+    Converter {
+        /// The script.
+        script: PathBuf,
+        /// The file it converted.
+        input: PathBuf,
+        /// Its exit status.
+        status: String,
+    },
     /// Building or loading a network failed (a missing tensor names its key).
     #[error(transparent)]
     Nn(#[from] vdd_nn::NnError),

@@ -217,6 +217,35 @@ pub fn evaluate_dataset<E: Expert>(
     }
     let (mut a, mut work, mut row) = (vec![0.0f32; d], vec![0.0f32; d], vec![0.0f32; z_n]);
     let actions = data.actions();
+    for_each_pair(student, data, |o, out, b| {
+        for j in 0..d {
+            a[j] = actions[(o, j)];
+        }
+        let lg = out.log_gating_row(b);
+        for k in 0..z_n {
+            let ll = gaussian::log_density(&a, out.mean(b, k), out.scale(b, k), &mut work);
+            if let Some(e) = expert_log_lik.as_deref_mut() {
+                e[o * z_n + k] = ll;
+            }
+            row[k] = lg[k] + ll;
+        }
+        let log_q = gaussian::softmax_in_place(&mut row);
+        if let Some(r) = responsibilities.as_deref_mut() {
+            r[o * z_n..(o + 1) * z_n].copy_from_slice(&row);
+        }
+        log_q
+    })
+}
+
+/// Runs the mixture on the states of `data` in chunks of [`EVAL_CHUNK`] rows and calls
+/// `f(o, output, b)` for every pair `o` (row `b` of the chunk's output), in order; returns the
+/// mean of `f`'s values (summed in `f64`).
+pub(crate) fn for_each_pair<E: Expert>(
+    student: &mut Moe<E>,
+    data: &Dataset,
+    mut f: impl FnMut(usize, &MoeOutput, usize) -> f32,
+) -> Result<f64, MixtureError> {
+    let n = data.len();
     let mut sum = 0.0f64;
     let mut start = 0;
     while start < n {
@@ -224,22 +253,7 @@ pub fn evaluate_dataset<E: Expert>(
         student.forward(data.states().subrows(start, len))?;
         let out = student.output();
         for b in 0..len {
-            let o = start + b;
-            for j in 0..d {
-                a[j] = actions[(o, j)];
-            }
-            let lg = out.log_gating_row(b);
-            for k in 0..z_n {
-                let ll = gaussian::log_density(&a, out.mean(b, k), out.scale(b, k), &mut work);
-                if let Some(e) = expert_log_lik.as_deref_mut() {
-                    e[o * z_n + k] = ll;
-                }
-                row[k] = lg[k] + ll;
-            }
-            sum += f64::from(gaussian::softmax_in_place(&mut row));
-            if let Some(r) = responsibilities.as_deref_mut() {
-                r[o * z_n..(o + 1) * z_n].copy_from_slice(&row);
-            }
+            sum += f64::from(f(start + b, out, b));
         }
         start += len;
     }

@@ -12,6 +12,7 @@
 #![warn(missing_docs)]
 
 mod activation;
+pub mod bench;
 pub mod checkpoint;
 mod ema;
 mod embedding;

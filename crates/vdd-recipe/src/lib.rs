@@ -34,6 +34,12 @@
 //! `0.10000000149011612`; see [`to_tree`]), so [`Resolved::to_toml`] reads like a hand-written
 //! recipe and resolves to the same configuration again.
 //!
+//! # Runs and tuning
+//!
+//! [`run`] names run directories after their seeds and overrides and records the revision they
+//! ran at; [`tuning`] keeps tuning runs apart from the reported ones and reads and appends the
+//! tuning log.
+//!
 //! # Hashes
 //!
 //! [`config_hash`] is FNV-1a 64 ([`fnv1a`]) of a value's JSON form: a stable key for caches of
@@ -65,8 +71,10 @@ mod error;
 mod hash;
 mod header;
 mod resolve;
+pub mod run;
 mod seeds;
 mod tree;
+pub mod tuning;
 
 pub use error::{RecipeError, RecipeResult};
 pub use hash::{config_hash, fnv1a};
@@ -76,7 +84,9 @@ pub use resolve::{
     read_recipe, resolve,
 };
 pub use seeds::{MAX_SEEDS, parse_seeds};
-pub use tree::{expand_dotted, from_tree, merge, parse_value, set_path, to_tree, unknown_keys};
+pub use tree::{
+    expand_dotted, from_tree, get_path, merge, parse_value, set_path, to_tree, unknown_keys,
+};
 
 #[cfg(test)]
 mod tests;

@@ -250,3 +250,21 @@ fn config_hashes_are_pinned() {
     assert_eq!(config_hash(&d).unwrap(), "413499c28ce5d1ef");
     assert_eq!(fnv1a(b"vdd"), 0x6915_2019_4edf_de09);
 }
+
+#[test]
+fn values_are_read_at_dotted_paths_and_errors_name_the_path() {
+    #[derive(Debug, PartialEq, serde::Serialize, serde::Deserialize)]
+    struct Em {
+        iterations: u32,
+    }
+    let tree: toml::Table =
+        "[baselines.em]\niterations = 3\n[baselines.x]\nbad = 1\nn = 2".parse().unwrap();
+    assert_eq!(get_path::<Em>(&tree, "baselines.em").unwrap(), Some(Em { iterations: 3 }));
+    assert_eq!(get_path::<u32>(&tree, "baselines.em.iterations").unwrap(), Some(3));
+    assert_eq!(get_path::<u32>(&tree, "baselines.imc.iterations").unwrap(), None);
+    assert_eq!(get_path::<u32>(&tree, "baselines.em.iterations.deeper").unwrap(), None);
+    let e = get_path::<Em>(&tree, "baselines.x").unwrap_err().to_string();
+    assert!(e.starts_with("`baselines.x`: ") && e.contains("iterations"), "{e}");
+    let e = get_path::<String>(&tree, "baselines.x.n").unwrap_err().to_string();
+    assert!(e.starts_with("`baselines.x.n`: "), "{e}");
+}

@@ -21,6 +21,30 @@ pub fn from_tree<R: Serialize + DeserializeOwned>(tree: &Table) -> RecipeResult<
     Ok(r)
 }
 
+/// The value at the dotted `path` of `tree` (`baselines.em`) as a `T`, `None` when a key on
+/// the way is absent; a table is read with [`from_tree`] (unknown keys are errors). Errors name
+/// the path ([`RecipeError::AtPath`]).
+pub fn get_path<T: Serialize + DeserializeOwned>(
+    tree: &Table,
+    path: &str,
+) -> RecipeResult<Option<T>> {
+    let mut parts = path.split('.');
+    let mut cur = tree.get(parts.next().unwrap_or_default());
+    for p in parts {
+        cur = match cur {
+            Some(Value::Table(t)) => t.get(p),
+            _ => None,
+        };
+    }
+    let parsed = match cur {
+        None => return Ok(None),
+        Some(Value::Table(t)) => from_tree(t),
+        Some(v) => v.clone().try_into().map_err(RecipeError::Invalid),
+    };
+    let at = |e| RecipeError::AtPath { path: path.to_owned(), source: Box::new(e) };
+    parsed.map(Some).map_err(at)
+}
+
 /// Serialises `value` into a TOML table, with `f32`-born floats in their shortest form.
 pub fn to_tree<T: Serialize + ?Sized>(value: &T) -> RecipeResult<Table> {
     match Value::try_from(value).map_err(RecipeError::Serialize)? {

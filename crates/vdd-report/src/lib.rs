@@ -4,9 +4,11 @@
 //!   population std over seeds, and the `metrics.json` layout the recipes write;
 //! * [`budget`]: training budgets (`train_steps` × `train_batch`) and the equal-budget check;
 //! * [`table`]: markdown tables of those summaries, for one run or several run directories;
+//! * [`acceptance`]: the Avoiding acceptance lines of the students against their teachers;
 //! * [`compare`]: whether two runs' `metrics.json` agree apart from wall-clock timings;
 //! * [`plots`]: figures (SVG and optionally PNG): trajectories coloured by the acting expert,
-//!   learning curves, and a 2-D density with its score field and experts' ellipses.
+//!   learning curves, and a 2-D density with its score field and experts' ellipses;
+//! * [`timing`]: wall-clock seconds per pipeline stage and the process's CPU seconds.
 //!
 //! The crate knows no teacher, student, trainer or task: it takes numbers, rows and points,
 //! and returns strings or writes files. It never prints; the caller decides what to show.
@@ -28,11 +30,13 @@
 
 #![warn(missing_docs)]
 
+pub mod acceptance;
 pub mod budget;
 pub mod compare;
 mod error;
 pub mod metrics;
 pub mod plots;
 pub mod table;
+pub mod timing;
 
 pub use error::{Error, Result};

@@ -1,10 +1,10 @@
 //! Markdown tables of per-seed rows: one line per method, `mean ± std` over seeds per column.
 
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 
 use serde_json::Value;
 
-use crate::metrics::{Row, collect_rows, mean_std, read_metrics};
+use crate::metrics::{Row, collect_rows, find_runs, mean_std, read_metrics};
 use crate::{Error, Result};
 
 /// A column of a results table.
@@ -214,6 +214,20 @@ pub fn table_of_runs_with(paths: &[PathBuf], extra: &[Column]) -> Result<Table> 
         paths.iter().map(|p| p.display().to_string()).collect::<Vec<_>>().join(", ")
     ));
     Ok(Table { text, notes })
+}
+
+/// One [`table_of_runs_with`] per recipe over every run under `results`
+/// (`results/<recipe>/<run>/metrics.json`, [`find_runs`]), each followed by an empty line;
+/// empty text when there is none.
+pub fn tables_of_all_runs(results: &Path, extra: &[Column]) -> Result<Table> {
+    let mut all = Table { text: String::new(), notes: Vec::new() };
+    for (_, runs) in find_runs(results) {
+        let Table { text, notes } = table_of_runs_with(&runs, extra)?;
+        all.text.push_str(&text);
+        all.text.push('\n');
+        all.notes.extend(notes);
+    }
+    Ok(all)
 }
 
 #[cfg(test)]

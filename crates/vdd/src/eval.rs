@@ -154,6 +154,91 @@ pub fn against_gmm<E: Expert>(
     Ok(GmmScores { reverse_kl, forward_kl, modes_covered })
 }
 
+/// The toys' evaluation states: `s_i = (i + 0.5) 2π / n`, `i < n`.
+///
+/// ```
+/// let s = vdd::eval::circle_states(4);
+/// assert_eq!(s.len(), 4);
+/// assert!((s[0] - std::f32::consts::FRAC_PI_4).abs() < 1e-6);
+/// ```
+pub fn circle_states(n: usize) -> Vec<f32> {
+    (0..n).map(|i| (i as f32 + 0.5) * std::f32::consts::TAU / n as f32).collect()
+}
+
+/// [`against_gmm`] at each raw scalar state `states[i]` (index `i`) against the toys' mixture
+/// there: `modes` modes on the circle of radius 2, std 0.5, rotated by the state
+/// ([`Gmm::circle`]).
+pub fn against_circle<E: Expert>(
+    student: &mut Moe<E>,
+    modes: usize,
+    states: &[f32],
+    settings: &GmmEval,
+    seeds: &Seeds,
+) -> Result<Vec<GmmScores>, MoeError> {
+    let mut out = Vec::with_capacity(states.len());
+    for (i, &s) in states.iter().enumerate() {
+        let truth = Gmm::circle(modes, 2.0, 0.5, s)?;
+        out.push(against_gmm(student, &truth, &[s], settings, seeds, i as u64)?);
+    }
+    Ok(out)
+}
+
+/// An arrow of a figure: its position and its vector, in raw action coordinates.
+pub type Arrow = ((f32, f32), (f32, f32));
+
+/// The score field of `teacher` (2-D actions, scalar state) for a figure: its score at noise
+/// level `sigma` at the centres of a `k x k` grid (`k` at least 2) over the raw square
+/// `[−extent, extent]²` at raw state `s`, the teacher seeing normalised states and actions
+/// (`state_norm`, `action_norm`). Returns `(position, arrow)` pairs in raw coordinates, row
+/// (second coordinate) major: the score's direction mapped to raw units, drawn `0.4` cells
+/// long where the field is strong and shorter where it is weak (`len / (len + 0.5)`).
+///
+/// ```
+/// use vdd::{Affine, gmm::GmmTeacher};
+/// let (sn, an) = (Affine::identity(1), Affine::identity(2));
+/// let mut teacher = GmmTeacher::circle_toy();
+/// let arrows = vdd::eval::score_arrows(&mut teacher, &sn, &an, 0.0, 4.0, 4, 0.1)?;
+/// assert_eq!(arrows.len(), 16);
+/// let ((x, y), (dx, dy)) = arrows[0]; // the corner cell: towards the modes on the circle
+/// assert!((x, y) == (-3.0, -3.0) && dx > 0.0 && dy > 0.0 && dx.hypot(dy) <= 0.8);
+/// # Ok::<(), vdd::CoreError>(())
+/// ```
+pub fn score_arrows(
+    teacher: &mut dyn vdd_core::ScoreModel,
+    state_norm: &Affine,
+    action_norm: &Affine,
+    s: f32,
+    extent: f32,
+    k: usize,
+    sigma: f32,
+) -> Result<Vec<Arrow>, vdd_core::CoreError> {
+    let (an, e, k) = (action_norm, extent, k.max(2));
+    check_len("state normaliser", state_norm.dim(), 1)?;
+    check_len("action normaliser", an.dim(), 2)?;
+    let s_n = (s - state_norm.offset[0]) / state_norm.scale[0];
+    let spacing = 2.0 * e / k as f32;
+    let mut apts = Mat::<f32>::zeros(k * k, 2);
+    let mut raw_pos = Vec::with_capacity(k * k);
+    for i in 0..k {
+        for j in 0..k {
+            let (x, y) = (-e + (j as f32 + 0.5) * spacing, -e + (i as f32 + 0.5) * spacing);
+            apts[(i * k + j, 0)] = (x - an.offset[0]) / an.scale[0];
+            apts[(i * k + j, 1)] = (y - an.offset[1]) / an.scale[1];
+            raw_pos.push((x, y));
+        }
+    }
+    let states = Mat::from_fn(k * k, 1, |_, _| s_n);
+    let mut score = Mat::<f32>::zeros(k * k, 2);
+    teacher.score(apts.as_ref(), states.as_ref(), &vec![sigma; k * k], score.as_mut())?;
+    let arrow = |(r, &pos): (usize, &(f32, f32))| {
+        let (gx, gy) = (score[(r, 0)] / an.scale[0], score[(r, 1)] / an.scale[1]);
+        let len = (gx * gx + gy * gy).sqrt().max(1e-12);
+        let l = 0.4 * spacing * (len / (len + 0.5));
+        (pos, (gx / len * l, gy / len * l))
+    };
+    Ok(raw_pos.iter().enumerate().map(arrow).collect())
+}
+
 /// One expert at a state in raw action coordinates ([`density_map`]).
 #[derive(Debug, Clone, PartialEq)]
 pub struct RawExpert {

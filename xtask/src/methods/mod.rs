@@ -12,7 +12,6 @@ mod cd;
 mod ctm;
 mod em;
 mod imc;
-mod imc_authors;
 mod teacher;
 mod vdd;
 mod vdd_learned;
@@ -27,7 +26,7 @@ pub static REGISTRY: &[&dyn Method] = &[
     &cd::Cd,
     &ctm::Ctm,
     &em::Em,
-    &imc::Imc,
+    &imc::IMC,
     &vdd::VDD_DDPM,
     &vdd::VDD_BESO,
     &vdd::VDD_EXACT,
@@ -35,7 +34,7 @@ pub static REGISTRY: &[&dyn Method] = &[
     &beso_d3il::BESO_D3IL_1,
     &vdd_learned::VddBesoLearned,
     &beso_d3il::VDD_BESO_D3IL,
-    &imc_authors::ImcAuthors,
+    &imc::IMC_AUTHORS,
 ];
 
 /// The method called `name`.

@@ -168,22 +168,13 @@ impl AsRef<TrainingData> for Prepared {
 fn prepare(data: &DatasetConfig) -> crate::XResult<Prepared> {
     let t0 = Instant::now();
     let d = data.build()?;
-    let entropy = vdd_tasks::normalized_entropy(&d.mode_counts);
-    let modes = d.mode_counts.iter().filter(|&&c| c > 0).count();
-    let summary = json!({
-        "demonstrations": data.demonstrations,
-        "train_episodes": d.train_episodes,
-        "train_samples": d.states.nrows(),
-        "state_dim": d.states.ncols(),
-        "action_dim": d.actions.ncols(),
-        "dataset_modes": modes,
-        "dataset_entropy": entropy,
-    });
+    let summary = d.summary(data.demonstrations);
     crate::progress::log(format!(
-        "data: {} demonstrations ({} train episodes, {} samples, {modes} of 24 modes, entropy {:.3}) in {:.2} s",
+        "data: {} demonstrations ({} train episodes, {} samples, {} of 24 modes, entropy {:.3}) in {:.2} s",
         data.demonstrations,
         d.train_episodes,
         d.states.nrows(),
+        summary["dataset_modes"],
         summary["dataset_entropy"].as_f64().unwrap_or(0.0),
         t0.elapsed().as_secs_f64()
     ));
@@ -380,22 +371,15 @@ fn tuning_entries(
     for (e, (_, rows)) in plan.iter().zip(rows.iter_mut()) {
         let n = tuning::configs_tried(log, &e.label);
         rows.iter_mut().for_each(|r| drop(r.insert("tuning_configs".into(), json!(n))));
-        let all = |k: &str| rows.iter().filter_map(|r| r.get(k)?.as_f64()).collect::<Vec<_>>();
-        let first = |k: &str| rows.first().and_then(|r| r.get(k)?.as_u64());
-        entries.push(tuning::LogEntry {
+        let id = tuning::RunId {
             method: e.label.clone(),
             config: tuning::method_config_hash(e.method, &e.recipe(), &e.cfg.data)?,
             recipe: ctx.name.clone(),
             command: ctx.command.clone(),
             revision: revision.clone(),
-            seeds: rows.iter().filter_map(|r| r.get("seed")?.as_u64()).collect(),
-            success_rate: all("success_rate"),
-            task_entropy: all("task_entropy"),
-            train_steps: first("train_steps"),
-            train_batch: first("train_batch"),
-            train_seconds: all("train_seconds"),
             run: teachers::rel(dir),
-        });
+        };
+        entries.push(tuning::LogEntry::from_rows(id, rows));
     }
     Ok(entries)
 }
@@ -563,45 +547,12 @@ fn write_outputs(
         "stage_seconds": stages.to_json(),
     });
     pipeline::write_results(ctx, dir, &metrics, &table, details)?;
-    print_acceptance(&out.rows);
+    vdd_report::acceptance::avoiding_acceptance(&out.rows).iter().for_each(|l| println!("{l}"));
     println!("stages: {}", stages.summary());
     let cpu = crate::context::cpu_seconds().map_or(String::new(), |c| format!(", {c:.0} s CPU"));
     let wall = ctx.started.elapsed().as_secs_f64();
     println!("results in {} ({wall:.1} s wall{cpu})", teachers::rel(dir));
     Ok(())
-}
-
-/// Prints VDD vs teacher comparisons (issue 7's acceptance) when both are in the run.
-fn print_acceptance(rows: &[(String, Vec<Row>)]) {
-    let mean = |label: &str, key: &str| -> Option<f64> {
-        let (_, r) = rows.iter().find(|(l, _)| l == label)?;
-        let xs: Vec<f64> = r.iter().filter_map(|x| x.get(key)?.as_f64()).collect();
-        (!xs.is_empty()).then(|| report::mean_std(&xs).0)
-    };
-    let yes = |b: bool| if b { "yes" } else { "NO" };
-    for (vdd, teacher) in [("vdd-beso", "beso"), ("vdd-ddpm", "ddpm")] {
-        let (Some(vs), Some(ve), Some(vu)) =
-            (mean(vdd, "success_rate"), mean(vdd, "task_entropy"), mean(vdd, "us_per_action"))
-        else {
-            continue;
-        };
-        let mut line = format!(
-            "{vdd}: success {vs:.3} (>= 0.90: {}), entropy {ve:.3} (>= 0.70: {})",
-            yes(vs >= 0.90),
-            yes(ve >= 0.70)
-        );
-        if let (Some(ts), Some(tu)) =
-            (mean(teacher, "success_rate"), mean(teacher, "us_per_action"))
-        {
-            line.push_str(&format!(
-                "; {teacher} success {ts:.3} (within 0.05: {}); speed-up {:.1}x (>= 10x: {})",
-                yes(vs >= ts - 0.05),
-                tu / vu,
-                yes(tu / vu >= 10.0)
-            ));
-        }
-        println!("{line}");
-    }
 }
 
 #[cfg(test)]

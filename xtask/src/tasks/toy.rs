@@ -19,8 +19,8 @@
 use serde::{Deserialize, Serialize};
 use serde_json::{Value, json};
 use toml::Table;
-use vdd::eval::{GmmEval, GmmScores, against_gmm};
-use vdd_core::gmm::{Gmm, GmmTeacher};
+use vdd::eval::{GmmEval, GmmScores, against_circle, circle_states};
+use vdd_core::gmm::GmmTeacher;
 use vdd_core::{Affine, ScoreModel, Seeds};
 use vdd_moe::MoeConfig;
 use vdd_tasks::toy::ToyData;
@@ -222,7 +222,7 @@ impl Task for Toy {
                         } else {
                             (0.0, e.label.clone())
                         };
-                        let modes = circle_modes(MODES, state);
+                        let modes = circle_modes(MODES, state)?;
                         panels.push(density_panel(&mut s, state, title, modes, &e.cfg.plots)?);
                     }
                 }
@@ -248,17 +248,31 @@ impl Toy {
         let ms_per_iter = train_seconds * 1e3 / iterations.max(1) as f64;
         let mut row = Row::new();
         row.insert("seed".into(), json!(seed));
+        let n = if self.conditional { cfg.eval.eval_states.max(1) } else { 1 };
+        let states = if self.conditional { circle_states(n) } else { vec![0.0] };
+        let scores = against_circle(&mut s.student, MODES, &states, &cfg.eval, &seeds)?;
+        let mean = |f: fn(&GmmScores) -> f64| scores.iter().map(f).sum::<f64>() / n as f64;
+        let (rev, fwd) = (mean(|g| g.reverse_kl), mean(|g| g.forward_kl));
+        let f64_at = |k: &str, v: f64| (k.to_owned(), report::json_f64(v));
         if self.conditional {
-            conditional_row(s, cfg, &seeds, &mut row, &tag, train_seconds)?;
+            let full = scores.iter().filter(|g| g.modes_covered == MODES).count();
+            crate::progress::log(format!(
+                "[{tag}] all {MODES} modes covered at {full}/{n} states, mean reverse KL {rev:.4}, mean forward KL {fwd:.4} nats, {train_seconds:.2} s"
+            ));
+            row.insert("states_fully_covered".into(), json!(full));
+            row.insert("eval_states".into(), json!(n));
+            row.extend([f64_at("mean_reverse_kl", rev), f64_at("mean_forward_kl", fwd)]);
+            let per_state = states.iter().zip(&scores).map(|(state, g)| {
+                let (cov, rev, fwd) = (g.modes_covered, g.reverse_kl, g.forward_kl);
+                json!({"state": state, "modes_covered": cov, "reverse_kl": rev, "forward_kl": fwd})
+            });
+            row.insert("states".into(), Value::Array(per_state.collect()));
         } else {
-            let truth = Gmm::circle(MODES, 2.0, 0.5, 0.0)?;
-            let GmmScores { reverse_kl: rev, forward_kl: fwd, modes_covered: cov } =
-                against_gmm(&mut s.student, &truth, &[0.0], &cfg.eval, &seeds, 0)?;
+            let cov = scores[0].modes_covered;
             crate::progress::log(format!(
                 "[{tag}] reverse KL {rev:.5} nats, forward KL {fwd:.5} nats, modes {cov}/{MODES}, {ms_per_iter:.3} ms/iter ({train_seconds:.2} s)"
             ));
-            row.insert("reverse_kl".into(), report::json_f64(rev));
-            row.insert("forward_kl".into(), report::json_f64(fwd));
+            row.extend([f64_at("reverse_kl", rev), f64_at("forward_kl", fwd)]);
             row.insert("modes_covered".into(), json!(cov));
             row.insert("modes_total".into(), json!(MODES));
         }
@@ -364,43 +378,6 @@ fn student(
     let noise_level = trained.noise_level.ok_or("internal: no distillation noise level")?;
     let student = student.as_ref().clone();
     Ok(ToyStudent { student, state_norm, action_norm, teacher, noise_level })
-}
-
-/// `toy-conditional`: KL and coverage at the evaluation states into `row`.
-fn conditional_row(
-    s: &mut ToyStudent,
-    cfg: &ToyRecipe,
-    seeds: &Seeds,
-    row: &mut Row,
-    tag: &str,
-    train_seconds: f64,
-) -> crate::XResult {
-    let n_states = cfg.eval.eval_states.max(1);
-    let mut states = Vec::new();
-    for i in 0..n_states {
-        let state = (i as f32 + 0.5) * std::f32::consts::TAU / n_states as f32;
-        let truth = Gmm::circle(MODES, 2.0, 0.5, state)?;
-        let GmmScores { reverse_kl: rev, forward_kl: fwd, modes_covered: cov } =
-            against_gmm(&mut s.student, &truth, &[state], &cfg.eval, seeds, i as u64)?;
-        states.push(
-            json!({"state": state, "modes_covered": cov, "reverse_kl": rev, "forward_kl": fwd}),
-        );
-    }
-    let mean = |key: &str| {
-        states.iter().filter_map(|v| v[key].as_f64()).sum::<f64>() / states.len() as f64
-    };
-    let full = states.iter().filter(|v| v["modes_covered"].as_u64() == Some(MODES as u64)).count();
-    row.insert("states_fully_covered".into(), json!(full));
-    row.insert("eval_states".into(), json!(n_states));
-    row.insert("mean_reverse_kl".into(), report::json_f64(mean("reverse_kl")));
-    row.insert("mean_forward_kl".into(), report::json_f64(mean("forward_kl")));
-    crate::progress::log(format!(
-        "[{tag}] all {MODES} modes covered at {full}/{n_states} states, mean reverse KL {:.4}, mean forward KL {:.4} nats, {train_seconds:.2} s",
-        mean("reverse_kl"),
-        mean("forward_kl"),
-    ));
-    row.insert("states".into(), Value::Array(states));
-    Ok(())
 }
 
 #[cfg(test)]

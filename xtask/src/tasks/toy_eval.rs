@@ -1,8 +1,8 @@
 //! One panel of Figure 2 for a toy student ([`density_panel`]) with its settings (the recipes'
 //! `[plots]`). The evaluation against the exact mixture is [`vdd::eval::against_gmm`].
 
-use faer::Mat;
 use vdd::eval;
+use vdd_core::gmm::Gmm;
 use vdd_core::{Affine, ScoreModel};
 use vdd_moe::Moe;
 
@@ -25,7 +25,8 @@ pub struct ToyStudent {
 }
 
 /// One panel of Figure 2 at raw state `s`: the student's density and experts
-/// ([`eval::density_map`]) and the teacher's score field at its VDD noise level.
+/// ([`eval::density_map`]) and the teacher's score field at its VDD noise level
+/// ([`eval::score_arrows`]).
 pub fn density_panel(
     d: &mut ToyStudent,
     s: f32,
@@ -33,38 +34,10 @@ pub fn density_panel(
     modes: Vec<(f32, f32)>,
     p: &ToyPlots,
 ) -> crate::XResult<DensityPanel> {
-    let (sn, an) = (d.state_norm.clone(), d.action_norm.clone());
-    let s_n = (s - sn.offset[0]) / sn.scale[0];
     let e = p.extent;
     let map = eval::density_map(&mut d.student, &[s], e, p.grid)?;
-    // Score field of the teacher at its VDD noise level, mapped to raw coordinates.
-    let k = p.arrows.max(2);
-    let spacing = 2.0 * e / k as f32;
-    let mut apts = Mat::<f32>::zeros(k * k, 2);
-    let mut raw_pos = Vec::with_capacity(k * k);
-    for i in 0..k {
-        for j in 0..k {
-            let (x, y) = (-e + (j as f32 + 0.5) * spacing, -e + (i as f32 + 0.5) * spacing);
-            apts[(i * k + j, 0)] = (x - an.offset[0]) / an.scale[0];
-            apts[(i * k + j, 1)] = (y - an.offset[1]) / an.scale[1];
-            raw_pos.push((x, y));
-        }
-    }
-    let states = Mat::from_fn(k * k, 1, |_, _| s_n);
-    let levels = vec![d.noise_level; k * k];
-    let mut score = Mat::<f32>::zeros(k * k, 2);
-    d.teacher.score(apts.as_ref(), states.as_ref(), &levels, score.as_mut())?;
-    let arrows = raw_pos
-        .iter()
-        .enumerate()
-        .map(|(r, &pos)| {
-            let (gx, gy) = (score[(r, 0)] / an.scale[0], score[(r, 1)] / an.scale[1]);
-            let len = (gx * gx + gy * gy).sqrt().max(1e-12);
-            // Direction at a fixed length, shortened where the field is weak.
-            let l = 0.4 * spacing * (len / (len + 0.5));
-            (pos, (gx / len * l, gy / len * l))
-        })
-        .collect();
+    let (sn, an, level) = (&d.state_norm, &d.action_norm, d.noise_level);
+    let arrows = eval::score_arrows(d.teacher.as_mut(), sn, an, s, e, p.arrows, level)?;
     let experts = map
         .experts
         .iter()
@@ -77,12 +50,8 @@ pub fn density_panel(
     Ok(DensityPanel { title, extent: e, density: map.density, n: map.n, arrows, experts, modes })
 }
 
-/// `k` modes on the circle of radius 2 rotated by `offset`.
-pub fn circle_modes(k: usize, offset: f32) -> Vec<(f32, f32)> {
-    (0..k)
-        .map(|i| {
-            let a = offset + std::f32::consts::TAU * i as f32 / k as f32;
-            (2.0 * a.cos(), 2.0 * a.sin())
-        })
-        .collect()
+/// `k` modes on the circle of radius 2 rotated by `offset` ([`Gmm::circle`]'s means).
+pub fn circle_modes(k: usize, offset: f32) -> crate::XResult<Vec<(f32, f32)>> {
+    let gmm = Gmm::circle(k, 2.0, 0.5, offset)?;
+    Ok((0..k).map(|i| (gmm.mean(i)[0], gmm.mean(i)[1])).collect())
 }

@@ -62,6 +62,9 @@ fn the_cache_stores_then_loads_the_same_teacher_under_one_key() {
     let (loaded, reports) = go(false);
     assert_eq!(reports, 0);
     assert!(!first.cached && loaded.cached);
+    let entry = loaded.log_entry(TeacherKind::Beso, 4);
+    assert_eq!((entry["teacher"].as_str(), entry["seed"].as_u64()), (Some("beso"), Some(4)));
+    assert_eq!((entry["hash"].as_str(), entry["cached"].as_bool()), (Some(&*hash), Some(true)));
     assert_eq!(first.hash, loaded.hash);
     assert_eq!(loaded.losses, first.losses);
     let levels = vec![0.3f32; 16];

@@ -6,7 +6,7 @@ use vdd_moe::Moe;
 use super::{Imc, ImcMetrics, ImcVariant, log_sum_exp};
 use crate::dataset::Dataset;
 use crate::error::MixtureError;
-use crate::fit::{self, EVAL_CHUNK};
+use crate::fit;
 
 impl<E: Expert> Imc<E> {
     /// The authors' iteration: unit-variance likelihoods, curricula normalised per data point,
@@ -103,35 +103,27 @@ impl<E: Expert> Imc<E> {
     }
 }
 
-/// Writes `ℓ_z(o) = −½‖a_o − μ_z(s_o)‖²` of every point and expert into `out` (`N·Z`) and
+/// Writes `ℓ_z(o) = −½‖a_o − μ_z(s_o)‖²` of every point and expert into `out_ll` (`N·Z`) and
 /// returns the mixture's mean log-likelihood with unit-variance experts and its gating.
 fn unit_log_likelihoods<E: Expert>(
     student: &mut Moe<E>,
     data: &Dataset,
-    out: &mut [f32],
+    out_ll: &mut [f32],
 ) -> Result<f64, MixtureError> {
     let (n, z_n, d) = (data.len(), student.num_experts(), student.config().action_dim);
     data.check_dims(student.config().state_dim, d)?;
-    vdd_core::check_len("expert log-likelihood output", out.len(), n * z_n)?;
+    vdd_core::check_len("expert log-likelihood output", out_ll.len(), n * z_n)?;
     let constant = 0.5 * d as f32 * gaussian::LN_2PI;
     let actions = data.actions();
-    let (mut row, mut sum, mut start) = (vec![0.0f32; z_n], 0.0f64, 0);
-    while start < n {
-        let len = EVAL_CHUNK.min(n - start);
-        student.forward(data.states().subrows(start, len))?;
-        let o_out = student.output();
-        for b in 0..len {
-            let o = start + b;
-            let lg = o_out.log_gating_row(b);
-            for k in 0..z_n {
-                let mean = o_out.mean(b, k);
-                let sq: f32 = (0..d).map(|j| (actions[(o, j)] - mean[j]).powi(2)).sum();
-                out[o * z_n + k] = -0.5 * sq;
-                row[k] = lg[k] - 0.5 * sq - constant;
-            }
-            sum += f64::from(gaussian::softmax_in_place(&mut row));
+    let mut row = vec![0.0f32; z_n];
+    fit::for_each_pair(student, data, |o, out, b| {
+        let lg = out.log_gating_row(b);
+        for k in 0..z_n {
+            let mean = out.mean(b, k);
+            let sq: f32 = (0..d).map(|j| (actions[(o, j)] - mean[j]).powi(2)).sum();
+            out_ll[o * z_n + k] = -0.5 * sq;
+            row[k] = lg[k] - 0.5 * sq - constant;
         }
-        start += len;
-    }
-    Ok(sum / n as f64)
+        gaussian::softmax_in_place(&mut row)
+    })
 }

@@ -12,6 +12,22 @@ use faer::{Accum, Mat, MatRef, Par};
 use crate::error::NnError;
 use crate::param::{Param, Parameters, join_name};
 
+/// Checks the sizes of a convolution `layer` and makes its zeroed weight (of `shape`) and
+/// bias buffers.
+fn conv_buffers(
+    layer: &str,
+    [in_ch, out_ch, kernel, stride]: [usize; 4],
+    shape: [usize; 3],
+) -> Result<(Param, Param), NnError> {
+    if in_ch == 0 || out_ch == 0 || kernel == 0 || stride == 0 {
+        return Err(NnError::Config(format!(
+            "{layer} needs positive sizes, got in {in_ch}, out {out_ch}, kernel {kernel}, stride {stride}"
+        )));
+    }
+    let weight = Param::buffer(&shape, vec![0.0; out_ch * in_ch * kernel]);
+    Ok((weight, Param::buffer(&[out_ch], vec![0.0; out_ch])))
+}
+
 /// Resizes `m` to `rows × cols` when its shape differs (contents unspecified afterwards).
 pub(crate) fn ensure(m: &mut Mat<f32>, rows: usize, cols: usize) {
     if m.nrows() != rows || m.ncols() != cols {
@@ -68,14 +84,11 @@ impl Conv1d {
         stride: usize,
         padding: usize,
     ) -> Result<Self, NnError> {
-        if in_ch == 0 || out_ch == 0 || kernel == 0 || stride == 0 {
-            return Err(NnError::Config(format!(
-                "Conv1d needs positive sizes, got in {in_ch}, out {out_ch}, kernel {kernel}, stride {stride}"
-            )));
-        }
+        let sizes = [in_ch, out_ch, kernel, stride];
+        let (weight, bias) = conv_buffers("Conv1d", sizes, [out_ch, in_ch, kernel])?;
         Ok(Self {
-            weight: Param::buffer(&[out_ch, in_ch, kernel], vec![0.0; out_ch * in_ch * kernel]),
-            bias: Param::buffer(&[out_ch], vec![0.0; out_ch]),
+            weight,
+            bias,
             in_ch,
             out_ch,
             kernel,
@@ -262,14 +275,11 @@ impl ConvTranspose1d {
         stride: usize,
         padding: usize,
     ) -> Result<Self, NnError> {
-        if in_ch == 0 || out_ch == 0 || kernel == 0 || stride == 0 {
-            return Err(NnError::Config(format!(
-                "ConvTranspose1d needs positive sizes, got in {in_ch}, out {out_ch}, kernel {kernel}, stride {stride}"
-            )));
-        }
+        let sizes = [in_ch, out_ch, kernel, stride];
+        let (weight, bias) = conv_buffers("ConvTranspose1d", sizes, [in_ch, out_ch, kernel])?;
         Ok(Self {
-            weight: Param::buffer(&[in_ch, out_ch, kernel], vec![0.0; out_ch * in_ch * kernel]),
-            bias: Param::buffer(&[out_ch], vec![0.0; out_ch]),
+            weight,
+            bias,
             in_ch,
             out_ch,
             kernel,

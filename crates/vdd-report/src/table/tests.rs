@@ -59,6 +59,13 @@ fn tables_come_from_run_directories() {
     assert!(table.notes.is_empty());
     let table = table_of_runs(runs).unwrap();
     assert_eq!(table.notes, vec!["beso: seed 1 appears twice; the later run is used"]);
+    let all = tables_of_all_runs(&root, &[]).unwrap();
+    assert_eq!(
+        all.text,
+        format!("{}\n{}\n", table.text, table_of_runs(&groups[1].1).unwrap().text)
+    );
+    assert_eq!(all.notes, table.notes);
+    assert!(tables_of_all_runs(&root.join("none"), &[]).unwrap().text.is_empty());
     let mixed = [runs[0].clone(), groups[1].1[0].clone()];
     assert!(matches!(table_of_runs(&mixed), Err(Error::MixedTasks { tasks }) if tasks.len() == 2));
     std::fs::write(root.join("avoiding/seed0/metrics.json"), "{}").unwrap();

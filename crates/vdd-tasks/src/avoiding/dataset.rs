@@ -12,6 +12,9 @@
 //! assert_eq!(data.states.nrows(), data.states_normalized.nrows());
 //! assert_eq!(data.train_episodes, 4);
 //! assert_eq!(data.mode_counts.iter().sum::<usize>(), 4);
+//! let summary = data.summary(4);
+//! assert_eq!(summary["train_samples"], data.states.nrows());
+//! assert!(summary["dataset_modes"].as_u64().is_some_and(|m| (1..=4).contains(&m)));
 //! ```
 
 use faer::Mat;
@@ -187,6 +190,23 @@ impl DatasetConfig {
             episode_observations,
             train_episodes: train.num_episodes(),
             mode_counts,
+        })
+    }
+}
+
+impl Dataset {
+    /// What a run records of its data: `demonstrations` (given), `train_episodes`,
+    /// `train_samples`, `state_dim`, `action_dim`, `dataset_modes` (modes with a
+    /// demonstration) and `dataset_entropy` ([`crate::normalized_entropy`] of the modes).
+    pub fn summary(&self, demonstrations: usize) -> serde_json::Value {
+        serde_json::json!({
+            "demonstrations": demonstrations,
+            "train_episodes": self.train_episodes,
+            "train_samples": self.states.nrows(),
+            "state_dim": self.states.ncols(),
+            "action_dim": self.actions.ncols(),
+            "dataset_modes": self.mode_counts.iter().filter(|&&c| c > 0).count(),
+            "dataset_entropy": crate::normalized_entropy(&self.mode_counts),
         })
     }
 }

@@ -59,6 +59,7 @@ use crate::{Result, TaskError};
 mod curves;
 pub mod dataset;
 pub mod demonstrator;
+pub mod demos;
 mod features;
 pub mod protocol;
 pub mod rollout;

@@ -1,0 +1,259 @@
+//! The text sections of `cargo xtask bench teachers`: the acceptance checks of a DDPM and a
+//! BESO teacher on the circle toy ([`circle_section`]) and the rotating toy
+//! ([`rotating_section`]), and their sampling latency ([`latency_section`]). Each returns the
+//! section's text and, for the checks, the failed checks; the caller trains the teachers and
+//! prints.
+
+use std::fmt::Write as _;
+
+use super::{
+    CircleMeasures, CircleReference, RotatingReference, SamplerSetting, Thresholds,
+    act_batch_latency_us, samples_at, score_cosine,
+};
+use crate::{DiffusionTeacher, Result, TeacherKind};
+
+/// A section of the report: its text (lines ending in `\n`) and the checks that failed.
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct Section {
+    /// The text.
+    pub text: String,
+    /// One message per failed check, naming the teacher.
+    pub failures: Vec<String>,
+}
+
+/// Appends one formatted line to a `String`.
+macro_rules! line {
+    ($out:expr, $($arg:tt)*) => {{
+        let _ = writeln!($out, $($arg)*);
+    }};
+}
+
+/// `DDPM` or `BESO`.
+pub fn teacher_name(t: &DiffusionTeacher) -> &'static str {
+    match t.kind() {
+        TeacherKind::Ddpm => "DDPM",
+        TeacherKind::Beso => "BESO",
+    }
+}
+
+fn pass(ok: bool) -> &'static str {
+    if ok { "pass" } else { "FAIL" }
+}
+
+/// The circle toy's checks of both teachers (trained on 5000 pairs): for each, 10,000 samples
+/// with its default sampler against 2000 true samples of `seed` ([`CircleReference`],
+/// [`Thresholds::check`]) and the score cosine at `sigma` (and, for information, at `sigma /
+/// 2`); then, for information, every other sampler at 16, 8 and 1 steps (2000 samples each).
+/// The teachers' samplers are restored.
+pub fn circle_section(ts: &mut [DiffusionTeacher; 2], seed: u64, sigma: f32) -> Result<Section> {
+    let thresholds = Thresholds::default();
+    let reference = CircleReference::new(2000, seed)?;
+    let (baseline, exact) = (reference.baseline, &reference.exact);
+    let bar = thresholds.mmd2_bar(baseline);
+    let mut out = Section::default();
+    let text = &mut out.text;
+    line!(
+        text,
+        "\n== acceptance: 2-D toy (8 modes on a circle of radius 2, std 0.5; 5000 pairs) =="
+    );
+    line!(
+        text,
+        "MMD² (RBF, bandwidth 1), two independent true sets of 2000: {baseline:.5}; bar 3x = {bar:.5}"
+    );
+    line!(
+        text,
+        "{:<6} {:<18} {:>4} {:>10} {:>9} {:>8} {:>22} {:>6}",
+        "",
+        "sampler, steps",
+        "NFE",
+        "min share",
+        "MMD²",
+        "MMD²/true",
+        "score cos (σ = 0.1)",
+        "result"
+    );
+    for t in ts.iter_mut() {
+        let name = teacher_name(t);
+        let default = SamplerSetting::of(t);
+        let CircleMeasures { measures, shares, level } =
+            reference.measure(t, 10_000, sigma, seed)?;
+        let (share, mmd, cos) = (measures.min_mode_share, measures.mmd2, measures.score_cosine);
+        let at = match t.kind() {
+            TeacherKind::Ddpm => format!("{cos:.4} (t = {level:.3})"),
+            TeacherKind::Beso => format!("{cos:.4}"),
+        };
+        let failed = thresholds.check(&measures, sigma);
+        line!(
+            text,
+            "{name:<6} {:<18} {:>4} {share:>10.3} {mmd:>9.5} {:>8.2}x {at:>22} {:>6}",
+            default.label(),
+            default.nfe(),
+            mmd / baseline,
+            pass(failed.is_empty())
+        );
+        out.failures.extend(failed.iter().map(|f| format!("{name}: {f}")));
+        let shares: Vec<String> = shares.iter().map(|s| format!("{s:.3}")).collect();
+        line!(text, "       mode shares: {}", shares.join(" "));
+        let half = score_cosine(t, exact, &[0.0], reference.true_b.as_ref(), 0.5 * sigma)?.cosine;
+        line!(text, "       (info) score cosine at σ = {}: {half:.4}", 0.5 * sigma);
+    }
+    line!(text, "(info) other samplers, 2000 samples each (not part of the acceptance):");
+    line!(
+        text,
+        "{:<6} {:<18} {:>4} {:>10} {:>9} {:>9}",
+        "",
+        "sampler, steps",
+        "NFE",
+        "min share",
+        "MMD²",
+        "MMD²/true"
+    );
+    for t in ts.iter_mut() {
+        let name = teacher_name(t);
+        for steps in [16usize, 8, 1] {
+            for s in SamplerSetting::all(t.kind(), steps) {
+                let saved = s.apply(t)?;
+                let x = samples_at(t, &[0.0], 2000, seed);
+                saved.apply(t)?;
+                let (share, _, mmd) = reference.compare(x?.as_ref());
+                line!(
+                    text,
+                    "{name:<6} {:<18} {:>4} {share:>10.3} {mmd:>9.5} {:>8.2}x",
+                    s.label(),
+                    s.nfe(),
+                    mmd / baseline
+                );
+            }
+        }
+    }
+    Ok(out)
+}
+
+/// The heading of the rotating toy's section, for `pairs` training pairs.
+pub fn rotating_heading(pairs: usize) -> String {
+    format!(
+        "\n== acceptance: rotating toy (mode k at angle s + 2πk/8, s ~ U[0, 2π); {pairs} pairs) =="
+    )
+}
+
+/// The rotating toy's checks of both teachers (trained on `rot`'s data): each must put at
+/// least [`Thresholds::min_mode_share`] of 2000 samples on every mode at 8 states
+/// ([`RotatingReference::check_at`]).
+pub fn rotating_section(
+    ts: &mut [DiffusionTeacher; 2],
+    rot: &mut RotatingReference,
+    seed: u64,
+) -> Result<Section> {
+    let mut out = Section::default();
+    let text = &mut out.text;
+    line!(
+        text,
+        "min share of 2000 samples over the 8 modes at state s (MMD² to 1000 true samples):"
+    );
+    line!(text, "{:>7} {:>22} {:>22}", "s", "DDPM", "BESO");
+    let thresholds = Thresholds::default();
+    let mut worst = [f32::INFINITY; 2];
+    let mut covered = [0usize; 2];
+    for i in 0..8 {
+        let s = (i as f32 + 0.5) * std::f32::consts::TAU / 8.0 * 0.999;
+        let mut cells = Vec::new();
+        for (k, t) in ts.iter_mut().enumerate() {
+            let (share, mmd) = rot.check_at(t, s, i, seed)?;
+            worst[k] = worst[k].min(share);
+            covered[k] += usize::from(thresholds.covers(share));
+            cells.push(format!("{share:.3} ({mmd:.4})"));
+        }
+        line!(text, "{s:>7.3} {:>22} {:>22}", cells[0], cells[1]);
+    }
+    for (k, name) in ["DDPM", "BESO"].iter().enumerate() {
+        let ok = covered[k] == 8;
+        line!(
+            text,
+            "{name}: all 8 modes (>= 6% each) at {}/8 states, worst share {:.3}: {}",
+            covered[k],
+            worst[k],
+            pass(ok)
+        );
+        if !ok {
+            out.failures.push(format!("{name} rotating: modes covered at {}/8 states", covered[k]));
+        }
+    }
+    Ok(out)
+}
+
+/// µs per action of `act_batch` (single thread, [`act_batch_latency_us`] with `min_secs`) at
+/// batch 1 and 256, for every sampler of both teachers at 1, 2, 4, 8 and 16 steps and the
+/// teacher's default. The teachers end with their default samplers.
+pub fn latency_section(ts: &mut [DiffusionTeacher; 2], min_secs: f64) -> Result<String> {
+    let mut text = String::new();
+    line!(
+        text,
+        "\n== sampling latency: µs per action (act_batch, single thread, best of 5 rounds) =="
+    );
+    line!(
+        text,
+        "(2-D toy teachers; wall clock on a shared machine: other jobs inflate these figures)"
+    );
+    let steps = [1usize, 2, 4, 8, 16];
+    for batch in [1usize, 256] {
+        line!(text, "\nbatch {batch}:");
+        let head: String = steps.iter().map(|k| format!("{:>9}", format!("{k} st"))).collect();
+        line!(text, "{:<6} {:<16}{head} {:>16}", "", "sampler", "default");
+        for t in ts.iter_mut() {
+            let name = teacher_name(t);
+            let default = SamplerSetting::of(t);
+            for s in SamplerSetting::all(t.kind(), 1) {
+                let mut row = String::new();
+                for &k in &steps {
+                    s.with_steps(k).apply(t)?;
+                    let _ = write!(row, "{:>9.1}", act_batch_latency_us(t, batch, min_secs)?);
+                }
+                let def = if s.name() == default.name() {
+                    default.apply(t)?;
+                    let us = act_batch_latency_us(t, batch, min_secs)?;
+                    format!("{us:.1} ({} st)", default.steps())
+                } else {
+                    String::new()
+                };
+                line!(text, "{name:<6} {:<16}{row} {def:>16}", s.name());
+            }
+            default.apply(t)?;
+        }
+    }
+    Ok(text)
+}
+
+#[cfg(test)]
+mod tests {
+    use vdd_core::Affine;
+
+    use super::*;
+    use crate::acceptance::ToyTeachers;
+    use crate::{Beso, Ddpm};
+
+    /// Untrained toy teachers (8 wide, one block).
+    fn untrained() -> [DiffusionTeacher; 2] {
+        let toy = ToyTeachers { width: 8, blocks: 1, ..ToyTeachers::toy() };
+        let (s, a) = (Affine::identity(1), Affine::identity(2));
+        let ddpm = Ddpm::new(&toy.ddpm(), s.clone(), a.clone(), 0).unwrap();
+        let beso = Beso::new(&toy.beso(), s, a, 0).unwrap();
+        [DiffusionTeacher::Ddpm(ddpm), DiffusionTeacher::Beso(beso)]
+    }
+
+    #[test]
+    fn untrained_teachers_fail_the_circle_checks_and_keep_their_samplers() {
+        let mut ts = untrained();
+        let before = ts.each_ref().map(SamplerSetting::of);
+        let s = circle_section(&mut ts, 0, 0.1).unwrap();
+        assert!(s.failures.iter().any(|f| f.starts_with("DDPM: ")), "{:?}", s.failures);
+        assert!(s.failures.iter().any(|f| f.starts_with("BESO: ")), "{:?}", s.failures);
+        assert!(s.text.contains("== acceptance: 2-D toy") && s.text.contains("FAIL"), "{}", s.text);
+        assert_eq!(ts.each_ref().map(SamplerSetting::of), before);
+        let text = latency_section(&mut ts, 1e-4).unwrap();
+        let rows = |name: &str| text.lines().filter(|l| l.starts_with(name)).count();
+        let samplers = |k| SamplerSetting::all(k, 1).len();
+        assert_eq!(rows("DDPM"), 2 * samplers(TeacherKind::Ddpm), "{text}");
+        assert_eq!(rows("BESO"), 2 * samplers(TeacherKind::Beso), "{text}");
+        assert_eq!(ts.each_ref().map(SamplerSetting::of), before);
+    }
+}

@@ -1,0 +1,319 @@
+//! The tuning protocol: tuning runs kept apart from the reported ones, and the committed tuning
+//! log.
+//!
+//! Settings are chosen on the tuning seeds [`TUNING_SEEDS`] (100–104) with their own
+//! demonstrations (`data.seed` = [`TUNING_DATA_SEED`]); the results are reported on other seeds
+//! (0–4) with the reporting demonstrations (`data.seed` = 0). A run is a tuning run when its
+//! seeds are tuning seeds; it may not mix them with other seeds and must use the tuning data
+//! ([`is_tuning_run`]); a run on other seeds may not use the tuning data.
+//!
+//! The seeds share no random stream with the reporting seeds: every stream is keyed by its
+//! root seed and purpose (`vdd_core::Seeds`), so the tuning seeds' streams differ from the
+//! reporting seeds' (a test checks the roots and the streams' first draws).
+//!
+//! Every tuning run appends one [`LogEntry`] per method to the task's log (a TOML file with one
+//! `[[entry]]` table each, [`append_log`] / [`read_log`]): the method, a hash of its
+//! configuration ([`method_config_hash`]), the command, the revision, the seeds and the
+//! per-seed figures. [`configs_tried`] counts a method's distinct configurations in a log.
+
+use std::collections::BTreeSet;
+use std::ops::RangeInclusive;
+use std::path::Path;
+
+use serde::{Deserialize, Serialize};
+
+use crate::{RecipeError, RecipeResult};
+
+/// The tuning seeds.
+pub const TUNING_SEEDS: RangeInclusive<u64> = 100..=104;
+
+/// The `data.seed` of tuning runs (reported runs use 0).
+pub const TUNING_DATA_SEED: u64 = 100;
+
+/// The largest tuning log read (bytes).
+pub const MAX_LOG_BYTES: u64 = 16 << 20;
+
+/// Whether a run on `seeds` with demonstrations of `data_seed` is a tuning run; an error
+/// ([`RecipeError::Tuning`]) when it mixes tuning and other seeds or uses the other protocol's
+/// data.
+pub fn is_tuning_run(seeds: &[u64], data_seed: u64) -> RecipeResult<bool> {
+    let (first, last) = (TUNING_SEEDS.start(), TUNING_SEEDS.end());
+    let tuning = seeds.iter().filter(|s| TUNING_SEEDS.contains(s)).count();
+    if tuning > 0 && tuning < seeds.len() {
+        let e = format!("seeds {seeds:?} mix tuning seeds ({first}–{last}) with reporting seeds");
+        return Err(RecipeError::Tuning(e));
+    }
+    let is_tuning = tuning > 0;
+    if is_tuning && data_seed != TUNING_DATA_SEED {
+        return Err(RecipeError::Tuning(format!(
+            "tuning seeds need the tuning demonstrations (data.seed = {TUNING_DATA_SEED}, got \
+             {data_seed}); pass --tuning"
+        )));
+    }
+    if !is_tuning && data_seed == TUNING_DATA_SEED {
+        return Err(RecipeError::Tuning(format!(
+            "data.seed = {TUNING_DATA_SEED} is the tuning data; use it with the tuning seeds \
+             {first}–{last} only (--tuning)"
+        )));
+    }
+    Ok(is_tuning)
+}
+
+/// One method of one tuning run.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct LogEntry {
+    /// The method's label (`vdd-beso`, `vdd-beso-z4`).
+    pub method: String,
+    /// [`method_config_hash`] of the method's configuration.
+    pub config: String,
+    /// The recipe.
+    pub recipe: String,
+    /// The command line.
+    pub command: String,
+    /// `git rev-parse HEAD` (`+dirty` with uncommitted changes).
+    pub revision: String,
+    /// The tuning seeds.
+    pub seeds: Vec<u64>,
+    /// Success rate per seed.
+    pub success_rate: Vec<f64>,
+    /// Task entropy per seed.
+    pub task_entropy: Vec<f64>,
+    /// Optimiser steps of the method's own training.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub train_steps: Option<u64>,
+    /// Rows per step.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub train_batch: Option<u64>,
+    /// Training seconds per seed (wall clock, concurrent trainings).
+    pub train_seconds: Vec<f64>,
+    /// The run directory, relative to the repository.
+    pub run: String,
+}
+
+/// What identifies one method of one tuning run; the figures come from its result rows
+/// ([`LogEntry::from_rows`]).
+#[derive(Debug, Clone, PartialEq)]
+pub struct RunId {
+    /// The method's label.
+    pub method: String,
+    /// [`method_config_hash`] of its configuration.
+    pub config: String,
+    /// The recipe.
+    pub recipe: String,
+    /// The command line.
+    pub command: String,
+    /// The revision (`+dirty` with uncommitted changes).
+    pub revision: String,
+    /// The run directory, relative to the repository.
+    pub run: String,
+}
+
+impl LogEntry {
+    /// The entry of a method from its per-seed result rows (`seed`, `success_rate`,
+    /// `task_entropy`, `train_seconds`, and `train_steps` / `train_batch` of the first row
+    /// when present); rows without a value are skipped.
+    pub fn from_rows(id: RunId, rows: &[serde_json::Map<String, serde_json::Value>]) -> Self {
+        let all = |k: &str| rows.iter().filter_map(|r| r.get(k)?.as_f64()).collect::<Vec<_>>();
+        let first = |k: &str| rows.first().and_then(|r| r.get(k)?.as_u64());
+        let RunId { method, config, recipe, command, revision, run } = id;
+        LogEntry {
+            method,
+            config,
+            recipe,
+            command,
+            revision,
+            seeds: rows.iter().filter_map(|r| r.get("seed")?.as_u64()).collect(),
+            success_rate: all("success_rate"),
+            task_entropy: all("task_entropy"),
+            train_steps: first("train_steps"),
+            train_batch: first("train_batch"),
+            train_seconds: all("train_seconds"),
+            run,
+        }
+    }
+}
+
+#[derive(Debug, Default, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct Log {
+    #[serde(default)]
+    entry: Vec<LogEntry>,
+}
+
+fn io_error(path: &Path) -> impl FnOnce(std::io::Error) -> RecipeError + '_ {
+    move |source| RecipeError::Io { path: path.to_owned(), source }
+}
+
+fn write_error(path: &Path) -> impl FnOnce(std::io::Error) -> RecipeError + '_ {
+    move |source| RecipeError::Write { path: path.to_owned(), source }
+}
+
+/// The entries of the log at `path` (none when the file does not exist); a file over
+/// [`MAX_LOG_BYTES`] is refused before it is read.
+pub fn read_log(path: &Path) -> RecipeResult<Vec<LogEntry>> {
+    let len = match std::fs::metadata(path) {
+        Ok(m) => m.len(),
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(Vec::new()),
+        Err(e) => return Err(io_error(path)(e)),
+    };
+    if len > MAX_LOG_BYTES {
+        return Err(RecipeError::LogTooLarge { path: path.to_owned(), bytes: len });
+    }
+    let text = std::fs::read_to_string(path).map_err(io_error(path))?;
+    let log: Log = toml::from_str(&text)
+        .map_err(|source| RecipeError::Parse { name: path.display().to_string(), source })?;
+    Ok(log.entry)
+}
+
+/// Appends `entries` to the log at `path` (created with a header when missing).
+pub fn append_log(path: &Path, entries: Vec<LogEntry>) -> RecipeResult<()> {
+    use std::io::Write as _;
+    let mut text = String::new();
+    if !path.exists() {
+        text.push_str(
+            "# The tuning log: one entry per method of every tuning run (seeds 100-104, their own\n\
+             # data), appended by `cargo xtask experiment <recipe> --tuning`. See\n\
+             # docs/avoiding-tuning.md, \"Protocol\".\n",
+        );
+    }
+    text.push('\n');
+    text.push_str(&toml::to_string(&Log { entry: entries }).map_err(RecipeError::Serialize)?);
+    let mut f = std::fs::OpenOptions::new()
+        .create(true)
+        .append(true)
+        .open(path)
+        .map_err(write_error(path))?;
+    f.write_all(text.as_bytes()).map_err(write_error(path))
+}
+
+/// The number of distinct configurations of `method` in `entries`.
+pub fn configs_tried(entries: &[LogEntry], method: &str) -> usize {
+    entries.iter().filter(|e| e.method == method).map(|e| &e.config).collect::<BTreeSet<_>>().len()
+}
+
+/// A hash ([`config_hash`](crate::config_hash)) of what a method trains on and with: its
+/// `name`, the `data` configuration, its `teachers` (when it has any), the `student` and the
+/// values of its own recipe `keys`.
+pub fn method_config_hash<D: Serialize + ?Sized, T: Serialize + ?Sized, S: Serialize + ?Sized>(
+    name: &str,
+    data: &D,
+    teachers: Option<&T>,
+    student: &S,
+    keys: serde_json::Map<String, serde_json::Value>,
+) -> RecipeResult<String> {
+    let key = serde_json::json!({
+        "method": name,
+        "data": data,
+        "teachers": teachers,
+        "student": student,
+        "keys": keys,
+    });
+    crate::config_hash(&key)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use rand::Rng as _;
+    use vdd_core::Seeds;
+
+    #[test]
+    fn tuning_and_reporting_runs_stay_apart() {
+        let err = |s: &[u64], d| is_tuning_run(s, d).unwrap_err().to_string();
+        assert!(is_tuning_run(&[100, 104], TUNING_DATA_SEED).unwrap());
+        assert!(!is_tuning_run(&[0, 1, 2], 0).unwrap());
+        assert!(err(&[0, 100], TUNING_DATA_SEED).contains("mix"));
+        assert!(err(&[100], 0).contains("--tuning"));
+        assert!(err(&[3], TUNING_DATA_SEED).contains("tuning data"));
+    }
+
+    #[test]
+    fn tuning_seeds_share_no_stream_with_reporting_seeds() {
+        let purposes = ["avoiding-eval", "avoiding-episode", "avoiding-demonstrator", "init"];
+        let mut firsts = BTreeSet::new();
+        let mut roots = BTreeSet::new();
+        let seeds = (0..5).chain(TUNING_SEEDS).chain([0, TUNING_DATA_SEED]);
+        for s in seeds.collect::<BTreeSet<_>>() {
+            let tree = Seeds::new(s);
+            assert!(roots.insert(tree.child("avoiding-eval").root()));
+            for p in purposes {
+                assert!(firsts.insert(tree.stream(p).random::<u64>()), "seed {s}, {p}");
+            }
+        }
+    }
+
+    #[test]
+    fn the_log_round_trips_and_counts_configurations() {
+        let dir = std::env::temp_dir().join(format!("vdd-recipe-tuning-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let path = dir.join("log.toml");
+        let _ = std::fs::remove_file(&path);
+        assert!(read_log(&path).unwrap().is_empty());
+        let e = |m: &str, c: &str| LogEntry {
+            method: m.into(),
+            config: c.into(),
+            recipe: "avoiding".into(),
+            command: "cargo xtask experiment avoiding --tuning".into(),
+            revision: "abc".into(),
+            seeds: vec![100],
+            success_rate: vec![0.5],
+            task_entropy: vec![0.25],
+            train_steps: Some(10),
+            train_batch: None,
+            train_seconds: vec![1.5],
+            run: "results/tuning/avoiding/seed100".into(),
+        };
+        append_log(&path, vec![e("em", "a"), e("em", "b")]).unwrap();
+        append_log(&path, vec![e("em", "a"), e("imc", "a")]).unwrap();
+        let log = read_log(&path).unwrap();
+        assert_eq!(log.len(), 4);
+        assert_eq!(log[0], e("em", "a"));
+        assert_eq!((configs_tried(&log, "em"), configs_tried(&log, "imc")), (2, 1));
+        assert_eq!(configs_tried(&log, "cd"), 0);
+        std::fs::write(&path, "[[entry]]\nmethod = 3\n").unwrap();
+        assert!(read_log(&path).unwrap_err().to_string().contains("log.toml"));
+        std::fs::remove_dir_all(&dir).unwrap();
+    }
+
+    #[test]
+    fn entries_collect_the_rows_figures() {
+        let rows: Vec<serde_json::Map<String, serde_json::Value>> = [
+            serde_json::json!({"seed": 100, "success_rate": 0.5, "task_entropy": 0.2,
+                "train_seconds": 1.0, "train_steps": 10, "train_batch": 4}),
+            serde_json::json!({"seed": 101, "success_rate": 0.7, "train_seconds": 2.0}),
+        ]
+        .map(|v| v.as_object().unwrap().clone())
+        .into();
+        let id = RunId {
+            method: "em".into(),
+            config: "c".into(),
+            recipe: "avoiding".into(),
+            command: "x".into(),
+            revision: "r".into(),
+            run: "results/tuning/avoiding/seed100-101".into(),
+        };
+        let e = LogEntry::from_rows(id, &rows);
+        assert_eq!((e.seeds, e.success_rate), (vec![100, 101], vec![0.5, 0.7]));
+        assert_eq!((e.task_entropy, e.train_seconds), (vec![0.2], vec![1.0, 2.0]));
+        assert_eq!((e.train_steps, e.train_batch, e.method.as_str()), (Some(10), Some(4), "em"));
+    }
+
+    #[test]
+    fn method_hashes_change_with_what_the_method_trains_on() {
+        let keys = |v: i64| {
+            let mut m = serde_json::Map::new();
+            m.insert("baselines.em".into(), serde_json::json!({ "iterations": v }));
+            m
+        };
+        let h = |name, data: u64, teachers: Option<&str>, k| {
+            method_config_hash(name, &data, teachers, &"moe", keys(k)).unwrap()
+        };
+        let base = h("em", 0, None, 1);
+        assert_eq!(base, h("em", 0, None, 1));
+        for other in [h("imc", 0, None, 1), h("em", 1, None, 1), h("em", 0, Some("t"), 1)] {
+            assert_ne!(base, other);
+        }
+        assert_ne!(base, h("em", 0, None, 2));
+    }
+}
