@@ -6,12 +6,9 @@
 //! defaults live in `recipes/defaults/<task>.toml` under the keys it declares
 //! ([`Method::keys`]); the recipe types hold those tables without knowing their contents.
 
-use faer::Mat;
 use serde::Serialize;
 use serde::de::DeserializeOwned;
 use toml::Table;
-use vdd_core::Affine;
-use vdd_core::gmm::GmmTeacher;
 use vdd_diffusion::TeacherKind;
 use vdd_moe::MoeConfig;
 
@@ -19,6 +16,7 @@ use crate::plots::Curves;
 use crate::policy::TrainedPolicy;
 use crate::recipe;
 use crate::teachers::{TeachersConfig, TrainedTeacher};
+pub use vdd_data::TrainingData;
 use vdd_moe::cache::StudentCache;
 pub use vdd_report::budget::{Budget, BudgetRole};
 
@@ -77,50 +75,6 @@ impl MethodRecipe<'_> {
         path: &str,
     ) -> crate::XResult<Option<T>> {
         Ok(recipe::get_path(self.tree, path)?)
-    }
-}
-
-/// Training data of a run, as the task prepared it (row `i` of each matrix belongs together).
-#[derive(Debug, Clone)]
-pub struct TrainingData {
-    /// States, raw.
-    pub states: Mat<f32>,
-    /// Actions, raw.
-    pub actions: Mat<f32>,
-    /// The task's normalisation of the states (identity when it has none).
-    pub state_normalizer: Affine,
-    /// The task's normalisation of the actions.
-    pub action_normalizer: Affine,
-    /// `states` under `state_normalizer`.
-    pub states_normalized: Mat<f32>,
-    /// `actions` under `action_normalizer`.
-    pub actions_normalized: Mat<f32>,
-    /// The exact teacher of the data's distribution, when the task knows it (the toys; it
-    /// takes raw states and actions).
-    pub exact: Option<GmmTeacher>,
-    /// [`crate::teachers::data_hash`] of the raw matrices.
-    pub hash: String,
-}
-
-impl TrainingData {
-    /// Data without a normalisation of the task's own (identity normalisers).
-    pub fn raw(states: Mat<f32>, actions: Mat<f32>, exact: Option<GmmTeacher>) -> Self {
-        Self {
-            state_normalizer: Affine::identity(states.ncols()),
-            action_normalizer: Affine::identity(actions.ncols()),
-            states_normalized: states.clone(),
-            actions_normalized: actions.clone(),
-            hash: crate::teachers::data_hash(states.as_ref(), actions.as_ref()),
-            states,
-            actions,
-            exact,
-        }
-    }
-}
-
-impl AsRef<TrainingData> for TrainingData {
-    fn as_ref(&self) -> &TrainingData {
-        self
     }
 }
 

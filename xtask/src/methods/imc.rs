@@ -75,16 +75,17 @@ impl Method for Imc {
             curves.entry(ll.into()).or_default().push((x, m.log_likelihood));
             curves.entry(other.into()).or_default().push((x, y));
         };
-        let trained = super::em::fit(job, config.iterations, |student, data, bar, curves, probe| {
-            let mut imc = vdd_mixture::Imc::from_config(config, student, data)?;
-            let report = |m: &ImcMetrics| {
-                bar.inc(1);
-                bar.set_message(format!("log-lik {:.3}", m.log_likelihood));
-                record(curves, m);
-            };
-            probe.run(&mut imc, report, |s| super::em::snapshot_policy(job, s))?;
-            Ok(imc.into_student())
-        })?;
+        let trained =
+            super::em::fit(job, config.iterations, |student, data, bar, curves, probe| {
+                let mut imc = vdd_mixture::Imc::from_config(config, student, data)?;
+                let report = |m: &ImcMetrics| {
+                    bar.inc(1);
+                    bar.set_message(format!("log-lik {:.3}", m.log_likelihood));
+                    record(curves, m);
+                };
+                probe.run(&mut imc, report, |s| super::em::snapshot_policy(job, s))?;
+                Ok(imc.into_student())
+            })?;
         Ok(Trained { budget: Some(budget), ..trained })
     }
 }

@@ -116,18 +116,8 @@ fn prepare(data: &DatasetConfig) -> crate::XResult<Prepared> {
         summary["dataset_entropy"].as_f64().unwrap_or(0.0),
         t0.elapsed().as_secs_f64()
     ));
-    let hash = teachers::data_hash(d.states.as_ref(), d.actions.as_ref());
-    let training = TrainingData {
-        states: d.states,
-        actions: d.actions,
-        state_normalizer: d.state_normalizer,
-        action_normalizer: d.action_normalizer,
-        states_normalized: d.states_normalized,
-        actions_normalized: d.actions_normalized,
-        exact: None,
-        hash,
-    };
-    Ok(Prepared { training, episodes_obs: d.episode_observations, summary })
+    let (training, episodes_obs) = d.into_training();
+    Ok(Prepared { training, episodes_obs, summary })
 }
 
 /// Curves over training on Avoiding: a [`CurveProtocol`] through the recipe's features and

@@ -312,31 +312,7 @@ impl Toy {
     ) -> crate::XResult {
         let task = self.name;
         let mut metrics = report::metrics_json(&ctx.name, task, &base.header.seeds, rows);
-        // The original command's top-level keys, from the first method.
-        let first = &rows[0].1;
-        let mean = |key: &str| {
-            let xs: Vec<f64> = first.iter().filter_map(|r| r.get(key)?.as_f64()).collect();
-            report::json_f64(report::mean_std(&xs).0)
-        };
-        let min = |key: &str| first.iter().filter_map(|r| r.get(key)?.as_u64()).min().unwrap_or(0);
-        metrics.insert("method".into(), json!(rows[0].0));
-        metrics.insert("teacher".into(), json!(rows[0].0.trim_start_matches("vdd-")));
-        metrics.insert("seed".into(), json!(base.header.seeds[0]));
-        if self.conditional {
-            metrics.insert("modes".into(), json!(MODES));
-            metrics.insert("states_fully_covered".into(), json!(min("states_fully_covered")));
-            metrics.insert("mean_reverse_kl".into(), mean("mean_reverse_kl"));
-            metrics.insert("mean_forward_kl".into(), mean("mean_forward_kl"));
-            let states = first.first().and_then(|r| r.get("states")).cloned();
-            metrics.insert("states".into(), states.unwrap_or(Value::Null));
-        } else {
-            metrics.insert("reverse_kl".into(), mean("reverse_kl"));
-            metrics.insert("forward_kl".into(), mean("forward_kl"));
-            metrics.insert("modes_covered".into(), json!(min("modes_covered")));
-            metrics.insert("modes_total".into(), json!(MODES));
-        }
-        metrics.insert("ms_per_iter".into(), mean("ms_per_iter"));
-        metrics.insert("train_seconds".into(), mean("train_seconds"));
+        report::toy_summary(&mut metrics, rows, base.header.seeds[0], self.conditional, MODES);
         let table = format!(
             "## {} ({task})\n\n{}\n\n{}\nmean ± std over seeds {:?}\n",
             ctx.name,

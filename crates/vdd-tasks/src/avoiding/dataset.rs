@@ -22,7 +22,7 @@ use serde::{Deserialize, Serialize};
 use vdd_core::Affine;
 use vdd_data::{
     DataError, DeploySpec, Episodes, Normalization, NormalizationKind, SequenceDataset,
-    WindowConfig,
+    TrainingData, WindowConfig,
 };
 
 use super::demonstrator::{DemonstratorConfig, generate_demonstrations};
@@ -94,6 +94,25 @@ pub struct Dataset {
     /// Demonstrations per behaviour mode (all demonstrations, indexed by
     /// [`super::AvoidingMode::index`]).
     pub mode_counts: Vec<usize>,
+}
+
+impl Dataset {
+    /// The training matrices as a [`TrainingData`] (no exact teacher) and the raw
+    /// observations of each training episode.
+    pub fn into_training(self) -> (TrainingData, Vec<Mat<f32>>) {
+        let hash = vdd_core::hash::data_hash(self.states.as_ref(), self.actions.as_ref());
+        let training = TrainingData {
+            states: self.states,
+            actions: self.actions,
+            state_normalizer: self.state_normalizer,
+            action_normalizer: self.action_normalizer,
+            states_normalized: self.states_normalized,
+            actions_normalized: self.actions_normalized,
+            exact: None,
+            hash,
+        };
+        (training, self.episode_observations)
+    }
 }
 
 /// Errors of building the dataset.
