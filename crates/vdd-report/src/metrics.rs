@@ -130,6 +130,43 @@ pub fn metrics_json(recipe: &str, task: &str, seeds: &[u64], rows: &[(String, Ve
     m
 }
 
+/// The toy recipes' evaluation fields of a row, from the scores at each evaluation state
+/// `(state, reverse KL, forward KL, modes covered)` against a mixture of `modes` modes: for
+/// `toy-gmm` (one state, `conditional` false) `reverse_kl`, `forward_kl`, `modes_covered` and
+/// `modes_total`; for `toy-conditional` `states_fully_covered` (states with every mode
+/// covered), `eval_states`, `mean_reverse_kl`, `mean_forward_kl` (means over the states) and
+/// the per-state `states`.
+///
+/// ```
+/// use serde_json::json;
+/// let f = vdd_report::metrics::toy_fields(&[(0.0, 0.1, 0.3, 8), (1.0, 0.3, 0.1, 7)], 8, true);
+/// assert_eq!((f["states_fully_covered"].clone(), f["eval_states"].clone()), (json!(1), json!(2)));
+/// assert!((f["mean_reverse_kl"].as_f64().unwrap() - 0.2).abs() < 1e-12);
+/// assert_eq!(f["states"][1]["modes_covered"], json!(7));
+/// ```
+pub fn toy_fields(scores: &[(f32, f64, f64, usize)], modes: usize, conditional: bool) -> Row {
+    let n = scores.len();
+    let mean = |f: fn(&(f32, f64, f64, usize)) -> f64| scores.iter().map(f).sum::<f64>() / n as f64;
+    let (rev, fwd) = (mean(|g| g.1), mean(|g| g.2));
+    let mut row = Row::new();
+    let f64_at = |k: &str, v: f64| (k.to_owned(), json_f64(v));
+    if conditional {
+        let full = scores.iter().filter(|g| g.3 == modes).count();
+        row.insert("states_fully_covered".into(), Value::from(full));
+        row.insert("eval_states".into(), Value::from(n));
+        row.extend([f64_at("mean_reverse_kl", rev), f64_at("mean_forward_kl", fwd)]);
+        let per_state = scores.iter().map(|&(state, rev, fwd, cov)| {
+            serde_json::json!({"state": state, "modes_covered": cov, "reverse_kl": rev, "forward_kl": fwd})
+        });
+        row.insert("states".into(), Value::Array(per_state.collect()));
+    } else {
+        row.extend([f64_at("reverse_kl", rev), f64_at("forward_kl", fwd)]);
+        row.insert("modes_covered".into(), Value::from(scores.first().map_or(0, |g| g.3)));
+        row.insert("modes_total".into(), Value::from(modes));
+    }
+    row
+}
+
 /// Adds the toy recipes' top-level keys (those of the original commands) to `metrics`, from the
 /// first method of `rows`: `method`, `teacher` (`method` without `vdd-`), `seed` (the first),
 /// `ms_per_iter` and `train_seconds` (means over seeds), and for `toy-gmm` (`conditional`

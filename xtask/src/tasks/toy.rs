@@ -19,7 +19,7 @@
 use serde::{Deserialize, Serialize};
 use serde_json::{Value, json};
 use toml::Table;
-use vdd::eval::{GmmEval, GmmScores, against_circle, circle_states};
+use vdd::eval::{GmmEval, against_circle, circle_states};
 use vdd_core::gmm::GmmTeacher;
 use vdd_core::{Affine, ScoreModel, Seeds};
 use vdd_moe::MoeConfig;
@@ -251,31 +251,25 @@ impl Toy {
         let n = if self.conditional { cfg.eval.eval_states.max(1) } else { 1 };
         let states = if self.conditional { circle_states(n) } else { vec![0.0] };
         let scores = against_circle(&mut s.student, MODES, &states, &cfg.eval, &seeds)?;
-        let mean = |f: fn(&GmmScores) -> f64| scores.iter().map(f).sum::<f64>() / n as f64;
-        let (rev, fwd) = (mean(|g| g.reverse_kl), mean(|g| g.forward_kl));
-        let f64_at = |k: &str, v: f64| (k.to_owned(), report::json_f64(v));
+        let at = |(&st, g): (&f32, &vdd::eval::GmmScores)| {
+            (st, g.reverse_kl, g.forward_kl, g.modes_covered)
+        };
+        let scores: Vec<_> = states.iter().zip(&scores).map(at).collect();
+        let fields = report::toy_fields(&scores, MODES, self.conditional);
+        let get = |k: &str| fields.get(k).and_then(Value::as_f64).unwrap_or(f64::NAN);
         if self.conditional {
-            let full = scores.iter().filter(|g| g.modes_covered == MODES).count();
+            let (full, rev, fwd) =
+                (get("states_fully_covered"), get("mean_reverse_kl"), get("mean_forward_kl"));
             crate::progress::log(format!(
                 "[{tag}] all {MODES} modes covered at {full}/{n} states, mean reverse KL {rev:.4}, mean forward KL {fwd:.4} nats, {train_seconds:.2} s"
             ));
-            row.insert("states_fully_covered".into(), json!(full));
-            row.insert("eval_states".into(), json!(n));
-            row.extend([f64_at("mean_reverse_kl", rev), f64_at("mean_forward_kl", fwd)]);
-            let per_state = states.iter().zip(&scores).map(|(state, g)| {
-                let (cov, rev, fwd) = (g.modes_covered, g.reverse_kl, g.forward_kl);
-                json!({"state": state, "modes_covered": cov, "reverse_kl": rev, "forward_kl": fwd})
-            });
-            row.insert("states".into(), Value::Array(per_state.collect()));
         } else {
-            let cov = scores[0].modes_covered;
+            let (rev, fwd, cov) = (get("reverse_kl"), get("forward_kl"), get("modes_covered"));
             crate::progress::log(format!(
                 "[{tag}] reverse KL {rev:.5} nats, forward KL {fwd:.5} nats, modes {cov}/{MODES}, {ms_per_iter:.3} ms/iter ({train_seconds:.2} s)"
             ));
-            row.extend([f64_at("reverse_kl", rev), f64_at("forward_kl", fwd)]);
-            row.insert("modes_covered".into(), json!(cov));
-            row.insert("modes_total".into(), json!(MODES));
         }
+        row.extend(fields);
         row.insert("ms_per_iter".into(), report::json_f64(ms_per_iter));
         row.insert("train_seconds".into(), report::json_f64(train_seconds));
         if let Some(t) = trained.teacher_seconds {
