@@ -111,13 +111,12 @@ fn prepare(data: &DatasetConfig) -> crate::XResult<Prepared> {
         "data: {} demonstrations ({} train episodes, {} samples, {} of 24 modes, entropy {:.3}) in {:.2} s",
         data.demonstrations,
         d.train_episodes,
-        d.states.nrows(),
+        d.training.states.nrows(),
         summary["dataset_modes"],
         summary["dataset_entropy"].as_f64().unwrap_or(0.0),
         t0.elapsed().as_secs_f64()
     ));
-    let (training, episodes_obs) = d.into_training();
-    Ok(Prepared { training, episodes_obs, summary })
+    Ok(Prepared { training: d.training, episodes_obs: d.episode_observations, summary })
 }
 
 /// Curves over training on Avoiding: a [`CurveProtocol`] through the recipe's features and
