@@ -8,9 +8,7 @@ use std::path::{Path, PathBuf};
 
 use faer::MatRef;
 use vdd_diffusion::TeacherKind;
-pub use vdd_diffusion::cache::{
-    CachedTeacher as TrainedTeacher, TeachersConfig, data_hash, kind_name,
-};
+pub use vdd_diffusion::cache::{CachedTeacher as TrainedTeacher, TeachersConfig, kind_name};
 use vdd_diffusion::cache::{TeacherCache, TeacherCacheKey};
 
 /// Trains the teacher of `kind` on raw `states` / `actions` with `seed`, or loads it from

@@ -56,6 +56,27 @@ pub fn fnv1a(bytes: &[u8]) -> u64 {
     Fnv1a::new().write(bytes).finish()
 }
 
+/// A 16-hex-digit FNV-1a hash of the shapes and bits of `states` and `actions` (the data
+/// part of the teacher and student caches' keys).
+///
+/// ```
+/// use faer::Mat;
+/// let (s, a) = (Mat::<f32>::zeros(2, 1), Mat::<f32>::zeros(2, 1));
+/// assert_eq!(vdd_core::hash::data_hash(s.as_ref(), a.as_ref()).len(), 16);
+/// ```
+pub fn data_hash(states: faer::MatRef<'_, f32>, actions: faer::MatRef<'_, f32>) -> String {
+    let mut h = Fnv1a::new();
+    for m in [states, actions] {
+        h.write(&(m.nrows() as u64).to_le_bytes()).write(&(m.ncols() as u64).to_le_bytes());
+        for j in 0..m.ncols() {
+            for i in 0..m.nrows() {
+                h.write(&m[(i, j)].to_bits().to_le_bytes());
+            }
+        }
+    }
+    h.hex()
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

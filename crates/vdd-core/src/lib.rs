@@ -18,6 +18,7 @@
 //! Batches are `faer` matrices with one row per sample (`n x dim`), `f32` throughout.
 #![warn(missing_docs)]
 
+pub mod curves;
 mod denoiser;
 mod error;
 mod expert;

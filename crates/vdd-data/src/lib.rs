@@ -64,6 +64,7 @@ pub mod features;
 pub mod io;
 mod normalize;
 mod npy;
+mod training;
 pub mod window;
 
 pub use batch::{BatchSource, Batcher, MatrixDataset};
@@ -71,4 +72,5 @@ pub use episodes::{Episodes, TrainValSplit};
 pub use error::{DataError, Result};
 pub use io::{Layout, LoadOptions};
 pub use normalize::{Normalization, NormalizationKind};
+pub use training::TrainingData;
 pub use window::{DeploySpec, SamplePosition, SequenceDataset, WindowConfig, Windowed};

@@ -15,7 +15,6 @@ use std::time::Instant;
 
 use faer::MatRef;
 use serde::{Deserialize, Serialize};
-use vdd_core::hash::Fnv1a;
 
 use crate::{
     Beso, BesoConfig, Ddpm, DdpmConfig, DiffusionError, DiffusionTeacher, TeacherKind, TrainConfig,
@@ -184,25 +183,7 @@ struct Sidecar {
     losses: Vec<(u64, f32)>,
 }
 
-/// A 16-hex-digit FNV-1a hash of the shapes and bits of `states` and `actions`.
-///
-/// ```
-/// use faer::Mat;
-/// let (s, a) = (Mat::<f32>::zeros(2, 1), Mat::<f32>::zeros(2, 1));
-/// assert_eq!(vdd_diffusion::cache::data_hash(s.as_ref(), a.as_ref()).len(), 16);
-/// ```
-pub fn data_hash(states: MatRef<'_, f32>, actions: MatRef<'_, f32>) -> String {
-    let mut h = Fnv1a::new();
-    for m in [states, actions] {
-        h.write(&(m.nrows() as u64).to_le_bytes()).write(&(m.ncols() as u64).to_le_bytes());
-        for j in 0..m.ncols() {
-            for i in 0..m.nrows() {
-                h.write(&m[(i, j)].to_bits().to_le_bytes());
-            }
-        }
-    }
-    h.hex()
-}
+pub use vdd_core::hash::data_hash;
 
 /// `ddpm` / `beso`: the file-name prefix of a cached teacher.
 ///

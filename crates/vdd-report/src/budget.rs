@@ -9,6 +9,47 @@ use serde_json::Value;
 
 use crate::metrics::Row;
 
+/// A training budget: optimiser steps of a given batch size (the rule is in
+/// docs/avoiding-tuning.md, "Budgets": every student gets the same `steps · batch`).
+///
+/// ```
+/// use vdd_report::budget::{Budget, BudgetRole};
+/// let b = Budget::student(60_000, 128);
+/// assert_eq!(b.role, BudgetRole::Student);
+/// assert_eq!(b.fields()["train_samples"], serde_json::json!(7_680_000));
+/// ```
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Budget {
+    /// Optimiser steps (of the experts' or the network's parameters; a gating's steps, as many
+    /// or fewer, are not counted apart).
+    pub steps: u64,
+    /// Rows (states, or state-action pairs) per step.
+    pub batch: usize,
+    /// A teacher's budget (its own) or a student's (equal across a comparison's students).
+    pub role: BudgetRole,
+}
+
+/// Whose budget a [`Budget`] is.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum BudgetRole {
+    /// A teacher, trained on the data (its rows, e.g. `beso`, `beso-1`).
+    Teacher,
+    /// A student, trained from a teacher or the data (VDD, CD, CTM, EM, IMC).
+    Student,
+}
+
+impl Budget {
+    /// A student's budget.
+    pub fn student(steps: u64, batch: usize) -> Self {
+        Self { steps, batch, role: BudgetRole::Student }
+    }
+
+    /// Its [`budget_fields`].
+    pub fn fields(&self) -> Row {
+        budget_fields(self.steps, self.batch, self.role == BudgetRole::Student)
+    }
+}
+
 /// The budget fields of a row.
 ///
 /// ```

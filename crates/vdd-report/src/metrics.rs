@@ -130,6 +130,92 @@ pub fn metrics_json(recipe: &str, task: &str, seeds: &[u64], rows: &[(String, Ve
     m
 }
 
+/// The toy recipes' evaluation fields of a row, from the scores at each evaluation state
+/// `(state, reverse KL, forward KL, modes covered)` against a mixture of `modes` modes: for
+/// `toy-gmm` (one state, `conditional` false) `reverse_kl`, `forward_kl`, `modes_covered` and
+/// `modes_total`; for `toy-conditional` `states_fully_covered` (states with every mode
+/// covered), `eval_states`, `mean_reverse_kl`, `mean_forward_kl` (means over the states) and
+/// the per-state `states`.
+///
+/// ```
+/// use serde_json::json;
+/// let f = vdd_report::metrics::toy_fields(&[(0.0, 0.1, 0.3, 8), (1.0, 0.3, 0.1, 7)], 8, true);
+/// assert_eq!((f["states_fully_covered"].clone(), f["eval_states"].clone()), (json!(1), json!(2)));
+/// assert!((f["mean_reverse_kl"].as_f64().unwrap() - 0.2).abs() < 1e-12);
+/// assert_eq!(f["states"][1]["modes_covered"], json!(7));
+/// ```
+pub fn toy_fields(scores: &[(f32, f64, f64, usize)], modes: usize, conditional: bool) -> Row {
+    let n = scores.len();
+    let mean = |f: fn(&(f32, f64, f64, usize)) -> f64| scores.iter().map(f).sum::<f64>() / n as f64;
+    let (rev, fwd) = (mean(|g| g.1), mean(|g| g.2));
+    let mut row = Row::new();
+    let f64_at = |k: &str, v: f64| (k.to_owned(), json_f64(v));
+    if conditional {
+        let full = scores.iter().filter(|g| g.3 == modes).count();
+        row.insert("states_fully_covered".into(), Value::from(full));
+        row.insert("eval_states".into(), Value::from(n));
+        row.extend([f64_at("mean_reverse_kl", rev), f64_at("mean_forward_kl", fwd)]);
+        let per_state = scores.iter().map(|&(state, rev, fwd, cov)| {
+            serde_json::json!({"state": state, "modes_covered": cov, "reverse_kl": rev, "forward_kl": fwd})
+        });
+        row.insert("states".into(), Value::Array(per_state.collect()));
+    } else {
+        row.extend([f64_at("reverse_kl", rev), f64_at("forward_kl", fwd)]);
+        row.insert("modes_covered".into(), Value::from(scores.first().map_or(0, |g| g.3)));
+        row.insert("modes_total".into(), Value::from(modes));
+    }
+    row
+}
+
+/// Adds the toy recipes' top-level keys (those of the original commands) to `metrics`, from the
+/// first method of `rows`: `method`, `teacher` (`method` without `vdd-`), `seed` (the first),
+/// `ms_per_iter` and `train_seconds` (means over seeds), and for `toy-gmm` (`conditional`
+/// false) `reverse_kl`, `forward_kl` (means), `modes_covered` (the minimum) and
+/// `modes_total` (`modes`); for `toy-conditional` `modes`, `states_fully_covered` (minimum),
+/// `mean_reverse_kl`, `mean_forward_kl` (means) and the first seed's `states`.
+///
+/// ```
+/// use serde_json::json;
+/// use vdd_report::metrics::{Row, toy_summary};
+/// let row = |kl: f64, cov: u64| json!({"reverse_kl": kl, "modes_covered": cov}).as_object().unwrap().clone();
+/// let mut m = Row::new();
+/// toy_summary(&mut m, &[("vdd-exact".into(), vec![row(0.1, 8), row(0.3, 7)])], 0, false, 8);
+/// assert_eq!((m["teacher"].clone(), m["modes_covered"].clone()), (json!("exact"), json!(7)));
+/// assert!((m["reverse_kl"].as_f64().unwrap() - 0.2).abs() < 1e-12);
+/// ```
+pub fn toy_summary(
+    metrics: &mut Row,
+    rows: &[(String, Vec<Row>)],
+    seed: u64,
+    conditional: bool,
+    modes: usize,
+) {
+    let Some((label, first)) = rows.first() else { return };
+    let mean = |key: &str| {
+        let xs: Vec<f64> = first.iter().filter_map(|r| r.get(key)?.as_f64()).collect();
+        json_f64(mean_std(&xs).0)
+    };
+    let min = |key: &str| first.iter().filter_map(|r| r.get(key)?.as_u64()).min().unwrap_or(0);
+    metrics.insert("method".into(), Value::from(label.as_str()));
+    metrics.insert("teacher".into(), Value::from(label.trim_start_matches("vdd-")));
+    metrics.insert("seed".into(), Value::from(seed));
+    if conditional {
+        metrics.insert("modes".into(), Value::from(modes));
+        metrics.insert("states_fully_covered".into(), Value::from(min("states_fully_covered")));
+        metrics.insert("mean_reverse_kl".into(), mean("mean_reverse_kl"));
+        metrics.insert("mean_forward_kl".into(), mean("mean_forward_kl"));
+        let states = first.first().and_then(|r| r.get("states")).cloned();
+        metrics.insert("states".into(), states.unwrap_or(Value::Null));
+    } else {
+        metrics.insert("reverse_kl".into(), mean("reverse_kl"));
+        metrics.insert("forward_kl".into(), mean("forward_kl"));
+        metrics.insert("modes_covered".into(), Value::from(min("modes_covered")));
+        metrics.insert("modes_total".into(), Value::from(modes));
+    }
+    metrics.insert("ms_per_iter".into(), mean("ms_per_iter"));
+    metrics.insert("train_seconds".into(), mean("train_seconds"));
+}
+
 /// Reads `dir/metrics.json` (or a `metrics.json` path); returns the file read and its value.
 pub fn read_metrics(path: &Path) -> Result<(PathBuf, Value)> {
     let file = if path.is_dir() { path.join("metrics.json") } else { path.to_path_buf() };

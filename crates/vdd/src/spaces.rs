@@ -166,6 +166,50 @@ impl<S: ScoreModel + ?Sized> ScoreModel for MappedTeacher<'_, S> {
     }
 }
 
+impl<S: ScoreModel> crate::Vdd<vdd_core::ClampedDenoiser<S>> {
+    /// VDD for a teacher of its own normalised space (`sn`, `an`; e.g. a diffusion policy
+    /// imported from PyTorch, whose actions are chunks) on raw `states` and `actions`: a student
+    /// of `mc` (seeded with `vc.seed`) working in that space, and the teacher's denoised
+    /// estimate clamped to the normalised `actions`' box widened by `clip_margin` (negative: no
+    /// clamping). With `init_from_teacher`, the experts start from a mixture fitted to 2048 of
+    /// the teacher's samples, with the noise levels and normalisers [`crate::AutoPlan`] picks
+    /// (`vc` then gives only the iterations, the batch and the samples per state).
+    pub fn in_teacher_space(
+        teacher: S,
+        (states, actions): (Mat<f32>, Mat<f32>),
+        (sn, an): (Affine, Affine),
+        (mc, vc): (&vdd_moe::MoeConfig, &crate::VddConfig),
+        (clip_margin, init_from_teacher): (f32, bool),
+    ) -> Result<Self, crate::VddError> {
+        let mut student = vdd_moe::Moe::from_config(mc.clone(), vc.seed)?;
+        student.set_normalizers(Some(sn.clone()), Some(an.clone()))?;
+        let clamped = match clip_margin >= 0.0 {
+            true => vdd_core::ClampedDenoiser::around_data(
+                teacher,
+                an.normalize_rows(actions.as_ref())?.as_ref(),
+                clip_margin,
+            )?,
+            false => vdd_core::ClampedDenoiser::unclamped(teacher),
+        };
+        let data = crate::DistillData::new(states, Some(actions))?
+            .with_teacher_space(TeacherSpace::normalized(sn, an));
+        if !init_from_teacher {
+            return Self::new(vc.clone(), clamped, student, data);
+        }
+        let options = crate::AutoOptions {
+            iterations: vc.iterations,
+            expert_kind: mc.expert_kind,
+            gating: mc.gating,
+            samples: 2048,
+            ..crate::AutoOptions::new(mc.num_experts, vc.seed)
+        };
+        let mut clamped = clamped;
+        let mut plan = crate::AutoPlan::inspect(&mut clamped, &data, &options)?;
+        (plan.vdd.batch_size, plan.vdd.vi_samples) = (vc.batch_size, vc.vi_samples);
+        Self::from_plan(&plan, clamped, data)
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

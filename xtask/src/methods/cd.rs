@@ -71,7 +71,7 @@ pub fn distil(
     let follow = job.recipe.get(FOLLOW)?;
     let mut curves = Curves::default();
     let t0 = Instant::now();
-    let mut probe = CurveProbe::new(job);
+    let mut probe = job.probe();
     let (policy, steps) = train(beso, follow, &mut curves, &mut probe)?;
     let curve_seconds = probe.take_into(&mut curves);
     Ok(Trained {

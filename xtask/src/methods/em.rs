@@ -85,7 +85,7 @@ pub fn fit(
     let t0 = Instant::now();
     let bar = crate::progress::bar(iterations as u64, job.label);
     let mut curves = Curves::default();
-    let mut probe = CurveProbe::new(job);
+    let mut probe = job.probe();
     let student = train(mc, data, &bar, &mut curves, &mut probe)?;
     bar.finish_and_clear();
     let curve_seconds = probe.take_into(&mut curves);

@@ -23,7 +23,7 @@ use vdd_core::{Affine, ClampedDenoiser, ScoreModel};
 use vdd_diffusion::TeacherKind;
 use vdd_moe::{ActMode, GatingKind, Moe, MoeConfig};
 
-use crate::method::{Budget, CurveProbe, Info, Job, Method, MethodRecipe, Trained};
+use crate::method::{Budget, Info, Job, Method, MethodRecipe, Trained};
 use crate::plots::Curves;
 use crate::policy::TrainedPolicy;
 use crate::recipe;
@@ -218,7 +218,7 @@ const CHECKPOINT_SECONDS: u64 = 10;
 /// `<run>/checkpoints/<label>/` (a [`CheckpointDir`]; with the curves, noise sum and training
 /// seconds so far in `progress.json`), resumes from there under `--resume` (refusing a
 /// checkpoint of other settings), and removes it when done. Commits are not training time,
-/// nor are the curves over training ([`CurveProbe`]; `policy` makes a snapshot of the student
+/// nor are the curves over training ([`crate::method::CurveProbe`]; `policy` makes a snapshot of the student
 /// a policy on raw states).
 fn distill<S: ScoreModel>(
     vc: VddConfig,
@@ -256,7 +256,7 @@ fn distill<S: ScoreModel>(
     let bar = crate::progress::bar(iterations as u64, label);
     bar.set_position(vdd.iteration() as u64);
     let every = (iterations / 200).max(1);
-    let mut probe = CurveProbe::new(job);
+    let mut probe = job.probe();
     let at = probe.checkpoints(iterations);
     let mut t0 = Instant::now();
     while vdd.iteration() < iterations {

@@ -19,12 +19,12 @@ use vdd_data::{DeploySpec, Windowed};
 use vdd_moe::MoeConfig;
 
 use vdd_tasks::avoiding::dataset::DatasetConfig;
-use vdd_tasks::avoiding::{CurveProtocol, EvalProtocol};
-use vdd_tasks::timing::{Timing, us_per_action};
+use vdd_tasks::avoiding::{AvoidingEval, CurveProtocol, EvalProtocol, PlotSettings};
+use vdd_tasks::timing::us_per_action;
 
 use super::avoiding_imported::{self, ImportedSettings};
 use crate::context::{RunContext, StageTimes};
-use crate::method::{BudgetRole, CurveEval, Trained, TrainingData};
+use crate::method::{CurveEval, Trained, TrainingData};
 use crate::pipeline::{self, Datasets, Entry, Task, TaskRecipe};
 use crate::plots::{self, Curves, TrajectoryPanel};
 use crate::policy::TrainedPolicy;
@@ -61,68 +61,6 @@ pub struct AvoidingRecipe {
     pub plots: PlotSettings,
     /// A teacher imported from PyTorch (`--teacher FILE`; [`super::avoiding_imported`]).
     pub imported: ImportedSettings,
-}
-
-/// Evaluation.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-#[serde(deny_unknown_fields)]
-pub struct AvoidingEval {
-    /// Rollouts per method and seed.
-    pub rollouts: usize,
-    /// Environments stepped together with one batched `act_batch` (0: one episode at a time).
-    pub lockstep_batch: usize,
-    /// Evaluation threads (0: all cores).
-    pub threads: usize,
-    /// Timed single-observation `Policy::act` calls for µs per action (single thread).
-    pub timing_calls: usize,
-    /// Untimed calls before timing.
-    pub timing_warmup: usize,
-    /// The shortest timing round in milliseconds: a fast policy makes more than
-    /// `timing_calls / 5` calls a round (see `vdd_tasks::timing::us_per_action`).
-    pub timing_min_round_ms: f64,
-    /// Curves over training: evaluations per training run of every method trained in the run
-    /// (0: none; see [`CurveProtocol`]).
-    pub curve_points: usize,
-    /// Episodes per curve evaluation (held out from the final evaluation's), stepped
-    /// `lockstep_batch` at a time on one thread.
-    pub curve_rollouts: usize,
-}
-
-impl AvoidingEval {
-    /// The rollouts' protocol (episodes and lockstep batch; the seed comes from the run seed).
-    pub(super) fn protocol(&self) -> EvalProtocol {
-        EvalProtocol { rollouts: self.rollouts, lockstep_batch: self.lockstep_batch }
-    }
-
-    /// The curves over training.
-    fn curves(&self) -> CurveProtocol {
-        CurveProtocol {
-            points: self.curve_points,
-            rollouts: self.curve_rollouts,
-            lockstep_batch: self.lockstep_batch,
-        }
-    }
-
-    /// The settings of `us_per_action`.
-    pub(super) fn timing(&self) -> Timing {
-        Timing {
-            calls: self.timing_calls,
-            warmup: self.timing_warmup,
-            min_round_ms: self.timing_min_round_ms,
-        }
-    }
-}
-
-/// Figures.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-#[serde(deny_unknown_fields)]
-pub struct PlotSettings {
-    /// Write plots at all.
-    pub enabled: bool,
-    /// Rollouts drawn per method in the trajectory figure.
-    pub trajectories: usize,
-    /// Also write PNGs (SVG always).
-    pub png: bool,
 }
 
 /// `recipes/defaults/avoiding.toml`, embedded so that the binary is self-contained.
@@ -173,23 +111,12 @@ fn prepare(data: &DatasetConfig) -> crate::XResult<Prepared> {
         "data: {} demonstrations ({} train episodes, {} samples, {} of 24 modes, entropy {:.3}) in {:.2} s",
         data.demonstrations,
         d.train_episodes,
-        d.states.nrows(),
+        d.training.states.nrows(),
         summary["dataset_modes"],
         summary["dataset_entropy"].as_f64().unwrap_or(0.0),
         t0.elapsed().as_secs_f64()
     ));
-    let hash = teachers::data_hash(d.states.as_ref(), d.actions.as_ref());
-    let training = TrainingData {
-        states: d.states,
-        actions: d.actions,
-        state_normalizer: d.state_normalizer,
-        action_normalizer: d.action_normalizer,
-        states_normalized: d.states_normalized,
-        actions_normalized: d.actions_normalized,
-        exact: None,
-        hash,
-    };
-    Ok(Prepared { training, episodes_obs: d.episode_observations, summary })
+    Ok(Prepared { training: d.training, episodes_obs: d.episode_observations, summary })
 }
 
 /// Curves over training on Avoiding: a [`CurveProtocol`] through the recipe's features and
@@ -209,7 +136,8 @@ impl AvoidingCurves {
     }
 }
 
-impl CurveEval for AvoidingCurves {
+impl vdd_core::curves::CurveEval<TrainedPolicy> for AvoidingCurves {
+    type Error = Box<dyn std::error::Error>;
     fn checkpoints(&self, iterations: usize) -> Vec<usize> {
         self.protocol.checkpoints(iterations)
     }
@@ -221,6 +149,9 @@ impl CurveEval for AvoidingCurves {
             (CURVE_ENTROPY.to_owned(), m.task_entropy),
         ])
     }
+}
+
+impl CurveEval for AvoidingCurves {
     fn key(&self) -> Value {
         json!({ "protocol": self.protocol, "spec": self.spec })
     }
@@ -449,7 +380,7 @@ fn evaluate(
         row.insert("sampling_steps".into(), json!(s));
     }
     if let Some(b) = trained.budget {
-        row.extend(report::budget_fields(b.steps, b.batch, b.role == BudgetRole::Student));
+        row.extend(b.fields());
     }
     if trained.curve_seconds > 0.0 {
         row.insert("curve_seconds".into(), report::json_f64(trained.curve_seconds));

@@ -12,11 +12,11 @@ use std::time::Instant;
 
 use serde::{Deserialize, Serialize};
 use serde_json::json;
-use vdd::{AutoOptions, AutoPlan, DistillData, TeacherSpace, Vdd, VddConfig};
-use vdd_core::{ClampedDenoiser, Policy};
+use vdd::{Vdd, VddConfig};
+use vdd_core::Policy;
 use vdd_data::Episodes;
 use vdd_import::ImportedTeacher;
-use vdd_moe::{GatingKind, Moe, MoeConfig};
+use vdd_moe::{GatingKind, MoeConfig};
 use vdd_tasks::avoiding::EvalProtocol;
 use vdd_tasks::timing::us_per_action;
 
@@ -86,36 +86,11 @@ pub fn run(ctx: &RunContext, resolved: &Resolved<AvoidingRecipe>) -> crate::XRes
                 ..cfg.student.clone()
             };
             let vc = VddConfig { seed, ..cfg.imported.vdd.clone() };
-            let mut student = Moe::from_config(mc.clone(), seed)?;
-            student.set_normalizers(Some(sn.clone()), Some(an.clone()))?;
+            let (space, clip) = ((sn.clone(), an.clone()), cfg.imported.clip_margin);
+            let setup = (clip, cfg.imported.init_from_teacher);
+            let data = (states.clone(), chunks.clone());
             let inner = teacher.as_ref().clone();
-            let margin = cfg.imported.clip_margin;
-            let clamped = match margin >= 0.0 {
-                true => ClampedDenoiser::around_data(
-                    inner,
-                    an.normalize_rows(chunks.as_ref())?.as_ref(),
-                    margin,
-                )?,
-                false => ClampedDenoiser::unclamped(inner),
-            };
-            let data = DistillData::new(states.clone(), Some(chunks.clone()))?
-                .with_teacher_space(TeacherSpace::normalized(sn.clone(), an.clone()));
-            let mut vdd = match cfg.imported.init_from_teacher {
-                false => Vdd::new(vc.clone(), clamped, student, data)?,
-                true => {
-                    let options = AutoOptions {
-                        iterations: vc.iterations,
-                        expert_kind: mc.expert_kind,
-                        gating: mc.gating,
-                        samples: 2048,
-                        ..AutoOptions::new(mc.num_experts, seed)
-                    };
-                    let mut clamped = clamped;
-                    let mut plan = AutoPlan::inspect(&mut clamped, &data, &options)?;
-                    (plan.vdd.batch_size, plan.vdd.vi_samples) = (vc.batch_size, vc.vi_samples);
-                    Vdd::from_plan(&plan, clamped, data)?
-                }
-            };
+            let mut vdd = Vdd::in_teacher_space(inner, data, space, (&mc, &vc), setup)?;
             let bar = crate::progress::bar(vc.iterations as u64, &format!("{label} s{seed}"));
             let t0 = Instant::now();
             vdd.train(|_| bar.inc(1))?;

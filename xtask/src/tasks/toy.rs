@@ -19,7 +19,7 @@
 use serde::{Deserialize, Serialize};
 use serde_json::{Value, json};
 use toml::Table;
-use vdd::eval::{GmmEval, GmmScores, against_circle, circle_states};
+use vdd::eval::{GmmEval, against_circle, circle_states};
 use vdd_core::gmm::GmmTeacher;
 use vdd_core::{Affine, ScoreModel, Seeds};
 use vdd_moe::MoeConfig;
@@ -251,31 +251,25 @@ impl Toy {
         let n = if self.conditional { cfg.eval.eval_states.max(1) } else { 1 };
         let states = if self.conditional { circle_states(n) } else { vec![0.0] };
         let scores = against_circle(&mut s.student, MODES, &states, &cfg.eval, &seeds)?;
-        let mean = |f: fn(&GmmScores) -> f64| scores.iter().map(f).sum::<f64>() / n as f64;
-        let (rev, fwd) = (mean(|g| g.reverse_kl), mean(|g| g.forward_kl));
-        let f64_at = |k: &str, v: f64| (k.to_owned(), report::json_f64(v));
+        let at = |(&st, g): (&f32, &vdd::eval::GmmScores)| {
+            (st, g.reverse_kl, g.forward_kl, g.modes_covered)
+        };
+        let scores: Vec<_> = states.iter().zip(&scores).map(at).collect();
+        let fields = report::toy_fields(&scores, MODES, self.conditional);
+        let get = |k: &str| fields.get(k).and_then(Value::as_f64).unwrap_or(f64::NAN);
         if self.conditional {
-            let full = scores.iter().filter(|g| g.modes_covered == MODES).count();
+            let (full, rev, fwd) =
+                (get("states_fully_covered"), get("mean_reverse_kl"), get("mean_forward_kl"));
             crate::progress::log(format!(
                 "[{tag}] all {MODES} modes covered at {full}/{n} states, mean reverse KL {rev:.4}, mean forward KL {fwd:.4} nats, {train_seconds:.2} s"
             ));
-            row.insert("states_fully_covered".into(), json!(full));
-            row.insert("eval_states".into(), json!(n));
-            row.extend([f64_at("mean_reverse_kl", rev), f64_at("mean_forward_kl", fwd)]);
-            let per_state = states.iter().zip(&scores).map(|(state, g)| {
-                let (cov, rev, fwd) = (g.modes_covered, g.reverse_kl, g.forward_kl);
-                json!({"state": state, "modes_covered": cov, "reverse_kl": rev, "forward_kl": fwd})
-            });
-            row.insert("states".into(), Value::Array(per_state.collect()));
         } else {
-            let cov = scores[0].modes_covered;
+            let (rev, fwd, cov) = (get("reverse_kl"), get("forward_kl"), get("modes_covered"));
             crate::progress::log(format!(
                 "[{tag}] reverse KL {rev:.5} nats, forward KL {fwd:.5} nats, modes {cov}/{MODES}, {ms_per_iter:.3} ms/iter ({train_seconds:.2} s)"
             ));
-            row.extend([f64_at("reverse_kl", rev), f64_at("forward_kl", fwd)]);
-            row.insert("modes_covered".into(), json!(cov));
-            row.insert("modes_total".into(), json!(MODES));
         }
+        row.extend(fields);
         row.insert("ms_per_iter".into(), report::json_f64(ms_per_iter));
         row.insert("train_seconds".into(), report::json_f64(train_seconds));
         if let Some(t) = trained.teacher_seconds {
@@ -312,31 +306,7 @@ impl Toy {
     ) -> crate::XResult {
         let task = self.name;
         let mut metrics = report::metrics_json(&ctx.name, task, &base.header.seeds, rows);
-        // The original command's top-level keys, from the first method.
-        let first = &rows[0].1;
-        let mean = |key: &str| {
-            let xs: Vec<f64> = first.iter().filter_map(|r| r.get(key)?.as_f64()).collect();
-            report::json_f64(report::mean_std(&xs).0)
-        };
-        let min = |key: &str| first.iter().filter_map(|r| r.get(key)?.as_u64()).min().unwrap_or(0);
-        metrics.insert("method".into(), json!(rows[0].0));
-        metrics.insert("teacher".into(), json!(rows[0].0.trim_start_matches("vdd-")));
-        metrics.insert("seed".into(), json!(base.header.seeds[0]));
-        if self.conditional {
-            metrics.insert("modes".into(), json!(MODES));
-            metrics.insert("states_fully_covered".into(), json!(min("states_fully_covered")));
-            metrics.insert("mean_reverse_kl".into(), mean("mean_reverse_kl"));
-            metrics.insert("mean_forward_kl".into(), mean("mean_forward_kl"));
-            let states = first.first().and_then(|r| r.get("states")).cloned();
-            metrics.insert("states".into(), states.unwrap_or(Value::Null));
-        } else {
-            metrics.insert("reverse_kl".into(), mean("reverse_kl"));
-            metrics.insert("forward_kl".into(), mean("forward_kl"));
-            metrics.insert("modes_covered".into(), json!(min("modes_covered")));
-            metrics.insert("modes_total".into(), json!(MODES));
-        }
-        metrics.insert("ms_per_iter".into(), mean("ms_per_iter"));
-        metrics.insert("train_seconds".into(), mean("train_seconds"));
+        report::toy_summary(&mut metrics, rows, base.header.seeds[0], self.conditional, MODES);
         let table = format!(
             "## {} ({task})\n\n{}\n\n{}\nmean ± std over seeds {:?}\n",
             ctx.name,

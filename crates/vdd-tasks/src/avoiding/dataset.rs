@@ -7,13 +7,14 @@
 //!
 //! let config = DatasetConfig { demonstrations: 4, validation_fraction: 0.0, ..Default::default() };
 //! let data = config.build().unwrap();
-//! assert_eq!(data.states.ncols(), 4); // one window of 4 features
-//! assert_eq!(data.actions.ncols(), 2); // one chunk of 2 action components
-//! assert_eq!(data.states.nrows(), data.states_normalized.nrows());
+//! let t = &data.training;
+//! assert_eq!(t.states.ncols(), 4); // one window of 4 features
+//! assert_eq!(t.actions.ncols(), 2); // one chunk of 2 action components
+//! assert_eq!(t.states.nrows(), t.states_normalized.nrows());
 //! assert_eq!(data.train_episodes, 4);
 //! assert_eq!(data.mode_counts.iter().sum::<usize>(), 4);
 //! let summary = data.summary(4);
-//! assert_eq!(summary["train_samples"], data.states.nrows());
+//! assert_eq!(summary["train_samples"], t.states.nrows());
 //! assert!(summary["dataset_modes"].as_u64().is_some_and(|m| (1..=4).contains(&m)));
 //! ```
 
@@ -22,7 +23,7 @@ use serde::{Deserialize, Serialize};
 use vdd_core::Affine;
 use vdd_data::{
     DataError, DeploySpec, Episodes, Normalization, NormalizationKind, SequenceDataset,
-    WindowConfig,
+    TrainingData, WindowConfig,
 };
 
 use super::demonstrator::{DemonstratorConfig, generate_demonstrations};
@@ -74,19 +75,10 @@ impl Default for DatasetConfig {
 /// Training matrices of the Avoiding task, one row per window of the training episodes.
 #[derive(Debug, Clone)]
 pub struct Dataset {
-    /// Observation windows (features of `W` steps, concatenated), raw.
-    pub states: Mat<f32>,
-    /// Action chunks (`C` steps, concatenated), raw.
-    pub actions: Mat<f32>,
-    /// The standard normalisation of the windows, fitted per step on the training episodes
-    /// and repeated over the window.
-    pub state_normalizer: Affine,
-    /// The standard normalisation of the chunks, likewise.
-    pub action_normalizer: Affine,
-    /// [`Self::states`] normalised by [`Self::state_normalizer`].
-    pub states_normalized: Mat<f32>,
-    /// [`Self::actions`] normalised by [`Self::action_normalizer`].
-    pub actions_normalized: Mat<f32>,
+    /// Observation windows (features of `W` steps, concatenated) and action chunks (`C`
+    /// steps), raw and under the standard normalisation fitted per step on the training
+    /// episodes (repeated over the window or chunk); no exact teacher.
+    pub training: TrainingData,
     /// Raw observations (before the features) of each training episode.
     pub episode_observations: Vec<Mat<f32>>,
     /// Training episodes.
@@ -180,13 +172,18 @@ impl DatasetConfig {
         let norm = Normalization::fit(&train, NormalizationKind::standard())?;
         let (states_normalized, actions_normalized) =
             SequenceDataset::new(train.normalized(&norm)?, window)?.to_matrices();
-        Ok(Dataset {
+        let training = TrainingData {
+            hash: vdd_core::hash::data_hash(states.as_ref(), actions.as_ref()),
             states,
             actions,
             state_normalizer: tile(&norm.observations, self.obs_window),
             action_normalizer: tile(&norm.actions, self.action_chunk),
             states_normalized,
             actions_normalized,
+            exact: None,
+        };
+        Ok(Dataset {
+            training,
             episode_observations,
             train_episodes: train.num_episodes(),
             mode_counts,
@@ -202,9 +199,9 @@ impl Dataset {
         serde_json::json!({
             "demonstrations": demonstrations,
             "train_episodes": self.train_episodes,
-            "train_samples": self.states.nrows(),
-            "state_dim": self.states.ncols(),
-            "action_dim": self.actions.ncols(),
+            "train_samples": self.training.states.nrows(),
+            "state_dim": self.training.states.ncols(),
+            "action_dim": self.training.actions.ncols(),
             "dataset_modes": self.mode_counts.iter().filter(|&&c| c > 0).count(),
             "dataset_entropy": crate::normalized_entropy(&self.mode_counts),
         })

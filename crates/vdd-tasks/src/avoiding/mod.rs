@@ -66,7 +66,7 @@ pub mod rollout;
 
 pub use curves::{CurveProtocol, MAX_CURVE_POINTS};
 pub use features::ObsFeatures;
-pub use protocol::EvalProtocol;
+pub use protocol::{AvoidingEval, EvalProtocol, PlotSettings};
 
 /// Start position of the end effector (and of the desired position).
 pub const START: [f32; 2] = [0.525, -0.28];

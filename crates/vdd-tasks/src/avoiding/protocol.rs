@@ -5,7 +5,9 @@
 use serde::{Deserialize, Serialize};
 use vdd_core::{Policy, Seeds};
 
+use super::CurveProtocol;
 use super::rollout::{EvalConfig, Evaluation, Stepping, evaluate_cloned};
+use crate::timing::Timing;
 use crate::{Result, TaskError};
 
 /// The recipes' evaluation of a policy trained with run seed `seed`: `rollouts` episodes whose
@@ -195,6 +197,69 @@ impl<P: Policy> Policy for ExpertLog<P> {
         self.log();
         Ok(())
     }
+}
+
+/// The Avoiding recipes' `[eval]` table: the final evaluation ([`Self::protocol`]), the
+/// timing ([`Self::timing`]) and the curves over training ([`Self::curves`]).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct AvoidingEval {
+    /// Rollouts per method and seed.
+    pub rollouts: usize,
+    /// Environments stepped together with one batched `act_batch` (0: one episode at a time).
+    pub lockstep_batch: usize,
+    /// Evaluation threads (0: all cores).
+    pub threads: usize,
+    /// Timed single-observation `Policy::act` calls for µs per action (single thread).
+    pub timing_calls: usize,
+    /// Untimed calls before timing.
+    pub timing_warmup: usize,
+    /// The shortest timing round in milliseconds: a fast policy makes more than
+    /// `timing_calls / 5` calls a round (see [`us_per_action`](crate::timing::us_per_action)).
+    pub timing_min_round_ms: f64,
+    /// Curves over training: evaluations per training run of every method trained in the run
+    /// (0: none; see [`CurveProtocol`]).
+    pub curve_points: usize,
+    /// Episodes per curve evaluation (held out from the final evaluation's), stepped
+    /// `lockstep_batch` at a time on one thread.
+    pub curve_rollouts: usize,
+}
+
+impl AvoidingEval {
+    /// The rollouts' protocol (episodes and lockstep batch; the seed comes from the run seed).
+    pub fn protocol(&self) -> EvalProtocol {
+        EvalProtocol { rollouts: self.rollouts, lockstep_batch: self.lockstep_batch }
+    }
+
+    /// The curves over training.
+    pub fn curves(&self) -> CurveProtocol {
+        CurveProtocol {
+            points: self.curve_points,
+            rollouts: self.curve_rollouts,
+            lockstep_batch: self.lockstep_batch,
+        }
+    }
+
+    /// The settings of `us_per_action`.
+    pub fn timing(&self) -> Timing {
+        Timing {
+            calls: self.timing_calls,
+            warmup: self.timing_warmup,
+            min_round_ms: self.timing_min_round_ms,
+        }
+    }
+}
+
+/// The Avoiding recipes' `[plots]` table: the figures of a run.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct PlotSettings {
+    /// Write plots at all.
+    pub enabled: bool,
+    /// Rollouts drawn per method in the trajectory figure.
+    pub trajectories: usize,
+    /// Also write PNGs (SVG always).
+    pub png: bool,
 }
 
 #[cfg(test)]
