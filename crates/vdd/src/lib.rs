@@ -79,7 +79,7 @@ pub use config::{
 };
 pub use error::VddError;
 pub use spaces::TeacherSpace;
-pub use trainer::{DistillData, IterationMetrics, Vdd};
+pub use trainer::{DistillData, IterationMetrics, Resumable, ResumableOutcome, Vdd};
 
 // The front door: everything a user of the trainer names, from one dependency.
 /// Exact Gaussian-mixture teachers ([`vdd_core::gmm`]), the robustness family among them.

@@ -14,6 +14,8 @@ use crate::error::VddError;
 use crate::expert_step::{
     ExpertStepBuffers, ExpertStepStats, corrected_score_moments, raw_gradients,
 };
+pub use resumable::{Resumable, ResumableOutcome};
+
 use crate::spaces::{ActionMap, MappedTeacher, TeacherSpace, normalize_rows, same_map};
 
 /// The states to distil on, optionally the dataset's actions for the gating step, both in the
@@ -621,6 +623,7 @@ impl<S: ScoreModel, E: Expert> Snapshot for Vdd<S, E> {
 
 mod checkpoint;
 mod chunks;
+mod resumable;
 #[cfg(test)]
 mod tests;
 #[cfg(test)]

@@ -13,23 +13,18 @@
 //! Students of learned teachers are cached when the task gives a [`StudentCache`]
 //! ([`vdd_moe::cache`]).
 
-use std::time::Instant;
-
 use faer::Mat;
 use serde_json::json;
-use vdd::{DistillData, Vdd, VddConfig};
-use vdd_core::Snapshot;
+use vdd::{DistillData, Resumable, ResumableOutcome, VddConfig};
 use vdd_core::{Affine, ClampedDenoiser, ScoreModel};
 use vdd_diffusion::TeacherKind;
 use vdd_moe::{ActMode, GatingKind, Moe, MoeConfig};
 
 use crate::method::{Budget, Info, Job, Method, MethodRecipe, Trained};
-use crate::plots::Curves;
 use crate::policy::TrainedPolicy;
 use crate::recipe;
 use crate::teachers;
 use vdd_moe::cache::{CachedStudent, STUDENT_CACHE_VERSION};
-use vdd_nn::checkpoint::CheckpointDir;
 
 /// VDD distilling one teacher, with the key of its settings below `vdd`.
 pub struct VddMethod(pub(super) Info, pub(super) &'static str);
@@ -212,14 +207,13 @@ const CHECKPOINT_SECONDS: u64 = 10;
 
 /// Distils `teacher` into `student`, freshly initialised, with VDD (states and actions in
 /// the student's normalised space; the student initialised from the run seed `vc.seed`), with a
-/// progress bar and learning curves; also returns the mean noise level of the teacher queries.
+/// progress bar and learning curves; also returns the mean noise level of the teacher queries
+/// and the seconds the curves over training took.
 ///
-/// The run commits a checkpoint every [`CHECKPOINT_SECONDS`] of training to
-/// `<run>/checkpoints/<label>/` (a [`CheckpointDir`]; with the curves, noise sum and training
-/// seconds so far in `progress.json`), resumes from there under `--resume` (refusing a
-/// checkpoint of other settings), and removes it when done. Commits are not training time,
-/// nor are the curves over training ([`crate::method::CurveProbe`]; `policy` makes a snapshot of the student
-/// a policy on raw states).
+/// The run is a [`Resumable`] one: it commits a checkpoint every [`CHECKPOINT_SECONDS`] of
+/// training to `<run>/checkpoints/<label>/`, resumes from there under `--resume` and removes it
+/// when done; `policy` makes a snapshot of the student a policy on raw states for the curves
+/// over training ([`crate::method::CurveProbe`]).
 fn distill<S: ScoreModel>(
     vc: VddConfig,
     teacher: S,
@@ -229,74 +223,25 @@ fn distill<S: ScoreModel>(
     job: &Job<'_>,
     policy: &dyn Fn(Moe) -> crate::XResult<TrainedPolicy>,
 ) -> crate::XResult<(CachedStudent, f32, f64)> {
-    let label = job.label;
     let teacher = match clip_margin {
         Some(m) => ClampedDenoiser::around_data(teacher, actions.as_ref(), m)?,
         None => ClampedDenoiser::unclamped(teacher),
     };
     let data = DistillData::new(states, Some(actions))?;
-    let iterations = vc.iterations;
-    let root = job.checkpoints.0.join(label.replace(' ', "-"));
-    if !job.checkpoints.1 && root.exists() {
-        std::fs::remove_dir_all(&root)?;
-    }
-    let store = CheckpointDir::open(&root)?;
-    let (mut curves, mut noise_sum, mut train_seconds, mut vdd) = match store.latest()? {
-        Some((_, generation)) => {
-            let (c, n, t): (Curves, f64, f64) =
-                serde_json::from_slice(&std::fs::read(generation.join("progress.json"))?)?;
-            let vdd = Vdd::resume(&generation, teacher, data)?;
-            if vdd.config() != &vc || vdd.student().config() != student.config() {
-                return Err(format!("{}: written with other settings", root.display()).into());
-            }
-            (c, n, t, vdd)
-        }
-        None => (Curves::default(), 0.0, 0.0, Vdd::new(vc, teacher, student, data)?),
-    };
-    let bar = crate::progress::bar(iterations as u64, label);
-    bar.set_position(vdd.iteration() as u64);
-    let every = (iterations / 200).max(1);
-    let mut probe = job.probe();
-    let at = probe.checkpoints(iterations);
-    let mut t0 = Instant::now();
-    while vdd.iteration() < iterations {
-        let m = vdd.step()?;
-        if at.contains(&vdd.iteration()) {
-            train_seconds += t0.elapsed().as_secs_f64();
-            probe.record(vdd.iteration(), &policy(vdd.snapshot()?)?)?;
-            probe.take_into(&mut curves);
-            t0 = Instant::now(); // the curves are not training time
-        }
-        bar.inc(1);
-        noise_sum += f64::from(m.expert.noise_level);
-        if m.iteration % every == 0 || m.iteration + 1 == iterations {
-            let x = m.iteration as f64;
-            let mut push = |k: &str, v: f64| curves.entry(k.to_owned()).or_default().push((x, v));
-            push("expert entropy (nats)", f64::from(m.expert.expert_entropy));
-            push("corrected score rms", f64::from(m.expert.corrected_score_rms));
-            push("log responsibility", f64::from(m.expert.log_responsibility));
-            push("gating entropy (nats)", f64::from(m.gating_entropy));
-            if let Some(g) = m.gating_loss {
-                push("gating loss", f64::from(g));
-            }
+    let root = job.checkpoints.0.join(job.label.replace(' ', "-"));
+    let run =
+        Resumable { dir: &root, resume: job.checkpoints.1, every_seconds: CHECKPOINT_SECONDS };
+    let bar = crate::progress::bar(vc.iterations as u64, job.label);
+    let report = |m: &vdd::IterationMetrics| {
+        bar.set_position(m.iteration as u64 + 1);
+        if m.iteration % 100 == 0 {
             bar.set_message(format!("H(z|s) {:.2}", m.gating_entropy));
         }
-        if t0.elapsed().as_secs() >= CHECKPOINT_SECONDS && vdd.iteration() < iterations {
-            train_seconds += t0.elapsed().as_secs_f64();
-            let progress = serde_json::to_vec(&(&curves, noise_sum, train_seconds))?;
-            store.commit(vdd.iteration() as u64, |dir| -> crate::XResult {
-                vdd.write_checkpoint(dir)?;
-                Ok(vdd_nn::io::write_atomic(&dir.join("progress.json"), &progress)?)
-            })?;
-            t0 = Instant::now(); // the training time leaves the commits out
-        }
-    }
-    train_seconds += t0.elapsed().as_secs_f64();
+    };
+    let mut probe = job.probe();
+    let out = run.run((vc, teacher, student, data), &mut probe, policy, report)?;
     bar.finish_and_clear();
-    drop(store);
-    std::fs::remove_dir_all(&root)?;
     let _ = std::fs::remove_dir(job.checkpoints.0); // when empty
-    let noise = (noise_sum / iterations.max(1) as f64) as f32;
-    let student = CachedStudent { student: vdd.into_student(), train_seconds, curves };
-    Ok((student, noise, probe.seconds))
+    let ResumableOutcome { student, train_seconds, curves, mean_noise_level } = out;
+    Ok((CachedStudent { student, train_seconds, curves }, mean_noise_level, probe.seconds))
 }

@@ -112,3 +112,43 @@ fn a_second_writer_is_refused() {
     drop(store);
     std::fs::remove_dir_all(&root).unwrap();
 }
+
+/// Curves of the iteration, failing once on its first call when `fail` is set (a killed run).
+struct FailOnce(std::sync::atomic::AtomicBool);
+
+impl vdd_core::curves::CurveEval<Moe> for FailOnce {
+    type Error = VddError;
+    fn checkpoints(&self, _iterations: usize) -> Vec<usize> {
+        vec![4]
+    }
+    fn evaluate(&self, _: &Moe, _: u64) -> Result<Vec<(String, f64)>, VddError> {
+        if self.0.swap(false, std::sync::atomic::Ordering::SeqCst) {
+            return Err(VddError::NonFinite { iteration: 4, quantity: "a test's curve" });
+        }
+        Ok(vec![("four".into(), 4.0)])
+    }
+}
+
+/// A resumable run stopped by an error at iteration 4, with a commit after every iteration.
+fn resumable(root: &Path, fail: bool, resume: bool) -> Result<ResumableOutcome, VddError> {
+    let eval = FailOnce(fail.into());
+    let mut probe = vdd_core::curves::CurveProbe::new(Some(&eval), 0);
+    let run = Resumable { dir: root, resume, every_seconds: 0 };
+    run.run(small_run(6), &mut probe, Ok::<_, VddError>, |_| {})
+}
+
+#[test]
+fn a_resumable_run_continues_from_its_last_commit_like_a_straight_run() {
+    let (straight, root) = (resumable(&temp("straight"), false, false).unwrap(), temp("killed"));
+    assert!(resumable(&root, true, false).is_err(), "the failing curve stops the run");
+    assert!(root.exists(), "the stopped run left its checkpoints");
+    let resumed = resumable(&root, false, true).unwrap();
+    assert!(!root.exists(), "a finished run removes its checkpoints");
+    assert_eq!(params(&straight.student), params(&resumed.student));
+    assert_eq!(straight.curves, resumed.curves);
+    assert_eq!(straight.mean_noise_level, resumed.mean_noise_level);
+    assert_eq!(resumed.curves["four"], [(4.0, 4.0)]);
+    // Without `resume`, the checkpoints of an earlier run are discarded.
+    assert!(resumable(&root, true, false).is_err());
+    assert_eq!(params(&resumable(&root, false, false).unwrap().student), params(&straight.student));
+}

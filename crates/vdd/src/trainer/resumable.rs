@@ -1,0 +1,159 @@
+//! A VDD training that survives being killed ([`Resumable::run`]): it commits the trainer to a
+//! [`CheckpointDir`] every few seconds of training, continues from the newest complete
+//! generation when asked (bit for bit, see [`Vdd::resume`]), records curves over training
+//! through a [`CurveProbe`], and removes its checkpoints when done.
+
+use std::path::Path;
+use std::time::Instant;
+
+use vdd_core::{ScoreModel, Snapshot};
+use vdd_core::curves::{CurveEval, CurveProbe, Curves};
+use vdd_moe::Moe;
+use vdd_nn::checkpoint::CheckpointDir;
+
+use super::{DistillData, IterationMetrics, Vdd};
+use crate::config::VddConfig;
+use crate::error::VddError;
+
+/// Where and how often a [`Resumable::run`] checkpoints.
+#[derive(Debug, Clone, Copy)]
+pub struct Resumable<'a> {
+    /// The run's checkpoint directory (a [`CheckpointDir`] root), removed when the run ends.
+    pub dir: &'a Path,
+    /// Continue from the newest complete generation in `dir`; `false` discards what is there.
+    pub resume: bool,
+    /// Seconds of training between commits (commits and curves are not training time).
+    pub every_seconds: u64,
+}
+
+/// What a [`Resumable::run`] returns.
+#[derive(Debug, Clone)]
+pub struct ResumableOutcome {
+    /// The trained student ([`Vdd::into_student`]).
+    pub student: Moe,
+    /// Wall-clock seconds of training over every session of the run, without commits and
+    /// curve evaluations.
+    pub train_seconds: f64,
+    /// The training curves (expert and gating entropies, corrected-score rms, log
+    /// responsibility, gating loss; 200 points a series) and the probe's curves over training.
+    pub curves: Curves,
+    /// The mean noise level the teacher was queried at.
+    pub mean_noise_level: f32,
+}
+
+/// The training curves' file inside a generation, beside the trainer's.
+const PROGRESS: &str = "progress.json";
+
+impl Resumable<'_> {
+    /// Distils `teacher` into `student` (freshly initialised) on `data` with `config`, or
+    /// resumes from `self.dir` under `self.resume` (refusing a checkpoint of other settings or
+    /// another student), calling `report` after every iteration. At each checkpoint of
+    /// `probe`, the [`Snapshot`](vdd_core::Snapshot) of the student, made a policy by
+    /// `policy`, is evaluated; the probe's [`CurveProbe::seconds`] is its time.
+    ///
+    /// ```
+    /// use vdd::faer::Mat;
+    /// use vdd::gmm::{Gmm, GmmTeacher};
+    /// use vdd::trainer::Resumable;
+    /// use vdd::{DistillData, Moe, MoeConfig, VddConfig, VddError};
+    /// use vdd_core::curves::{CurveEval, CurveProbe};
+    ///
+    /// let dir = std::env::temp_dir().join(format!("vdd-resumable-doc-{}", std::process::id()));
+    /// let config = VddConfig { iterations: 20, batch_size: 4, vi_samples: 4, ..VddConfig::toy() };
+    /// let teacher = GmmTeacher::fixed(Gmm::circle(2, 1.0, 0.5, 0.0)?, 1);
+    /// let student = Moe::from_config(MoeConfig::toy(1, 2, 2), config.seed)?;
+    /// let data = DistillData::from_states(Mat::zeros(4, 1))?;
+    /// let run = Resumable { dir: &dir, resume: false, every_seconds: 10 };
+    /// // No curves over training: a probe without an evaluation.
+    /// let mut probe = CurveProbe::<Moe, dyn CurveEval<Moe, Error = VddError>>::new(None, 0);
+    /// let out = run.run((config, teacher, student, data), &mut probe, Ok::<_, VddError>, |_| {})?;
+    /// assert!(out.curves.contains_key("gating entropy (nats)") && !dir.exists());
+    /// # Ok::<(), Box<dyn std::error::Error>>(())
+    /// ```
+    pub fn run<S: ScoreModel, P, C, E>(
+        &self,
+        (config, teacher, student, data): (VddConfig, S, Moe, DistillData),
+        probe: &mut CurveProbe<'_, P, C>,
+        policy: impl Fn(Moe) -> Result<P, E>,
+        mut report: impl FnMut(&IterationMetrics),
+    ) -> Result<ResumableOutcome, E>
+    where
+        C: ?Sized + CurveEval<P>,
+        E: From<VddError> + From<C::Error>,
+    {
+        let root = self.dir;
+        let io = |source| VddError::CheckpointIo { path: root.to_owned(), source };
+        if !self.resume && root.exists() {
+            std::fs::remove_dir_all(root).map_err(io)?;
+        }
+        let store = CheckpointDir::open(root).map_err(VddError::from)?;
+        let iterations = config.iterations;
+        let latest = store.latest().map_err(VddError::from)?;
+        let (mut curves, mut noise_sum, mut train_seconds, mut vdd) = match latest {
+            Some((_, generation)) => {
+                let path = generation.join(PROGRESS);
+                let bytes = std::fs::read(&path)
+                    .map_err(|source| VddError::CheckpointIo { path: path.clone(), source })?;
+                let (c, n, t): (Curves, f64, f64) = serde_json::from_slice(&bytes)
+                    .map_err(|source| VddError::CheckpointFormat { path, source })?;
+                let vdd = Vdd::resume(&generation, teacher, data)?;
+                if vdd.config() != &config || vdd.student().config() != student.config() {
+                    let source = "written with other settings or another student".into();
+                    let what = "settings";
+                    return Err(E::from(VddError::CheckpointInvalid {
+                        path: generation,
+                        what,
+                        source,
+                    }));
+                }
+                (c, n, t, vdd)
+            }
+            None => (Curves::default(), 0.0, 0.0, Vdd::new(config, teacher, student, data)?),
+        };
+        let every = (iterations / 200).max(1);
+        let at = probe.checkpoints(iterations);
+        let mut t0 = Instant::now();
+        while vdd.iteration() < iterations {
+            let m = vdd.step()?;
+            if at.contains(&vdd.iteration()) {
+                train_seconds += t0.elapsed().as_secs_f64();
+                probe.record(vdd.iteration(), &policy(vdd.snapshot()?)?)?;
+                probe.take_into(&mut curves);
+                t0 = Instant::now(); // the curves are not training time
+            }
+            report(&m);
+            noise_sum += f64::from(m.expert.noise_level);
+            if m.iteration % every == 0 || m.iteration + 1 == iterations {
+                let x = m.iteration as f64;
+                let mut push =
+                    |k: &str, v: f64| curves.entry(k.to_owned()).or_default().push((x, v));
+                push("expert entropy (nats)", f64::from(m.expert.expert_entropy));
+                push("corrected score rms", f64::from(m.expert.corrected_score_rms));
+                push("log responsibility", f64::from(m.expert.log_responsibility));
+                push("gating entropy (nats)", f64::from(m.gating_entropy));
+                if let Some(g) = m.gating_loss {
+                    push("gating loss", f64::from(g));
+                }
+            }
+            if t0.elapsed().as_secs() >= self.every_seconds && vdd.iteration() < iterations {
+                train_seconds += t0.elapsed().as_secs_f64();
+                let progress = (&curves, noise_sum, train_seconds);
+                store.commit(vdd.iteration() as u64, |dir| -> Result<(), VddError> {
+                    vdd.write_checkpoint(dir)?;
+                    let path = dir.join(PROGRESS);
+                    let json = serde_json::to_vec(&progress).map_err(|source| {
+                        VddError::CheckpointFormat { path: path.clone(), source }
+                    })?;
+                    Ok(vdd_nn::io::write_atomic(&path, &json)?)
+                })?;
+                t0 = Instant::now(); // the training time leaves the commits out
+            }
+        }
+        train_seconds += t0.elapsed().as_secs_f64();
+        drop(store);
+        std::fs::remove_dir_all(root).map_err(io)?;
+        let mean_noise_level = (noise_sum / iterations.max(1) as f64) as f32;
+        let student = vdd.into_student();
+        Ok(ResumableOutcome { student, train_seconds, curves, mean_noise_level })
+    }
+}
