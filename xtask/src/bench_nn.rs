@@ -8,7 +8,7 @@
 //!                      [--activation mish] [--layer-norm]
 //! ```
 
-use vdd_nn::bench::{median, min, mlp_vs_matmul};
+use vdd_nn::bench::mlp_vs_matmul;
 use vdd_nn::{Activation, ResidualMlpConfig};
 
 /// The command line of `bench nn`.
@@ -52,30 +52,6 @@ pub fn run(args: &Args) -> crate::XResult {
         activation,
         layer_norm,
     };
-    let b = mlp_vs_matmul(&cfg, batch, reps)?;
-    let (net_gflops, bare_gflops) = b.best_gflops();
-    let (k, cols) = (b.k, b.cols);
-    println!(
-        "residual MLP {width} wide, {blocks} blocks, batch {batch}, {activation:?}{}: \
-         {:.3} GFLOP per forward+backward",
-        if cfg.layer_norm { ", layer norm" } else { "" },
-        b.step_flops / 1e9
-    );
-    println!(
-        "  forward+backward : best {:8.2} ms  {net_gflops:7.2} GFLOP/s  (median {:.2} ms)",
-        min(&b.net) * 1e3,
-        median(&b.net) * 1e3
-    );
-    println!(
-        "  bare faer matmul : best {:8.2} ms  {bare_gflops:7.2} GFLOP/s  (median {:.2} ms; \
-         [{batch}x{k}]·[{k}x{cols}], Par::Seq)",
-        min(&b.bare) * 1e3,
-        median(&b.bare) * 1e3
-    );
-    println!(
-        "  ratio            : {:.3} best-of-{reps} (median {:.3}; target >= 0.5)",
-        net_gflops / bare_gflops,
-        b.median_ratio()
-    );
+    println!("{}", mlp_vs_matmul(&cfg, batch, reps)?.report(&cfg, batch));
     Ok(())
 }

@@ -23,10 +23,8 @@ use std::path::PathBuf;
 use std::time::Instant;
 
 use faer::Mat;
-use vdd_core::Seeds;
-use vdd_core::gmm::GmmTeacher;
-use vdd_diffusion::acceptance::report::{self, Section};
-use vdd_diffusion::acceptance::{RotatingReference, ToyTeachers};
+use vdd_diffusion::acceptance::ToyTeachers;
+use vdd_diffusion::acceptance::report::{self, BenchOptions};
 use vdd_diffusion::{DiffusionTeacher, TeacherKind};
 
 use crate::teachers;
@@ -87,7 +85,7 @@ pub struct Args {
 /// The defaults of the command line: the accepted toy teachers.
 const TOY: ToyTeachers = ToyTeachers::toy();
 
-/// Runs the command: trains (or loads) the teachers and prints [`report`]'s sections.
+/// Runs the command: trains (or loads) the teachers and prints [`report::run`]'s sections.
 pub fn run(args: &Args) -> crate::XResult {
     let (noise_mean, noise_std) = (args.noise_mean, args.noise_std);
     let (width, blocks, lr, batch, ema) = (args.width, args.blocks, args.lr, args.batch, args.ema);
@@ -103,38 +101,22 @@ pub fn run(args: &Args) -> crate::XResult {
         "DDPM: cosine β, N = 16, ε-prediction, log-normal training noise; BESO: EDM \
          preconditioning (σ_data 0.5), Karras σ ∈ [0.002, 80], ρ = 7, log-normal training noise"
     );
-    let mut rng = Seeds::new(args.seed).stream("toy-data");
-    let (states, actions) = GmmTeacher::circle_toy_data(5000, &mut rng)?;
-    let mut circle = teachers(args, &toy, "circle", args.steps, &states, &actions)?;
-    let mut failures = Vec::new();
-    let mut show = |s: Section| {
-        print!("{}", s.text);
-        failures.extend(s.failures);
-    };
-    if !args.no_acceptance {
-        show(report::circle_section(&mut circle, args.seed, args.sigma)?);
-        let n_rot = 20_000;
-        let mut rot = RotatingReference::new()?;
-        let (states, actions) = rot.data(n_rot, args.seed)?;
-        println!("{}", report::rotating_heading(n_rot));
-        let mut ts = teachers(args, &toy, "rotating", args.rot_steps, &states, &actions)?;
-        show(report::rotating_section(&mut ts, &mut rot, args.seed)?);
-    }
-    if !args.no_latency {
-        print!("{}", report::latency_section(&mut circle, args.min_secs)?);
-    }
+    let (seed, steps, rot_steps, sigma, min_secs) =
+        (args.seed, args.steps, args.rot_steps, args.sigma, args.min_secs);
+    let (acceptance, latency) = (!args.no_acceptance, !args.no_latency);
+    let options = BenchOptions { seed, steps, rot_steps, sigma, min_secs, acceptance, latency };
+    let train =
+        |task: &str, steps, s: &Mat<f32>, a: &Mat<f32>| teachers(args, &toy, task, steps, s, a);
+    let failures = report::run(&options, train, |text| print!("{text}"))?;
     println!("\nbench teachers finished in {:.1} s", t0.elapsed().as_secs_f64());
     if failures.is_empty() {
-        if !args.no_acceptance {
+        if acceptance {
             println!("acceptance: all checks pass");
         }
-        Ok(())
-    } else {
-        for f in &failures {
-            println!("FAILED: {f}");
-        }
-        Err(format!("{} acceptance check(s) failed", failures.len()).into())
+        return Ok(());
     }
+    failures.iter().for_each(|f| println!("FAILED: {f}"));
+    Err(format!("{} acceptance check(s) failed", failures.len()).into())
 }
 
 /// Both teachers of one task, trained in parallel on two threads

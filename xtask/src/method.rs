@@ -103,7 +103,7 @@ pub struct Job<'a> {
 /// `eval.curve_points`; the evaluation itself is the task crate's, e.g.
 /// `vdd_tasks::avoiding::CurveProtocol`), on policies acting on the data's raw states.
 pub trait CurveEval:
-    vdd_core::curves::CurveEval<TrainedPolicy, Error = Box<dyn std::error::Error>>
+    vdd_core::curves::CurveEval<TrainedPolicy, Error = vdd_tasks::TaskError>
 {
     /// What the curves depend on, for the keys of cached students.
     fn key(&self) -> serde_json::Value;

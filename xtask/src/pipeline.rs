@@ -128,50 +128,7 @@ fn check_method_sections<R: TaskRecipe>(task: &str, tree: &Table, cfg: &R) -> XR
 
 /// The prepared datasets of a run, one per distinct data key, and which one each (seed, plan
 /// entry) trains on.
-pub struct Datasets<P> {
-    sets: Vec<P>,
-    index: HashMap<(usize, usize), usize>,
-}
-
-impl<P: AsRef<TrainingData>> Datasets<P> {
-    /// Prepares the data of every seed and entry: `key` names a dataset (entries and seeds with
-    /// equal keys share it), `prepare` builds it (timed as the `data` stage).
-    pub fn build<R>(
-        plan: &[Entry<'_, R>],
-        seeds: &[u64],
-        stages: &mut StageTimes,
-        key: impl Fn(&R, u64) -> XResult<String>,
-        mut prepare: impl FnMut(&R, u64) -> XResult<P>,
-    ) -> XResult<Self> {
-        let mut keys: HashMap<String, usize> = HashMap::new();
-        let mut out = Self { sets: Vec::new(), index: HashMap::new() };
-        for (si, &seed) in seeds.iter().enumerate() {
-            for (pi, e) in plan.iter().enumerate() {
-                let k = key(e.cfg, seed)?;
-                let i = match keys.get(&k) {
-                    Some(&i) => i,
-                    None => {
-                        out.sets.push(stages.time("data", || prepare(e.cfg, seed))?);
-                        keys.insert(k, out.sets.len() - 1);
-                        out.sets.len() - 1
-                    }
-                };
-                out.index.insert((si, pi), i);
-            }
-        }
-        Ok(out)
-    }
-
-    /// The index of the dataset of seed `si` and entry `pi` (equal indices: the same data).
-    pub fn id(&self, si: usize, pi: usize) -> usize {
-        self.index[&(si, pi)]
-    }
-
-    /// The dataset of seed `si` and entry `pi`.
-    pub fn get(&self, si: usize, pi: usize) -> &P {
-        &self.sets[self.id(si, pi)]
-    }
-}
+pub use vdd_recipe::run::Shared as Datasets;
 
 /// The teachers of a run, keyed by kind, configuration, seed and data ([`teacher_key`]): trained
 /// once per run and shared by every method and variant that needs them.
@@ -296,7 +253,7 @@ pub fn train_all<R: TaskRecipe, P: AsRef<TrainingData> + Sync>(
             match done {
                 Done::Teacher(i, t) => {
                     let (key, kind, si, _) = &teacher_jobs[i];
-                    out.teachers.log.push(teachers::cache_entry(*kind, seeds[*si], &t));
+                    out.teachers.log.push(t.log_entry(*kind, seeds[*si]));
                     out.teachers.teachers.insert(key.clone(), *t);
                 }
                 Done::Method(k, t) => {

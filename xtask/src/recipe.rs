@@ -24,14 +24,3 @@ pub fn recipe_path(name: &str) -> RecipeResult<PathBuf> {
 pub fn available_recipes() -> Vec<String> {
     run::recipes_in(&repo_root().join("recipes"))
 }
-
-/// Test helper: the defaults `files` deserialise into `R` and state every key that `R`
-/// serialises (none is left to a serde default), with values that read back unchanged.
-#[cfg(test)]
-pub fn assert_complete_defaults<R: serde::Serialize + serde::de::DeserializeOwned>(
-    files: &[(&str, &str)],
-) {
-    if let Err(e) = check_complete_defaults::<R>(files) {
-        panic!("{e}");
-    }
-}

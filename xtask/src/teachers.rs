@@ -52,11 +52,6 @@ pub fn train_or_load(
     Ok(t)
 }
 
-/// A `run.json` entry for a teacher ([`TrainedTeacher::log_entry`]).
-pub fn cache_entry(kind: TeacherKind, seed: u64, t: &TrainedTeacher) -> serde_json::Value {
-    t.log_entry(kind, seed)
-}
-
 /// `path` relative to the current directory when possible.
 pub fn rel(path: &Path) -> String {
     let cwd = std::env::current_dir().unwrap_or_default();

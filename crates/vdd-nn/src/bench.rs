@@ -39,6 +39,30 @@ impl MlpBench {
     pub fn median_ratio(&self) -> f64 {
         (self.step_flops / median(&self.net)) / (self.bare_flops / median(&self.bare))
     }
+
+    /// The benchmark's text (`cargo xtask bench nn`): the network, both rates at their best
+    /// and median runs, and their ratio against the target of 0.5. `cfg` and `batch` are the
+    /// measurement's.
+    pub fn report(&self, cfg: &ResidualMlpConfig, batch: usize) -> String {
+        let (net_gflops, bare_gflops) = self.best_gflops();
+        let (k, cols, reps) = (self.k, self.cols, self.net.len());
+        let ms = |v: &[f64]| (min(v) * 1e3, median(v) * 1e3);
+        let ((net_best, net_median), (bare_best, bare_median)) = (ms(&self.net), ms(&self.bare));
+        format!(
+            "residual MLP {} wide, {} blocks, batch {batch}, {:?}{}: {:.3} GFLOP per \
+             forward+backward\n  forward+backward : best {net_best:8.2} ms  {net_gflops:7.2} \
+             GFLOP/s  (median {net_median:.2} ms)\n  bare faer matmul : best {bare_best:8.2} ms  \
+             {bare_gflops:7.2} GFLOP/s  (median {bare_median:.2} ms; [{batch}x{k}]·[{k}x{cols}], \
+             Par::Seq)\n  ratio            : {:.3} best-of-{reps} (median {:.3}; target >= 0.5)",
+            cfg.hidden_dim,
+            cfg.num_blocks,
+            cfg.activation,
+            if cfg.layer_norm { ", layer norm" } else { "" },
+            self.step_flops / 1e9,
+            net_gflops / bare_gflops,
+            self.median_ratio()
+        )
+    }
 }
 
 /// Smallest of a list of timings.
@@ -126,5 +150,10 @@ mod tests {
         assert_eq!((b.net.len(), b.bare.len()), (4, 4));
         assert_eq!(median(&[3.0, 1.0, 2.0]), 2.0);
         assert_eq!(min(&[3.0, 1.0, 2.0]), 1.0);
+        let report = b.report(&cfg, 16);
+        assert!(report.starts_with(
+            "residual MLP 8 wide, 2 blocks, batch 16, Mish: 0.000 GFLOP per forward+backward\n"
+        ));
+        assert!(report.contains("[16x8]·[8x144], Par::Seq)") && report.lines().count() == 4);
     }
 }

@@ -1,6 +1,7 @@
 //! Recipe files and run directories: the recipes of a directory ([`recipes_in`],
 //! [`find_recipe`]), the default names of run directories ([`run_name`]) and the revision a run
-//! was made at ([`git_revision`]).
+//! was made at ([`git_revision`]), and what a run's cells share ([`Shared`]: one dataset per
+//! distinct configuration, whatever the seed and the method).
 
 use std::path::{Path, PathBuf};
 
@@ -157,5 +158,70 @@ mod tests {
         assert!(n.starts_with("seed0-quick-o") && n.len() == "seed0-quick-o".len() + 6, "{n}");
         o.sets[0].1 = "2".into();
         assert_ne!(run_name(&[0], &o), n);
+    }
+}
+
+/// Values shared by the cells of a run's grid (seed `si` × entry `pi`): one value per distinct
+/// key, built once, in the order the cells are visited (seed by seed, entry by entry).
+///
+/// ```
+/// use vdd_recipe::run::Shared;
+/// let mut built = 0;
+/// // Two seeds × three entries; the data depend on the entry's parity only.
+/// let key = |_si: usize, pi: usize| Ok::<_, String>(format!("data-{}", pi % 2));
+/// let shared = Shared::build(2, 3, key, |_si, pi| {
+///     built += 1;
+///     Ok(pi % 2)
+/// })?;
+/// assert_eq!(built, 2);
+/// assert_eq!(shared.id(1, 2), shared.id(0, 0));
+/// assert_eq!(*shared.get(1, 1), 1);
+/// # Ok::<(), String>(())
+/// ```
+#[derive(Debug, Clone)]
+pub struct Shared<P> {
+    values: Vec<P>,
+    /// The value of each cell, `si * entries + pi`.
+    index: Vec<usize>,
+    entries: usize,
+}
+
+impl<P> Shared<P> {
+    /// Builds the values of a grid of `seeds` × `entries` cells: cells with equal `key`s share
+    /// one value, which `make` builds for the first of them.
+    pub fn build<E>(
+        seeds: usize,
+        entries: usize,
+        mut key: impl FnMut(usize, usize) -> Result<String, E>,
+        mut make: impl FnMut(usize, usize) -> Result<P, E>,
+    ) -> Result<Self, E> {
+        let mut keys: std::collections::HashMap<String, usize> = Default::default();
+        let mut out =
+            Self { values: Vec::new(), index: Vec::with_capacity(seeds * entries), entries };
+        for si in 0..seeds {
+            for pi in 0..entries {
+                let i = match keys.entry(key(si, pi)?) {
+                    std::collections::hash_map::Entry::Occupied(o) => *o.get(),
+                    std::collections::hash_map::Entry::Vacant(v) => {
+                        out.values.push(make(si, pi)?);
+                        *v.insert(out.values.len() - 1)
+                    }
+                };
+                out.index.push(i);
+            }
+        }
+        Ok(out)
+    }
+
+    /// The index of the value of cell (`si`, `pi`): equal indices, the same value. Panics
+    /// outside the grid.
+    pub fn id(&self, si: usize, pi: usize) -> usize {
+        assert!(pi < self.entries, "entry {pi} outside a grid of {} entries", self.entries);
+        self.index[si * self.entries + pi]
+    }
+
+    /// The value of cell (`si`, `pi`). Panics outside the grid.
+    pub fn get(&self, si: usize, pi: usize) -> &P {
+        &self.values[self.id(si, pi)]
     }
 }

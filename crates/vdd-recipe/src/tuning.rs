@@ -59,6 +59,28 @@ pub fn is_tuning_run(seeds: &[u64], data_seed: u64) -> RecipeResult<bool> {
     Ok(is_tuning)
 }
 
+/// Whether the runs of a recipe's variants, each `(seeds, data_seed)`, are tuning runs
+/// ([`is_tuning_run`] of each); an error when one is and another is not. No runs: `false`.
+///
+/// ```
+/// use vdd_recipe::tuning::is_tuning_plan;
+/// assert!(is_tuning_plan([(&[100, 101][..], 100), (&[100, 101][..], 100)])?);
+/// assert!(!is_tuning_plan([(&[0][..], 0)])?);
+/// assert!(is_tuning_plan([(&[100][..], 100), (&[0][..], 0)]).is_err());
+/// # Ok::<(), vdd_recipe::RecipeError>(())
+/// ```
+pub fn is_tuning_plan<'a>(runs: impl IntoIterator<Item = (&'a [u64], u64)>) -> RecipeResult<bool> {
+    let mut plan = None;
+    for (seeds, data_seed) in runs {
+        let t = is_tuning_run(seeds, data_seed)?;
+        if plan.replace(t).is_some_and(|before| before != t) {
+            let e = "variants mix tuning and reporting demonstrations".to_owned();
+            return Err(RecipeError::Tuning(e));
+        }
+    }
+    Ok(plan.unwrap_or(false))
+}
+
 /// One method of one tuning run.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]

@@ -83,6 +83,21 @@ impl Comparison {
     }
 }
 
+/// `A and B are identical apart from timings`, or the first 20 differences, one a line,
+/// then `A and B differ in N place(s)` (`cargo xtask compare`).
+impl std::fmt::Display for Comparison {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        let (a, b) = (self.file_a.display(), self.file_b.display());
+        if self.identical() {
+            return write!(f, "{a} and {b} are identical apart from timings");
+        }
+        for d in self.diffs.iter().take(20) {
+            writeln!(f, "  differs: {d}")?;
+        }
+        write!(f, "{a} and {b} differ in {} place(s)", self.diffs.len())
+    }
+}
+
 /// Compares two runs (run directories or their `metrics.json`) apart from timings.
 ///
 /// ```no_run
@@ -132,6 +147,10 @@ mod tests {
         assert_eq!(same.file_a, root.join("a/metrics.json"));
         let differ = compare_runs(&root.join("a"), &root.join("c")).unwrap();
         assert_eq!(differ.diffs, vec![".methods.em.loss: 1.0 vs 2.0"]);
+        assert!(same.to_string().ends_with("b/metrics.json are identical apart from timings"));
+        let text = differ.to_string();
+        assert!(text.starts_with("  differs: .methods.em.loss: 1.0 vs 2.0\n"), "{text}");
+        assert!(text.ends_with("c/metrics.json differ in 1 place(s)"), "{text}");
         assert!(matches!(
             compare_runs(&root.join("missing"), &root.join("a")),
             Err(crate::Error::Read { .. })

@@ -167,6 +167,33 @@ pub fn toy_fields(scores: &[(f32, f64, f64, usize)], modes: usize, conditional: 
     row
 }
 
+/// A one-line summary of [`toy_fields`] for `modes` modes: reverse and forward KL and the
+/// modes covered, or for the conditional toy the states where all modes are covered and the
+/// mean KLs.
+///
+/// ```
+/// let f = vdd_report::metrics::toy_fields(&[(0.0, 0.1, 0.3, 8)], 8, false);
+/// assert_eq!(vdd_report::metrics::toy_line(&f, 8), "reverse KL 0.10000 nats, forward KL 0.30000 nats, modes 8/8");
+/// ```
+pub fn toy_line(fields: &Row, modes: usize) -> String {
+    let get = |k: &str| fields.get(k).and_then(Value::as_f64).unwrap_or(f64::NAN);
+    match fields.get("eval_states") {
+        Some(n) => format!(
+            "all {modes} modes covered at {}/{n} states, mean reverse KL {:.4}, mean forward KL \
+             {:.4} nats",
+            get("states_fully_covered"),
+            get("mean_reverse_kl"),
+            get("mean_forward_kl")
+        ),
+        None => format!(
+            "reverse KL {:.5} nats, forward KL {:.5} nats, modes {}/{modes}",
+            get("reverse_kl"),
+            get("forward_kl"),
+            get("modes_covered")
+        ),
+    }
+}
+
 /// Adds the toy recipes' top-level keys (those of the original commands) to `metrics`, from the
 /// first method of `rows`: `method`, `teacher` (`method` without `vdd-`), `seed` (the first),
 /// `ms_per_iter` and `train_seconds` (means over seeds), and for `toy-gmm` (`conditional`
@@ -275,6 +302,32 @@ pub fn collect_rows(metrics: &[Value], notes: &mut Vec<String>) -> Vec<(String, 
             (n, r)
         })
         .collect()
+}
+
+/// The share of each method's successful rollouts in each behaviour mode, summed over its
+/// seeds (the rows' `mode_counts`), for [`crate::plots::mode_histograms`]. Methods without
+/// `mode_counts` or without a success are left out.
+///
+/// ```
+/// use serde_json::json;
+/// let row = |c: Vec<u64>| json!({ "mode_counts": c }).as_object().unwrap().clone();
+/// let rows = [("beso".to_owned(), vec![row(vec![1, 3]), row(vec![2, 2])]), ("em".into(), vec![])];
+/// assert_eq!(vdd_report::metrics::mode_shares(&rows), [("beso".to_owned(), vec![0.375, 0.625])]);
+/// ```
+pub fn mode_shares(rows: &[(String, Vec<Row>)]) -> Vec<(String, Vec<f64>)> {
+    let mut out = Vec::new();
+    for (method, per_seed) in rows {
+        let mut counts: Vec<f64> = Vec::new();
+        for c in per_seed.iter().filter_map(|r| r.get("mode_counts")?.as_array()) {
+            counts.resize(counts.len().max(c.len()), 0.0);
+            c.iter().zip(counts.iter_mut()).for_each(|(v, n)| *n += v.as_f64().unwrap_or(0.0));
+        }
+        let total: f64 = counts.iter().sum();
+        if total > 0.0 && total.is_finite() {
+            out.push((method.clone(), counts.iter().map(|c| c / total).collect()));
+        }
+    }
+    out
 }
 
 /// Run directories under `results` holding a `metrics.json`, grouped by recipe directory

@@ -15,11 +15,11 @@ use faer::Mat;
 use serde::{Deserialize, Serialize};
 use serde_json::{Value, json};
 use toml::Table;
-use vdd_data::{DeploySpec, Windowed};
+use vdd_data::Windowed;
 use vdd_moe::MoeConfig;
 
 use vdd_tasks::avoiding::dataset::DatasetConfig;
-use vdd_tasks::avoiding::{AvoidingEval, CurveProtocol, EvalProtocol, PlotSettings};
+use vdd_tasks::avoiding::{AvoidingEval, DeployedCurves, EvalProtocol, PlotSettings};
 use vdd_tasks::timing::us_per_action;
 
 use super::avoiding_imported::{self, ImportedSettings};
@@ -119,48 +119,18 @@ fn prepare(data: &DatasetConfig) -> crate::XResult<Prepared> {
     Ok(Prepared { training: d.training, episodes_obs: d.episode_observations, summary })
 }
 
-/// Curves over training on Avoiding: a [`CurveProtocol`] through the recipe's features and
-/// windows.
-struct AvoidingCurves {
-    protocol: CurveProtocol,
-    spec: DeploySpec,
+/// Curves over training on Avoiding, through the recipe's features and windows; `None` when
+/// `eval.curve_points` is 0.
+fn curves_of(cfg: &AvoidingRecipe) -> Option<Box<dyn CurveEval>> {
+    let curves = DeployedCurves { protocol: cfg.eval.curves(), spec: cfg.data.deploy_spec() };
+    curves.protocol.enabled().then(|| Box::new(curves) as Box<dyn CurveEval>)
 }
 
-impl AvoidingCurves {
-    /// The curves of a configuration, `None` when `eval.curve_points` is 0.
-    fn of(cfg: &AvoidingRecipe) -> Option<Box<dyn CurveEval>> {
-        let protocol = cfg.eval.curves();
-        protocol.enabled().then(|| {
-            Box::new(Self { protocol, spec: cfg.data.deploy_spec() }) as Box<dyn CurveEval>
-        })
-    }
-}
-
-impl vdd_core::curves::CurveEval<TrainedPolicy> for AvoidingCurves {
-    type Error = Box<dyn std::error::Error>;
-    fn checkpoints(&self, iterations: usize) -> Vec<usize> {
-        self.protocol.checkpoints(iterations)
-    }
-    fn evaluate(&self, policy: &TrainedPolicy, seed: u64) -> crate::XResult<Vec<(String, f64)>> {
-        let wrapped = Windowed::new(policy.clone(), self.spec.clone())?;
-        let m = self.protocol.evaluate(&wrapped, seed)?;
-        Ok(vec![
-            (CURVE_SUCCESS.to_owned(), m.success_rate),
-            (CURVE_ENTROPY.to_owned(), m.task_entropy),
-        ])
-    }
-}
-
-impl CurveEval for AvoidingCurves {
+impl CurveEval for DeployedCurves {
     fn key(&self) -> Value {
         json!({ "protocol": self.protocol, "spec": self.spec })
     }
 }
-
-/// The series of the curves over training in `curves.json`.
-const CURVE_SUCCESS: &str = "held-out success rate";
-#[allow(missing_docs)]
-const CURVE_ENTROPY: &str = "held-out task entropy";
 
 /// What the evaluation collects for the outputs.
 #[derive(Default)]
@@ -207,19 +177,11 @@ impl Task for Avoiding {
         let plan = pipeline::plan(&resolved, "avoiding")?;
         for (_, cfg) in resolved.configs() {
             // Before any training: a bad setting would otherwise fail after it.
-            cfg.eval.timing().check().map_err(|e| format!("eval: {e}"))?;
-            cfg.eval.protocol().check().map_err(|e| format!("eval: {e}"))?;
-            cfg.eval.curves().check().map_err(|e| format!("eval: {e}"))?;
+            cfg.eval.check().map_err(|e| format!("eval: {e}"))?;
             cfg.data.deploy_spec().validate().map_err(|e| format!("data: {e}"))?;
         }
-        let mut is_tuning = None;
-        for (_, cfg) in resolved.configs() {
-            let t = tuning::is_tuning_run(&cfg.header.seeds, cfg.data.seed)?;
-            if is_tuning.replace(t).is_some_and(|before| before != t) {
-                return Err("variants mix tuning and reporting demonstrations".into());
-            }
-        }
-        let is_tuning = is_tuning.unwrap_or(false);
+        let runs = resolved.configs().into_iter().map(|(_, c)| (&c.header.seeds[..], c.data.seed));
+        let is_tuning = tuning::is_tuning_plan(runs)?;
         let dir = match (&ctx.out, is_tuning) {
             (None, true) => recipe::repo_root()
                 .join("results/tuning")
@@ -243,10 +205,10 @@ impl Task for Avoiding {
         let jobs = if base.jobs == 0 { cores } else { base.jobs };
 
         // One dataset per distinct `data` table (usually one), whatever the seed.
-        let key = |cfg: &AvoidingRecipe, _| Ok(recipe::config_hash(&cfg.data)?);
-        let data = Datasets::build(&plan, &base.header.seeds, &mut stages, key, |cfg, _| {
-            prepare(&cfg.data)
-        })?;
+        let key =
+            |_, pi: usize| -> crate::XResult<_> { Ok(recipe::config_hash(&plan[pi].cfg.data)?) };
+        let prepare = |_, pi: usize| stages.time("data", || prepare(&plan[pi].cfg.data));
+        let data = Datasets::build(base.header.seeds.len(), plan.len(), key, prepare)?;
         let students = StudentCache { dir: &ctx.student_cache_dir, fresh: ctx.fresh };
         let mut trainings = pipeline::train_all(
             ctx,
@@ -254,7 +216,7 @@ impl Task for Avoiding {
             &base.header.seeds,
             &data,
             jobs,
-            (Some(students), &AvoidingCurves::of),
+            (Some(students), &curves_of),
             &mut stages,
         )?;
 
@@ -361,18 +323,9 @@ fn evaluate(
         trained.teacher_seconds.map_or(String::new(), |t| format!(" (+ teacher {t:.1} s)")),
         eval_seconds
     ));
-    let mut row: Row = serde_json::from_value(json!({
-        "seed": seed,
-        "success_rate": m.success_rate,
-        "task_entropy": m.task_entropy,
-        "train_seconds": report::json_f64(trained.train_seconds),
-        "rollouts": m.rollouts,
-        "modes_reached": m.modes_reached,
-        "collisions": m.collisions,
-        "timeouts": m.timeouts,
-        "mean_success_steps": report::json_f64(m.mean_success_steps),
-        "mode_counts": m.mode_counts,
-    }))?;
+    let mut row = m.row_fields();
+    row.insert("seed".into(), json!(seed));
+    row.insert("train_seconds".into(), report::json_f64(trained.train_seconds));
     if let Some(t) = trained.teacher_seconds {
         row.insert("teacher_seconds".into(), report::json_f64(t));
     }
@@ -492,10 +445,11 @@ mod tests {
 
     #[test]
     fn the_defaults_file_is_complete_and_valid() {
-        recipe::assert_complete_defaults::<AvoidingRecipe>(&[(
+        recipe::check_complete_defaults::<AvoidingRecipe>(&[(
             "recipes/defaults/avoiding.toml",
             DEFAULTS,
-        )]);
+        )])
+        .unwrap_or_else(|e| panic!("{e}"));
     }
 
     #[test]
@@ -514,54 +468,6 @@ mod tests {
                 let r = recipe::resolve(&AvoidingRecipe::defaults().unwrap(), &file, &o)
                     .unwrap_or_else(|e| panic!("{name}: {e}"));
                 pipeline::plan(&r, "avoiding").unwrap_or_else(|e| panic!("{name}: {e}"));
-            }
-        }
-    }
-
-    #[test]
-    fn the_students_get_equal_budgets_in_the_default_and_the_quick_run() {
-        let file = recipe::read_recipe(&recipe::recipe_path("avoiding").unwrap()).unwrap();
-        for quick in [false, true] {
-            let o = recipe::Overrides { quick, ..Default::default() };
-            let r = recipe::resolve(&AvoidingRecipe::defaults().unwrap(), &file, &o).unwrap();
-            let tree = recipe::to_tree(&r.base).unwrap();
-            let get = |path: &str| -> u64 {
-                let mut v = tree.get(path.split('.').next().unwrap()).unwrap();
-                for p in path.split('.').skip(1) {
-                    v = v.get(p).unwrap_or_else(|| panic!("{path}"));
-                }
-                v.as_integer().unwrap() as u64
-            };
-            let vdd = |t: &str| {
-                let (it, b, v) = (
-                    format!("vdd.{t}.iterations"),
-                    format!("vdd.{t}.batch_size"),
-                    format!("vdd.{t}.vi_samples"),
-                );
-                get(&it) * get(&b) * get(&v)
-            };
-            let mixture = |m: &str| {
-                get(&format!("baselines.{m}.iterations"))
-                    * get(&format!("baselines.{m}.expert_steps_per_iter"))
-                    * get(&format!("baselines.{m}.batch_size"))
-            };
-            let budgets = [
-                ("vdd-beso", vdd("beso")),
-                ("vdd-ddpm", vdd("ddpm")),
-                ("vdd-beso-d3il", vdd("beso_d3il")),
-                ("cd", get("baselines.cd.train.steps") * get("baselines.cd.train.batch_size")),
-                (
-                    "ctm",
-                    get("baselines.ctm.base.train.steps")
-                        * get("baselines.ctm.base.train.batch_size"),
-                ),
-                ("em", mixture("em")),
-                ("imc", mixture("imc")),
-                ("imc-authors", mixture("imc_authors")),
-            ];
-            let expected = if quick { 3_072_000 } else { 7_680_000 };
-            for (m, b) in budgets {
-                assert_eq!(b, expected, "{m} (quick: {quick})");
             }
         }
     }

@@ -115,12 +115,11 @@ pub fn run(ctx: &RunContext, resolved: &Resolved<AvoidingRecipe>) -> crate::XRes
                 "[{label} s{seed}] success {:.3}, entropy {:.3} ({} modes), {us:.1} µs per action",
                 m.success_rate, m.task_entropy, m.modes_reached
             ));
-            let row: Row = serde_json::from_value(json!({
-                "seed": seed, "success_rate": m.success_rate, "task_entropy": m.task_entropy,
-                "us_per_action": report::json_f64(us), "rollouts": m.rollouts,
-                "modes_reached": m.modes_reached, "collisions": m.collisions, "timeouts": m.timeouts,
-                "train_seconds": secs.map_or(serde_json::Value::Null, report::json_f64),
-            }))?;
+            let mut row = m.row_fields();
+            row.insert("seed".into(), json!(seed));
+            row.insert("us_per_action".into(), report::json_f64(us));
+            let secs = secs.map_or(serde_json::Value::Null, report::json_f64);
+            row.insert("train_seconds".into(), secs);
             match rows.iter_mut().find(|(l, _)| *l == label) {
                 Some((_, r)) => r.push(row),
                 None => rows.push((label, vec![row])),

@@ -192,9 +192,12 @@ impl Task for Toy {
         let dir = ctx.run_dir(&base.header.seeds);
         ctx.write_resolved(&dir, &resolved.to_toml()?)?;
         let mut stages = StageTimes::default();
-        let key = |cfg: &ToyRecipe, seed| Ok(format!("{}-{seed}", recipe::config_hash(&cfg.data)?));
-        let prepare = |cfg: &ToyRecipe, seed| self.prepare(cfg, seed);
-        let data = Datasets::build(&plan, &base.header.seeds, &mut stages, key, prepare)?;
+        let seeds = &base.header.seeds;
+        let key = |si, pi: usize| -> crate::XResult<String> {
+            Ok(format!("{}-{}", recipe::config_hash(&plan[pi].cfg.data)?, seeds[si]))
+        };
+        let prepare = |si, pi: usize| stages.time("data", || self.prepare(plan[pi].cfg, seeds[si]));
+        let data = Datasets::build(seeds.len(), plan.len(), key, prepare)?;
         let mut trainings = pipeline::train_all(
             ctx,
             &plan,
@@ -256,19 +259,10 @@ impl Toy {
         };
         let scores: Vec<_> = states.iter().zip(&scores).map(at).collect();
         let fields = report::toy_fields(&scores, MODES, self.conditional);
-        let get = |k: &str| fields.get(k).and_then(Value::as_f64).unwrap_or(f64::NAN);
-        if self.conditional {
-            let (full, rev, fwd) =
-                (get("states_fully_covered"), get("mean_reverse_kl"), get("mean_forward_kl"));
-            crate::progress::log(format!(
-                "[{tag}] all {MODES} modes covered at {full}/{n} states, mean reverse KL {rev:.4}, mean forward KL {fwd:.4} nats, {train_seconds:.2} s"
-            ));
-        } else {
-            let (rev, fwd, cov) = (get("reverse_kl"), get("forward_kl"), get("modes_covered"));
-            crate::progress::log(format!(
-                "[{tag}] reverse KL {rev:.5} nats, forward KL {fwd:.5} nats, modes {cov}/{MODES}, {ms_per_iter:.3} ms/iter ({train_seconds:.2} s)"
-            ));
-        }
+        crate::progress::log(format!(
+            "[{tag}] {}, {ms_per_iter:.3} ms/iter ({train_seconds:.2} s)",
+            report::toy_line(&fields, MODES)
+        ));
         row.extend(fields);
         row.insert("ms_per_iter".into(), report::json_f64(ms_per_iter));
         row.insert("train_seconds".into(), report::json_f64(train_seconds));
@@ -401,17 +395,8 @@ mod tests {
 
     #[test]
     fn the_defaults_files_are_complete_and_valid() {
-        recipe::assert_complete_defaults::<ToyRecipe>(&DEFAULTS[..1]);
-        recipe::assert_complete_defaults::<ToyRecipe>(&DEFAULTS);
-    }
-
-    #[test]
-    fn toy_defaults_match_the_paper() {
-        let r = ToyRecipe::defaults("toy-gmm").unwrap();
-        let exact: vdd::VddConfig = recipe::from_tree(r.vdd["exact"].as_table().unwrap()).unwrap();
-        assert_eq!(exact, vdd::VddConfig::toy());
-        assert_eq!(r.student, MoeConfig::toy(1, 2, 8));
-        assert_eq!(r.data.points, 5000);
-        assert_eq!(r.eval.kl_samples, 100_000);
+        recipe::check_complete_defaults::<ToyRecipe>(&DEFAULTS[..1])
+            .unwrap_or_else(|e| panic!("{e}"));
+        recipe::check_complete_defaults::<ToyRecipe>(&DEFAULTS).unwrap_or_else(|e| panic!("{e}"));
     }
 }

@@ -1,8 +1,8 @@
 //! The text sections of `cargo xtask bench teachers`: the acceptance checks of a DDPM and a
 //! BESO teacher on the circle toy ([`circle_section`]) and the rotating toy
 //! ([`rotating_section`]), and their sampling latency ([`latency_section`]). Each returns the
-//! section's text and, for the checks, the failed checks; the caller trains the teachers and
-//! prints.
+//! section's text and, for the checks, the failed checks. [`run`] goes through them in order
+//! with teachers the caller trains (or loads) and prints.
 
 use std::fmt::Write as _;
 
@@ -256,4 +256,63 @@ mod tests {
         assert_eq!(rows("BESO"), 2 * samplers(TeacherKind::Beso), "{text}");
         assert_eq!(ts.each_ref().map(SamplerSetting::of), before);
     }
+}
+
+/// What [`run`] checks and measures.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct BenchOptions {
+    /// Seed of the data, the training and the checks.
+    pub seed: u64,
+    /// Training steps on the circle toy.
+    pub steps: u64,
+    /// Training steps on the rotating toy.
+    pub rot_steps: u64,
+    /// Noise level of the score check (normalised units).
+    pub sigma: f32,
+    /// Minimum seconds per latency measurement.
+    pub min_secs: f64,
+    /// Run the acceptance checks.
+    pub acceptance: bool,
+    /// Measure the latency tables.
+    pub latency: bool,
+}
+
+/// `cargo xtask bench teachers`: the circle toy's checks ([`circle_section`]) of the teachers
+/// `train` gives for 5000 pairs of the circle toy (`train(task, steps, states, actions)`
+/// trains or loads a task's DDPM and BESO teachers, in that order), then the rotating toy's
+/// ([`rotating_section`], 20,000 pairs), then the latency tables ([`latency_section`]), as
+/// `options` asks. Each section goes to `print` when it is ready; returns the failed checks.
+pub fn run<E: From<crate::DiffusionError>>(
+    options: &BenchOptions,
+    mut train: impl FnMut(
+        &str,
+        u64,
+        &faer::Mat<f32>,
+        &faer::Mat<f32>,
+    ) -> Result<[DiffusionTeacher; 2], E>,
+    mut print: impl FnMut(&str),
+) -> Result<Vec<String>, E> {
+    let seed = options.seed;
+    let mut rng = vdd_core::Seeds::new(seed).stream("toy-data");
+    let (states, actions) = vdd_core::gmm::GmmTeacher::circle_toy_data(5000, &mut rng)
+        .map_err(crate::DiffusionError::from)?;
+    let mut circle = train("circle", options.steps, &states, &actions)?;
+    let mut failures = Vec::new();
+    if options.acceptance {
+        let s = circle_section(&mut circle, seed, options.sigma)?;
+        print(&s.text);
+        failures.extend(s.failures);
+        let pairs = 20_000;
+        let mut rot = RotatingReference::new()?;
+        let (states, actions) = rot.data(pairs, seed)?;
+        print(&(rotating_heading(pairs) + "\n"));
+        let mut ts = train("rotating", options.rot_steps, &states, &actions)?;
+        let s = rotating_section(&mut ts, &mut rot, seed)?;
+        print(&s.text);
+        failures.extend(s.failures);
+    }
+    if options.latency {
+        print(&latency_section(&mut circle, options.min_secs)?);
+    }
+    Ok(failures)
 }

@@ -3,7 +3,8 @@
 //! ([`EvalProtocol`]), so the curves never see the episodes the reported figures come from.
 
 use serde::{Deserialize, Serialize};
-use vdd_core::{Policy, Seeds};
+use vdd_core::{CoreError, Policy, Seeds};
+use vdd_data::{DeploySpec, Windowed};
 
 use super::protocol::EvalProtocol;
 use super::rollout::{Metrics, evaluate_cloned};
@@ -89,6 +90,36 @@ impl CurveProtocol {
     }
 }
 
+/// The series of [`DeployedCurves`]: held-out success rate.
+pub const CURVE_SUCCESS: &str = "held-out success rate";
+/// The series of [`DeployedCurves`]: held-out task entropy.
+pub const CURVE_ENTROPY: &str = "held-out task entropy";
+
+/// A [`CurveProtocol`] for policies that act through a [`DeploySpec`] (features, observation
+/// window, action chunk): the curves over training of a recipe's students
+/// ([`vdd_core::curves::CurveEval`]), the series [`CURVE_SUCCESS`] and [`CURVE_ENTROPY`].
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct DeployedCurves {
+    /// Checkpoints and episodes.
+    pub protocol: CurveProtocol,
+    /// How the policies act on raw observations.
+    pub spec: DeploySpec,
+}
+
+impl<P: Policy + Clone + Send> vdd_core::curves::CurveEval<P> for DeployedCurves {
+    type Error = TaskError;
+    fn checkpoints(&self, iterations: usize) -> Vec<usize> {
+        self.protocol.checkpoints(iterations)
+    }
+    fn evaluate(&self, policy: &P, run_seed: u64) -> Result<Vec<(String, f64)>> {
+        let wrapped = Windowed::new(policy.clone(), self.spec.clone())
+            .map_err(|e| TaskError::Core(CoreError::implementor(e)))?;
+        let m = self.protocol.evaluate(&wrapped, run_seed)?;
+        let series = [(CURVE_SUCCESS, m.success_rate), (CURVE_ENTROPY, m.task_entropy)];
+        Ok(series.into_iter().map(|(k, v)| (k.to_owned(), v)).collect())
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -106,6 +137,13 @@ mod tests {
         assert!(curve.check().is_ok());
         let none = CurveProtocol { points: 0, rollouts: 0, lockstep_batch: 0 };
         assert!(none.check().is_ok() && !none.enabled() && none.checkpoints(10).is_empty());
+        let deployed = DeployedCurves { protocol: curve, spec: DeploySpec::default() };
+        let points = vdd_core::curves::CurveEval::evaluate(&deployed, &demo, 1).unwrap();
+        let want = [
+            (CURVE_SUCCESS.to_owned(), a.success_rate),
+            (CURVE_ENTROPY.to_owned(), a.task_entropy),
+        ];
+        assert_eq!(points, want, "through the identity spec, the protocol's figures");
         let bad = CurveProtocol { points: 2, rollouts: 0, lockstep_batch: 0 };
         assert!(bad.check().is_err());
         assert!(CurveProtocol { points: MAX_CURVE_POINTS + 1, ..curve }.check().is_err());

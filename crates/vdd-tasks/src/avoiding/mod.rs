@@ -64,7 +64,7 @@ mod features;
 pub mod protocol;
 pub mod rollout;
 
-pub use curves::{CurveProtocol, MAX_CURVE_POINTS};
+pub use curves::{CURVE_ENTROPY, CURVE_SUCCESS, CurveProtocol, DeployedCurves, MAX_CURVE_POINTS};
 pub use features::ObsFeatures;
 pub use protocol::{AvoidingEval, EvalProtocol, PlotSettings};
 

@@ -240,6 +240,14 @@ impl AvoidingEval {
         }
     }
 
+    /// Checks the documented ranges of the rollouts ([`EvalProtocol::check`]), the timing
+    /// ([`Timing::check`]) and the curves ([`CurveProtocol::check`]).
+    pub fn check(&self) -> Result<()> {
+        self.timing().check()?;
+        self.protocol().check()?;
+        self.curves().check()
+    }
+
     /// The settings of `us_per_action`.
     pub fn timing(&self) -> Timing {
         Timing {
@@ -314,5 +322,23 @@ mod tests {
         // A policy without experts cannot be attributed.
         let plain = protocol.evaluate(&FarLeft, 1, 1, true).unwrap();
         assert!(protocol.replay_experts(&FarLeft, 1, &plain, 2).is_err());
+    }
+
+    #[test]
+    fn the_eval_table_checks_its_rollouts_timing_and_curves() {
+        let ok = AvoidingEval {
+            rollouts: 10,
+            lockstep_batch: 5,
+            threads: 0,
+            timing_calls: 100,
+            timing_warmup: 10,
+            timing_min_round_ms: 1.0,
+            curve_points: 2,
+            curve_rollouts: 10,
+        };
+        assert!(ok.check().is_ok());
+        assert!(AvoidingEval { rollouts: 0, ..ok.clone() }.check().is_err());
+        assert!(AvoidingEval { timing_min_round_ms: f64::NAN, ..ok.clone() }.check().is_err());
+        assert!(AvoidingEval { curve_points: 1001, ..ok }.check().is_err());
     }
 }

@@ -234,6 +234,32 @@ impl Metrics {
             total_steps,
         })
     }
+
+    /// The figures a results row (`metrics.json`, one method and seed) reports: success rate,
+    /// task entropy, rollouts, modes reached and their histogram (`mode_counts`), collisions,
+    /// timeouts and the mean length of successful episodes.
+    ///
+    /// ```
+    /// # use vdd_tasks::avoiding::rollout::Metrics;
+    /// let m = Metrics { rollouts: 2, successes: 0, collisions: 1, timeouts: 1, success_rate: 0.0,
+    ///     task_entropy: 0.0, mode_counts: vec![0; 24], modes_reached: 0,
+    ///     mean_success_steps: 0.0, total_steps: 9 };
+    /// assert_eq!(m.row_fields()["collisions"], 1);
+    /// ```
+    pub fn row_fields(&self) -> serde_json::Map<String, serde_json::Value> {
+        use serde_json::json;
+        let fields = [
+            ("success_rate", json!(self.success_rate)),
+            ("task_entropy", json!(self.task_entropy)),
+            ("rollouts", json!(self.rollouts)),
+            ("modes_reached", json!(self.modes_reached)),
+            ("collisions", json!(self.collisions)),
+            ("timeouts", json!(self.timeouts)),
+            ("mean_success_steps", json!(self.mean_success_steps)),
+            ("mode_counts", json!(self.mode_counts)),
+        ];
+        fields.into_iter().map(|(k, v)| (k.to_owned(), v)).collect()
+    }
 }
 
 /// Every rollout of an evaluation, in episode order, and their metrics.
