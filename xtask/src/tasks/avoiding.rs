@@ -421,6 +421,11 @@ fn write_outputs(
         let png = base.plots.png;
         figures.extend(plots::avoiding_trajectories(&dir.join("trajectories"), &out.panels, png)?);
         figures.extend(plots::learning_curves(&dir.join("curves"), &out.curve_panels, png)?);
+        figures.extend(plots::mode_histograms(
+            &dir.join("modes"),
+            &report::mode_shares(&out.rows),
+            png,
+        )?);
         stages.add("plots", t0.elapsed().as_secs_f64());
     }
     let details = json!({

@@ -4,6 +4,7 @@
 //!   start), each step coloured by the expert that acted (the paper's Figure 4 for Avoiding when
 //!   the panels are Z = 1, 2, 4, 8);
 //! * [`learning_curves`]: training curves per method;
+//! * [`mode_histograms`]: the share of successful rollouts per behaviour mode, per method;
 //! * [`density`]: a 2-D density with a score field and experts' 2σ ellipses (the paper's
 //!   Figure 2 for the toy mixtures).
 //!
@@ -22,11 +23,13 @@ use crate::{Error, Result};
 
 mod curves;
 mod density;
+mod modes;
 mod pixel_font;
 mod trajectories;
 
 pub use curves::learning_curves;
 pub use density::{DensityPanel, ExpertEllipse, density, viridis};
+pub use modes::mode_histograms;
 pub use pixel_font::PixelFont;
 pub use trajectories::{Disc, Scene, TrajectoryPanel, trajectories};
 
