@@ -2,9 +2,9 @@
 //! ([`vdd_recipe::resolve`] over `recipes/defaults/`): the protocol's rules that are facts
 //! about the files rather than about code.
 
-use toml::{Table, Value};
+use toml::Table;
 use vdd::{MoeConfig, VddConfig};
-use vdd_recipe::{Overrides, defaults_tree, read_recipe, resolve};
+use vdd_recipe::{Overrides, defaults_tree, get_path, read_recipe, resolve};
 
 /// `recipes/<name>.toml` over `recipes/defaults/<defaults>.toml`, with `[quick]` merged when
 /// `quick`.
@@ -19,15 +19,7 @@ fn recipe(name: &str, defaults: &str, quick: bool) -> Table {
 
 /// The integer at a dotted `path` of `tree`.
 fn get(tree: &Table, path: &str) -> u64 {
-    let mut parts = path.split('.');
-    let mut v = tree.get(parts.next().unwrap()).unwrap_or_else(|| panic!("{path}"));
-    for p in parts {
-        v = v.get(p).unwrap_or_else(|| panic!("{path}"));
-    }
-    match v {
-        Value::Integer(i) => *i as u64,
-        other => panic!("{path}: {other}"),
-    }
+    get_path(tree, path).unwrap().unwrap_or_else(|| panic!("no {path}"))
 }
 
 /// Every student of the Avoiding comparison trains on the same optimiser steps × batch

@@ -435,7 +435,7 @@ impl DsmLoop {
     /// Runs the chunks of a step on `threads` threads ([`Workers::new`]; the default 0 is the
     /// process-wide pool). The results do not depend on it.
     pub(crate) fn set_threads(&mut self, threads: usize) -> Result<()> {
-        self.workers = Workers::new(threads).map_err(|e| DiffusionError::Config(e.to_string()))?;
+        self.workers = Workers::new(threads)?;
         Ok(())
     }
 

@@ -53,15 +53,15 @@ fn io(path: &Path) -> impl FnOnce(std::io::Error) -> Error + '_ {
 /// Sets this process's address-space limit to `memory_mib` MiB and its CPU-time limit to
 /// `cpu_seconds` (0: leave the limit alone). For the child of a case.
 pub fn set_limits(memory_mib: u64, cpu_seconds: u64) {
-    fn limit(resource: libc::__rlimit_resource_t, value: u64) {
+    // The resources' type is the platform's (glibc's own enum type, a C int elsewhere).
+    for (resource, value) in [(libc::RLIMIT_AS, memory_mib << 20), (libc::RLIMIT_CPU, cpu_seconds)]
+    {
         if value > 0 {
             let lim = libc::rlimit { rlim_cur: value, rlim_max: value };
             // SAFETY: setrlimit reads the struct we pass and changes only this process's limits.
             unsafe { libc::setrlimit(resource, &lim) };
         }
     }
-    limit(libc::RLIMIT_AS, memory_mib << 20);
-    limit(libc::RLIMIT_CPU, cpu_seconds);
 }
 
 /// Runs the campaign `c` on `targets`, each case in a child `exe [prefix...] <target> <dir>

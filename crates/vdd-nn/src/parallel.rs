@@ -122,6 +122,9 @@ impl Workers {
 /// Rows of chunk `c` when `n` rows are split into `chunks` chunks of near-equal size (the
 /// first `n % chunks` chunks one row longer), in order.
 ///
+/// # Panics
+/// When `chunks` is 0 (the trainers check their chunk counts when configured).
+///
 /// ```
 /// use vdd_nn::parallel::chunk_range;
 /// assert_eq!((0..3).map(|c| chunk_range(10, 3, c)).collect::<Vec<_>>(), [0..4, 4..7, 7..10]);
@@ -134,6 +137,10 @@ pub fn chunk_range(n: usize, chunks: usize, c: usize) -> std::ops::Range<usize> 
 
 /// Copies the parameter values of `src` into `dst`, which must have the same architecture
 /// (parameters of the same sizes, visited in the same order); `flat` is scratch.
+///
+/// # Panics
+/// When `dst` holds more parameter values than `src` (replicas are clones of one network, so
+/// the trainers never meet this).
 pub fn copy_values(src: &dyn Parameters, dst: &mut dyn Parameters, flat: &mut Vec<f32>) {
     flat.clear();
     src.visit_params("", &mut |_, p| flat.extend_from_slice(&p.value));
@@ -148,6 +155,9 @@ pub fn copy_values(src: &dyn Parameters, dst: &mut dyn Parameters, flat: &mut Ve
 /// Adds the gradients of `src` to those of `dst` (same architecture as for [`copy_values`]);
 /// `flat` is scratch. Summing chunk replicas into a network whose gradients were zeroed, in
 /// chunk order, gives the same bits whatever thread computed each chunk.
+///
+/// # Panics
+/// As [`copy_values`], when `dst` holds more parameter values than `src`.
 pub fn add_grads(src: &dyn Parameters, dst: &mut dyn Parameters, flat: &mut Vec<f32>) {
     flat.clear();
     src.visit_params("", &mut |_, p| {

@@ -131,7 +131,7 @@ pub fn run_one(
     };
     let t1 = Instant::now();
     vdd.train(|_| {})?;
-    let ms_per_iter = t1.elapsed().as_secs_f64() * 1e3 / options.iterations as f64;
+    let ms_per_iter = t1.elapsed().as_secs_f64() * 1e3 / vdd.iterations().max(1) as f64;
     let setup_ms = (t1 - t0).as_secs_f64() * 1e3;
     let mut student = vdd.finish()?;
     let mut rng = Seeds::new(seed).stream("robustness-eval");

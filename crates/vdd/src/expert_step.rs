@@ -117,10 +117,16 @@ struct StateBlockOut<'a> {
 /// small with many.
 const LANES_PER_PASS: usize = 256;
 
+/// Experts per pass of the kernel with `v_n` samples per expert and `z_n` experts (see
+/// [`LANES_PER_PASS`]).
+fn experts_per_pass(v_n: usize, z_n: usize) -> usize {
+    (LANES_PER_PASS / v_n).clamp(1, z_n)
+}
+
 impl StateBlock<'_> {
-    /// Experts per pass of the kernel (see [`LANES_PER_PASS`]).
+    /// Experts per pass of the kernel ([`experts_per_pass`]).
     fn group(&self) -> usize {
-        (LANES_PER_PASS / self.v_n).clamp(1, self.z_n)
+        experts_per_pass(self.v_n, self.z_n)
     }
 
     /// Accumulates `E_ε[g]` and `E_ε[g εᵀ]` for every expert at this state; returns the sums
@@ -365,7 +371,7 @@ pub fn moments_from_noise<S: ScoreModel + ?Sized>(
     buf.mean_g_eps.resize(b_n * z_n * d * d, 0.0);
     buf.snap_linv.resize(z_n * d * d, 0.0);
     buf.snap_log_norm.resize(z_n, 0.0);
-    buf.lanes.resize(d, z_n, (LANES_PER_PASS / v_n).clamp(1, z_n) * v_n);
+    buf.lanes.resize(d, z_n, experts_per_pass(v_n, z_n) * v_n);
     buf.diff_dd.resize(d * d, 0.0);
 
     // Reparameterised samples a = μ_z(s) + L_z(s) ε and their states.

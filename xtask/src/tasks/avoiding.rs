@@ -201,7 +201,7 @@ impl Task for Avoiding {
         ));
         let mut stages = StageTimes::default();
         let cores = std::thread::available_parallelism().map_or(1, |p| p.get());
-        let threads = if base.eval.threads == 0 { cores } else { base.eval.threads };
+        let threads = base.eval.eval_threads();
         let jobs = if base.jobs == 0 { cores } else { base.jobs };
 
         // One dataset per distinct `data` table (usually one), whatever the seed.

@@ -66,7 +66,7 @@ pub fn run(ctx: &RunContext, resolved: &Resolved<AvoidingRecipe>) -> crate::XRes
 
     let dir = ctx.run_dir(seeds);
     ctx.write_resolved(&dir, &resolved.to_toml()?)?;
-    let threads = std::thread::available_parallelism().map_or(1, |p| p.get());
+    let threads = cfg.eval.eval_threads();
     let protocol = cfg.eval.protocol();
     let mut rows: Vec<(String, Vec<Row>)> = Vec::new();
     for &seed in seeds {

@@ -22,7 +22,7 @@ pub struct Section {
 }
 
 /// Appends one formatted line to a `String`.
-macro_rules! line {
+macro_rules! push_line {
     ($out:expr, $($arg:tt)*) => {{
         let _ = writeln!($out, $($arg)*);
     }};
@@ -52,15 +52,15 @@ pub fn circle_section(ts: &mut [DiffusionTeacher; 2], seed: u64, sigma: f32) -> 
     let bar = thresholds.mmd2_bar(baseline);
     let mut out = Section::default();
     let text = &mut out.text;
-    line!(
+    push_line!(
         text,
         "\n== acceptance: 2-D toy (8 modes on a circle of radius 2, std 0.5; 5000 pairs) =="
     );
-    line!(
+    push_line!(
         text,
         "MMD² (RBF, bandwidth 1), two independent true sets of 2000: {baseline:.5}; bar 3x = {bar:.5}"
     );
-    line!(
+    push_line!(
         text,
         "{:<6} {:<18} {:>4} {:>10} {:>9} {:>8} {:>22} {:>6}",
         "",
@@ -83,7 +83,7 @@ pub fn circle_section(ts: &mut [DiffusionTeacher; 2], seed: u64, sigma: f32) -> 
             TeacherKind::Beso => format!("{cos:.4}"),
         };
         let failed = thresholds.check(&measures, sigma);
-        line!(
+        push_line!(
             text,
             "{name:<6} {:<18} {:>4} {share:>10.3} {mmd:>9.5} {:>8.2}x {at:>22} {:>6}",
             default.label(),
@@ -93,12 +93,12 @@ pub fn circle_section(ts: &mut [DiffusionTeacher; 2], seed: u64, sigma: f32) -> 
         );
         out.failures.extend(failed.iter().map(|f| format!("{name}: {f}")));
         let shares: Vec<String> = shares.iter().map(|s| format!("{s:.3}")).collect();
-        line!(text, "       mode shares: {}", shares.join(" "));
+        push_line!(text, "       mode shares: {}", shares.join(" "));
         let half = score_cosine(t, exact, &[0.0], reference.true_b.as_ref(), 0.5 * sigma)?.cosine;
-        line!(text, "       (info) score cosine at σ = {}: {half:.4}", 0.5 * sigma);
+        push_line!(text, "       (info) score cosine at σ = {}: {half:.4}", 0.5 * sigma);
     }
-    line!(text, "(info) other samplers, 2000 samples each (not part of the acceptance):");
-    line!(
+    push_line!(text, "(info) other samplers, 2000 samples each (not part of the acceptance):");
+    push_line!(
         text,
         "{:<6} {:<18} {:>4} {:>10} {:>9} {:>9}",
         "",
@@ -116,7 +116,7 @@ pub fn circle_section(ts: &mut [DiffusionTeacher; 2], seed: u64, sigma: f32) -> 
                 let x = samples_at(t, &[0.0], 2000, seed);
                 saved.apply(t)?;
                 let (share, _, mmd) = reference.compare(x?.as_ref());
-                line!(
+                push_line!(
                     text,
                     "{name:<6} {:<18} {:>4} {share:>10.3} {mmd:>9.5} {:>8.2}x",
                     s.label(),
@@ -146,11 +146,11 @@ pub fn rotating_section(
 ) -> Result<Section> {
     let mut out = Section::default();
     let text = &mut out.text;
-    line!(
+    push_line!(
         text,
         "min share of 2000 samples over the 8 modes at state s (MMD² to 1000 true samples):"
     );
-    line!(text, "{:>7} {:>22} {:>22}", "s", "DDPM", "BESO");
+    push_line!(text, "{:>7} {:>22} {:>22}", "s", "DDPM", "BESO");
     let thresholds = Thresholds::default();
     let mut worst = [f32::INFINITY; 2];
     let mut covered = [0usize; 2];
@@ -163,11 +163,11 @@ pub fn rotating_section(
             covered[k] += usize::from(thresholds.covers(share));
             cells.push(format!("{share:.3} ({mmd:.4})"));
         }
-        line!(text, "{s:>7.3} {:>22} {:>22}", cells[0], cells[1]);
+        push_line!(text, "{s:>7.3} {:>22} {:>22}", cells[0], cells[1]);
     }
     for (k, name) in ["DDPM", "BESO"].iter().enumerate() {
         let ok = covered[k] == 8;
-        line!(
+        push_line!(
             text,
             "{name}: all 8 modes (>= 6% each) at {}/8 states, worst share {:.3}: {}",
             covered[k],
@@ -186,19 +186,19 @@ pub fn rotating_section(
 /// teacher's default. The teachers end with their default samplers.
 pub fn latency_section(ts: &mut [DiffusionTeacher; 2], min_secs: f64) -> Result<String> {
     let mut text = String::new();
-    line!(
+    push_line!(
         text,
         "\n== sampling latency: µs per action (act_batch, single thread, best of 5 rounds) =="
     );
-    line!(
+    push_line!(
         text,
         "(2-D toy teachers; wall clock on a shared machine: other jobs inflate these figures)"
     );
     let steps = [1usize, 2, 4, 8, 16];
     for batch in [1usize, 256] {
-        line!(text, "\nbatch {batch}:");
+        push_line!(text, "\nbatch {batch}:");
         let head: String = steps.iter().map(|k| format!("{:>9}", format!("{k} st"))).collect();
-        line!(text, "{:<6} {:<16}{head} {:>16}", "", "sampler", "default");
+        push_line!(text, "{:<6} {:<16}{head} {:>16}", "", "sampler", "default");
         for t in ts.iter_mut() {
             let name = teacher_name(t);
             let default = SamplerSetting::of(t);
@@ -215,7 +215,7 @@ pub fn latency_section(ts: &mut [DiffusionTeacher; 2], min_secs: f64) -> Result<
                 } else {
                     String::new()
                 };
-                line!(text, "{name:<6} {:<16}{row} {def:>16}", s.name());
+                push_line!(text, "{name:<6} {:<16}{row} {def:>16}", s.name());
             }
             default.apply(t)?;
         }

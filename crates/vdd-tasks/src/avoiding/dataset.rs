@@ -26,8 +26,8 @@ use vdd_data::{
     TrainingData, WindowConfig,
 };
 
+use super::ObsFeatures;
 use super::demonstrator::{DemonstratorConfig, generate_demonstrations};
-use super::{N_MODES, ObsFeatures};
 use crate::TaskError;
 
 /// How demonstrations become training data (the `[data]` table of the Avoiding recipes).
@@ -158,10 +158,7 @@ impl DatasetConfig {
     /// Generates the demonstrations and builds the training matrices.
     pub fn build(&self) -> Result<Dataset, DatasetError> {
         let demos = generate_demonstrations(self.demonstrations, self.seed, &self.demonstrator)?;
-        let mut mode_counts = vec![0usize; N_MODES];
-        for m in &demos.modes {
-            mode_counts[m.index()] += 1;
-        }
+        let mode_counts = demos.mode_counts();
         // The models train on the features; the raw observations are kept for timing, which
         // feeds them through the deployed policy (that applies the features itself).
         let (train, episode_observations) =

@@ -248,6 +248,14 @@ impl AvoidingEval {
         self.curves().check()
     }
 
+    /// The threads the rollouts run on: `threads`, or every core when it is 0.
+    pub fn eval_threads(&self) -> usize {
+        match self.threads {
+            0 => std::thread::available_parallelism().map_or(1, |p| p.get()),
+            n => n,
+        }
+    }
+
     /// The settings of `us_per_action`.
     pub fn timing(&self) -> Timing {
         Timing {
@@ -336,7 +344,8 @@ mod tests {
             curve_points: 2,
             curve_rollouts: 10,
         };
-        assert!(ok.check().is_ok());
+        assert!(ok.check().is_ok() && ok.eval_threads() >= 1);
+        assert_eq!(AvoidingEval { threads: 3, ..ok.clone() }.eval_threads(), 3);
         assert!(AvoidingEval { rollouts: 0, ..ok.clone() }.check().is_err());
         assert!(AvoidingEval { timing_min_round_ms: f64::NAN, ..ok.clone() }.check().is_err());
         assert!(AvoidingEval { curve_points: 1001, ..ok }.check().is_err());

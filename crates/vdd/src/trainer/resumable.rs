@@ -6,8 +6,8 @@
 use std::path::Path;
 use std::time::Instant;
 
-use vdd_core::{ScoreModel, Snapshot};
 use vdd_core::curves::{CurveEval, CurveProbe, Curves};
+use vdd_core::{ScoreModel, Snapshot};
 use vdd_moe::Moe;
 use vdd_nn::checkpoint::CheckpointDir;
 
@@ -41,7 +41,8 @@ pub struct ResumableOutcome {
     pub mean_noise_level: f32,
 }
 
-/// The training curves' file inside a generation, beside the trainer's.
+/// The file beside the trainer's in a generation: the curves, the noise levels' sum, the
+/// training and the curve seconds so far.
 const PROGRESS: &str = "progress.json";
 
 impl Resumable<'_> {
@@ -49,7 +50,8 @@ impl Resumable<'_> {
     /// resumes from `self.dir` under `self.resume` (refusing a checkpoint of other settings or
     /// another student), calling `report` after every iteration. At each checkpoint of
     /// `probe`, the [`Snapshot`](vdd_core::Snapshot) of the student, made a policy by
-    /// `policy`, is evaluated; the probe's [`CurveProbe::seconds`] is its time.
+    /// `policy`, is evaluated; the probe's [`CurveProbe::seconds`] is its time, over every
+    /// session of the run.
     ///
     /// ```
     /// use vdd::faer::Mat;
@@ -94,8 +96,10 @@ impl Resumable<'_> {
                 let path = generation.join(PROGRESS);
                 let bytes = std::fs::read(&path)
                     .map_err(|source| VddError::CheckpointIo { path: path.clone(), source })?;
-                let (c, n, t): (Curves, f64, f64) = serde_json::from_slice(&bytes)
-                    .map_err(|source| VddError::CheckpointFormat { path, source })?;
+                let (c, n, t, curve_seconds): (Curves, f64, f64, f64) =
+                    serde_json::from_slice(&bytes)
+                        .map_err(|source| VddError::CheckpointFormat { path, source })?;
+                probe.seconds += curve_seconds; // the earlier sessions' curves
                 let vdd = Vdd::resume(&generation, teacher, data)?;
                 if vdd.config() != &config || vdd.student().config() != student.config() {
                     let source = "written with other settings or another student".into();
@@ -137,7 +141,7 @@ impl Resumable<'_> {
             }
             if t0.elapsed().as_secs() >= self.every_seconds && vdd.iteration() < iterations {
                 train_seconds += t0.elapsed().as_secs_f64();
-                let progress = (&curves, noise_sum, train_seconds);
+                let progress = (&curves, noise_sum, train_seconds, probe.seconds);
                 store.commit(vdd.iteration() as u64, |dir| -> Result<(), VddError> {
                     vdd.write_checkpoint(dir)?;
                     let path = dir.join(PROGRESS);
