@@ -40,6 +40,7 @@ impl Figure for ModeHistograms<'_> {
             chart
                 .configure_mesh()
                 .x_labels(6)
+                .x_label_formatter(&|x| format!("{x:.0}"))
                 .y_labels(4)
                 .label_style(("sans-serif", 10))
                 .draw()?;
