@@ -48,7 +48,7 @@ fn avoiding_policy(kind: ExpertKind) -> (Moe, Mat<f32>, Mat<f32>) {
     };
     let mut moe = Moe::from_config(config, 7).unwrap();
     moe.set_normalizers(Some(stats(obs)), Some(stats(actions))).unwrap();
-    moe.set_act_mode(ActMode { greedy_gating: false, sample_action: true });
+    moe.set_act_mode(ActMode { greedy_gating: false, sample_action: true, hold_steps: 0 });
     (moe, obs.clone(), actions.clone())
 }
 

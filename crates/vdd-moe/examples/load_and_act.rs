@@ -23,7 +23,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         Some(Affine::new(vec![0.5; 8], vec![0.2; 8])?),
         Some(Affine::new(vec![0.0; 6], vec![0.01; 6])?),
     )?;
-    moe.set_act_mode(ActMode { greedy_gating: false, sample_action: false });
+    moe.set_act_mode(ActMode { greedy_gating: false, sample_action: false, hold_steps: 0 });
     let spec =
         DeploySpec { obs_window: 2, action_chunk: 3, execute_steps: 2, ..DeploySpec::identity() };
     moe.set_deploy_spec(spec.with_features(POSITION_AND_LAG))?;

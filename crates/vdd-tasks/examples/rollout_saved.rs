@@ -3,7 +3,7 @@
 //!
 //! ```text
 //! cargo run --release -p vdd-tasks --example rollout_saved -- MODEL [--seed S] [--rollouts N]
-//!     [--lockstep-batch B] [--threads T]
+//!     [--lockstep-batch B] [--threads T] [--hold K]
 //! ```
 //!
 //! `MODEL` is a mixture saved by `Moe::save`, e.g. a recipe's
@@ -13,7 +13,8 @@
 //! evaluation is the recipe's ([`EvalProtocol`]): with the run seed `S` (default 0), `N`
 //! rollouts (default 500; `--quick` recipes use 200) and the recipe's lockstep batch (default
 //! 50) it prints the recipe's figures for that student bit for bit. Threads (default: every
-//! core) do not change the figures.
+//! core) do not change the figures. `--hold K` replaces the saved act mode's
+//! [`vdd_moe::ActMode::hold_steps`]: each episode keeps the expert it picks for `K` steps.
 
 use std::path::PathBuf;
 use std::process::ExitCode;
@@ -26,16 +27,18 @@ struct Args {
     seed: u64,
     protocol: EvalProtocol,
     threads: usize,
+    hold: Option<u32>,
 }
 
-const USAGE: &str =
-    "usage: rollout_saved MODEL [--seed S] [--rollouts N] [--lockstep-batch B] [--threads T]";
+const USAGE: &str = "usage: rollout_saved MODEL [--seed S] [--rollouts N] [--lockstep-batch B] [--threads T] \
+     [--hold K]";
 
 fn parse() -> Result<Args, String> {
     let mut model = None;
     let mut seed = 0;
     let mut protocol = EvalProtocol::default();
     let mut threads = std::thread::available_parallelism().map_or(1, |n| n.get());
+    let mut hold = None;
     let mut args = std::env::args().skip(1);
     while let Some(arg) = args.next() {
         let mut value = |name: &str| -> Result<u64, String> {
@@ -47,6 +50,7 @@ fn parse() -> Result<Args, String> {
             "--rollouts" => protocol.rollouts = value("--rollouts")? as usize,
             "--lockstep-batch" => protocol.lockstep_batch = value("--lockstep-batch")? as usize,
             "--threads" => threads = value("--threads")? as usize,
+            "--hold" => hold = Some(u32::try_from(value("--hold")?).map_err(|e| e.to_string())?),
             "-h" | "--help" => return Err(USAGE.into()),
             flag if flag.starts_with('-') => return Err(format!("unknown option {flag}\n{USAGE}")),
             path if model.is_none() => model = Some(PathBuf::from(path)),
@@ -54,13 +58,17 @@ fn parse() -> Result<Args, String> {
         }
     }
     let model = model.ok_or_else(|| USAGE.to_owned())?;
-    Ok(Args { model, seed, protocol, threads })
+    Ok(Args { model, seed, protocol, threads, hold })
 }
 
 fn run() -> Result<(), Box<dyn std::error::Error>> {
     let args = parse()?;
-    let policy =
+    let mut policy =
         vdd_moe::load_policy(&args.model).map_err(|e| format!("{}: {e}", args.model.display()))?;
+    if let Some(hold_steps) = args.hold {
+        let moe = policy.inner_mut();
+        moe.set_act_mode(vdd_moe::ActMode { hold_steps, ..moe.act_mode() });
+    }
     let eval = args.protocol.evaluate(&policy, args.seed, args.threads, false)?;
     let m = &eval.metrics;
     // Numbers as serde_json writes them (as in the recipe's metrics.json), keys in this order.

@@ -116,7 +116,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     }
 
     // The figure: 3000 actions of the student, sampled from the mixture, on a grid.
-    student.set_act_mode(ActMode { greedy_gating: false, sample_action: true });
+    student.set_act_mode(ActMode { greedy_gating: false, sample_action: true, hold_steps: 0 });
     student.seed(0);
     let (lo, hi, cols, rows) = (1.5f32, 8.5f32, 56usize, 24usize);
     let cell = |x: f32, y: f32| {

@@ -43,7 +43,7 @@ impl<E: Expert> Moe<E> {
     /// use vdd_moe::{ActMode, Moe, MoeConfig};
     ///
     /// let mut moe = Moe::from_config(MoeConfig::toy(2, 1, 3), 0)?;
-    /// moe.set_act_mode(ActMode { greedy_gating: true, sample_action: false });
+    /// moe.set_act_mode(ActMode { greedy_gating: true, sample_action: false, hold_steps: 0 });
     /// let obs = faer::mat![[0.1f32, 0.2]];
     /// let c = moe.components(obs.as_ref())?;
     /// assert_eq!((c.means.len(), c.scale_tril.len(), c.log_gating.len()), (3, 3, 3));

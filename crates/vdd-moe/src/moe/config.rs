@@ -191,6 +191,13 @@ pub struct ActMode {
     pub greedy_gating: bool,
     /// Sample `a ~ N(μ_z, Σ_z)` instead of returning `μ_z` (the paper evaluates with `μ_z`).
     pub sample_action: bool,
+    /// Keep the expert picked for a row for this many consecutive predictions of that row
+    /// before picking again; `0` and `1` pick at every prediction (the paper's acting). The
+    /// held expert acts on each new state; [`Policy::reset`](vdd_core::Policy::reset) ends
+    /// every hold. Row `i` of [`Policy::act_batch`](vdd_core::Policy::act_batch) must be the
+    /// same episode from one call to the next, as the rollouts' lockstep contract says.
+    #[serde(default)]
+    pub hold_steps: u32,
 }
 
 impl NetworkConfig {

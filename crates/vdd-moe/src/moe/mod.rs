@@ -88,7 +88,7 @@ impl Parameters for ExpertNetworks {
 /// )?;
 ///
 /// // Deterministic evaluation: the most probable expert's mean.
-/// moe.set_act_mode(ActMode { greedy_gating: true, sample_action: false });
+/// moe.set_act_mode(ActMode { greedy_gating: true, sample_action: false, hold_steps: 0 });
 /// let obs = [0.2f32, 1.5, -0.7];
 /// let action = moe.act(&obs)?;
 /// assert_eq!(action.len(), 2);
@@ -136,6 +136,16 @@ pub struct Moe<E: Expert = ExpertFamily> {
     act_work: Vec<f32>,
     /// The expert chosen for each row of the last `act_into` / `act_batch`.
     last_experts: Vec<usize>,
+    /// Per row: the held expert and how many more predictions it makes
+    /// ([`ActMode::hold_steps`]); emptied by `Policy::reset`.
+    held: Vec<Hold>,
+}
+
+/// An expert kept for a row's next predictions ([`ActMode::hold_steps`]).
+#[derive(Debug, Clone, Copy, Default)]
+struct Hold {
+    expert: usize,
+    left: u32,
 }
 
 impl Moe<ExpertFamily> {
@@ -220,6 +230,7 @@ impl<E: Expert> Moe<E> {
             work: vec![0.0; d],
             act_work: Vec::new(),
             last_experts: Vec::new(),
+            held: Vec::new(),
             config,
         })
     }

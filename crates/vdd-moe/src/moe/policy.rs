@@ -9,7 +9,7 @@ use vdd_core::{
 };
 use vdd_nn::{Module, ResidualMlp};
 
-use super::{ExpertNets, Moe};
+use super::{ExpertNets, Hold, Moe};
 use crate::error::MoeError;
 
 impl<E: Expert> Policy for Moe<E> {
@@ -21,6 +21,10 @@ impl<E: Expert> Policy for Moe<E> {
     }
     fn seed(&mut self, seed: u64) {
         self.rng = Seeds::new(seed).stream("moe-act");
+    }
+    /// Ends every row's held expert ([`ActMode::hold_steps`](crate::ActMode::hold_steps)).
+    fn reset(&mut self) {
+        self.held.clear();
     }
     fn last_experts(&self) -> &[usize] {
         Moe::last_experts(self)
@@ -76,7 +80,8 @@ impl<E: Expert> Policy for Moe<E> {
 
 impl<E: Expert> Moe<E> {
     /// Acting (`Policy::act_into` and `act_batch`): the gating for every state, then for each
-    /// state in turn an expert `z ~ q(z|s)` (or the most likely one) and only that expert's
+    /// state in turn an expert `z ~ q(z|s)` (or the most likely one; or the row's held one,
+    /// [`ActMode::hold_steps`](crate::ActMode::hold_steps)) and only that expert's
     /// outputs: its columns of the shared trunk's output layer (or its own network), decoded
     /// into `(μ_z, L_z)`. The action is `μ_z`, or a sample of `N(μ_z, L_z L_zᵀ)`.
     fn act_rows(
@@ -121,9 +126,13 @@ impl<E: Expert> Moe<E> {
             act_mode,
             action_normalizer,
             last_experts,
+            held,
             ..
         } = self;
         last_experts.clear();
+        if held.len() < states.nrows() {
+            held.resize(states.nrows(), Hold::default());
+        }
         act_work.resize(r + 3 * d + d * d + h, 0.0);
         let (raw, rest) = act_work.split_at_mut(r);
         let (hidden_row, rest) = rest.split_at_mut(h);
@@ -146,20 +155,27 @@ impl<E: Expert> Moe<E> {
         };
         for b in 0..states.nrows() {
             let lg = &out.log_gating[b * z..(b + 1) * z];
-            let e = if act_mode.greedy_gating {
-                (0..z).fold(0, |best, k| if lg[k] > lg[best] { k } else { best })
+            let e = if held[b].left > 0 {
+                held[b].left -= 1;
+                held[b].expert
             } else {
-                let u: f32 = rng.random();
-                let mut acc = 0.0;
-                let mut pick = z - 1;
-                for (k, l) in lg.iter().enumerate() {
-                    acc += l.exp();
-                    if u < acc {
-                        pick = k;
-                        break;
+                let e = if act_mode.greedy_gating {
+                    (0..z).fold(0, |best, k| if lg[k] > lg[best] { k } else { best })
+                } else {
+                    let u: f32 = rng.random();
+                    let mut acc = 0.0;
+                    let mut pick = z - 1;
+                    for (k, l) in lg.iter().enumerate() {
+                        acc += l.exp();
+                        if u < acc {
+                            pick = k;
+                            break;
+                        }
                     }
-                }
-                pick
+                    pick
+                };
+                held[b] = Hold { expert: e, left: act_mode.hold_steps.saturating_sub(1) };
+                e
             };
             last_experts.push(e);
             match &mut source {

@@ -121,7 +121,7 @@ fn likelihood_and_sampling_describe_the_same_distribution() {
     let n = 16_000;
     let repeated = Mat::from_fn(n, 1, |_, _| obs[0]);
     let mut actions = Mat::<f32>::zeros(n, 2);
-    moe.set_act_mode(ActMode { greedy_gating: false, sample_action: true });
+    moe.set_act_mode(ActMode { greedy_gating: false, sample_action: true, hold_steps: 0 });
     moe.seed(11);
     moe.act_batch(repeated.as_ref(), actions.as_mut()).unwrap();
     let (sm, sc) = sample_moments(actions.as_ref());
@@ -136,7 +136,7 @@ fn likelihood_and_sampling_describe_the_same_distribution() {
     let lg = moe.output().log_gating_row(0).to_vec();
     let best = (0..3).max_by(|&a, &b| lg[a].total_cmp(&lg[b])).unwrap();
     let (bm, bc) = mixture_moments(&moe, &act_norm, Some(best));
-    moe.set_act_mode(ActMode { greedy_gating: true, sample_action: true });
+    moe.set_act_mode(ActMode { greedy_gating: true, sample_action: true, hold_steps: 0 });
     moe.act_batch(repeated.as_ref(), actions.as_mut()).unwrap();
     let (sm, sc) = sample_moments(actions.as_ref());
     for i in 0..2 {
@@ -173,7 +173,7 @@ fn denormalized_means(moe: &Moe, b: usize) -> Vec<Vec<f32>> {
 fn greedy_mean_mode_returns_the_most_probable_experts_mean() {
     for cfg in all_configs(2, 2).into_iter().filter(|c| c.gating == GatingKind::Learned) {
         let mut moe = built(cfg, 9);
-        moe.set_act_mode(ActMode { greedy_gating: true, sample_action: false });
+        moe.set_act_mode(ActMode { greedy_gating: true, sample_action: false, hold_steps: 0 });
         let obs = obs_batch(5, 2);
         let mut batch = Mat::<f32>::zeros(5, 2);
         moe.act_batch(obs.as_ref(), batch.as_mut()).unwrap();
@@ -212,7 +212,11 @@ fn last_experts_name_the_expert_that_acted() {
         assert!(moe.last_experts().is_empty());
         let mut used = std::collections::BTreeSet::new();
         for greedy in [true, false] {
-            moe.set_act_mode(ActMode { greedy_gating: greedy, sample_action: false });
+            moe.set_act_mode(ActMode {
+                greedy_gating: greedy,
+                sample_action: false,
+                hold_steps: 0,
+            });
             moe.seed(5);
             let obs = obs_batch(8, 2);
             let mut batch = Mat::<f32>::zeros(8, 2);
@@ -238,7 +242,7 @@ fn last_experts_name_the_expert_that_acted() {
 #[test]
 fn sampled_gating_picks_experts_with_the_gating_probabilities() {
     let mut moe = built(config(2, 2, ExpertKind::Diagonal, GatingKind::Learned, true), 10);
-    moe.set_act_mode(ActMode { greedy_gating: false, sample_action: false });
+    moe.set_act_mode(ActMode { greedy_gating: false, sample_action: false, hold_steps: 0 });
     moe.seed(3);
     let n = 20_000;
     let obs = Mat::from_fn(n, 2, |_, j| [0.4f32, -0.3][j]);
@@ -267,9 +271,9 @@ fn sampled_gating_picks_experts_with_the_gating_probabilities() {
 #[test]
 fn the_same_seed_gives_the_same_actions_and_seed_resets_the_stream() {
     for mode in [
-        ActMode { greedy_gating: false, sample_action: true },
-        ActMode { greedy_gating: false, sample_action: false },
-        ActMode { greedy_gating: true, sample_action: true },
+        ActMode { greedy_gating: false, sample_action: true, hold_steps: 0 },
+        ActMode { greedy_gating: false, sample_action: false, hold_steps: 0 },
+        ActMode { greedy_gating: true, sample_action: true, hold_steps: 0 },
     ] {
         let mut moe = built(config(2, 2, ExpertKind::Full, GatingKind::Learned, true), 12);
         moe.set_act_mode(mode);
@@ -299,7 +303,7 @@ fn the_same_seed_gives_the_same_actions_and_seed_resets_the_stream() {
 fn act_batch_matches_repeated_act_into_in_deterministic_mode() {
     for cfg in all_configs(3, 2) {
         let mut moe = built(cfg, 13);
-        moe.set_act_mode(ActMode { greedy_gating: true, sample_action: false });
+        moe.set_act_mode(ActMode { greedy_gating: true, sample_action: false, hold_steps: 0 });
         let obs = obs_batch(7, 3);
         let mut batch = Mat::<f32>::zeros(7, 2);
         moe.act_batch(obs.as_ref(), batch.as_mut()).unwrap();
@@ -311,5 +315,58 @@ fn act_batch_matches_repeated_act_into_in_deterministic_mode() {
         }
         // An empty batch is fine.
         moe.act_batch(Mat::<f32>::zeros(0, 3).as_ref(), Mat::<f32>::zeros(0, 2).as_mut()).unwrap();
+    }
+}
+
+#[test]
+fn held_experts_act_for_hold_steps_predictions_of_their_row_until_reset() {
+    for gating in [GatingKind::Uniform, GatingKind::Learned] {
+        let mut moe = built(config(2, 2, ExpertKind::Diagonal, gating, true), 13);
+        let rows = 24;
+        let obs = obs_batch(rows, 2);
+        let mut actions = Mat::<f32>::zeros(rows, 2);
+        let mut calls = |moe: &mut Moe, n: usize| -> Vec<(Vec<usize>, Vec<f32>)> {
+            (0..n)
+                .map(|_| {
+                    moe.act_batch(obs.as_ref(), actions.as_mut()).unwrap();
+                    let a = (0..rows).flat_map(|b| [actions[(b, 0)], actions[(b, 1)]]).collect();
+                    (moe.last_experts().to_vec(), a)
+                })
+                .collect()
+        };
+        let mode = |hold_steps| ActMode { greedy_gating: false, sample_action: false, hold_steps };
+
+        // 0 and 1: a pick at every prediction, bit for bit.
+        let mut every = Vec::new();
+        for hold in [0, 1] {
+            moe.set_act_mode(mode(hold));
+            moe.seed(4);
+            moe.reset();
+            every.push(calls(&mut moe, 6));
+        }
+        assert_eq!(every[0], every[1], "{gating:?}: hold_steps 0 and 1 are the same acting");
+        assert_ne!(every[0][0].0, every[0][1].0, "{gating:?}: a pick at every prediction");
+
+        // 3: each row keeps its expert for three predictions, then picks again.
+        moe.set_act_mode(mode(3));
+        moe.seed(4);
+        moe.reset();
+        let held = calls(&mut moe, 9);
+        assert_eq!(held[0], every[0][0], "{gating:?}: the first pick is the unheld one");
+        for block in held.chunks(3) {
+            assert!(block.iter().all(|c| c.0 == block[0].0), "{gating:?}: held for 3");
+        }
+        assert_ne!(held[0].0, held[3].0, "{gating:?}: a new pick after 3 predictions");
+        assert_ne!(held[3].0, held[6].0, "{gating:?}: and after 6");
+
+        // `reset` ends every hold; `seed` alone does not.
+        moe.set_act_mode(mode(1000));
+        moe.seed(4);
+        moe.reset();
+        let first = calls(&mut moe, 1).remove(0).0;
+        moe.seed(9);
+        assert_eq!(calls(&mut moe, 1)[0].0, first, "{gating:?}: still held after seed");
+        moe.reset();
+        assert_ne!(calls(&mut moe, 1)[0].0, first, "{gating:?}: a new pick after reset");
     }
 }

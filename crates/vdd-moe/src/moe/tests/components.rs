@@ -38,7 +38,7 @@ fn components_give_the_likelihood_and_the_greedy_action_in_raw_space() {
             Some(Affine::new(vec![10.0, -3.0], vec![4.0, 0.25]).unwrap()),
         )
         .unwrap();
-        moe.set_act_mode(ActMode { greedy_gating: true, sample_action: false });
+        moe.set_act_mode(ActMode { greedy_gating: true, sample_action: false, hold_steps: 0 });
         let obs = faer::mat![[0.3f32, -0.2, 1.0], [1.5, 0.7, -2.0]];
         let actions = faer::mat![[11.0f32, -2.9], [8.0, -3.2]];
         let c = moe.components(obs.as_ref()).unwrap();

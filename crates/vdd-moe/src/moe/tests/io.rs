@@ -17,7 +17,7 @@ fn save_and_load_round_trip_everything_a_deployed_policy_needs() {
     for cfg in all_configs(2, 3) {
         let what = format!("{:?}/{:?}/shared={}", cfg.expert_kind, cfg.gating, cfg.shared_trunk);
         let mut moe = built(cfg, 19);
-        let mode = ActMode { greedy_gating: false, sample_action: true };
+        let mode = ActMode { greedy_gating: false, sample_action: true, hold_steps: 0 };
         moe.set_act_mode(mode);
         let path = scratch(&format!("rt-{}.safetensors", what.replace('/', "-")));
         moe.save(&path).unwrap();
@@ -165,7 +165,7 @@ fn a_saved_then_loaded_policy_acts_bit_identically_on_raw_observations() {
     for cfg in all_configs(4, 3) {
         let what = format!("{:?}/{:?}/shared={}", cfg.expert_kind, cfg.gating, cfg.shared_trunk);
         let mut moe = built(cfg, 23);
-        moe.set_act_mode(ActMode { greedy_gating: false, sample_action: true });
+        moe.set_act_mode(ActMode { greedy_gating: false, sample_action: true, hold_steps: 0 });
         moe.set_deploy_spec(windowed_spec()).unwrap();
         let path = scratch(&format!("deploy-{}.safetensors", what.replace('/', "-")));
         moe.save(&path).unwrap();
@@ -183,7 +183,7 @@ fn a_saved_then_loaded_policy_acts_bit_identically_on_raw_observations() {
 fn a_chunk_start_offset_is_saved_and_applied_after_loading() {
     let mut moe = built(config(4, 3, ExpertKind::Diagonal, GatingKind::Uniform, true), 26);
     let offset = DeploySpec { chunk_start: 1, ..windowed_spec() };
-    moe.set_act_mode(ActMode { greedy_gating: true, sample_action: false });
+    moe.set_act_mode(ActMode { greedy_gating: true, sample_action: false, hold_steps: 0 });
     moe.set_deploy_spec(offset.clone()).unwrap();
     let path = scratch("deploy-offset.safetensors");
     moe.save(&path).unwrap();
