@@ -70,6 +70,7 @@
 mod error;
 mod hash;
 mod header;
+pub mod progress;
 mod resolve;
 pub mod run;
 mod seeds;

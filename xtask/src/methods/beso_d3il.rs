@@ -13,7 +13,7 @@
 use vdd_diffusion::TeacherKind;
 
 use super::teacher::TeacherRow;
-use super::vdd::{CLAMP, CLIP, GREEDY, INIT, SAMPLE, VddMethod};
+use super::vdd::{VddMethod, vdd_keys};
 use crate::method::{Info, Job, Method, MethodRecipe, Trained};
 use crate::teachers::TeachersConfig;
 use vdd_diffusion::cache::BesoTeacherConfig;
@@ -38,7 +38,7 @@ pub const VDD_BESO_D3IL: D3il<VddMethod> = D3il(VddMethod(
         name: "vdd-beso-d3il",
         teacher: Some(TeacherKind::Beso),
         tasks: &["avoiding"],
-        keys: &[KEY, "vdd.beso_d3il", "vdd.beso_d3il_gating", CLIP, CLAMP, INIT, GREEDY, SAMPLE],
+        keys: vdd_keys!("beso_d3il", KEY),
     },
     "beso_d3il",
 ));

@@ -2,7 +2,8 @@
 //! mixture (toys).
 //!
 //! Keys (below `vdd`): `<teacher>` (the [`VddConfig`]; its `seed` is replaced by the run seed),
-//! optional `<teacher>_gating` (the student's gating when it differs from `student.gating`),
+//! optional `<teacher>_gating` and `<teacher>_experts` (the student's gating and number of
+//! experts when they differ from `student.gating` and `student.num_experts`),
 //! `clip_margin` (clamp the teacher's denoised estimate to the training actions' bounding box,
 //! in the student's normalised units, widened by this margin: [`ClampedDenoiser`]),
 //! `clamp_denoiser` (`false`: the raw score whatever `clip_margin` says), `official_init`
@@ -18,7 +19,7 @@ use serde_json::json;
 use vdd::{DistillData, Resumable, ResumableOutcome, VddConfig};
 use vdd_core::{Affine, ClampedDenoiser, ScoreModel};
 use vdd_diffusion::TeacherKind;
-use vdd_moe::{ActMode, GatingKind, Moe, MoeConfig};
+use vdd_moe::{ActMode, Moe, MoeConfig};
 
 use crate::method::{Budget, Info, Job, Method, MethodRecipe, Trained};
 use crate::policy::TrainedPolicy;
@@ -31,13 +32,28 @@ pub struct VddMethod(pub(super) Info, pub(super) &'static str);
 
 const LEARNED: &[&str] = &["avoiding", "toy-gmm"];
 
+/// The recipe keys of the VDD method whose settings are `vdd.<teacher>`, after `extra` keys.
+macro_rules! vdd_keys {
+    ($teacher:literal $(, $extra:expr)*) => {{
+        use $crate::methods::vdd::{CLAMP, CLIP, GREEDY, INIT, SAMPLE};
+        &[
+            $($extra,)*
+            concat!("vdd.", $teacher),
+            concat!("vdd.", $teacher, "_gating"),
+            concat!("vdd.", $teacher, "_experts"),
+            CLIP, CLAMP, INIT, GREEDY, SAMPLE,
+        ]
+    }};
+}
+pub(super) use vdd_keys;
+
 /// `vdd-ddpm`.
 pub const VDD_DDPM: VddMethod = VddMethod(
     Info {
         name: "vdd-ddpm",
         teacher: Some(TeacherKind::Ddpm),
         tasks: LEARNED,
-        keys: &["vdd.ddpm", "vdd.ddpm_gating", CLIP, CLAMP, INIT, GREEDY, SAMPLE],
+        keys: vdd_keys!("ddpm"),
     },
     "ddpm",
 );
@@ -47,7 +63,7 @@ pub const VDD_BESO: VddMethod = VddMethod(
         name: "vdd-beso",
         teacher: Some(TeacherKind::Beso),
         tasks: LEARNED,
-        keys: &["vdd.beso", "vdd.beso_gating", CLIP, CLAMP, INIT, GREEDY, SAMPLE],
+        keys: vdd_keys!("beso"),
     },
     "beso",
 );
@@ -57,7 +73,7 @@ pub const VDD_EXACT: VddMethod = VddMethod(
         name: "vdd-exact",
         teacher: None,
         tasks: &["toy-gmm", "toy-conditional"],
-        keys: &["vdd.exact", "vdd.exact_gating", CLIP, CLAMP, INIT, GREEDY, SAMPLE],
+        keys: vdd_keys!("exact"),
     },
     "exact",
 );
@@ -71,7 +87,8 @@ pub(super) const SAMPLE: &str = "vdd.sample_action";
 /// The settings of one VDD method.
 struct Settings {
     vdd: VddConfig,
-    gating: Option<GatingKind>,
+    /// `student` with the method's gating and number of experts.
+    student: MoeConfig,
     clip_margin: Option<f32>,
     official_init: bool,
     act: ActMode,
@@ -83,10 +100,20 @@ impl VddMethod {
         let clamp = r.get_opt::<bool>(CLAMP)?.unwrap_or(true);
         Ok(Settings {
             vdd: r.get(&format!("vdd.{}", self.1))?,
-            gating: r.get_opt(&format!("vdd.{}_gating", self.1))?,
+            student: MoeConfig {
+                gating: r.get_opt(&format!("vdd.{}_gating", self.1))?.unwrap_or(r.student.gating),
+                num_experts: r
+                    .get_opt(&format!("vdd.{}_experts", self.1))?
+                    .unwrap_or(r.student.num_experts),
+                ..r.student.clone()
+            },
             clip_margin: if clamp { r.get_opt(CLIP)? } else { None },
             official_init: flag(INIT)?,
-            act: ActMode { greedy_gating: flag(GREEDY)?, sample_action: flag(SAMPLE)? },
+            act: ActMode {
+                greedy_gating: flag(GREEDY)?,
+                sample_action: flag(SAMPLE)?,
+                hold_steps: 0,
+            },
         })
     }
 }
@@ -97,30 +124,22 @@ impl Method for VddMethod {
     }
     fn check(&self, recipe: &MethodRecipe<'_>) -> crate::XResult {
         let s = self.settings(recipe)?;
-        let student = MoeConfig {
-            gating: s.gating.unwrap_or(recipe.student.gating),
-            ..recipe.student.clone()
-        };
-        Ok(s.vdd.check(&student).map_err(|e| format!("vdd.{}: {e}", self.1))?)
+        Ok(s.vdd.check(&s.student).map_err(|e| format!("vdd.{}: {e}", self.1))?)
     }
 
     fn train(&self, job: &Job<'_>) -> crate::XResult<Trained> {
         let (s, d, label) = (self.settings(&job.recipe)?, job.data, job.label);
         let vc = VddConfig { seed: job.seed, ..s.vdd };
-        let teacher = match self.0.teacher {
-            Some(_) => Some(job.teacher()?),
-            None => None,
-        };
+        let teacher = self.0.teacher.map(|_| job.teacher()).transpose()?;
         let (sn, an) = match teacher {
             Some(t) => (t.teacher.normalizers().0.clone(), t.teacher.normalizers().1.clone()),
             None => (Affine::identity(d.states.ncols()), Affine::identity(d.actions.ncols())),
         };
         let states = sn.normalize_rows(d.states.as_ref())?;
         let actions = an.normalize_rows(d.actions.as_ref())?;
-        let mut mc = job.recipe.student.clone();
+        let mut mc = s.student.clone();
         mc.state_dim = states.ncols();
         mc.action_dim = actions.ncols();
-        mc.gating = s.gating.unwrap_or(mc.gating);
         let iterations = vc.iterations;
         let budget = Budget::student(vc.expert_steps(), vc.batch_size * vc.vi_samples);
         let cache = match (job.students, teacher) {
