@@ -92,19 +92,11 @@ pub fn run(args: &Args) -> crate::XResult {
     let toy = ToyTeachers { width, blocks, lr, batch, ema, noise_mean, noise_std };
     std::fs::create_dir_all(&args.cache)?;
     let t0 = Instant::now();
-    println!(
-        "toy teachers: residual MLP {} wide, {} blocks; Adam lr {} (warm-up, cosine decay), \
-         batch {}; {} training steps (circle), {} (rotating); seed {}",
-        width, blocks, lr, batch, args.steps, args.rot_steps, args.seed
-    );
-    println!(
-        "DDPM: cosine β, N = 16, ε-prediction, log-normal training noise; BESO: EDM \
-         preconditioning (σ_data 0.5), Karras σ ∈ [0.002, 80], ρ = 7, log-normal training noise"
-    );
     let (seed, steps, rot_steps, sigma, min_secs) =
         (args.seed, args.steps, args.rot_steps, args.sigma, args.min_secs);
     let (acceptance, latency) = (!args.no_acceptance, !args.no_latency);
-    let options = BenchOptions { seed, steps, rot_steps, sigma, min_secs, acceptance, latency };
+    let options =
+        BenchOptions { seed, steps, rot_steps, sigma, min_secs, acceptance, latency, toy };
     let train =
         |task: &str, steps, s: &Mat<f32>, a: &Mat<f32>| teachers(args, &toy, task, steps, s, a);
     let failures = report::run(&options, train, |text| print!("{text}"))?;

@@ -144,8 +144,50 @@ fn main() {
     }
 }
 
-/// Progress bars and log lines shared by the commands.
-pub use vdd_recipe::progress;
+/// Progress bars shared by the commands (stderr, hidden when not a terminal). Bars of
+/// concurrent jobs stack in one [`MultiProgress`](indicatif::MultiProgress); log lines go
+/// through [`log`](progress::log) so they print above the bars instead of through them.
+pub mod progress {
+    use std::sync::OnceLock;
+
+    use indicatif::{MultiProgress, ProgressBar, ProgressStyle};
+
+    fn multi() -> &'static MultiProgress {
+        static MULTI: OnceLock<MultiProgress> = OnceLock::new();
+        MULTI.get_or_init(MultiProgress::new)
+    }
+
+    /// A bar of `len` steps labelled `what`.
+    pub fn bar(len: u64, what: &str) -> ProgressBar {
+        let bar = ProgressBar::new(len);
+        bar.set_style(
+            ProgressStyle::with_template("{prefix:>14} [{bar:30}] {pos}/{len} {elapsed} {msg}")
+                .expect("valid template")
+                .progress_chars("=> "),
+        );
+        bar.set_prefix(what.to_owned());
+        multi().add(bar)
+    }
+
+    /// A spinner labelled `what` with message `msg`, for stages without a step count.
+    pub fn spinner(what: &str, msg: &str) -> ProgressBar {
+        let bar = ProgressBar::new_spinner();
+        bar.set_style(
+            ProgressStyle::with_template("{prefix:>14} {spinner} {elapsed} {msg}")
+                .expect("valid template"),
+        );
+        bar.set_prefix(what.to_owned());
+        bar.set_message(msg.to_owned());
+        let bar = multi().add(bar);
+        bar.enable_steady_tick(std::time::Duration::from_millis(200));
+        bar
+    }
+
+    /// Prints a log line to stderr above any active bars.
+    pub fn log(line: impl AsRef<str>) {
+        multi().suspend(|| eprintln!("{}", line.as_ref()));
+    }
+}
 
 #[cfg(test)]
 mod tests {

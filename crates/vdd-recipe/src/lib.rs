@@ -70,7 +70,6 @@
 mod error;
 mod hash;
 mod header;
-pub mod progress;
 mod resolve;
 pub mod run;
 mod seeds;

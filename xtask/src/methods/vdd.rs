@@ -168,10 +168,7 @@ impl Method for VddMethod {
             }
             _ => None,
         };
-        let hit = match &cache {
-            Some((c, hash)) => c.load(self.0.name, hash)?,
-            None => None,
-        };
+        let hit = cache.as_ref().map(|(c, hash)| c.load(self.0.name, hash)).transpose()?.flatten();
         let (trained, noise_level, curve_seconds) = match hit {
             Some(c) => {
                 crate::progress::log(format!("[{label}] student loaded from the cache"));

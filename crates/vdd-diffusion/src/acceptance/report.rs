@@ -7,7 +7,7 @@
 use std::fmt::Write as _;
 
 use super::{
-    CircleMeasures, CircleReference, RotatingReference, SamplerSetting, Thresholds,
+    CircleMeasures, CircleReference, RotatingReference, SamplerSetting, Thresholds, ToyTeachers,
     act_batch_latency_us, samples_at, score_cosine,
 };
 use crate::{DiffusionTeacher, Result, TeacherKind};
@@ -275,9 +275,23 @@ pub struct BenchOptions {
     pub acceptance: bool,
     /// Measure the latency tables.
     pub latency: bool,
+    /// The teachers' settings, for the heading (`train` is the caller's).
+    pub toy: ToyTeachers,
 }
 
-/// `cargo xtask bench teachers`: the circle toy's checks ([`circle_section`]) of the teachers
+/// The heading of [`run`]: the teachers' settings and the training steps of `options`.
+pub fn heading(options: &BenchOptions) -> String {
+    let (t, o) = (&options.toy, options);
+    format!(
+        "toy teachers: residual MLP {} wide, {} blocks; Adam lr {} (warm-up, cosine decay), \
+         batch {}; {} training steps (circle), {} (rotating); seed {}\n\
+         DDPM: cosine β, N = 16, ε-prediction, log-normal training noise; BESO: EDM \
+         preconditioning (σ_data 0.5), Karras σ ∈ [0.002, 80], ρ = 7, log-normal training noise\n",
+        t.width, t.blocks, t.lr, t.batch, o.steps, o.rot_steps, o.seed
+    )
+}
+
+/// `cargo xtask bench teachers`: the [`heading`], the circle toy's checks ([`circle_section`]) of the teachers
 /// `train` gives for 5000 pairs of the circle toy (`train(task, steps, states, actions)`
 /// trains or loads a task's DDPM and BESO teachers, in that order), then the rotating toy's
 /// ([`rotating_section`], 20,000 pairs), then the latency tables ([`latency_section`]), as
@@ -293,6 +307,7 @@ pub fn run<E: From<crate::DiffusionError>>(
     mut print: impl FnMut(&str),
 ) -> Result<Vec<String>, E> {
     let seed = options.seed;
+    print(&heading(options));
     let mut rng = vdd_core::Seeds::new(seed).stream("toy-data");
     let (states, actions) = vdd_core::gmm::GmmTeacher::circle_toy_data(5000, &mut rng)
         .map_err(crate::DiffusionError::from)?;
