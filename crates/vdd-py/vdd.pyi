@@ -54,13 +54,15 @@ class Policy:
 
         To act by hand: pick ``z`` with probability ``exp(log_gating[i, z])`` (or the argmax),
         then take ``means[i, z]`` or sample ``means[i, z] + scale_tril[i, z] @ eps`` with
-        ``eps ~ N(0, I)``.
+        ``eps ~ N(0, I)``. A saved act mode with ``hold_steps > 1`` keeps each episode's ``z``
+        for that many predictions: do the same by hand.
         """
     def export_onnx(self, path: Path) -> None:
         """Writes an ONNX graph with input ``obs`` ``(n, obs_window * obs_dim)`` and outputs
         ``log_gating``, ``means``, ``scale_tril`` equal to ``components(obs)``."""
     def reset(self) -> None:
-        """Forgets observation histories and action chunks (at an episode's start)."""
+        """Forgets observation histories, action chunks and held experts (at an episode's
+        start)."""
     def seed(self, seed: int) -> None:
         """Reseeds acting's random draws (expert picks, sampled actions)."""
     def save(self, path: Path) -> None:

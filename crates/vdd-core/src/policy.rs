@@ -37,7 +37,7 @@ pub trait Policy {
     /// Dimension of one action.
     fn action_dim(&self) -> usize;
 
-    /// Clears any per-episode state (observation history, buffered action chunk).
+    /// Clears any per-episode state (observation history, buffered action chunk, held expert).
     fn reset(&mut self) {}
 
     /// Re-seeds the policy's own random stream (no-op for deterministic policies).

@@ -17,7 +17,9 @@
 //! `argmax` for greedy gating), then take `a = means[i, z]` (the mean, what the recipes
 //! evaluate) or sample `a = means[i, z] + scale_tril[i, z] · ε` with `ε ~ N(0, I)`. Execute the
 //! `execute_steps` actions of a chunk, from index `chunk_start` (`DeploySpec::chunk_start`, 0
-//! unless set), before asking again.
+//! unless set), before asking again. The graph holds no act mode: to act as a saved
+//! [`vdd_moe::ActMode`] with `hold_steps > 1`, keep each episode's `z` for that many
+//! predictions yourself.
 //!
 //! Supported: both expert families, shared or separate expert networks, learned or uniform
 //! gating, every [`vdd_nn::Activation`], and the linear feature maps of `vdd_data::features`

@@ -114,7 +114,8 @@ impl PyPolicy {
         PyTuple::new(py, parts)
     }
 
-    /// Forgets the observation histories and action chunks (call at an episode's start).
+    /// Forgets the observation histories, action chunks and held experts (call at an
+    /// episode's start).
     fn reset(&mut self) {
         self.inner.reset();
     }

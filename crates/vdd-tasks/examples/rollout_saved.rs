@@ -14,7 +14,8 @@
 //! rollouts (default 500; `--quick` recipes use 200) and the recipe's lockstep batch (default
 //! 50) it prints the recipe's figures for that student bit for bit. Threads (default: every
 //! core) do not change the figures. `--hold K` replaces the saved act mode's
-//! [`vdd_moe::ActMode::hold_steps`]: each episode keeps the expert it picks for `K` steps.
+//! [`vdd_moe::ActMode::hold_steps`]: each episode keeps the expert it picks for `K` predictions
+//! (`K` steps; `K · execute_steps` with action chunks), which changes the figures for `K > 1`.
 
 use std::path::PathBuf;
 use std::process::ExitCode;

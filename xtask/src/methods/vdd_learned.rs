@@ -1,7 +1,8 @@
 //! `vdd-beso-learned`: the paper's VDD-BESO, with a learned gating, beside the headline
 //! `vdd-beso` (uniform gating). Everything else is `vdd-beso`'s (`vdd.beso` and the shared VDD
 //! keys); only `vdd.beso_gating` is replaced by `"learned"`, so a `--set vdd.beso...` changes
-//! both rows alike. It reads no key of its own.
+//! both rows alike. It reads no key of its own; its keys are `vdd-beso`'s, so that its
+//! tuning-log configuration hash covers them.
 
 use toml::Value;
 use vdd_diffusion::TeacherKind;
@@ -16,7 +17,7 @@ const INFO: Info = Info {
     name: "vdd-beso-learned",
     teacher: Some(TeacherKind::Beso),
     tasks: &["avoiding"],
-    keys: &[],
+    keys: VDD_BESO.0.keys,
 };
 
 /// `tree` with `vdd.beso_gating = "learned"`.

@@ -192,10 +192,17 @@ pub struct ActMode {
     /// Sample `a ~ N(μ_z, Σ_z)` instead of returning `μ_z` (the paper evaluates with `μ_z`).
     pub sample_action: bool,
     /// Keep the expert picked for a row for this many consecutive predictions of that row
-    /// before picking again; `0` and `1` pick at every prediction (the paper's acting). The
-    /// held expert acts on each new state; [`Policy::reset`](vdd_core::Policy::reset) ends
-    /// every hold. Row `i` of [`Policy::act_batch`](vdd_core::Policy::act_batch) must be the
-    /// same episode from one call to the next, as the rollouts' lockstep contract says.
+    /// before picking again; `0` and `1` pick at every prediction (the paper's acting, with the
+    /// same random draws). The held expert acts on each new state.
+    /// [`Policy::reset`](vdd_core::Policy::reset) and [`Moe::set_act_mode`](crate::Moe::set_act_mode)
+    /// end every hold. Row `i` of [`Policy::act_batch`](vdd_core::Policy::act_batch) must be
+    /// the same episode from one call to the next, as the rollouts' lockstep contract says;
+    /// behind a `vdd_data::Windowed` with action chunks, the mixture's rows are the rows that
+    /// need a new chunk, which stay aligned when every episode starts together. Acting by hand
+    /// from exported components (ONNX, Python's `components`), keep `z` yourself.
+    ///
+    /// On Avoiding, holding hurts at every length (docs/avoiding-tuning.md): there, an expert
+    /// steers a stretch of a path, not a whole path.
     #[serde(default)]
     pub hold_steps: u32,
 }

@@ -281,9 +281,11 @@ impl<E: Expert> Moe<E> {
         &self.last_experts
     }
 
-    /// Sets how [`Policy::act`](vdd_core::Policy::act) picks the expert and the action.
+    /// Sets how [`Policy::act`](vdd_core::Policy::act) picks the expert and the action, and
+    /// ends every row's held expert ([`ActMode::hold_steps`]).
     pub fn set_act_mode(&mut self, mode: ActMode) {
         self.act_mode = mode;
+        self.held.clear();
     }
 
     /// Attaches observation and action normalisers (used by the [`Policy`](vdd_core::Policy) methods only;

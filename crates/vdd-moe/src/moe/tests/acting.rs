@@ -318,55 +318,101 @@ fn act_batch_matches_repeated_act_into_in_deterministic_mode() {
     }
 }
 
+/// The observations of call `k` of a run: every row moves, so a held expert must act on a new
+/// state at every call.
+fn moving_obs(rows: usize, k: usize) -> Mat<f32> {
+    let base = obs_batch(rows, 2);
+    Mat::from_fn(rows, 2, |i, j| base[(i, j)] + 0.05 * k as f32)
+}
+
+/// `calls` act calls on `rows_of(k)` rows of [`moving_obs`]; per call the experts that acted,
+/// each checked to have returned its mean at that call's state.
+fn act_calls(moe: &mut Moe, calls: usize, rows_of: impl Fn(usize) -> usize) -> Vec<Vec<usize>> {
+    (0..calls)
+        .map(|k| {
+            let obs = moving_obs(rows_of(k), k);
+            let mut actions = Mat::<f32>::zeros(obs.nrows(), 2);
+            moe.act_batch(obs.as_ref(), actions.as_mut()).unwrap();
+            let experts = moe.last_experts().to_vec();
+            moe.forward_observations(obs.as_ref()).unwrap();
+            for (b, &z) in experts.iter().enumerate() {
+                assert_all_close(
+                    &[actions[(b, 0)], actions[(b, 1)]],
+                    &denormalized_means(moe, b)[z],
+                );
+            }
+            experts
+        })
+        .collect()
+}
+
 #[test]
 fn held_experts_act_for_hold_steps_predictions_of_their_row_until_reset() {
+    use rand::Rng as _;
+    let rows = 24;
     for gating in [GatingKind::Uniform, GatingKind::Learned] {
         let mut moe = built(config(2, 2, ExpertKind::Diagonal, gating, true), 13);
-        let rows = 24;
-        let obs = obs_batch(rows, 2);
-        let mut actions = Mat::<f32>::zeros(rows, 2);
-        let mut calls = |moe: &mut Moe, n: usize| -> Vec<(Vec<usize>, Vec<f32>)> {
-            (0..n)
-                .map(|_| {
-                    moe.act_batch(obs.as_ref(), actions.as_mut()).unwrap();
-                    let a = (0..rows).flat_map(|b| [actions[(b, 0)], actions[(b, 1)]]).collect();
-                    (moe.last_experts().to_vec(), a)
-                })
-                .collect()
-        };
         let mode = |hold_steps| ActMode { greedy_gating: false, sample_action: false, hold_steps };
 
-        // 0 and 1: a pick at every prediction, bit for bit.
-        let mut every = Vec::new();
+        // 0 and 1: one draw u ~ U[0, 1) per row and call, in row order, from the seed's stream,
+        // inverted through the gating's cumulative weights, as before holds existed.
+        let mut rng = vdd_core::Seeds::new(4).stream("moe-act");
+        let reference: Vec<Vec<usize>> = (0..6)
+            .map(|k| {
+                moe.forward_observations(moving_obs(rows, k).as_ref()).unwrap();
+                (0..rows)
+                    .map(|b| {
+                        let u: f32 = rng.random();
+                        let (mut acc, lg) = (0.0, moe.output().log_gating_row(b).to_vec());
+                        lg.iter()
+                            .position(|l| {
+                                acc += l.exp();
+                                u < acc
+                            })
+                            .unwrap_or(2)
+                    })
+                    .collect()
+            })
+            .collect();
         for hold in [0, 1] {
             moe.set_act_mode(mode(hold));
             moe.seed(4);
             moe.reset();
-            every.push(calls(&mut moe, 6));
+            assert_eq!(act_calls(&mut moe, 6, |_| rows), reference, "{gating:?}, hold {hold}");
         }
-        assert_eq!(every[0], every[1], "{gating:?}: hold_steps 0 and 1 are the same acting");
-        assert_ne!(every[0][0].0, every[0][1].0, "{gating:?}: a pick at every prediction");
+        assert_ne!(reference[0], reference[1], "{gating:?}: a pick at every prediction");
 
-        // 3: each row keeps its expert for three predictions, then picks again.
+        // 3: each row keeps its pick for its own three predictions. The first call acts on the
+        // first half of the rows only, so the halves pick again on different calls.
         moe.set_act_mode(mode(3));
         moe.seed(4);
         moe.reset();
-        let held = calls(&mut moe, 9);
-        assert_eq!(held[0], every[0][0], "{gating:?}: the first pick is the unheld one");
-        for block in held.chunks(3) {
-            assert!(block.iter().all(|c| c.0 == block[0].0), "{gating:?}: held for 3");
+        let held = act_calls(&mut moe, 10, |k| if k == 0 { rows / 2 } else { rows });
+        assert_eq!(held[0], reference[0][..rows / 2], "{gating:?}: the first pick is unheld");
+        for b in 0..rows {
+            let first = if b < rows / 2 { 0 } else { 1 };
+            let picks: Vec<usize> = held[first..].iter().map(|c| c[b]).collect();
+            for block in picks.chunks(3) {
+                assert!(block.iter().all(|&z| z == block[0]), "{gating:?}: row {b} {picks:?}");
+            }
         }
-        assert_ne!(held[0].0, held[3].0, "{gating:?}: a new pick after 3 predictions");
-        assert_ne!(held[3].0, held[6].0, "{gating:?}: and after 6");
+        let row_changes = |b: usize, at: usize| held[at - 1][b] != held[at][b];
+        assert!((0..rows / 2).any(|b| row_changes(b, 3)), "{gating:?}: first half re-picks at 3");
+        assert!((rows / 2..rows).any(|b| row_changes(b, 4)), "{gating:?}: second half at 4");
 
-        // `reset` ends every hold; `seed` alone does not.
-        moe.set_act_mode(mode(1000));
-        moe.seed(4);
-        moe.reset();
-        let first = calls(&mut moe, 1).remove(0).0;
-        moe.seed(9);
-        assert_eq!(calls(&mut moe, 1)[0].0, first, "{gating:?}: still held after seed");
-        moe.reset();
-        assert_ne!(calls(&mut moe, 1)[0].0, first, "{gating:?}: a new pick after reset");
+        // `reset` and `set_act_mode` end every hold; `seed` alone does not.
+        for end in ["reset", "set_act_mode"] {
+            moe.set_act_mode(mode(1000));
+            moe.seed(4);
+            moe.reset();
+            let first = act_calls(&mut moe, 1, |_| rows).remove(0);
+            moe.seed(9);
+            assert_eq!(act_calls(&mut moe, 1, |_| rows)[0], first, "{gating:?}: held after seed");
+            match end {
+                "reset" => moe.reset(),
+                _ => moe.set_act_mode(mode(1000)),
+            }
+            assert_ne!(act_calls(&mut moe, 1, |_| rows)[0], first, "{gating:?}: picks after {end}");
+        }
     }
 }

@@ -17,7 +17,7 @@ fn save_and_load_round_trip_everything_a_deployed_policy_needs() {
     for cfg in all_configs(2, 3) {
         let what = format!("{:?}/{:?}/shared={}", cfg.expert_kind, cfg.gating, cfg.shared_trunk);
         let mut moe = built(cfg, 19);
-        let mode = ActMode { greedy_gating: false, sample_action: true, hold_steps: 0 };
+        let mode = ActMode { greedy_gating: false, sample_action: true, hold_steps: 3 };
         moe.set_act_mode(mode);
         let path = scratch(&format!("rt-{}.safetensors", what.replace('/', "-")));
         moe.save(&path).unwrap();
@@ -39,6 +39,13 @@ fn save_and_load_round_trip_everything_a_deployed_policy_needs() {
             assert_eq!(moe.act(&o).unwrap(), loaded.act(&o).unwrap(), "{what}");
         }
     }
+}
+
+#[test]
+fn an_act_mode_saved_before_hold_steps_existed_loads_without_holds() {
+    let old: ActMode =
+        serde_json::from_str(r#"{"greedy_gating":true,"sample_action":false}"#).unwrap();
+    assert_eq!(old, ActMode { greedy_gating: true, sample_action: false, hold_steps: 0 });
 }
 
 #[test]
