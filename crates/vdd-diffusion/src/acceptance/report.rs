@@ -281,21 +281,21 @@ pub struct BenchOptions {
 
 /// The heading of [`run`]: the teachers' settings and the training steps of `options`.
 pub fn heading(options: &BenchOptions) -> String {
-    let (t, o) = (&options.toy, options);
+    let t = &options.toy;
     format!(
         "toy teachers: residual MLP {} wide, {} blocks; Adam lr {} (warm-up, cosine decay), \
          batch {}; {} training steps (circle), {} (rotating); seed {}\n\
          DDPM: cosine β, N = 16, ε-prediction, log-normal training noise; BESO: EDM \
          preconditioning (σ_data 0.5), Karras σ ∈ [0.002, 80], ρ = 7, log-normal training noise\n",
-        t.width, t.blocks, t.lr, t.batch, o.steps, o.rot_steps, o.seed
+        t.width, t.blocks, t.lr, t.batch, options.steps, options.rot_steps, options.seed
     )
 }
 
-/// `cargo xtask bench teachers`: the [`heading`], the circle toy's checks ([`circle_section`]) of the teachers
-/// `train` gives for 5000 pairs of the circle toy (`train(task, steps, states, actions)`
-/// trains or loads a task's DDPM and BESO teachers, in that order), then the rotating toy's
-/// ([`rotating_section`], 20,000 pairs), then the latency tables ([`latency_section`]), as
-/// `options` asks. Each section goes to `print` when it is ready; returns the failed checks.
+/// `cargo xtask bench teachers`: the [`heading`], the circle toy's checks ([`circle_section`])
+/// of the teachers `train` gives for 5000 pairs of the circle toy (`train(task, steps, states,
+/// actions)` trains or loads a task's DDPM and BESO teachers, in that order), then the rotating
+/// toy's ([`rotating_section`], 20,000 pairs), then the latency tables ([`latency_section`]),
+/// as `options` asks. Each section goes to `print` when it is ready; returns the failed checks.
 pub fn run<E: From<crate::DiffusionError>>(
     options: &BenchOptions,
     mut train: impl FnMut(
