@@ -440,4 +440,15 @@ impl ScoreModel for BesoTeacher {
     fn denoiser_form(&self, level: f32) -> Option<DenoiserForm> {
         Some(DenoiserForm::ve(level))
     }
+
+    /// `[σ_min, σ_max]`: the range BESO and D3IL draw their training levels from (unless the
+    /// agent's `sigma_sample_density` config sets its own `min_value`/`max_value`).
+    fn noise_range(&self) -> Option<(f32, f32)> {
+        Some((self.config.sigma_min, self.config.sigma_max))
+    }
+
+    /// A copy: the score keeps no state between calls beyond scratch buffers.
+    fn fork(&self) -> Option<Box<dyn ScoreModel + Send>> {
+        Some(Box::new(self.clone()))
+    }
 }

@@ -93,6 +93,12 @@ impl ScoreModel for ImportedTeacher {
     fn denoiser_form(&self, level: f32) -> Option<DenoiserForm> {
         self.score_model_ref().denoiser_form(level)
     }
+    fn noise_range(&self) -> Option<(f32, f32)> {
+        self.score_model_ref().noise_range()
+    }
+    fn fork(&self) -> Option<Box<dyn ScoreModel + Send>> {
+        self.score_model_ref().fork()
+    }
 }
 
 impl Policy for ImportedTeacher {

@@ -463,6 +463,16 @@ impl ScoreModel for UnetTeacher {
         let n = self.spec.scheduler.num_train_timesteps as f32;
         Some(DenoiserForm::vp(self.scheduler.alpha_bar(t.clamp(1.0, n))))
     }
+
+    /// The trained steps `t ∈ [1, N]` (`N = num_train_timesteps`; levels outside are clamped).
+    fn noise_range(&self) -> Option<(f32, f32)> {
+        Some((1.0, self.spec.scheduler.num_train_timesteps as f32))
+    }
+
+    /// A copy: the score uses neither the policy's random stream nor state kept between calls.
+    fn fork(&self) -> Option<Box<dyn ScoreModel + Send>> {
+        Some(Box::new(self.clone()))
+    }
 }
 
 impl Policy for UnetTeacher {

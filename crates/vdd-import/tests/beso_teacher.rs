@@ -43,6 +43,20 @@ fn a_saved_teacher_loads_with_the_same_scores() {
 }
 
 #[test]
+fn a_fork_scores_bit_for_bit_and_the_range_is_the_samplers() {
+    let mut t = gpt();
+    let mut f = t.fork().expect("the imported BESO teacher forks");
+    let (s, a) = inputs(&t, 4);
+    let sigma = [0.1, 0.4, 1.0, 3.0];
+    let (mut x, mut y) = (Mat::zeros(4, t.action_dim()), Mat::zeros(4, t.action_dim()));
+    t.score(a.as_ref(), s.as_ref(), &sigma, x.as_mut()).unwrap();
+    f.score(a.as_ref(), s.as_ref(), &sigma, y.as_mut()).unwrap();
+    assert_eq!(x, y);
+    let c = t.config();
+    assert_eq!(t.noise_range(), Some((c.sigma_min, c.sigma_max)));
+}
+
+#[test]
 fn the_score_is_tweedie_of_the_denoiser() {
     let mut t = gpt();
     let (s, a) = inputs(&t, 3);

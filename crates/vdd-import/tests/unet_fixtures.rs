@@ -58,6 +58,11 @@ fn the_teacher_file_round_trips_and_acts_as_score_model_and_policy() {
     back.score(a.as_ref(), s.as_ref(), &levels, y.as_mut()).unwrap();
     assert_eq!(x, y);
     assert!(x.col_iter().all(|c| c.iter().all(|v| v.is_finite())));
+    // A fork (chunks of VDD's batch on several threads) scores bit for bit the same.
+    let mut fork = back.fork().expect("imported U-Nets fork");
+    fork.score(a.as_ref(), s.as_ref(), &levels, y.as_mut()).unwrap();
+    assert_eq!(x, y);
+    assert_eq!(back.noise_range(), Some((1.0, 100.0)));
     // Step by step on raw observations: a chunk of n_action_steps actions, then a new one.
     let mut policy = back.into_policy().unwrap();
     policy.seed(3);
