@@ -150,7 +150,7 @@ fn teacher_key(
         TeacherKind::Beso => recipe::config_hash(&cfg.beso)?,
         TeacherKind::Ddpm => recipe::config_hash(&cfg.ddpm)?,
     };
-    Ok(format!("{}-{sub}-{seed}-{}", teachers::kind_name(kind), data.hash))
+    Ok(format!("{}-{sub}-{seed}-{}", teachers::kind_name(kind), data.hash()))
 }
 
 impl TeacherStore {

@@ -23,8 +23,6 @@ pub struct TrainingData {
     /// The exact teacher of the data's distribution, when the task knows it (the toys; it
     /// takes raw states and actions).
     pub exact: Option<GmmTeacher>,
-    /// [`data_hash`] of the raw matrices.
-    pub hash: String,
 }
 
 impl TrainingData {
@@ -34,7 +32,7 @@ impl TrainingData {
     /// use faer::Mat;
     /// let d = vdd_data::TrainingData::raw(Mat::zeros(3, 1), Mat::ones(3, 2), None);
     /// assert_eq!(d.actions_normalized, d.actions);
-    /// assert_eq!(d.hash, vdd_core::hash::data_hash(d.states.as_ref(), d.actions.as_ref()));
+    /// assert_eq!(d.hash(), vdd_core::hash::data_hash(d.states.as_ref(), d.actions.as_ref()));
     /// ```
     pub fn raw(states: Mat<f32>, actions: Mat<f32>, exact: Option<GmmTeacher>) -> Self {
         Self {
@@ -42,11 +40,16 @@ impl TrainingData {
             action_normalizer: Affine::identity(actions.ncols()),
             states_normalized: states.clone(),
             actions_normalized: actions.clone(),
-            hash: data_hash(states.as_ref(), actions.as_ref()),
             states,
             actions,
             exact,
         }
+    }
+
+    /// [`data_hash`] of the raw `states` and `actions` (what caches of models trained on this
+    /// data are keyed by), computed from the matrices as they are now.
+    pub fn hash(&self) -> String {
+        data_hash(self.states.as_ref(), self.actions.as_ref())
     }
 }
 

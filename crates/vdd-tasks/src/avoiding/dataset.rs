@@ -170,7 +170,6 @@ impl DatasetConfig {
         let (states_normalized, actions_normalized) =
             SequenceDataset::new(train.normalized(&norm)?, window)?.to_matrices();
         let training = TrainingData {
-            hash: vdd_core::hash::data_hash(states.as_ref(), actions.as_ref()),
             states,
             actions,
             state_normalizer: tile(&norm.observations, self.obs_window),
