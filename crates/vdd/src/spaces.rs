@@ -170,8 +170,8 @@ impl<S: ScoreModel> crate::Vdd<vdd_core::ClampedDenoiser<S>> {
     /// VDD for a teacher of its own normalised space (`sn`, `an`; e.g. a diffusion policy
     /// imported from PyTorch, whose actions are chunks) on raw `states` and `actions`: a student
     /// of `mc` (seeded with `vc.seed`) working in that space, and the teacher's denoised
-    /// estimate clamped to the normalised `actions`' box widened by `clip_margin` (negative: no
-    /// clamping). With `init_from_teacher`, the experts start from a mixture fitted to 2048 of
+    /// estimate clamped to the normalised `actions`' box widened by `clip_margin` (`None`: the
+    /// raw score; a margin must be finite and non-negative). With `init_from_teacher`, the experts start from a mixture fitted to 2048 of
     /// the teacher's samples, with the noise levels and normalisers [`crate::AutoPlan`] picks
     /// (`vc` then gives only the iterations, the batch and the samples per state).
     pub fn in_teacher_space(
@@ -179,17 +179,21 @@ impl<S: ScoreModel> crate::Vdd<vdd_core::ClampedDenoiser<S>> {
         (states, actions): (Mat<f32>, Mat<f32>),
         (sn, an): (Affine, Affine),
         (mc, vc): (&vdd_moe::MoeConfig, &crate::VddConfig),
-        (clip_margin, init_from_teacher): (f32, bool),
+        (clip_margin, init_from_teacher): (Option<f32>, bool),
     ) -> Result<Self, crate::VddError> {
         let mut student = vdd_moe::Moe::from_config(mc.clone(), vc.seed)?;
         student.set_normalizers(Some(sn.clone()), Some(an.clone()))?;
-        let clamped = match clip_margin >= 0.0 {
-            true => vdd_core::ClampedDenoiser::around_data(
+        let clamped = match clip_margin {
+            Some(m) if !(m.is_finite() && m >= 0.0) => {
+                let what = format!("clip margin {m}: must be finite and non-negative");
+                return Err(vdd_core::CoreError::Config(what).into());
+            }
+            Some(m) => vdd_core::ClampedDenoiser::around_data(
                 teacher,
                 an.normalize_rows(actions.as_ref())?.as_ref(),
-                clip_margin,
+                m,
             )?,
-            false => vdd_core::ClampedDenoiser::unclamped(teacher),
+            None => vdd_core::ClampedDenoiser::unclamped(teacher),
         };
         let data = crate::DistillData::new(states, Some(actions))?
             .with_teacher_space(TeacherSpace::normalized(sn, an));
@@ -257,6 +261,25 @@ mod tests {
         ) -> Result<(), CoreError> {
             out.fill(3.0);
             Ok(())
+        }
+    }
+
+    #[test]
+    fn in_teacher_space_clamps_with_a_margin_and_refuses_a_bad_one() {
+        let (sn, an) = (Affine::identity(1), Affine::identity(1));
+        let data = (faer::mat![[0.0f32], [1.0]], faer::mat![[-1.0f32], [2.0]]);
+        let mc = vdd_moe::MoeConfig::toy(1, 1, 2);
+        let vc = crate::VddConfig::toy();
+        let setup = |clip| {
+            let cfg = (&mc, &vc);
+            crate::Vdd::in_teacher_space(Three, data.clone(), (sn.clone(), an.clone()), cfg, clip)
+        };
+        let mut vdd = setup((Some(0.5), false)).unwrap();
+        assert_eq!(vdd.teacher_mut().bounds(), Some((&[-1.5f32][..], &[2.5f32][..])));
+        assert_eq!(setup((None, false)).unwrap().teacher_mut().bounds(), None);
+        for bad in [-0.1, f32::NAN, f32::INFINITY] {
+            let e = setup((Some(bad), false)).err().expect("a bad margin is refused");
+            assert!(e.to_string().contains("clip margin"), "{e}");
         }
     }
 

@@ -36,8 +36,12 @@ pub struct ImportedSettings {
     /// The student's gating.
     pub gating: GatingKind,
     /// Clamp the teacher's denoised chunk to the training chunks' box (teacher's normalised
-    /// units) widened by this margin; negative: no clamping.
-    pub clip_margin: f32,
+    /// units) widened by `clip_margin`, as `vdd.clamp_denoiser` does for the recipe's own
+    /// teachers; `false` (or no `clip_margin`): the raw score.
+    pub clamp_denoiser: bool,
+    /// The clamp's margin.
+    #[serde(default)]
+    pub clip_margin: Option<f32>,
     /// Start the experts from a mixture fitted to the teacher's samples, with the noise level
     /// and normalisers `vdd::AutoPlan` picks (`imported.vdd` then gives only the iterations,
     /// the batch and the samples per state).
@@ -86,7 +90,8 @@ pub fn run(ctx: &RunContext, resolved: &Resolved<AvoidingRecipe>) -> crate::XRes
                 ..cfg.student.clone()
             };
             let vc = VddConfig { seed, ..cfg.imported.vdd.clone() };
-            let (space, clip) = ((sn.clone(), an.clone()), cfg.imported.clip_margin);
+            let clip = cfg.imported.clip_margin.filter(|_| cfg.imported.clamp_denoiser);
+            let space = (sn.clone(), an.clone());
             let setup = (clip, cfg.imported.init_from_teacher);
             let data = (states.clone(), chunks.clone());
             let inner = teacher.as_ref().clone();
@@ -165,6 +170,6 @@ mod tests {
         assert_eq!(r.header.methods, ["teacher", "vdd"]);
         let only = Overrides { methods: Some(vec!["vdd".into()]), ..Default::default() };
         assert_eq!(resolved(&given, only).header.methods, ["vdd"]);
-        assert!(r.imported.vdd.validate().is_ok() && r.imported.clip_margin >= 0.0);
+        assert!(r.imported.vdd.validate().is_ok() && r.imported.clip_margin == Some(0.5));
     }
 }
