@@ -3,7 +3,7 @@
 //!
 //! ```text
 //! cargo run --release -p vdd-tasks --example rollout_saved -- MODEL [--seed S] [--rollouts N]
-//!     [--lockstep-batch B] [--threads T] [--hold K]
+//!     [--lockstep-batch B] [--threads T] [--hold K] [--greedy]
 //! ```
 //!
 //! `MODEL` is a mixture saved by `Moe::save`, e.g. a recipe's
@@ -16,6 +16,8 @@
 //! core) do not change the figures. `--hold K` replaces the saved act mode's
 //! [`vdd_moe::ActMode::hold_steps`]: each episode keeps the expert it picks for `K` predictions
 //! (`K` steps; `K · execute_steps` with action chunks), which changes the figures for `K > 1`.
+//! `--greedy` acts with the most probable expert of `q(z|s)` instead of a sampled one
+//! ([`vdd_moe::ActMode::greedy_gating`]).
 
 use std::path::PathBuf;
 use std::process::ExitCode;
@@ -29,10 +31,11 @@ struct Args {
     protocol: EvalProtocol,
     threads: usize,
     hold: Option<u32>,
+    greedy: bool,
 }
 
 const USAGE: &str = "usage: rollout_saved MODEL [--seed S] [--rollouts N] [--lockstep-batch B] [--threads T] \
-     [--hold K]";
+     [--hold K] [--greedy]";
 
 fn parse() -> Result<Args, String> {
     let mut model = None;
@@ -40,6 +43,7 @@ fn parse() -> Result<Args, String> {
     let mut protocol = EvalProtocol::default();
     let mut threads = std::thread::available_parallelism().map_or(1, |n| n.get());
     let mut hold = None;
+    let mut greedy = false;
     let mut args = std::env::args().skip(1);
     while let Some(arg) = args.next() {
         let mut value = |name: &str| -> Result<u64, String> {
@@ -52,6 +56,7 @@ fn parse() -> Result<Args, String> {
             "--lockstep-batch" => protocol.lockstep_batch = value("--lockstep-batch")? as usize,
             "--threads" => threads = value("--threads")? as usize,
             "--hold" => hold = Some(u32::try_from(value("--hold")?).map_err(|e| e.to_string())?),
+            "--greedy" => greedy = true,
             "-h" | "--help" => return Err(USAGE.into()),
             flag if flag.starts_with('-') => return Err(format!("unknown option {flag}\n{USAGE}")),
             path if model.is_none() => model = Some(PathBuf::from(path)),
@@ -59,17 +64,18 @@ fn parse() -> Result<Args, String> {
         }
     }
     let model = model.ok_or_else(|| USAGE.to_owned())?;
-    Ok(Args { model, seed, protocol, threads, hold })
+    Ok(Args { model, seed, protocol, threads, hold, greedy })
 }
 
 fn run() -> Result<(), Box<dyn std::error::Error>> {
     let args = parse()?;
     let mut policy =
         vdd_moe::load_policy(&args.model).map_err(|e| format!("{}: {e}", args.model.display()))?;
-    if let Some(hold_steps) = args.hold {
-        let moe = policy.inner_mut();
-        moe.set_act_mode(vdd_moe::ActMode { hold_steps, ..moe.act_mode() });
-    }
+    let moe = policy.inner_mut();
+    let saved = moe.act_mode();
+    let hold_steps = args.hold.unwrap_or(saved.hold_steps);
+    let greedy_gating = args.greedy || saved.greedy_gating;
+    moe.set_act_mode(vdd_moe::ActMode { hold_steps, greedy_gating, ..saved });
     let eval = args.protocol.evaluate(&policy, args.seed, args.threads, false)?;
     let m = &eval.metrics;
     // Numbers as serde_json writes them (as in the recipe's metrics.json), keys in this order.
