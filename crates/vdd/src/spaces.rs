@@ -95,6 +95,20 @@ impl ActionMap {
     }
 }
 
+/// Calls `f` with the teacher as the student's space sees it: through `map` (a
+/// [`MappedTeacher`] using `scratch`) when there is one, else as it is.
+pub(crate) fn with_map<R>(
+    teacher: &mut dyn ScoreModel,
+    map: Option<&ActionMap>,
+    scratch: &mut Vec<f32>,
+    f: impl FnOnce(&mut dyn ScoreModel) -> R,
+) -> R {
+    match map {
+        None => f(teacher),
+        Some(map) => f(&mut MappedTeacher { teacher, map, scratch }),
+    }
+}
+
 /// The teacher seen from the student's action space through an [`ActionMap`].
 pub(crate) struct MappedTeacher<'a, S: ?Sized> {
     pub teacher: &'a mut S,

@@ -16,7 +16,7 @@ use crate::expert_step::{
 };
 pub use resumable::{Resumable, ResumableOutcome};
 
-use crate::spaces::{ActionMap, MappedTeacher, TeacherSpace, normalize_rows, same_map};
+use crate::spaces::{ActionMap, TeacherSpace, normalize_rows, same_map, with_map};
 
 /// The states to distil on, optionally the dataset's actions for the gating step, both in the
 /// raw (environment) space, and the space the teacher works in ([`TeacherSpace`]; see
@@ -420,15 +420,10 @@ impl<S: ScoreModel, E: Expert> Vdd<S, E> {
         // E-step: freeze a copy of the student on this batch.
         self.student.forward(self.batch.as_ref())?;
         self.snapshot.clone_from(self.student.output());
+        let (log_gating, weighting) = (&self.snapshot.log_gating, self.config.expert_weighting);
         let z_n = self.student.num_experts();
-        for (w, lg) in self.weights.iter_mut().zip(&self.snapshot.log_gating) {
-            *w = match self.config.expert_weighting {
-                ExpertWeighting::Gating => lg.exp(),
-                ExpertWeighting::Uniform => 1.0 / z_n as f32,
-            };
-        }
-        let gating_entropy = -self.snapshot.log_gating.iter().map(|l| l.exp() * l).sum::<f32>()
-            / self.config.batch_size as f32;
+        let entropy_sum = e_step_weights(log_gating, weighting, z_n, &mut self.weights);
+        let gating_entropy = entropy_sum / self.config.batch_size as f32;
 
         // Expert steps.
         let mut stats = ExpertStepStats::default();
@@ -445,33 +440,14 @@ impl<S: ScoreModel, E: Expert> Vdd<S, E> {
                 None => self.batch.as_ref(),
             };
             let (c, snapshot, v) = (&self.config, &self.snapshot, self.config.vi_samples);
-            let out = self.student.output();
-            let mut mapped;
-            let teacher: &mut dyn ScoreModel = match &self.action_map {
-                None => &mut self.teacher,
-                Some(map) => {
-                    let scratch = &mut self.map_scratch;
-                    mapped = MappedTeacher { teacher: &mut self.teacher, map, scratch };
-                    &mut mapped
-                }
-            };
-            let moments = corrected_score_moments(
-                teacher,
-                out,
-                snapshot,
-                states,
-                &c.noise,
-                progress,
-                v,
-                &mut rng,
-                &mut self.buf,
-            );
-            stats = moments.map_err(|e| match e {
-                CoreError::NonFinite { what } => {
-                    VddError::NonFinite { iteration: it, quantity: what }
-                }
-                other => other.into(),
-            })?;
+            let (out, buf) = (self.student.output(), &mut self.buf);
+            let map = self.action_map.as_ref();
+            let moments = with_map(&mut self.teacher, map, &mut self.map_scratch, |teacher| {
+                corrected_score_moments(
+                    teacher, out, snapshot, states, &c.noise, progress, v, &mut rng, buf,
+                )
+            });
+            stats = moments.map_err(at_iteration(it))?;
             raw_gradients(
                 self.student.expert(),
                 self.student.output(),
@@ -484,16 +460,22 @@ impl<S: ScoreModel, E: Expert> Vdd<S, E> {
             let r = self.student.backward_experts(&grad_raw);
             self.buf.grad_raw = grad_raw;
             r?;
-            let nets = self.student.expert_networks_mut();
-            clip_or_fail(nets, self.config.max_grad_norm, it, "expert gradient")?;
-            let total = self.config.expert_steps();
-            let factor =
-                self.config.expert_lr_schedule.factor(self.expert_optimizer.steps(), total);
-            expert_lr = self.config.expert_optimizer.lr * factor;
-            self.expert_optimizer.step(nets, factor)?;
+            expert_lr = self.expert_update(it)?;
         }
 
         Ok((stats, gating_entropy, expert_lr))
+    }
+
+    /// The experts' update after their gradient is in place: the gradient clipped (or the
+    /// run stopped on a non-finite one), then one Adam step at the schedule's rate, which is
+    /// returned.
+    fn expert_update(&mut self, it: usize) -> Result<f32, VddError> {
+        let nets = self.student.expert_networks_mut();
+        clip_or_fail(nets, self.config.max_grad_norm, it, "expert gradient")?;
+        let total = self.config.expert_steps();
+        let factor = self.config.expert_lr_schedule.factor(self.expert_optimizer.steps(), total);
+        self.expert_optimizer.step(nets, factor)?;
+        Ok(self.config.expert_optimizer.lr * factor)
     }
 
     /// One gating step ([`vdd_moe::step::gating_step`] with learning-rate factor `factor`) on
@@ -537,16 +519,10 @@ impl<S: ScoreModel, E: Expert> Vdd<S, E> {
                     Some(_) => self.teacher_gating_states.as_ref(),
                     None => self.gating_states.as_ref(),
                 };
-                let out = self.gating_actions.as_mut();
-                match &self.action_map {
-                    None => self.teacher.sample_actions(states, &mut rng, out)?,
-                    Some(map) => MappedTeacher {
-                        teacher: &mut self.teacher,
-                        map,
-                        scratch: &mut self.map_scratch,
-                    }
-                    .sample_actions(states, &mut rng, out)?,
-                }
+                let (out, map) = (self.gating_actions.as_mut(), self.action_map.as_ref());
+                with_map(&mut self.teacher, map, &mut self.map_scratch, |teacher| {
+                    teacher.sample_actions(states, &mut rng, out)
+                })?;
                 check_finite("teacher samples", self.gating_actions.as_ref()).map_err(|_| {
                     VddError::NonFinite { iteration: it, quantity: "teacher samples" }
                 })?;
@@ -618,6 +594,32 @@ impl<S: ScoreModel, E: Expert> Snapshot for Vdd<S, E> {
             ema.copy_to(&mut student)?;
         }
         Ok(student)
+    }
+}
+
+/// The E-step's weights of the expert loss, one per (state, expert) of `log_gating` (the
+/// snapshot's `log q(z|s)` of `z_n` experts, row-major), written to `weights`: `q(z|s)` for
+/// [`ExpertWeighting::Gating`], `1/Z` for [`ExpertWeighting::Uniform`]. Returns the gating
+/// entropy summed over the states, `−Σ q log q`.
+pub(super) fn e_step_weights(
+    log_gating: &[f32],
+    weighting: ExpertWeighting,
+    z_n: usize,
+    weights: &mut Vec<f32>,
+) -> f32 {
+    weights.clear();
+    weights.extend(log_gating.iter().map(|lg| match weighting {
+        ExpertWeighting::Gating => lg.exp(),
+        ExpertWeighting::Uniform => 1.0 / z_n as f32,
+    }));
+    -log_gating.iter().map(|l| l.exp() * l).sum::<f32>()
+}
+
+/// Names the iteration in a non-finite error of the expert step's moments.
+pub(super) fn at_iteration(iteration: usize) -> impl Fn(CoreError) -> VddError {
+    move |e| match e {
+        CoreError::NonFinite { what } => VddError::NonFinite { iteration, quantity: what },
+        other => other.into(),
     }
 }
 

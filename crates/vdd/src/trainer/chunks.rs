@@ -10,20 +10,19 @@
 //! for every chunk in turn in the calling thread, with the same results.
 
 use faer::MatRef;
-use vdd_core::{CoreError, Expert, ScoreModel};
-use vdd_moe::step::clip_or_fail;
+use vdd_core::{Expert, ScoreModel};
 use vdd_moe::{Moe, MoeOutput};
 use vdd_nn::Parameters;
 use vdd_nn::parallel::{add_grads, chunk_range, copy_values};
 
-use super::Vdd;
+use super::{Vdd, at_iteration, e_step_weights};
 use crate::config::ExpertWeighting;
 use crate::error::VddError;
 use crate::expert_step::{
     ExpertStepBuffers, ExpertStepStats, MomentSums, draw_sample_noise, moments_from_noise,
     raw_gradients_of_chunk,
 };
-use crate::spaces::{ActionMap, MappedTeacher};
+use crate::spaces::{ActionMap, with_map};
 
 /// One chunk of the state batch: its fork of the teacher and its work.
 pub(super) struct Chunk<E: Expert> {
@@ -114,12 +113,8 @@ impl<E: Expert> ChunkWork<E> {
         if inp.first {
             self.student.forward(states)?;
             self.snapshot.clone_from(self.student.output());
-            self.weights.clear();
-            self.weights.extend(self.snapshot.log_gating.iter().map(|lg| match inp.weighting {
-                ExpertWeighting::Gating => lg.exp(),
-                ExpertWeighting::Uniform => 1.0 / z_n as f32,
-            }));
-            self.entropy_sum = -self.snapshot.log_gating.iter().map(|l| l.exp() * l).sum::<f32>();
+            let log_gating = &self.snapshot.log_gating;
+            self.entropy_sum = e_step_weights(log_gating, inp.weighting, z_n, &mut self.weights);
         } else {
             self.student.forward_experts(states)?;
         }
@@ -131,24 +126,12 @@ impl<E: Expert> ChunkWork<E> {
         self.buf.noise_levels.clear();
         self.buf.noise_levels.extend_from_slice(&inp.levels[samples]);
         let teacher_states = inp.teacher_states.subrows(start, len);
-        let out = self.student.output();
-        let mut mapped;
-        let teacher: &mut dyn ScoreModel = match inp.action_map {
-            None => teacher,
-            Some(map) => {
-                let scratch = &mut self.map_scratch;
-                mapped = MappedTeacher { teacher, map, scratch };
-                &mut mapped
-            }
-        };
-        let (snapshot, v) = (&self.snapshot, inp.vi_samples);
-        let sums = moments_from_noise(teacher, out, snapshot, teacher_states, v, &mut self.buf);
-        self.sums = sums.map_err(|e| match e {
-            CoreError::NonFinite { what } => {
-                VddError::NonFinite { iteration: inp.iteration, quantity: what }
-            }
-            other => other.into(),
-        })?;
+        let (out, snapshot, v) = (self.student.output(), &self.snapshot, inp.vi_samples);
+        let buf = &mut self.buf;
+        let sums = with_map(teacher, inp.action_map, &mut self.map_scratch, |teacher| {
+            moments_from_noise(teacher, out, snapshot, teacher_states, v, buf)
+        });
+        self.sums = sums.map_err(at_iteration(inp.iteration))?;
         let (expert, out) = (self.student.expert(), self.student.output());
         raw_gradients_of_chunk(expert, out, &self.weights, b_n, &mut self.buf);
         self.student.expert_networks_mut().zero_grad();
@@ -223,12 +206,7 @@ impl<S: ScoreModel, E: Expert> Vdd<S, E> {
                 add_grads(chunk.work.student.expert_networks_mut(), nets, &mut self.flat);
             }
             stats = sums.stats(&self.buf.noise_levels, b_n * z_n);
-            clip_or_fail(nets, self.config.max_grad_norm, it, "expert gradient")?;
-            let total = self.config.expert_steps();
-            let factor =
-                self.config.expert_lr_schedule.factor(self.expert_optimizer.steps(), total);
-            expert_lr = self.config.expert_optimizer.lr * factor;
-            self.expert_optimizer.step(nets, factor)?;
+            expert_lr = self.expert_update(it)?;
         }
         Ok((stats, gating_entropy / b_n as f32, expert_lr))
     }
