@@ -185,9 +185,10 @@ impl<S: ScoreModel> crate::Vdd<vdd_core::ClampedDenoiser<S>> {
     /// imported from PyTorch, whose actions are chunks) on raw `states` and `actions`: a student
     /// of `mc` (seeded with `vc.seed`) working in that space, and the teacher's denoised
     /// estimate clamped to the normalised `actions`' box widened by `clip_margin` (`None`: the
-    /// raw score; a margin must be finite and non-negative). With `init_from_teacher`, the experts start from a mixture fitted to 2048 of
-    /// the teacher's samples, with the noise levels and normalisers [`crate::AutoPlan`] picks
-    /// (`vc` then gives only the iterations, the batch and the samples per state).
+    /// raw score; a margin must be finite and non-negative). With `init_from_teacher`, the
+    /// experts start from a mixture fitted to 2048 of the teacher's samples, with the noise
+    /// levels and normalisers [`crate::AutoPlan`] picks (`vc` then gives only the iterations,
+    /// the batch and the samples per state).
     pub fn in_teacher_space(
         teacher: S,
         (states, actions): (Mat<f32>, Mat<f32>),
