@@ -93,8 +93,12 @@ impl<S: ScoreModel> ClampedDenoiser<S> {
     }
 
     /// Clamps to the bounding box of the rows of `actions` (teacher's space) widened by
-    /// `margin` ([`data_box`]).
+    /// `margin` ([`data_box`]), which must be finite and non-negative.
     pub fn around_data(inner: S, actions: MatRef<'_, f32>, margin: f32) -> Result<Self> {
+        if !(margin.is_finite() && margin >= 0.0) {
+            let what = format!("clip margin {margin}: must be finite and non-negative");
+            return Err(CoreError::Config(what));
+        }
         let (lo, hi) = data_box(actions, margin);
         Self::new(inner, lo, hi)
     }
@@ -281,7 +285,14 @@ mod tests {
         let t = Gauss { mean: vec![0.0, 0.0], vp: false };
         assert!(ClampedDenoiser::new(t.clone(), vec![1.0, 0.0], vec![0.0, 1.0]).is_err());
         assert!(ClampedDenoiser::new(t.clone(), vec![0.0], vec![1.0]).is_err());
-        assert!(ClampedDenoiser::new(t, vec![f32::NAN, 0.0], vec![1.0, 1.0]).is_err());
+        assert!(ClampedDenoiser::new(t.clone(), vec![f32::NAN, 0.0], vec![1.0, 1.0]).is_err());
+        // A margin that would shrink the box or lose it is refused, naming the margin.
+        let a = faer::mat![[0.0f32, 0.0], [1.0, 1.0]];
+        assert!(ClampedDenoiser::around_data(t.clone(), a.as_ref(), 0.0).is_ok());
+        for bad in [-0.1, f32::NAN, f32::INFINITY] {
+            let e = ClampedDenoiser::around_data(t.clone(), a.as_ref(), bad).err().unwrap();
+            assert!(e.to_string().contains("clip margin"), "{e}");
+        }
 
         struct NoForm;
         impl ScoreModel for NoForm {

@@ -199,10 +199,6 @@ impl<S: ScoreModel> crate::Vdd<vdd_core::ClampedDenoiser<S>> {
         let mut student = vdd_moe::Moe::from_config(mc.clone(), vc.seed)?;
         student.set_normalizers(Some(sn.clone()), Some(an.clone()))?;
         let clamped = match clip_margin {
-            Some(m) if !(m.is_finite() && m >= 0.0) => {
-                let what = format!("clip margin {m}: must be finite and non-negative");
-                return Err(vdd_core::CoreError::Config(what).into());
-            }
             Some(m) => vdd_core::ClampedDenoiser::around_data(
                 teacher,
                 an.normalize_rows(actions.as_ref())?.as_ref(),
