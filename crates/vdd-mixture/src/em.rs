@@ -33,6 +33,9 @@ pub struct EmConfig {
     /// Number of EM iterations (E-step + M-step).
     pub iterations: usize,
     /// Expert gradient steps per iteration, all against the same E-step responsibilities.
+    /// `0` freezes the experts: EM then fits the gating alone, the maximum-likelihood gating
+    /// for the given experts (for instance a VDD student's gating fitted to samples of its
+    /// teacher); the mixture's gating must then be learned.
     pub expert_steps_per_iter: usize,
     /// Gating gradient steps per iteration (ignored for a uniform gating).
     pub gating_steps_per_iter: usize,
@@ -78,7 +81,7 @@ impl EmConfig {
 
     /// Checks ranges.
     pub fn validate(&self) -> Result<(), CoreError> {
-        fit::validate_loop(&fit::loop_settings!(self))
+        fit::validate_loop(&fit::loop_settings!(self), true)
     }
 }
 
@@ -99,11 +102,12 @@ pub struct EmMetrics {
     /// Mean entropy of the responsibilities `r(·|o)` over the dataset, in nats (0 when every
     /// pair belongs to one expert).
     pub responsibility_entropy: f64,
-    /// Weighted NLL per pair of the last expert step (before that step).
+    /// Weighted NLL per pair of the last expert step (before that step; 0 when the experts
+    /// are frozen).
     pub expert_loss: f64,
     /// Soft cross-entropy of the last gating step (if the gating was trained).
     pub gating_loss: Option<f64>,
-    /// Experts' learning rate at the last expert step.
+    /// Experts' learning rate at the last expert step (0 when the experts are frozen).
     pub expert_lr: f32,
     /// Gating learning rate at the last gating step (0 when not trained).
     pub gating_lr: f32,
@@ -168,6 +172,14 @@ impl<E: Expert> Em<E> {
     /// its own); checks the configuration and that the data fit the mixture's dimensions.
     pub fn new(config: EmConfig, student: Moe<E>, data: Dataset) -> Result<Self, MixtureError> {
         config.validate()?;
+        if config.expert_steps_per_iter == 0 && !student.has_learned_gating() {
+            return Err(CoreError::Config(
+                "expert_steps_per_iter = 0 freezes the experts, and the mixture's gating is \
+                 uniform: nothing would be trained"
+                    .into(),
+            )
+            .into());
+        }
         let fit = MixtureFit::new(&fit::loop_settings!(&config), config.seed, student, data)?;
         let resp = vec![0.0; fit.data.len() * fit.student.num_experts()];
         Ok(Self { config, fit, resp })

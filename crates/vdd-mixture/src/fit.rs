@@ -479,11 +479,13 @@ macro_rules! loop_settings {
 }
 pub(crate) use loop_settings;
 
-/// Checks the ranges of the shared loop settings.
-pub(crate) fn validate_loop(s: &LoopSettings<'_>) -> Result<(), CoreError> {
+/// Checks the ranges of the shared loop settings; `frozen_experts` allows
+/// `expert_steps_per_iter = 0`.
+pub(crate) fn validate_loop(s: &LoopSettings<'_>, frozen_experts: bool) -> Result<(), CoreError> {
+    let expert_steps = s.expert.steps_per_iter.max(usize::from(frozen_experts));
     for (name, v) in [
         ("iterations", s.iterations),
-        ("expert_steps_per_iter", s.expert.steps_per_iter),
+        ("expert_steps_per_iter", expert_steps),
         ("batch_size", s.expert.batch_size.unwrap_or(1)),
         ("gating_batch_size", s.gating.batch_size.unwrap_or(1)),
     ] {

@@ -188,7 +188,7 @@ impl ImcConfig {
         if !(self.eta.is_finite() && self.eta > 0.0) {
             return Err(CoreError::Config(format!("eta must be positive, got {}", self.eta)));
         }
-        fit::validate_loop(&fit::loop_settings!(self))
+        fit::validate_loop(&fit::loop_settings!(self), false)
     }
 }
 

@@ -114,7 +114,6 @@ fn bad_inputs_are_rejected() {
     let student = small_moe(ExpertKind::Diagonal, 2, 0);
     let bad = [
         EmConfig { iterations: 0, ..EmConfig::toy() },
-        EmConfig { expert_steps_per_iter: 0, ..EmConfig::toy() },
         EmConfig { batch_size: Some(0), ..EmConfig::toy() },
         EmConfig { max_grad_norm: Some(-1.0), ..EmConfig::toy() },
         EmConfig {
@@ -125,6 +124,11 @@ fn bad_inputs_are_rejected() {
     for config in bad {
         assert!(Em::new(config, student.clone(), data.clone()).is_err());
     }
+    // Frozen experts and a uniform gating: nothing to train.
+    let uniform = Moe::from_config(MoeConfig::toy(1, 2, 2), 0).unwrap();
+    let frozen = EmConfig { expert_steps_per_iter: 0, ..EmConfig::toy() };
+    assert!(Em::new(frozen.clone(), uniform, data.clone()).is_err());
+    assert!(Em::new(frozen, student.clone(), data.clone()).is_ok());
     let wrong_dims = Moe::from_config(MoeConfig::toy(1, 3, 2), 0).unwrap();
     assert!(Em::new(EmConfig::toy(), wrong_dims, data.clone()).is_err());
     let wrong_state = Moe::from_config(MoeConfig::toy(2, 2, 2), 0).unwrap();
@@ -145,4 +149,59 @@ fn uniform_gating_stays_uniform() {
     let mut student = em.into_student();
     let a = student.act(&[0.0]).unwrap();
     assert!(a.iter().all(|x| x.is_finite()));
+}
+
+#[test]
+fn frozen_experts_fit_the_gating_alone() {
+    // Experts fitted under a uniform gating to clusters of unequal sizes, then a learned
+    // gating added and fitted with the experts frozen: the gating learns the cluster shares
+    // and the experts do not move.
+    let sizes = [60, 120, 180];
+    let (data, _) = clusters(sizes, 0.3, 2);
+    let mut mc = small_moe_config(ExpertKind::Diagonal, 3);
+    mc.gating = vdd_moe::GatingKind::Uniform;
+    let student = Moe::from_config(mc, 0).unwrap();
+    let mut student = Em::fit(full_batch_config(40, 10, 1e-2), student, data.clone()).unwrap();
+    student
+        .add_learned_gating(small_moe_config(ExpertKind::Diagonal, 3).gating_network, 1)
+        .unwrap();
+    let mut experts_before = Vec::new();
+    student
+        .expert_networks_mut()
+        .visit_params("", &mut |_, p| experts_before.push(p.value.clone()));
+
+    let config = EmConfig { expert_steps_per_iter: 0, ..full_batch_config(30, 20, 1e-2) };
+    let mut em = Em::new(config, student, data).unwrap();
+    let before = em.log_likelihood().unwrap();
+    let mut metrics = Vec::new();
+    em.train(|m| metrics.push(*m)).unwrap();
+    assert!(metrics.iter().all(|m| m.expert_loss == 0.0 && m.expert_lr == 0.0));
+    assert!(metrics.iter().all(|m| m.gating_loss.is_some()));
+    let after = em.log_likelihood().unwrap();
+    assert!(
+        after > before + 0.05,
+        "the gating fit did not raise the likelihood: {before} -> {after}"
+    );
+
+    let mut student = em.into_student();
+    let mut experts_after = Vec::new();
+    student.expert_networks_mut().visit_params("", &mut |_, p| experts_after.push(p.value.clone()));
+    assert_eq!(experts_before, experts_after, "the frozen experts moved");
+    // Each expert's gating weight is the share of the cluster it covers.
+    student.forward(Mat::zeros(1, 1).as_ref()).unwrap();
+    let out = student.output();
+    for z in 0..3 {
+        let m = out.mean(0, z);
+        let c = (0..3)
+            .min_by(|&a, &b| {
+                let d = |k: usize| {
+                    (m[0] - CLUSTER_MEANS[k][0]).powi(2) + (m[1] - CLUSTER_MEANS[k][1]).powi(2)
+                };
+                d(a).total_cmp(&d(b))
+            })
+            .unwrap();
+        let share = sizes[c] as f32 / 360.0;
+        let q = out.log_gating_row(0)[z].exp();
+        assert!((q - share).abs() < 0.03, "expert {z} (cluster {c}): q = {q}, share {share}");
+    }
 }

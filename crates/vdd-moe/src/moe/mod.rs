@@ -255,6 +255,61 @@ impl<E: Expert> Moe<E> {
         self.gating.is_some()
     }
 
+    /// Replaces a uniform gating by a learned one of architecture `network`, initialised to
+    /// the same uniform `q(z|s)`: its hidden layers from `Seeds::new(seed).stream("moe-gating")`,
+    /// its output layer zero. The experts are untouched, so the mixture's likelihood is
+    /// unchanged until the gating is trained (e.g. fitted to a teacher's samples with
+    /// `vdd_mixture::Em` and the experts frozen). On error (the gating is already learned, or
+    /// `network` is invalid) nothing changes.
+    ///
+    /// ```
+    /// use vdd_moe::{Moe, MoeConfig, NetworkConfig};
+    ///
+    /// let mut moe = Moe::from_config(MoeConfig::toy(2, 1, 4), 0)?; // uniform gating
+    /// moe.add_learned_gating(NetworkConfig::default(), 1)?;
+    /// assert!(moe.has_learned_gating());
+    /// moe.forward_gating(faer::mat![[0.3f32, -1.0]].as_ref())?;
+    /// assert!(moe.output().log_gating_row(0).iter().all(|l| (l + 4f32.ln()).abs() < 1e-6));
+    /// assert!(moe.add_learned_gating(NetworkConfig::default(), 1).is_err());
+    /// # Ok::<(), Box<dyn std::error::Error>>(())
+    /// ```
+    pub fn add_learned_gating(
+        &mut self,
+        network: NetworkConfig,
+        seed: u64,
+    ) -> Result<(), MoeError> {
+        if self.gating.is_some() {
+            return Err(MoeError::Core(vdd_core::CoreError::Config(
+                "the mixture's gating is already learned".into(),
+            )));
+        }
+        let config = MoeConfig {
+            gating: GatingKind::Learned,
+            gating_network: network,
+            ..self.config.clone()
+        };
+        config.validate()?;
+        vdd_nn::limits::check_params("the mixture", config.num_params(self.expert.raw_dim()))?;
+        let mut net = ResidualMlp::new(
+            &ResidualMlpConfig {
+                in_dim: config.state_dim,
+                hidden_dim: config.gating_network.hidden_dim,
+                num_blocks: config.gating_network.num_blocks,
+                out_dim: config.num_experts,
+                activation: config.gating_network.activation,
+                layer_norm: false,
+            },
+            &mut Seeds::new(seed).stream("moe-gating"),
+        )?;
+        let out = net.output_layer_mut();
+        out.weight.value.fill(0.0);
+        out.bias.value.fill(0.0);
+        self.gating = Some(net);
+        self.config = config;
+        self.gating_forwarded = false;
+        Ok(())
+    }
+
     /// The expert that produced each row's action in the last
     /// [`Policy::act_into`](vdd_core::Policy::act_into) (one entry) or
     /// [`Policy::act_batch`](vdd_core::Policy::act_batch) (one entry per row, in row order) call:
