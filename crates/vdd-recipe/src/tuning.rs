@@ -111,6 +111,10 @@ pub struct LogEntry {
     pub train_seconds: Vec<f64>,
     /// The run directory, relative to the repository.
     pub run: String,
+    /// Why the run failed, for a configuration that did not finish (written by hand: its
+    /// figures are those of the seeds that finished, if any). It still counts as tried.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub failure: Option<String>,
 }
 
 /// What identifies one method of one tuning run; the figures come from its result rows
@@ -152,6 +156,7 @@ impl LogEntry {
             train_batch: first("train_batch"),
             train_seconds: all("train_seconds"),
             run,
+            failure: None,
         }
     }
 }
@@ -285,6 +290,7 @@ mod tests {
             train_batch: None,
             train_seconds: vec![1.5],
             run: "results/tuning/avoiding/seed100".into(),
+            failure: (c == "b").then(|| "seed 101 diverged".into()),
         };
         append_log(&path, vec![e("em", "a"), e("em", "b")]).unwrap();
         append_log(&path, vec![e("em", "a"), e("imc", "a")]).unwrap();
