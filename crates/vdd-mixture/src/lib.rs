@@ -48,6 +48,7 @@ mod dataset;
 pub mod em;
 mod error;
 pub mod fit;
+pub mod gating;
 pub mod imc;
 
 #[cfg(test)]

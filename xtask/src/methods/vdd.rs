@@ -19,6 +19,7 @@ use serde_json::json;
 use vdd::{DistillData, Resumable, ResumableOutcome, VddConfig};
 use vdd_core::{Affine, ClampedDenoiser, ScoreModel};
 use vdd_diffusion::TeacherKind;
+use vdd_mixture::gating::{GatingFitConfig, fit_gating_to_policy};
 use vdd_moe::{ActMode, Moe, MoeConfig};
 
 use crate::method::{Budget, Info, Job, Method, MethodRecipe, Trained};
@@ -93,31 +94,8 @@ struct Settings {
     clip_margin: Option<f32>,
     official_init: bool,
     act: ActMode,
-    gating_fit: Option<GatingFit>,
-}
-
-/// `vdd.<teacher>_gating_fit`: after distillation, replace a uniform gating by a learned one
-/// fitted by EM with the experts frozen (`vdd_mixture::Em`, `expert_steps_per_iter = 0`) to
-/// `samples_per_state` teacher samples at each training state.
-#[derive(Debug, Clone, serde::Serialize, serde::Deserialize)]
-#[serde(default, deny_unknown_fields)]
-pub struct GatingFit {
-    /// Teacher samples drawn at each training state.
-    pub samples_per_state: usize,
-    /// EM iterations (an E-step on every pair, then `steps_per_iter` gating steps).
-    pub iterations: usize,
-    /// Gating steps per iteration.
-    pub steps_per_iter: usize,
-    /// Pairs per gating step.
-    pub batch_size: usize,
-    /// Adam's learning rate of the gating (decaying linearly to 0 over the fit).
-    pub lr: f32,
-}
-
-impl Default for GatingFit {
-    fn default() -> Self {
-        Self { samples_per_state: 4, iterations: 50, steps_per_iter: 30, batch_size: 256, lr: 1e-3 }
-    }
+    /// `vdd.<teacher>_gating_fit`: after distillation, a gating fitted to teacher samples.
+    gating_fit: Option<GatingFitConfig>,
 }
 
 impl VddMethod {
@@ -232,16 +210,23 @@ impl Method for VddMethod {
             }
         };
         let CachedStudent { mut student, mut train_seconds, curves } = trained;
+        student.set_normalizers(Some(sn.clone()), Some(an.clone()))?;
         if let (Some(fit), Some(t)) = (&s.gating_fit, teacher) {
             let t0 = std::time::Instant::now();
-            student = fit_gating(fit, student, t.teacher.clone(), d, (&sn, &an), &s.student, job)?;
+            let fit = GatingFitConfig { seed: job.seed, ..fit.clone() };
+            let network = s.student.gating_network.clone();
+            let mut teacher = t.teacher.clone();
+            let (fitted, report) =
+                fit_gating_to_policy(student, network, &mut teacher, d.states.as_ref(), &fit)?;
+            student = fitted;
             let secs = t0.elapsed().as_secs_f64();
             crate::progress::log(format!(
-                "[{label}] gating fitted to teacher samples in {secs:.1} s"
+                "[{label}] gating fitted to {} teacher samples in {secs:.1} s: their \
+                 log-likelihood {:.3} -> {:.3} nats",
+                report.pairs, report.log_likelihood_before, report.log_likelihood_after
             ));
             train_seconds += secs;
         }
-        student.set_normalizers(Some(sn), Some(an))?;
         student.set_act_mode(s.act);
         Ok(Trained {
             teacher_seconds: teacher.map(|t| t.train_seconds),
@@ -296,59 +281,4 @@ fn distill<S: ScoreModel>(
     let _ = std::fs::remove_dir(job.checkpoints.0); // when empty
     let ResumableOutcome { student, train_seconds, curves, mean_noise_level } = out;
     Ok((CachedStudent { student, train_seconds, curves }, mean_noise_level, probe.seconds))
-}
-
-/// [`GatingFit`]: draws `samples_per_state` actions of `teacher` at each training state (raw
-/// states in, raw actions out, both normalised by `sn`, `an` for the student's networks) and
-/// fits a fresh learned gating of `student_config.gating_network` to them by EM with the
-/// experts frozen.
-fn fit_gating<P: vdd_core::Policy>(
-    fit: &GatingFit,
-    mut student: Moe,
-    mut teacher: P,
-    d: &vdd_data::TrainingData,
-    (sn, an): (&Affine, &Affine),
-    student_config: &MoeConfig,
-    job: &Job<'_>,
-) -> crate::XResult<Moe> {
-    let (n, k) = (d.states.nrows(), fit.samples_per_state);
-    if k == 0 {
-        return Err("vdd gating_fit.samples_per_state must be positive".into());
-    }
-    let raw_states = Mat::from_fn(n * k, d.states.ncols(), |i, j| d.states[(i % n, j)]);
-    let mut raw_actions = Mat::zeros(n * k, d.actions.ncols());
-    teacher
-        .seed(rand::Rng::random(&mut vdd_core::Seeds::new(job.seed).stream("gating-fit-teacher")));
-    teacher.act_batch(raw_states.as_ref(), raw_actions.as_mut())?;
-    let data = vdd_mixture::Dataset::new(
-        sn.normalize_rows(raw_states.as_ref())?,
-        an.normalize_rows(raw_actions.as_ref())?,
-    )?;
-    if !student.has_learned_gating() {
-        student.add_learned_gating(student_config.gating_network.clone(), job.seed)?;
-    }
-    let schedule = vdd_nn::LrSchedule::LinearDecay { final_factor: 0.0 };
-    let adam = vdd_nn::AdamConfig { lr: fit.lr, ..Default::default() };
-    let config = vdd_mixture::EmConfig {
-        iterations: fit.iterations,
-        expert_steps_per_iter: 0,
-        gating_steps_per_iter: fit.steps_per_iter,
-        batch_size: Some(fit.batch_size),
-        gating_batch_size: Some(fit.batch_size),
-        expert_optimizer: adam,
-        expert_lr_schedule: schedule.clone(),
-        gating_optimizer: adam,
-        gating_lr_schedule: schedule,
-        max_grad_norm: None,
-        seed: job.seed,
-    };
-    let mut em = vdd_mixture::Em::new(config, student, data)?;
-    let before = em.log_likelihood()?;
-    em.train(|_| {})?;
-    let after = em.log_likelihood()?;
-    crate::progress::log(format!(
-        "[{}] gating fit: teacher samples' log-likelihood {before:.3} -> {after:.3} nats",
-        job.label
-    ));
-    Ok(em.into_student())
 }

@@ -1,0 +1,152 @@
+//! Tests of the gating fitted to a teacher's samples.
+
+use super::*;
+use crate::test_support::{CLUSTER_MEANS, clusters, full_batch_config, small_moe_config};
+use vdd_core::{Rng, Seeds};
+use vdd_moe::{ExpertKind, GatingKind};
+use vdd_nn::Parameters;
+
+/// A teacher that answers a point of cluster `k` of [`CLUSTER_MEANS`] with probability
+/// `shares[k]` (std 0.3), whatever the state; or NaN when `broken`.
+struct ClusterTeacher {
+    shares: [f32; 3],
+    rng: Rng,
+    broken: bool,
+}
+
+impl ClusterTeacher {
+    fn new(shares: [f32; 3]) -> Self {
+        Self { shares, rng: Seeds::new(0).stream("teacher"), broken: false }
+    }
+}
+
+impl Policy for ClusterTeacher {
+    fn obs_dim(&self) -> usize {
+        1
+    }
+    fn action_dim(&self) -> usize {
+        2
+    }
+    fn seed(&mut self, seed: u64) {
+        self.rng = Seeds::new(seed).stream("teacher");
+    }
+    fn act_into(&mut self, _obs: &[f32], action: &mut [f32]) -> Result<(), CoreError> {
+        let u: f32 = self.rng.random();
+        let k = if u < self.shares[0] {
+            0
+        } else if u < self.shares[0] + self.shares[1] {
+            1
+        } else {
+            2
+        };
+        for (j, a) in action.iter_mut().enumerate() {
+            *a = CLUSTER_MEANS[k][j] + 0.3 * vdd_core::standard_normal(&mut self.rng);
+        }
+        if self.broken {
+            action[0] = f32::NAN;
+        }
+        Ok(())
+    }
+}
+
+/// Three experts fitted under a uniform gating to equal clusters (one expert per cluster).
+fn uniform_student() -> Moe {
+    let (data, _) = clusters([120, 120, 120], 0.3, 2);
+    let mut mc = small_moe_config(ExpertKind::Diagonal, 3);
+    mc.gating = GatingKind::Uniform;
+    let student = Moe::from_config(mc, 0).unwrap();
+    Em::fit(full_batch_config(40, 10, 1e-2), student, data).unwrap()
+}
+
+fn expert_params(student: &mut Moe) -> Vec<Vec<f32>> {
+    let mut out = Vec::new();
+    student.expert_networks_mut().visit_params("", &mut |_, p| out.push(p.value.clone()));
+    out
+}
+
+fn network() -> NetworkConfig {
+    small_moe_config(ExpertKind::Diagonal, 3).gating_network
+}
+
+const FIT: GatingFitConfig = GatingFitConfig {
+    samples_per_state: 32,
+    iterations: 30,
+    steps_per_iter: 20,
+    batch_size: 256,
+    lr: 1e-2,
+    seed: 3,
+};
+
+#[test]
+fn the_fitted_gating_learns_the_teachers_shares_and_the_experts_stay() {
+    let shares = [0.1, 0.3, 0.6];
+    let mut student = uniform_student();
+    let before = expert_params(&mut student);
+    let states = Mat::zeros(32, 1);
+    let mut teacher = ClusterTeacher::new(shares);
+    let (mut student, report) =
+        fit_gating_to_policy(student, network(), &mut teacher, states.as_ref(), &FIT).unwrap();
+    assert_eq!(report.pairs, 32 * 32);
+    assert!(report.log_likelihood_after > report.log_likelihood_before + 0.1, "{report:?}");
+    assert_eq!(expert_params(&mut student), before, "the experts moved");
+    student.forward(Mat::zeros(1, 1).as_ref()).unwrap();
+    let out = student.output();
+    for z in 0..3 {
+        let m = out.mean(0, z);
+        let d =
+            |k: usize| (m[0] - CLUSTER_MEANS[k][0]).powi(2) + (m[1] - CLUSTER_MEANS[k][1]).powi(2);
+        let c = (0..3).min_by(|&a, &b| d(a).total_cmp(&d(b))).unwrap();
+        let q = out.log_gating_row(0)[z].exp();
+        assert!((q - shares[c]).abs() < 0.05, "expert {z} (cluster {c}): q = {q}");
+    }
+}
+
+#[test]
+fn the_fit_is_deterministic_and_follows_its_seed() {
+    let fit = |seed| {
+        let config = GatingFitConfig { seed, iterations: 3, ..FIT };
+        let mut teacher = ClusterTeacher::new([0.2, 0.3, 0.5]);
+        let states = Mat::zeros(8, 1);
+        let (mut s, _) = fit_gating_to_policy(
+            uniform_student(),
+            network(),
+            &mut teacher,
+            states.as_ref(),
+            &config,
+        )
+        .unwrap();
+        let mut gating = Vec::new();
+        s.gating_network_mut().unwrap().visit_params("", &mut |_, p| gating.push(p.value.clone()));
+        gating
+    };
+    assert_eq!(fit(5), fit(5));
+    assert_ne!(fit(5), fit(6));
+}
+
+#[test]
+fn bad_settings_and_bad_teachers_are_errors() {
+    let states = Mat::zeros(8, 1);
+    let run = |config: GatingFitConfig, teacher: &mut ClusterTeacher, states: MatRef<'_, f32>| {
+        fit_gating_to_policy(uniform_student(), network(), teacher, states, &config)
+            .map(drop)
+            .unwrap_err()
+            .to_string()
+    };
+    let mut t = ClusterTeacher::new([0.2, 0.3, 0.5]);
+    let small = GatingFitConfig { iterations: 1, ..FIT };
+    for bad in [
+        GatingFitConfig { samples_per_state: 0, ..small.clone() },
+        GatingFitConfig { samples_per_state: MAX_SAMPLES_PER_STATE + 1, ..small.clone() },
+        GatingFitConfig { steps_per_iter: 0, ..small.clone() },
+        GatingFitConfig { iterations: 0, ..small.clone() },
+        GatingFitConfig { lr: f32::NAN, ..small.clone() },
+    ] {
+        assert!(!run(bad, &mut t, states.as_ref()).is_empty());
+    }
+    assert!(run(small.clone(), &mut t, Mat::zeros(8, 2).as_ref()).contains("state columns"));
+    assert!(run(small.clone(), &mut t, Mat::zeros(0, 1).as_ref()).contains("pairs"));
+    let nan_states = Mat::from_fn(8, 1, |i, _| if i == 3 { f32::NAN } else { 0.0 });
+    assert!(!run(small.clone(), &mut t, nan_states.as_ref()).is_empty());
+    let mut broken = ClusterTeacher { broken: true, ..ClusterTeacher::new([0.2, 0.3, 0.5]) };
+    assert!(!run(small, &mut broken, states.as_ref()).is_empty());
+}
