@@ -15,7 +15,9 @@
 //!   diagonal and full (Cholesky) experts, dataset evaluation, minibatch sampling and one
 //!   optimiser step of experts or gating (and, inside the crate, the iteration loop around them
 //!   that both run). The gating step and the checked gradient clipping are the ones VDD uses
-//!   ([`vdd_moe::step`]).
+//!   ([`vdd_moe::step`]);
+//! * [`gating`]: a gating fitted to a teacher policy's samples with the experts frozen (EM with
+//!   `expert_steps_per_iter = 0`), for a student whose experts came from elsewhere (VDD).
 //!
 //! Both trainers implement [`vdd_core::Trainer`] (one report per iteration, the fitted
 //! [`vdd_moe::Moe`] as output) and take plain matrices in a [`Dataset`] (states `n x d_s`,
