@@ -7,7 +7,9 @@ use vdd_moe::{ExpertKind, GatingKind, Moe, MoeConfig};
 
 use vdd_nn::{AdamConfig, LrSchedule};
 
-use crate::{Dataset, EmConfig};
+use vdd_nn::Parameters;
+
+use crate::{Dataset, Em, EmConfig};
 
 /// Three well-separated 2-D cluster centres (radius 3, 120° apart, at 15°, 135° and 255°, so
 /// no two share a coordinate).
@@ -62,5 +64,41 @@ pub fn full_batch_config(iterations: usize, steps: usize, lr: f32) -> EmConfig {
         gating_optimizer: AdamConfig { lr, ..AdamConfig::default() },
         gating_lr_schedule: schedule,
         ..EmConfig::toy()
+    }
+}
+
+/// Three experts fitted by EM under a uniform gating to [`clusters`] of `sizes` (std 0.3), one
+/// expert per cluster, and the data.
+pub fn uniform_cluster_experts(sizes: [usize; 3]) -> (Moe, Dataset) {
+    let (data, _) = clusters(sizes, 0.3, 2);
+    let mut mc = small_moe_config(ExpertKind::Diagonal, 3);
+    mc.gating = GatingKind::Uniform;
+    let student = Moe::from_config(mc, 0).expect("valid mixture");
+    (Em::fit(full_batch_config(40, 10, 1e-2), student, data.clone()).expect("EM fits"), data)
+}
+
+/// The values of the experts' network parameters, in order.
+pub fn expert_params(student: &mut Moe) -> Vec<Vec<f32>> {
+    let mut out = Vec::new();
+    student.expert_networks_mut().visit_params("", &mut |_, p| out.push(p.value.clone()));
+    out
+}
+
+/// Asserts that each expert's gating weight at state 0 is within `tol` of `shares[c]`, `c` the
+/// cluster of [`CLUSTER_MEANS`] nearest the expert's mean.
+pub fn assert_gating_matches_shares(student: &mut Moe, shares: [f32; 3], tol: f32) {
+    student.forward(Mat::zeros(1, 1).as_ref()).expect("forward");
+    let out = student.output();
+    for z in 0..3 {
+        let m = out.mean(0, z);
+        let d =
+            |k: usize| (m[0] - CLUSTER_MEANS[k][0]).powi(2) + (m[1] - CLUSTER_MEANS[k][1]).powi(2);
+        let c = (0..3).min_by(|&a, &b| d(a).total_cmp(&d(b))).expect("three clusters");
+        let q = out.log_gating_row(0)[z].exp();
+        assert!(
+            (q - shares[c]).abs() < tol,
+            "expert {z} (cluster {c}): q = {q}, share {}",
+            shares[c]
+        );
     }
 }

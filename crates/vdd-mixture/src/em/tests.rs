@@ -2,7 +2,8 @@
 
 use super::*;
 use crate::test_support::{
-    CLUSTER_MEANS, clusters, full_batch_config, small_moe, small_moe_config,
+    CLUSTER_MEANS, assert_gating_matches_shares, clusters, expert_params, full_batch_config,
+    small_moe, small_moe_config, uniform_cluster_experts,
 };
 use faer::Mat;
 use vdd_core::Policy;
@@ -157,18 +158,11 @@ fn frozen_experts_fit_the_gating_alone() {
     // gating added and fitted with the experts frozen: the gating learns the cluster shares
     // and the experts do not move.
     let sizes = [60, 120, 180];
-    let (data, _) = clusters(sizes, 0.3, 2);
-    let mut mc = small_moe_config(ExpertKind::Diagonal, 3);
-    mc.gating = vdd_moe::GatingKind::Uniform;
-    let student = Moe::from_config(mc, 0).unwrap();
-    let mut student = Em::fit(full_batch_config(40, 10, 1e-2), student, data.clone()).unwrap();
+    let (mut student, data) = uniform_cluster_experts(sizes);
     student
         .add_learned_gating(small_moe_config(ExpertKind::Diagonal, 3).gating_network, 1)
         .unwrap();
-    let mut experts_before = Vec::new();
-    student
-        .expert_networks_mut()
-        .visit_params("", &mut |_, p| experts_before.push(p.value.clone()));
+    let experts_before = expert_params(&mut student);
 
     let config = EmConfig { expert_steps_per_iter: 0, ..full_batch_config(30, 20, 1e-2) };
     let mut em = Em::new(config, student, data).unwrap();
@@ -184,24 +178,8 @@ fn frozen_experts_fit_the_gating_alone() {
     );
 
     let mut student = em.into_student();
-    let mut experts_after = Vec::new();
-    student.expert_networks_mut().visit_params("", &mut |_, p| experts_after.push(p.value.clone()));
-    assert_eq!(experts_before, experts_after, "the frozen experts moved");
+    assert_eq!(expert_params(&mut student), experts_before, "the frozen experts moved");
     // Each expert's gating weight is the share of the cluster it covers.
-    student.forward(Mat::zeros(1, 1).as_ref()).unwrap();
-    let out = student.output();
-    for z in 0..3 {
-        let m = out.mean(0, z);
-        let c = (0..3)
-            .min_by(|&a, &b| {
-                let d = |k: usize| {
-                    (m[0] - CLUSTER_MEANS[k][0]).powi(2) + (m[1] - CLUSTER_MEANS[k][1]).powi(2)
-                };
-                d(a).total_cmp(&d(b))
-            })
-            .unwrap();
-        let share = sizes[c] as f32 / 360.0;
-        let q = out.log_gating_row(0)[z].exp();
-        assert!((q - share).abs() < 0.03, "expert {z} (cluster {c}): q = {q}, share {share}");
-    }
+    let shares = sizes.map(|n| n as f32 / 360.0);
+    assert_gating_matches_shares(&mut student, shares, 0.03);
 }

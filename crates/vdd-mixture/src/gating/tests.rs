@@ -1,9 +1,12 @@
 //! Tests of the gating fitted to a teacher's samples.
 
 use super::*;
-use crate::test_support::{CLUSTER_MEANS, clusters, full_batch_config, small_moe_config};
+use crate::test_support::{
+    CLUSTER_MEANS, assert_gating_matches_shares, expert_params, small_moe_config,
+    uniform_cluster_experts,
+};
 use vdd_core::{Rng, Seeds};
-use vdd_moe::{ExpertKind, GatingKind};
+use vdd_moe::ExpertKind;
 use vdd_nn::Parameters;
 
 /// A teacher that answers a point of cluster `k` of [`CLUSTER_MEANS`] with probability
@@ -51,17 +54,7 @@ impl Policy for ClusterTeacher {
 
 /// Three experts fitted under a uniform gating to equal clusters (one expert per cluster).
 fn uniform_student() -> Moe {
-    let (data, _) = clusters([120, 120, 120], 0.3, 2);
-    let mut mc = small_moe_config(ExpertKind::Diagonal, 3);
-    mc.gating = GatingKind::Uniform;
-    let student = Moe::from_config(mc, 0).unwrap();
-    Em::fit(full_batch_config(40, 10, 1e-2), student, data).unwrap()
-}
-
-fn expert_params(student: &mut Moe) -> Vec<Vec<f32>> {
-    let mut out = Vec::new();
-    student.expert_networks_mut().visit_params("", &mut |_, p| out.push(p.value.clone()));
-    out
+    uniform_cluster_experts([120, 120, 120]).0
 }
 
 fn network() -> NetworkConfig {
@@ -89,16 +82,7 @@ fn the_fitted_gating_learns_the_teachers_shares_and_the_experts_stay() {
     assert_eq!(report.pairs, 32 * 32);
     assert!(report.log_likelihood_after > report.log_likelihood_before + 0.1, "{report:?}");
     assert_eq!(expert_params(&mut student), before, "the experts moved");
-    student.forward(Mat::zeros(1, 1).as_ref()).unwrap();
-    let out = student.output();
-    for z in 0..3 {
-        let m = out.mean(0, z);
-        let d =
-            |k: usize| (m[0] - CLUSTER_MEANS[k][0]).powi(2) + (m[1] - CLUSTER_MEANS[k][1]).powi(2);
-        let c = (0..3).min_by(|&a, &b| d(a).total_cmp(&d(b))).unwrap();
-        let q = out.log_gating_row(0)[z].exp();
-        assert!((q - shares[c]).abs() < 0.05, "expert {z} (cluster {c}): q = {q}");
-    }
+    assert_gating_matches_shares(&mut student, shares, 0.05);
 }
 
 #[test]
