@@ -129,6 +129,12 @@ impl Method for VddMethod {
     }
     fn check(&self, recipe: &MethodRecipe<'_>) -> crate::XResult {
         let s = self.settings(recipe)?;
+        if s.gating_fit.is_some() && self.0.teacher.is_none() {
+            let t = self.1;
+            return Err(
+                format!("vdd.{t}_gating_fit needs a teacher that acts; {t} does not").into()
+            );
+        }
         Ok(s.vdd.check(&s.student).map_err(|e| format!("vdd.{}: {e}", self.1))?)
     }
 
@@ -210,7 +216,7 @@ impl Method for VddMethod {
             }
         };
         let CachedStudent { mut student, mut train_seconds, curves } = trained;
-        student.set_normalizers(Some(sn.clone()), Some(an.clone()))?;
+        student.set_normalizers(Some(sn), Some(an))?;
         if let (Some(fit), Some(t)) = (&s.gating_fit, teacher) {
             let t0 = std::time::Instant::now();
             let fit = GatingFitConfig { seed: job.seed, ..fit.clone() };
