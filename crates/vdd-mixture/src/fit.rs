@@ -482,7 +482,8 @@ pub(crate) use loop_settings;
 /// Checks the ranges of the shared loop settings; `frozen_experts` allows
 /// `expert_steps_per_iter = 0`.
 pub(crate) fn validate_loop(s: &LoopSettings<'_>, frozen_experts: bool) -> Result<(), CoreError> {
-    let expert_steps = s.expert.steps_per_iter.max(usize::from(frozen_experts));
+    // Frozen experts: any number of expert steps, zero included, is accepted.
+    let expert_steps = if frozen_experts { 1 } else { s.expert.steps_per_iter };
     for (name, v) in [
         ("iterations", s.iterations),
         ("expert_steps_per_iter", expert_steps),

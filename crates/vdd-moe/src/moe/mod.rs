@@ -141,6 +141,25 @@ pub struct Moe<E: Expert = ExpertFamily> {
     held: Vec<Hold>,
 }
 
+/// A residual MLP of shape `nc` from `in_dim` states to `out_dim` outputs, without layer norm:
+/// the experts' and the gating's networks.
+fn residual_net(
+    in_dim: usize,
+    out_dim: usize,
+    nc: &NetworkConfig,
+    rng: &mut Rng,
+) -> Result<ResidualMlp, vdd_nn::NnError> {
+    let config = ResidualMlpConfig {
+        in_dim,
+        hidden_dim: nc.hidden_dim,
+        num_blocks: nc.num_blocks,
+        out_dim,
+        activation: nc.activation,
+        layer_norm: false,
+    };
+    ResidualMlp::new(&config, rng)
+}
+
 /// An expert kept for a row's next predictions ([`ActMode::hold_steps`]).
 #[derive(Debug, Clone, Copy, Default)]
 struct Hold {
@@ -174,17 +193,7 @@ impl<E: Expert> Moe<E> {
         let r = expert.raw_dim();
         let d = config.action_dim;
         let net = |out_dim: usize, nc: &NetworkConfig, rng: &mut Rng| {
-            ResidualMlp::new(
-                &ResidualMlpConfig {
-                    in_dim: config.state_dim,
-                    hidden_dim: nc.hidden_dim,
-                    num_blocks: nc.num_blocks,
-                    out_dim,
-                    activation: nc.activation,
-                    layer_norm: false,
-                },
-                rng,
-            )
+            residual_net(config.state_dim, out_dim, nc, rng)
         };
         let w = config.mean_bias_init;
         let init_mean_bias = |net: &mut ResidualMlp, experts: usize, rng: &mut Rng| {
@@ -290,17 +299,9 @@ impl<E: Expert> Moe<E> {
         };
         config.validate()?;
         vdd_nn::limits::check_params("the mixture", config.num_params(self.expert.raw_dim()))?;
-        let mut net = ResidualMlp::new(
-            &ResidualMlpConfig {
-                in_dim: config.state_dim,
-                hidden_dim: config.gating_network.hidden_dim,
-                num_blocks: config.gating_network.num_blocks,
-                out_dim: config.num_experts,
-                activation: config.gating_network.activation,
-                layer_norm: false,
-            },
-            &mut Seeds::new(seed).stream("moe-gating"),
-        )?;
+        let mut rng = Seeds::new(seed).stream("moe-gating");
+        let mut net =
+            residual_net(config.state_dim, config.num_experts, &config.gating_network, &mut rng)?;
         let out = net.output_layer_mut();
         out.weight.value.fill(0.0);
         out.bias.value.fill(0.0);
