@@ -154,7 +154,7 @@ impl<T: ConsistencyTeacher> Objective<T> for CdObjective {
         }
         core.teacher_heun(self.x_hi.as_ref(), &self.sigma_hi, &self.sigma_lo, self.x_lo.as_mut())?;
         self.pre.coefficients(&mut self.coef, &self.sigma_lo, &self.sigma_lo);
-        core.target.forward_preconditioned(
+        core.target.forward_preconditioned_inference(
             self.x_lo.as_ref(),
             core.batch.states.as_ref(),
             &self.coef,

@@ -370,7 +370,7 @@ impl<T: ConsistencyTeacher> Objective<T> for CtmObjective {
             ensure(m, rows, c);
         }
         self.pre.coefficients(&mut self.coef, &self.mid, &self.u);
-        core.target.forward_preconditioned(
+        core.target.forward_preconditioned_inference(
             self.x_hat.as_ref(),
             core.batch.states.as_ref(),
             &self.coef,
@@ -385,7 +385,7 @@ impl<T: ConsistencyTeacher> Objective<T> for CtmObjective {
             self.pre.coefficients(&mut self.boundary_coef, &self.u, &self.sigma_min_rows);
             ensure(&mut self.mapped, n, d);
             ensure(&mut self.mapped_grad, n, d);
-            frozen.forward_preconditioned(
+            frozen.forward_preconditioned_inference(
                 self.target.as_ref().subrows(0, n),
                 core.batch.states.as_ref(),
                 &self.boundary_coef,

@@ -71,7 +71,12 @@ fn sample_along<P: Sampling>(
         }
         scratch.set_levels(n, w[0], w[1]);
         pre.coefficients(&mut scratch.coef, &scratch.t, &scratch.u);
-        net.forward_preconditioned(scratch.x.as_ref(), states, &scratch.coef, out.rb_mut());
+        net.forward_preconditioned_inference(
+            scratch.x.as_ref(),
+            states,
+            &scratch.coef,
+            out.rb_mut(),
+        );
     }
 }
 
@@ -270,7 +275,7 @@ impl<P: Sampling> DistilledPolicy<P> {
     ) {
         let Self { net, pre, scratch, .. } = self;
         coefficients(pre, &mut scratch.coef);
-        net.forward_preconditioned(x, states, &scratch.coef, out);
+        net.forward_preconditioned_inference(x, states, &scratch.coef, out);
     }
 }
 

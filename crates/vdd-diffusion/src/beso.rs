@@ -190,7 +190,7 @@ fn denoise_unchecked(
     out: MatMut<'_, f32>,
 ) {
     pre.write_coefficients(sigma, coef);
-    net.forward_preconditioned(x, states, coef, out);
+    net.forward_preconditioned_inference(x, states, coef, out);
 }
 
 impl DsmNoise for BesoProcess {

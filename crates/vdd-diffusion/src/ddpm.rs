@@ -136,7 +136,7 @@ fn eps_unchecked(
 ) {
     scratch.clear();
     scratch.extend(t.iter().map(|&t| c_noise(schedule, t)));
-    out.copy_from(net.forward(x, states, scratch));
+    out.copy_from(net.forward_inference(x, states, scratch));
 }
 
 impl DsmNoise for DdpmProcess {

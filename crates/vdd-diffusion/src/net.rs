@@ -367,6 +367,20 @@ impl DenoiserNet {
         self.forward_conditioned(x, states, &[c_noise])
     }
 
+    /// [`DenoiserNet::forward`] for inference: the same output, bit for bit, keeping nothing
+    /// for a backward pass ([`Module::forward_inference`](vdd_nn::Module::forward_inference)).
+    ///
+    /// # Panics
+    /// On mismatched shapes (callers validate user data first).
+    pub fn forward_inference(
+        &mut self,
+        x: MatRef<'_, f32>,
+        states: MatRef<'_, f32>,
+        c_noise: &[f32],
+    ) -> MatRef<'_, f32> {
+        self.conditioned(x, states, &[c_noise], true)
+    }
+
     /// Forward pass with one noise condition per level: `x` is `n x action_dim`, `states`
     /// `n x state_dim`, `conditions` has [`DenoiserNet::levels`] entries of `n` each. Returns a
     /// view into the network's output buffer.
@@ -379,6 +393,16 @@ impl DenoiserNet {
         states: MatRef<'_, f32>,
         conditions: &[C],
     ) -> MatRef<'_, f32> {
+        self.conditioned(x, states, conditions, false)
+    }
+
+    fn conditioned<C: AsRef<[f32]>>(
+        &mut self,
+        x: MatRef<'_, f32>,
+        states: MatRef<'_, f32>,
+        conditions: &[C],
+        inference: bool,
+    ) -> MatRef<'_, f32> {
         let n = x.nrows();
         assert!(
             x.ncols() == self.action_dim
@@ -389,7 +413,10 @@ impl DenoiserNet {
             "DenoiserNet: input shapes"
         );
         self.embedding.write_input(&mut self.input, x, states, conditions);
-        self.mlp.forward(self.input.as_ref())
+        match inference {
+            true => self.mlp.forward_inference(self.input.as_ref()),
+            false => self.mlp.forward(self.input.as_ref()),
+        }
     }
 
     /// The preconditioned evaluation `out_i = c_skip_i x_i + c_out_i F(c_in_i x_i, s_i, c_noise_i)`
@@ -404,7 +431,33 @@ impl DenoiserNet {
         x: MatRef<'_, f32>,
         states: MatRef<'_, f32>,
         coef: &RowCoefficients,
+        out: MatMut<'_, f32>,
+    ) {
+        self.preconditioned(x, states, coef, out, false)
+    }
+
+    /// [`DenoiserNet::forward_preconditioned`] for inference: the same output, bit for bit,
+    /// keeping nothing for a backward pass (a teacher's score, a sampler, a target network).
+    ///
+    /// # Panics
+    /// On mismatched shapes (callers validate user data first).
+    pub fn forward_preconditioned_inference(
+        &mut self,
+        x: MatRef<'_, f32>,
+        states: MatRef<'_, f32>,
+        coef: &RowCoefficients,
+        out: MatMut<'_, f32>,
+    ) {
+        self.preconditioned(x, states, coef, out, true)
+    }
+
+    fn preconditioned(
+        &mut self,
+        x: MatRef<'_, f32>,
+        states: MatRef<'_, f32>,
+        coef: &RowCoefficients,
         mut out: MatMut<'_, f32>,
+        inference: bool,
     ) {
         let (n, d) = (x.nrows(), x.ncols());
         assert!(
@@ -425,7 +478,7 @@ impl DenoiserNet {
                 col[i] = coef.c_in[i] * x[(i, j)];
             }
         }
-        let f = self.forward_conditioned(x_in.as_ref(), states, &coef.c_noise[..]);
+        let f = self.conditioned(x_in.as_ref(), states, &coef.c_noise[..], inference);
         for j in 0..d {
             for i in 0..n {
                 out[(i, j)] = coef.c_skip[i] * x[(i, j)] + coef.c_out[i] * f[(i, j)];
@@ -514,6 +567,29 @@ mod tests {
             DenoiserNet::new(&NetConfig { embed_dim: 3, ..cfg.clone() }, 2, 1, &mut rng).is_err()
         );
         assert!(DenoiserNet::new(&cfg, 0, 1, &mut rng).is_err());
+    }
+
+    #[test]
+    fn inference_passes_give_the_forward_bits() {
+        let cfg = NetConfig { hidden_dim: 8, num_blocks: 1, embed_dim: 4, ..Default::default() };
+        let mut net =
+            DenoiserNet::new(&cfg, 2, 1, &mut vdd_core::Seeds::new(2).stream("init")).unwrap();
+        for n in [1, 6] {
+            let x = Mat::from_fn(n, 2, |i, j| i as f32 * 0.7 - j as f32 * 1.3);
+            let s = Mat::from_fn(n, 1, |i, _| 0.2 * i as f32);
+            let c: Vec<f32> = (0..n).map(|i| -1.0 + 0.4 * i as f32).collect();
+            let want = net.forward(x.as_ref(), s.as_ref(), &c).to_owned();
+            assert_eq!(net.forward_inference(x.as_ref(), s.as_ref(), &c).to_owned(), want);
+            let mut coef = RowCoefficients::default();
+            coef.clear(1);
+            for i in 0..n {
+                coef.push(0.5 + 0.1 * i as f32, &[c[i]], 0.3, 1.7);
+            }
+            let (mut a, mut b) = (Mat::zeros(n, 2), Mat::zeros(n, 2));
+            net.forward_preconditioned(x.as_ref(), s.as_ref(), &coef, a.as_mut());
+            net.forward_preconditioned_inference(x.as_ref(), s.as_ref(), &coef, b.as_mut());
+            assert_eq!(a, b);
+        }
     }
 
     #[test]

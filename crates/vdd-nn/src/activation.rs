@@ -120,6 +120,48 @@ impl Activation {
         self.apply_slices_portable(x, y, d)
     }
 
+    /// `y = f(x)` element-wise over slices of equal length, without the derivative: the same
+    /// bits as [`Activation::apply_slices`]'s `y` (inference, where nothing is differentiated).
+    pub fn apply_values(self, x: &[f32], y: &mut [f32]) {
+        #[cfg(target_arch = "x86_64")]
+        if std::arch::is_x86_feature_detected!("avx2") {
+            // SAFETY: the CPU supports AVX2, checked just above.
+            unsafe { self.apply_values_avx2(x, y) };
+            return;
+        }
+        self.apply_values_portable(x, y)
+    }
+
+    /// [`Activation::apply_values_portable`] compiled for AVX2.
+    ///
+    /// # Safety
+    /// The CPU must support AVX2.
+    #[cfg(target_arch = "x86_64")]
+    #[target_feature(enable = "avx2")]
+    unsafe fn apply_values_avx2(self, x: &[f32], y: &mut [f32]) {
+        self.apply_values_portable(x, y)
+    }
+
+    /// The value half of [`Activation::apply_slices_portable`]: the same expressions, the
+    /// derivative's left out.
+    #[inline(always)]
+    fn apply_values_portable(self, x: &[f32], y: &mut [f32]) {
+        let y = &mut y[..x.len()];
+        match self {
+            Activation::Identity => y.copy_from_slice(x),
+            Activation::Relu => {
+                y.iter_mut().zip(x).for_each(|(y, &x)| *y = if x > 0.0 { x } else { 0.0 })
+            }
+            Activation::Mish => {
+                y.iter_mut().zip(x).for_each(|(y, &x)| *y = mish_with_derivative(x).0)
+            }
+            Activation::Silu => {
+                y.iter_mut().zip(x).for_each(|(y, &x)| *y = silu_with_derivative(x).0)
+            }
+            other => y.iter_mut().zip(x).for_each(|(y, &x)| *y = other.apply_with_derivative(x).0),
+        }
+    }
+
     #[inline(always)]
     fn apply_slices_portable(self, x: &[f32], y: &mut [f32], d: &mut [f32]) {
         let n = x.len();
@@ -197,6 +239,8 @@ pub struct ActivationLayer {
     row: Vec<f32>,
     /// Whether the last forward took that path (its derivatives are in `row`).
     single_row: bool,
+    /// Whether the last forward kept its derivatives (not [`Module::forward_inference`]).
+    kept: bool,
 }
 
 impl ActivationLayer {
@@ -211,6 +255,7 @@ impl ActivationLayer {
             grad_input: Mat::zeros(0, 0),
             row: Vec::new(),
             single_row: false,
+            kept: false,
         }
     }
 
@@ -237,6 +282,7 @@ impl Module for ActivationLayer {
         assert_eq!(x.ncols(), self.dim, "activation: input width");
         let (n, d) = (x.nrows(), self.dim);
         self.single_row = n == 1;
+        self.kept = true;
         if n == 1 {
             // The same element-wise function, so the same bits as the column loop below; the
             // output is a contiguous row.
@@ -260,7 +306,27 @@ impl Module for ActivationLayer {
         self.output.as_ref()
     }
 
+    fn forward_inference(&mut self, x: MatRef<'_, f32>) -> MatRef<'_, f32> {
+        assert_eq!(x.ncols(), self.dim, "activation: input width");
+        let (n, d) = (x.nrows(), self.dim);
+        self.kept = false;
+        if n == 1 {
+            self.row.resize(2 * d, 0.0);
+            let (xs, ys) = self.row.split_at_mut(d);
+            gather_row(x, xs);
+            self.activation.apply_values(xs, ys);
+            return MatRef::from_row_major_slice(ys, 1, d);
+        }
+        let x = contiguous(x, &mut self.scratch);
+        ensure_shape(&mut self.output, n, d);
+        for j in 0..d {
+            self.activation.apply_values(col_slice(x, j), self.output.col_as_slice_mut(j));
+        }
+        self.output.as_ref()
+    }
+
     fn backward(&mut self, grad_out: MatRef<'_, f32>) -> MatRef<'_, f32> {
+        assert!(self.kept, "activation: backward without a forward that kept its derivatives");
         let d = self.dim;
         if self.single_row {
             assert_eq!((grad_out.nrows(), grad_out.ncols()), (1, d), "activation: grad shape");
@@ -286,11 +352,12 @@ impl Module for ActivationLayer {
 }
 
 #[cfg(test)]
-mod tests {
+pub(crate) mod tests {
     use super::*;
     use crate::gradcheck::check_module;
 
-    const ALL: [Activation; 7] = [
+    /// Every activation.
+    pub(crate) const ALL: [Activation; 7] = [
         Activation::Identity,
         Activation::Relu,
         Activation::Tanh,

@@ -34,6 +34,8 @@ pub struct Linear {
     row: Vec<f32>,
     /// Whether the last forward took that path (its input is in `row`, not `input`).
     single_row: bool,
+    /// Whether the last forward kept its input (not [`Module::forward_inference`]).
+    kept: bool,
 }
 
 impl Linear {
@@ -64,6 +66,7 @@ impl Linear {
             grad_input: Mat::zeros(0, 0),
             row: Vec::new(),
             single_row: false,
+            kept: false,
         }
     }
 
@@ -127,18 +130,13 @@ impl Parameters for Linear {
     }
 }
 
-impl Module for Linear {
-    fn in_dim(&self) -> usize {
-        self.in_dim
-    }
-    fn out_dim(&self) -> usize {
-        self.out_dim
-    }
-
-    fn forward(&mut self, x: MatRef<'_, f32>) -> MatRef<'_, f32> {
+impl Linear {
+    /// `y = x Wᵀ + b`, keeping `x` for `backward` when `keep`.
+    fn affine(&mut self, x: MatRef<'_, f32>, keep: bool) -> MatRef<'_, f32> {
         assert_eq!(x.ncols(), self.in_dim, "Linear: input width");
         let n = x.nrows();
         self.single_row = n == 1;
+        self.kept = keep;
         if n == 1 {
             // One row (acting on one observation): a general matrix product runs scalar code
             // here, the row kernel runs SIMD (see `affine_row`). The output is a contiguous row.
@@ -149,8 +147,10 @@ impl Module for Linear {
             affine_row(&self.weight.value, &self.bias.value, xs, ys);
             return MatRef::from_row_major_slice(ys, 1, m);
         }
-        ensure_shape(&mut self.input, n, self.in_dim);
-        self.input.copy_from(x);
+        if keep {
+            ensure_shape(&mut self.input, n, self.in_dim);
+            self.input.copy_from(x);
+        }
         ensure_shape(&mut self.output, n, self.out_dim);
         // y = b (broadcast), then y += x Wᵀ: one pass over the output for the bias.
         for (j, &b) in self.bias.value.iter().enumerate() {
@@ -160,8 +160,26 @@ impl Module for Linear {
         matmul(self.output.as_mut(), Accum::Add, x, wt, 1.0, Par::Seq);
         self.output.as_ref()
     }
+}
+
+impl Module for Linear {
+    fn in_dim(&self) -> usize {
+        self.in_dim
+    }
+    fn out_dim(&self) -> usize {
+        self.out_dim
+    }
+
+    fn forward(&mut self, x: MatRef<'_, f32>) -> MatRef<'_, f32> {
+        self.affine(x, true)
+    }
+
+    fn forward_inference(&mut self, x: MatRef<'_, f32>) -> MatRef<'_, f32> {
+        self.affine(x, false)
+    }
 
     fn backward(&mut self, grad_out: MatRef<'_, f32>) -> MatRef<'_, f32> {
+        assert!(self.kept, "Linear: backward without a forward that kept its input");
         let k = self.in_dim;
         let input = match self.single_row {
             true => MatRef::from_row_major_slice(&self.row[..k], 1, k),

@@ -25,11 +25,33 @@ pub trait Module: Parameters {
     /// If `x.ncols() != self.in_dim()`: callers validate user data before it reaches a network.
     fn forward(&mut self, x: MatRef<'_, f32>) -> MatRef<'_, f32>;
 
+    /// [`Module::forward`] for inference: the same output, bit for bit, without keeping what
+    /// `backward` needs (no copy of the input, no activation derivatives). Use it where nothing
+    /// is differentiated: a teacher's score, a sampler, a policy acting. The default is
+    /// `forward`.
+    ///
+    /// # Panics
+    /// As [`Module::forward`]; and a `backward` right after it panics (no forward kept its
+    /// inputs).
+    fn forward_inference(&mut self, x: MatRef<'_, f32>) -> MatRef<'_, f32> {
+        self.forward(x)
+    }
+
     /// Backward pass for the last forward; `grad_out` is `n x out_dim`, returns `n x in_dim`.
     ///
     /// # Panics
     /// If `grad_out` does not match the last forward's output shape.
     fn backward(&mut self, grad_out: MatRef<'_, f32>) -> MatRef<'_, f32>;
+}
+
+/// `m`'s [`Module::forward`], or its [`Module::forward_inference`] when `inference`.
+#[inline]
+pub(crate) fn forward_as<'a, M: Module + ?Sized>(
+    m: &'a mut M,
+    x: MatRef<'_, f32>,
+    inference: bool,
+) -> MatRef<'a, f32> {
+    if inference { m.forward_inference(x) } else { m.forward(x) }
 }
 
 /// Copies the single row of `x` (`1 x dst.len()`) into `dst`: a slice copy when the row is

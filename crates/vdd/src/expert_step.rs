@@ -450,6 +450,7 @@ pub fn moments_from_noise<S: ScoreModel + ?Sized>(
             (1, 8) => block.run(1, 8, out),
             (2, 4) => block.run(2, 4, out),
             (2, 8) => block.run(2, 8, out),
+            (2, 16) => block.run(2, 16, out),
             (1, _) => block.run(1, z_n, out),
             (2, _) => block.run(2, z_n, out),
             (3, _) => block.run(3, z_n, out),

@@ -64,13 +64,23 @@ impl<E: Expert> Moe<E> {
 
     /// Computes `log q(z|s)` for `n x state_dim` states into [`Moe::output`].
     pub fn forward_gating(&mut self, states: MatRef<'_, f32>) -> Result<(), MoeError> {
+        self.gating_pass(states, false)
+    }
+
+    /// [`Moe::forward_gating`]; with `inference`, an inference pass that keeps nothing for a
+    /// backward one ([`vdd_nn::Module::forward_inference`], the same bits).
+    pub(super) fn gating_pass(
+        &mut self,
+        states: MatRef<'_, f32>,
+        inference: bool,
+    ) -> Result<(), MoeError> {
         self.check_states(states)?;
         let (n, z) = (states.nrows(), self.config.num_experts);
         self.out.log_gating.resize(n * z, 0.0);
         match &mut self.gating {
             None => self.out.log_gating.fill(-(z as f32).ln()),
             Some(net) => {
-                let y = net.forward(states);
+                let y = if inference { net.forward_inference(states) } else { net.forward(states) };
                 for b in 0..n {
                     let row = &mut self.out.log_gating[b * z..(b + 1) * z];
                     for (e, v) in row.iter_mut().enumerate() {
@@ -83,7 +93,7 @@ impl<E: Expert> Moe<E> {
                 }
             }
         }
-        self.gating_forwarded = true;
+        self.gating_forwarded = !inference;
         Ok(())
     }
 

@@ -112,8 +112,8 @@ impl<E: Expert> Moe<E> {
         states: MatRef<'_, f32>,
         mut actions: faer::MatMut<'_, f32>,
     ) -> vdd_core::Result<()> {
-        self.forward_gating(states).map_err(to_core)?;
-        // The experts' caches no longer match `output()`: a backward pass needs a forward.
+        // Inference passes: a backward pass needs a forward first.
+        self.gating_pass(states, true).map_err(to_core)?;
         self.experts_forwarded = false;
         let (z, r, d) = (self.config.num_experts, self.expert.raw_dim(), self.config.action_dim);
         let h = self.config.experts_network.hidden_dim;
@@ -199,7 +199,7 @@ impl<E: Expert> Moe<E> {
                     );
                 }
                 Source::Nets(nets) => {
-                    let y = nets[e].forward(states.subrows(b, 1));
+                    let y = nets[e].forward_inference(states.subrows(b, 1));
                     for (c, v) in raw.iter_mut().enumerate() {
                         *v = y[(0, c)];
                     }
