@@ -111,8 +111,9 @@ pub struct LogEntry {
     pub train_seconds: Vec<f64>,
     /// The run directory, relative to the repository.
     pub run: String,
-    /// Why the run failed, for a configuration that did not finish (written by hand: its
-    /// figures are those of the seeds that finished, if any). It still counts as tried.
+    /// Why the run failed, for a configuration that did not finish. A failed tuning run
+    /// writes it with the error and no figures; an entry written by hand may carry the figures
+    /// of the seeds that finished. It still counts as tried.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub failure: Option<String>,
 }

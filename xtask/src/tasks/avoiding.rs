@@ -199,54 +199,83 @@ impl Task for Avoiding {
             base.header.seeds.len(),
             teachers::rel(&dir)
         ));
-        let mut stages = StageTimes::default();
-        let cores = std::thread::available_parallelism().map_or(1, |p| p.get());
-        let threads = base.eval.eval_threads();
-        let jobs = if base.jobs == 0 { cores } else { base.jobs };
-
-        // One dataset per distinct `data` table (usually one), whatever the seed.
-        let key =
-            |_, pi: usize| -> crate::XResult<_> { Ok(recipe::config_hash(&plan[pi].cfg.data)?) };
-        let prepare = |_, pi: usize| stages.time("data", || prepare(&plan[pi].cfg.data));
-        let data = Datasets::build(base.header.seeds.len(), plan.len(), key, prepare)?;
-        let students = StudentCache { dir: &ctx.student_cache_dir, fresh: ctx.fresh };
-        let mut trainings = pipeline::train_all(
-            ctx,
-            &plan,
-            &base.header.seeds,
-            &data,
-            jobs,
-            (Some(students), &curves_of),
-            &mut stages,
-        )?;
-
-        // Evaluation, one method at a time (rollouts on every core), then the seed's
-        // single-threaded timing with nothing else running.
-        let mut out = Collected { rows: pipeline::empty_rows(&plan), ..Default::default() };
-        for (si, &seed) in base.header.seeds.iter().enumerate() {
-            let mut timed = Vec::with_capacity(plan.len());
-            for (pi, e) in plan.iter().enumerate() {
-                let trained = trainings.trained.remove(&(si, pi)).ok_or("internal: not trained")?;
-                let first = si == 0;
-                let (row, policy) =
-                    evaluate(e, trained, seed, first, threads, &dir, &mut out, &mut stages)?;
-                out.rows[pi].1.push(row);
-                timed.push((pi, policy));
+        let result =
+            run_plan(ctx, base, &plan, &dir, &log, is_tuning.then_some(log_path.as_path()));
+        if let (Err(e), true) = (&result, is_tuning) {
+            // A configuration that failed was still tried: the log says so, with the error.
+            let mut rows = pipeline::empty_rows(&plan);
+            let mut entries = tuning_entries(ctx, &plan, &log, &dir, &mut rows)?;
+            for entry in &mut entries {
+                entry.seeds.clone_from(&base.header.seeds);
+                entry.failure = Some(format!("the run failed: {e}"));
             }
-            let t0 = Instant::now();
-            time_seed(&plan, &data, si, seed, timed, &mut out.rows)?;
-            stages.add("timing", t0.elapsed().as_secs_f64());
-        }
-        let entries = tuning_entries(ctx, &plan, &log, &dir, &mut out.rows)?;
-        let summary = data.get(0, 0).summary.clone();
-        write_outputs(ctx, &dir, base, out, summary, trainings.teachers.log, jobs, &mut stages)?;
-        if is_tuning {
             let n = entries.len();
             tuning::append_log(&log_path, entries)?;
-            println!("tuning log: {n} entries appended to {}", teachers::rel(&log_path));
+            eprintln!(
+                "tuning log: {n} entries with the run's error appended to {}",
+                teachers::rel(&log_path)
+            );
         }
-        Ok(())
+        result
     }
+}
+
+/// Trains, evaluates and reports `plan` into `dir`, with `tuning_configs` from the tuning `log`;
+/// a tuning run (`tuning_log`: the log's path) appends one entry per method to it.
+fn run_plan(
+    ctx: &RunContext,
+    base: &AvoidingRecipe,
+    plan: &[Entry<'_, AvoidingRecipe>],
+    dir: &std::path::Path,
+    log: &[tuning::LogEntry],
+    tuning_log: Option<&std::path::Path>,
+) -> crate::XResult {
+    let mut stages = StageTimes::default();
+    let cores = std::thread::available_parallelism().map_or(1, |p| p.get());
+    let threads = base.eval.eval_threads();
+    let jobs = if base.jobs == 0 { cores } else { base.jobs };
+
+    // One dataset per distinct `data` table (usually one), whatever the seed.
+    let key = |_, pi: usize| -> crate::XResult<_> { Ok(recipe::config_hash(&plan[pi].cfg.data)?) };
+    let prepare = |_, pi: usize| stages.time("data", || prepare(&plan[pi].cfg.data));
+    let data = Datasets::build(base.header.seeds.len(), plan.len(), key, prepare)?;
+    let students = StudentCache { dir: &ctx.student_cache_dir, fresh: ctx.fresh };
+    let mut trainings = pipeline::train_all(
+        ctx,
+        plan,
+        &base.header.seeds,
+        &data,
+        jobs,
+        (Some(students), &curves_of),
+        &mut stages,
+    )?;
+
+    // Evaluation, one method at a time (rollouts on every core), then the seed's
+    // single-threaded timing with nothing else running.
+    let mut out = Collected { rows: pipeline::empty_rows(plan), ..Default::default() };
+    for (si, &seed) in base.header.seeds.iter().enumerate() {
+        let mut timed = Vec::with_capacity(plan.len());
+        for (pi, e) in plan.iter().enumerate() {
+            let trained = trainings.trained.remove(&(si, pi)).ok_or("internal: not trained")?;
+            let first = si == 0;
+            let (row, policy) =
+                evaluate(e, trained, seed, first, threads, dir, &mut out, &mut stages)?;
+            out.rows[pi].1.push(row);
+            timed.push((pi, policy));
+        }
+        let t0 = Instant::now();
+        time_seed(plan, &data, si, seed, timed, &mut out.rows)?;
+        stages.add("timing", t0.elapsed().as_secs_f64());
+    }
+    let entries = tuning_entries(ctx, plan, log, dir, &mut out.rows)?;
+    let summary = data.get(0, 0).summary.clone();
+    write_outputs(ctx, dir, base, out, summary, trainings.teachers.log, jobs, &mut stages)?;
+    if let Some(path) = tuning_log {
+        let n = entries.len();
+        tuning::append_log(path, entries)?;
+        println!("tuning log: {n} entries appended to {}", teachers::rel(path));
+    }
+    Ok(())
 }
 
 /// Adds `tuning_configs` (the method's configurations in the tuning `log`) to every row and
