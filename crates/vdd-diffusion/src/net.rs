@@ -413,10 +413,7 @@ impl DenoiserNet {
             "DenoiserNet: input shapes"
         );
         self.embedding.write_input(&mut self.input, x, states, conditions);
-        match inference {
-            true => self.mlp.forward_inference(self.input.as_ref()),
-            false => self.mlp.forward(self.input.as_ref()),
-        }
+        vdd_nn::forward_as(&mut self.mlp, self.input.as_ref(), inference)
     }
 
     /// The preconditioned evaluation `out_i = c_skip_i x_i + c_out_i F(c_in_i x_i, s_i, c_noise_i)`

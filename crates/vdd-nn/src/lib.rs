@@ -39,7 +39,7 @@ pub use embedding::{
 pub use error::NnError;
 pub use linear::Linear;
 pub use mlp::{Mlp, MlpConfig, ResidualBlock, ResidualMlp, ResidualMlpConfig};
-pub use module::Module;
+pub use module::{Module, forward_as};
 pub use norm::{LAYER_NORM_EPS, LayerNorm};
 pub use optim::{Adam, AdamConfig, NonFiniteGradient, clip_grad_norm, clip_grad_norm_checked};
 pub use param::{Param, Parameters, join_name};

@@ -430,11 +430,21 @@ impl ResidualMlp {
     /// An inference pass ([`Module::forward_inference`]): run [`Module::forward`] before a
     /// backward pass.
     pub fn forward_hidden(&mut self, x: MatRef<'_, f32>) -> (MatRef<'_, f32>, &Linear) {
-        let mut h = self.input.forward_inference(x);
-        for b in &mut self.blocks {
-            h = b.forward_inference(h);
+        (Self::trunk(&mut self.input, &mut self.blocks, x, true), &self.output)
+    }
+
+    /// The input layer and the blocks ([`forward_as`]).
+    fn trunk<'a>(
+        input: &'a mut Linear,
+        blocks: &'a mut [ResidualBlock],
+        x: MatRef<'_, f32>,
+        inference: bool,
+    ) -> MatRef<'a, f32> {
+        let mut h = forward_as(input, x, inference);
+        for b in blocks {
+            h = forward_as(b, h, inference);
         }
-        (h, &self.output)
+        h
     }
 
     /// The output layer (e.g. to initialise its bias in a range).
@@ -501,18 +511,12 @@ impl Module for ResidualMlp {
     }
 
     fn forward(&mut self, x: MatRef<'_, f32>) -> MatRef<'_, f32> {
-        let mut h = self.input.forward(x);
-        for b in &mut self.blocks {
-            h = b.forward(h);
-        }
+        let h = Self::trunk(&mut self.input, &mut self.blocks, x, false);
         self.output.forward(h)
     }
 
     fn forward_inference(&mut self, x: MatRef<'_, f32>) -> MatRef<'_, f32> {
-        let mut h = self.input.forward_inference(x);
-        for b in &mut self.blocks {
-            h = b.forward_inference(h);
-        }
+        let h = Self::trunk(&mut self.input, &mut self.blocks, x, true);
         self.output.forward_inference(h)
     }
 

@@ -44,9 +44,18 @@ pub trait Module: Parameters {
     fn backward(&mut self, grad_out: MatRef<'_, f32>) -> MatRef<'_, f32>;
 }
 
-/// `m`'s [`Module::forward`], or its [`Module::forward_inference`] when `inference`.
+/// `m`'s [`Module::forward`], or its [`Module::forward_inference`] when `inference`: for code
+/// that runs one path for training and inference alike.
+///
+/// ```
+/// use vdd_nn::{Linear, Module, forward_as};
+/// let mut layer = Linear::new(3, 2, &mut vdd_core::Seeds::new(0).stream("init"));
+/// let x = faer::Mat::<f32>::ones(4, 3);
+/// let train = forward_as(&mut layer, x.as_ref(), false).to_owned();
+/// assert_eq!(forward_as(&mut layer, x.as_ref(), true).to_owned(), train);
+/// ```
 #[inline]
-pub(crate) fn forward_as<'a, M: Module + ?Sized>(
+pub fn forward_as<'a, M: Module + ?Sized>(
     m: &'a mut M,
     x: MatRef<'_, f32>,
     inference: bool,

@@ -80,7 +80,7 @@ impl<E: Expert> Moe<E> {
         match &mut self.gating {
             None => self.out.log_gating.fill(-(z as f32).ln()),
             Some(net) => {
-                let y = if inference { net.forward_inference(states) } else { net.forward(states) };
+                let y = vdd_nn::forward_as(net, states, inference);
                 for b in 0..n {
                     let row = &mut self.out.log_gating[b * z..(b + 1) * z];
                     for (e, v) in row.iter_mut().enumerate() {
