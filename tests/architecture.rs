@@ -103,6 +103,25 @@ fn crate_dependency_rules_hold() {
         ),
         // ONNX export reads a saved student; it knows no teacher, trainer or task.
         ("vdd-onnx", &["vdd-core", "vdd-nn", "vdd-data", "vdd-moe"]),
+        // The experiment layer wires teachers, methods and tasks into rows of results; no
+        // tool (xtask), binding (vdd-py) or exporter depends on it or is known by it.
+        (
+            "vdd-lab",
+            &[
+                "vdd-core",
+                "vdd-nn",
+                "vdd-data",
+                "vdd-diffusion",
+                "vdd-moe",
+                "vdd",
+                "vdd-mixture",
+                "vdd-consistency",
+                "vdd-tasks",
+                "vdd-report",
+                "vdd-recipe",
+                "vdd-import",
+            ],
+        ),
         // The fuzzer's engine exercises the loaders it fuzzes; no task, recipe or tool code.
         ("vdd-fuzz", &["vdd-core", "vdd-nn", "vdd-data", "vdd-moe", "vdd-diffusion", "vdd"]),
     ];

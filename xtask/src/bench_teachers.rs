@@ -27,7 +27,7 @@ use vdd_diffusion::acceptance::ToyTeachers;
 use vdd_diffusion::acceptance::report::{self, BenchOptions};
 use vdd_diffusion::{DiffusionTeacher, TeacherKind};
 
-use crate::teachers;
+use vdd_lab::teachers;
 
 /// The command line of `bench teachers`.
 #[derive(Debug, Clone, clap::Args)]

@@ -42,7 +42,7 @@ pub struct AvoidingArgs {
 /// `cargo xtask demos avoiding`.
 pub fn avoiding(args: &AvoidingArgs) -> crate::XResult {
     if let Some(path) = &args.export {
-        let data = crate::tasks::AvoidingRecipe::defaults()?.data;
+        let data = vdd_lab::tasks::AvoidingRecipe::defaults()?.data;
         let (train, _) = data.train_episodes()?;
         train.save_npz(path)?;
         let f = data.features.feature_map();

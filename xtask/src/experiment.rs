@@ -1,4 +1,5 @@
-//! `cargo xtask experiment <recipe> [options]`: resolves a recipe and runs its task pipeline.
+//! `cargo xtask experiment <recipe> [options]`: the command line of [`vdd_lab::experiment`],
+//! which resolves a recipe and runs its task.
 //!
 //! ```text
 //! cargo xtask experiment <recipe|path.toml> [--seed N | --seeds 0,1,2] [--methods a,b]
@@ -6,21 +7,11 @@
 //! ```
 //!
 //! Results go to `--out DIR`, by default `results/<recipe>/<run>/` (see
-//! [`crate::context::run_name`]). A run directory holds `resolved.toml` (the full
-//! configuration, enough to re-run it as a recipe), `run.json` (command, git revision and dirty
-//! flag, wall time), `metrics.json`, `table.md` and the plots.
-//!
-//! Modules depend one way: this command → the tasks ([`crate::tasks`], found by the recipe's
-//! `task` key) → the shared stages ([`crate::pipeline`]) → the methods ([`crate::methods`],
-//! [`crate::method`]) → shared leaves ([`crate::context`], [`crate::recipe`], [`crate::report`],
-//! ...). The tasks get what they need from the command in a [`RunContext`].
+//! [`vdd_lab::context::run_name`]); [`vdd_lab::experiment`] lists what a run directory holds.
 
 use std::path::PathBuf;
-use std::time::Instant;
 
-use crate::context::RunContext;
-use crate::recipe::{self, Overrides};
-use crate::tasks;
+use vdd_lab::recipe::{self, Overrides};
 
 /// The command line of `experiment` (repeating an option other than `--set` keeps the last).
 #[derive(Debug, Clone, Default, PartialEq, clap::Args)]
@@ -127,40 +118,16 @@ impl ExperimentArgs {
 
 /// Runs the command; `command` is the command line, for `resolved.toml` and `run.json`.
 pub fn run(parsed: &ExperimentArgs, command: &str) -> crate::XResult {
-    let started = Instant::now();
-    let path = recipe::recipe_path(&parsed.recipe)?;
-    let file = recipe::read_recipe(&path)?;
-    let name = file
-        .get("name")
-        .and_then(|v| v.as_str())
-        .map(String::from)
-        .or_else(|| path.file_stem().and_then(|s| s.to_str()).map(String::from))
-        .unwrap_or_else(|| parsed.recipe.clone());
-    let names = || tasks::REGISTRY.iter().map(|t| t.name()).collect::<Vec<_>>().join(", ");
-    let task = file
-        .get("task")
-        .and_then(|v| v.as_str())
-        .ok_or_else(|| format!("{} has no `task` key ({})", path.display(), names()))?;
-    let task = tasks::find(task).map_err(|e| format!("{e} in {}", path.display()))?;
-    let mut overrides = parsed.overrides();
-    task.apply_shorthands(&parsed.shorthands(), &mut overrides)?;
-    let ctx = RunContext {
-        name,
-        file,
-        overrides,
+    let request = vdd_lab::experiment::Request {
+        recipe: parsed.recipe.clone(),
+        overrides: parsed.overrides(),
+        shorthands: parsed.shorthands(),
         out: parsed.out.clone(),
         fresh: parsed.fresh,
         resume: parsed.resume,
-        cache_dir: recipe::repo_root().join("results").join("cache").join("teachers"),
-        student_cache_dir: recipe::repo_root().join("results").join("cache").join("students"),
         command: command.to_owned(),
-        started,
     };
-    let result = task.run(&ctx);
-    if result.is_err() {
-        crate::context::remove_created_run_dir();
-    }
-    result
+    Ok(vdd_lab::experiment::run(&request)?)
 }
 
 #[cfg(test)]

@@ -63,7 +63,7 @@ pub struct CaseArgs {
 pub fn case(a: &CaseArgs) -> ! {
     set_limits(a.memory_mib, a.cpu_seconds);
     let check_recipe = |path: &Path| -> XResult {
-        crate::tasks::check_toy_gmm(&crate::recipe::read_recipe(path)?)
+        Ok(vdd_lab::tasks::check_toy_gmm(&vdd_lab::recipe::read_recipe(path)?)?)
     };
     let run = a.target.parse().and_then(|t| vdd_fuzz::run_case(t, &a.dir, check_recipe));
     match run {

@@ -18,22 +18,14 @@
 mod bench_nn;
 mod bench_robust;
 mod bench_teachers;
-mod context;
 mod demos;
 mod experiment;
 mod export_onnx;
 mod fuzz;
 mod import;
-mod method;
-mod methods;
-mod pipeline;
-mod plots;
-mod policy;
-mod recipe;
 mod report;
-mod tasks;
-mod teachers;
-mod tuning;
+
+use vdd_lab::recipe;
 
 /// Errors of any xtask command, printed at the top level.
 pub type XResult<T = ()> = Result<T, Box<dyn std::error::Error>>;
@@ -107,6 +99,7 @@ fn parse<S: Into<std::ffi::OsString> + Clone>(args: &[S]) -> Result<Cli, clap::E
 }
 
 fn main() {
+    vdd_lab::progress::set_sink(std::sync::Arc::new(progress::Terminal));
     // Not `env::args`, which panics on words that are not UTF-8: clap reports them.
     let args: Vec<std::ffi::OsString> = std::env::args_os().skip(1).collect();
     if args.is_empty() {
@@ -151,6 +144,7 @@ pub mod progress {
     use std::sync::OnceLock;
 
     use indicatif::{MultiProgress, ProgressBar, ProgressStyle};
+    use vdd_lab::progress::{Bar, Sink};
 
     fn multi() -> &'static MultiProgress {
         static MULTI: OnceLock<MultiProgress> = OnceLock::new();
@@ -186,6 +180,42 @@ pub mod progress {
     /// Prints a log line to stderr above any active bars.
     pub fn log(line: impl AsRef<str>) {
         multi().suspend(|| eprintln!("{}", line.as_ref()));
+    }
+
+    /// The experiment layer's progress in the terminal: bars, log lines on stderr, result
+    /// lines on stdout.
+    pub struct Terminal;
+
+    struct Shown(ProgressBar);
+
+    impl Bar for Shown {
+        fn set_position(&self, pos: u64) {
+            self.0.set_position(pos);
+        }
+        fn inc(&self, n: u64) {
+            self.0.inc(n);
+        }
+        fn set_message(&self, msg: String) {
+            self.0.set_message(msg);
+        }
+        fn finish_and_clear(&self) {
+            self.0.finish_and_clear();
+        }
+    }
+
+    impl Sink for Terminal {
+        fn bar(&self, len: u64, what: &str) -> Box<dyn Bar> {
+            Box::new(Shown(bar(len, what)))
+        }
+        fn spinner(&self, what: &str, msg: &str) -> Box<dyn Bar> {
+            Box::new(Shown(spinner(what, msg)))
+        }
+        fn log(&self, line: &str) {
+            log(line);
+        }
+        fn print(&self, line: &str) {
+            multi().suspend(|| println!("{line}"));
+        }
     }
 }
 

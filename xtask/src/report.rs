@@ -4,10 +4,8 @@
 
 use std::path::PathBuf;
 
-pub use vdd_report::budget::*;
-pub use vdd_report::compare::*;
-pub use vdd_report::metrics::*;
-pub use vdd_report::table::*;
+use vdd_report::compare::compare_runs;
+use vdd_report::table::{Table, budget_columns, table_of_runs, tables_of_all_runs};
 
 /// The command line of `table`.
 #[derive(Debug, Clone, clap::Args)]
@@ -30,10 +28,12 @@ pub struct TableArgs {
 pub fn run_table(args: &TableArgs) -> crate::XResult {
     let (paths, out) = (&args.runs, &args.out);
     let extra = if args.budgets { budget_columns() } else { Vec::new() };
+    let registry = vdd_lab::Registry::builtin();
+    let columns = &|task: &str| registry.columns_of(task);
     let Table { text, notes } = if paths.is_empty() {
-        tables_of_all_runs(&crate::recipe::repo_root().join("results"), &extra)?
+        tables_of_all_runs(&crate::recipe::repo_root().join("results"), columns, &extra)?
     } else {
-        table_of_runs_with(paths, &extra)?
+        table_of_runs(paths, columns, &extra)?
     };
     if text.is_empty() {
         return Err("no results/<recipe>/<run>/metrics.json found; run `cargo xtask \

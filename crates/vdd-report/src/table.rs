@@ -18,41 +18,20 @@ pub struct Column {
     pub digits: usize,
 }
 
-const fn col(key: &'static str, header: &'static str, digits: usize) -> Column {
-    Column { key, header, digits }
-}
-
-/// The paper's columns for `task` (`toy-gmm`, `toy-conditional`; any other task gets the
-/// Avoiding columns: success rate, task entropy, µs per action, training seconds).
-///
-/// ```
-/// let cols = vdd_report::table::columns_for("toy-gmm");
-/// assert_eq!(cols[0].key, "reverse_kl");
-/// ```
-pub fn columns_for(task: &str) -> Vec<Column> {
-    match task {
-        "toy-gmm" => vec![
-            col("reverse_kl", "reverse KL (nats)", 4),
-            col("forward_kl", "forward KL (nats)", 4),
-            col("modes_covered", "modes covered", 2),
-            col("ms_per_iter", "ms / iter", 3),
-            col("train_seconds", "train s", 1),
-        ],
-        "toy-conditional" => vec![
-            col("states_fully_covered", "states fully covered", 2),
-            col("mean_reverse_kl", "reverse KL (nats)", 4),
-            col("mean_forward_kl", "forward KL (nats)", 4),
-            col("ms_per_iter", "ms / iter", 3),
-            col("train_seconds", "train s", 1),
-        ],
-        _ => vec![
-            col("success_rate", "success rate", 3),
-            col("task_entropy", "task entropy", 3),
-            col("us_per_action", "µs / action", 1),
-            col("train_seconds", "train s", 1),
-        ],
+impl Column {
+    /// The column of `key`, headed `header`, with `digits` decimals.
+    pub const fn new(key: &'static str, header: &'static str, digits: usize) -> Self {
+        Column { key, header, digits }
     }
 }
+
+const fn col(key: &'static str, header: &'static str, digits: usize) -> Column {
+    Column::new(key, header, digits)
+}
+
+/// The columns of a task's table, by the task's name in `metrics.json` (the experiment layer
+/// knows its tasks; this crate knows none).
+pub type ColumnsOf<'a> = &'a dyn Fn(&str) -> Vec<Column>;
 
 /// The budget columns (`--budgets` of `cargo xtask table`): optimiser steps, batch and their
 /// product ([`crate::budget::samples`]) of a method's own training, and the configurations
@@ -115,11 +94,11 @@ pub fn fmt_cell(xs: &[f64], digits: usize) -> String {
 ///
 /// ```
 /// use serde_json::json;
-/// use vdd_report::table::{columns_for, markdown_table};
+/// use vdd_report::table::{Column, markdown_table};
 /// let row = json!({"seed": 0, "success_rate": 0.9}).as_object().unwrap().clone();
-/// let table = markdown_table(&[("em".into(), vec![row])], &columns_for("avoiding"));
+/// let table = markdown_table(&[("em".into(), vec![row])], &[Column::new("success_rate", "success rate", 3)]);
 /// assert!(table.starts_with("| method | seeds | success rate |"));
-/// assert!(table.contains("| em | 1 | 0.900 | – | – | – |"));
+/// assert!(table.contains("| em | 1 | 0.900 |"));
 /// ```
 pub fn markdown_table(rows: &[(String, Vec<Row>)], columns: &[Column]) -> String {
     let mut s = String::from("| method | seeds |");
@@ -163,25 +142,17 @@ pub struct Table {
 }
 
 /// The mean ± std table over every seed found in the runs at `paths` (run directories or
-/// their `metrics.json`), which must be of one task.
+/// their `metrics.json`), which must be of one task: the task's `columns`, then `extra` ones
+/// (e.g. [`budget_columns`]).
 ///
 /// ```no_run
-/// let table = vdd_report::table::table_of_runs(&["results/toy-gmm/run1".into()])?;
+/// use vdd_report::table::{Column, budget_columns, table_of_runs};
+/// let columns = |_task: &str| vec![Column::new("success_rate", "success rate", 3)];
+/// let table = table_of_runs(&["results/avoiding/run1".into()], &columns, &budget_columns())?;
 /// print!("{}", table.text);
 /// # Ok::<(), vdd_report::Error>(())
 /// ```
-pub fn table_of_runs(paths: &[PathBuf]) -> Result<Table> {
-    table_of_runs_with(paths, &[])
-}
-
-/// [`table_of_runs`] with `extra` columns after the task's (e.g. [`budget_columns`]).
-///
-/// ```no_run
-/// use vdd_report::table::{budget_columns, table_of_runs_with};
-/// let table = table_of_runs_with(&["results/avoiding/run1".into()], &budget_columns())?;
-/// # Ok::<(), vdd_report::Error>(())
-/// ```
-pub fn table_of_runs_with(paths: &[PathBuf], extra: &[Column]) -> Result<Table> {
+pub fn table_of_runs(paths: &[PathBuf], columns: ColumnsOf<'_>, extra: &[Column]) -> Result<Table> {
     let mut values = Vec::new();
     let mut tasks: Vec<String> = Vec::new();
     let mut recipes: Vec<String> = Vec::new();
@@ -202,11 +173,11 @@ pub fn table_of_runs_with(paths: &[PathBuf], extra: &[Column]) -> Result<Table> 
     if tasks.len() > 1 {
         return Err(Error::MixedTasks { tasks });
     }
-    let task = tasks.first().cloned().unwrap_or_else(|| "avoiding".into());
+    let task = tasks.first().cloned().unwrap_or_default();
     let mut notes = Vec::new();
     let rows = collect_rows(&values, &mut notes);
     let mut text = format!("## {} ({task})\n\n", recipes.join(" + "));
-    let mut columns = columns_for(&task);
+    let mut columns = columns(&task);
     columns.extend_from_slice(extra);
     text.push_str(&markdown_table(&rows, &columns));
     text.push_str(&format!(
@@ -216,13 +187,17 @@ pub fn table_of_runs_with(paths: &[PathBuf], extra: &[Column]) -> Result<Table> 
     Ok(Table { text, notes })
 }
 
-/// One [`table_of_runs_with`] per recipe over every run under `results`
+/// One [`table_of_runs`] per recipe over every run under `results`
 /// (`results/<recipe>/<run>/metrics.json`, [`find_runs`]), each followed by an empty line;
 /// empty text when there is none.
-pub fn tables_of_all_runs(results: &Path, extra: &[Column]) -> Result<Table> {
+pub fn tables_of_all_runs(
+    results: &Path,
+    columns: ColumnsOf<'_>,
+    extra: &[Column],
+) -> Result<Table> {
     let mut all = Table { text: String::new(), notes: Vec::new() };
     for (_, runs) in find_runs(results) {
-        let Table { text, notes } = table_of_runs_with(&runs, extra)?;
+        let Table { text, notes } = table_of_runs(&runs, columns, extra)?;
         all.text.push_str(&text);
         all.text.push('\n');
         all.notes.extend(notes);

@@ -2,6 +2,14 @@ use super::*;
 use crate::metrics::{find_runs, metrics_json};
 use serde_json::json;
 
+/// The columns of the tests' tasks.
+fn cols(_task: &str) -> Vec<Column> {
+    vec![
+        Column::new("success_rate", "success rate", 3),
+        Column::new("task_entropy", "task entropy", 3),
+    ]
+}
+
 fn row(v: Value) -> Row {
     v.as_object().unwrap().clone()
 }
@@ -24,8 +32,8 @@ fn tables_aggregate_seeds_across_runs() {
     };
     let mut notes = Vec::new();
     let rows = collect_rows(&[run(0, 0.9), run(1, 0.7)], &mut notes);
-    let table = markdown_table(&rows, &columns_for("avoiding"));
-    assert!(table.contains("| beso | 2 | 0.800 ± 0.100 | 0.800 ± 0.000 | – | – |"), "{table}");
+    let table = markdown_table(&rows, &cols("avoiding"));
+    assert!(table.contains("| beso | 2 | 0.800 ± 0.100 | 0.800 ± 0.000 |"), "{table}");
     assert!(table.contains("| vdd-beso | 2 | 0.500 ± 0.000 |"), "{table}");
 }
 
@@ -53,22 +61,24 @@ fn tables_come_from_run_directories() {
     assert_eq!(groups[0].0, "avoiding");
     let runs = &groups[0].1;
     assert_eq!(runs.len(), 3);
-    let table = table_of_runs(&runs[1..]).unwrap();
+    let table = table_of_runs(&runs[1..], &cols, &[]).unwrap();
     assert!(table.text.starts_with("## avoiding (avoiding)\n\n"), "{}", table.text);
     assert!(table.text.contains("| beso | 2 | 0.600 ± 0.100 |"), "{}", table.text);
     assert!(table.notes.is_empty());
-    let table = table_of_runs(runs).unwrap();
+    let table = table_of_runs(runs, &cols, &[]).unwrap();
     assert_eq!(table.notes, vec!["beso: seed 1 appears twice; the later run is used"]);
-    let all = tables_of_all_runs(&root, &[]).unwrap();
+    let all = tables_of_all_runs(&root, &cols, &[]).unwrap();
     assert_eq!(
         all.text,
-        format!("{}\n{}\n", table.text, table_of_runs(&groups[1].1).unwrap().text)
+        format!("{}\n{}\n", table.text, table_of_runs(&groups[1].1, &cols, &[]).unwrap().text)
     );
     assert_eq!(all.notes, table.notes);
-    assert!(tables_of_all_runs(&root.join("none"), &[]).unwrap().text.is_empty());
+    assert!(tables_of_all_runs(&root.join("none"), &cols, &[]).unwrap().text.is_empty());
     let mixed = [runs[0].clone(), groups[1].1[0].clone()];
-    assert!(matches!(table_of_runs(&mixed), Err(Error::MixedTasks { tasks }) if tasks.len() == 2));
+    assert!(
+        matches!(table_of_runs(&mixed, &cols, &[]), Err(Error::MixedTasks { tasks }) if tasks.len() == 2)
+    );
     std::fs::write(root.join("avoiding/seed0/metrics.json"), "{}").unwrap();
-    assert!(matches!(table_of_runs(&runs[1..2]), Err(Error::NoMethods { .. })));
+    assert!(matches!(table_of_runs(&runs[1..2], &cols, &[]), Err(Error::NoMethods { .. })));
     std::fs::remove_dir_all(&root).unwrap();
 }

@@ -24,8 +24,8 @@ use vdd_tasks::timing::us_per_action;
 
 use super::avoiding_imported::{self, ImportedSettings};
 use crate::context::{RunContext, StageTimes};
+use crate::driver::{self, Datasets, Entry, Task, TaskRecipe};
 use crate::method::{CurveEval, Trained, TrainingData};
-use crate::pipeline::{self, Datasets, Entry, Task, TaskRecipe};
 use crate::plots::{self, Curves, TrajectoryPanel};
 use crate::policy::TrainedPolicy;
 use crate::recipe::{self, Overrides};
@@ -51,7 +51,7 @@ pub struct AvoidingRecipe {
     pub teachers: TeachersConfig,
     /// The mixture of experts of VDD, EM and IMC (`state_dim` / `action_dim` come from the data).
     pub student: MoeConfig,
-    /// VDD's settings, read by the VDD methods (`xtask/src/methods/vdd.rs`).
+    /// VDD's settings, read by the VDD methods ([`crate::methods`]).
     pub vdd: Table,
     /// The baselines' settings, read by their methods (`em.rs`, `imc.rs`, `cd.rs`, `ctm.rs`).
     pub baselines: Table,
@@ -64,7 +64,7 @@ pub struct AvoidingRecipe {
 }
 
 /// `recipes/defaults/avoiding.toml`, embedded so that the binary is self-contained.
-const DEFAULTS: &str = include_str!("../../../recipes/defaults/avoiding.toml");
+const DEFAULTS: &str = include_str!("../../../../recipes/defaults/avoiding.toml");
 
 impl AvoidingRecipe {
     /// The task's defaults, `recipes/defaults/avoiding.toml`, which a recipe file overrides.
@@ -103,7 +103,7 @@ impl AsRef<TrainingData> for Prepared {
     }
 }
 
-fn prepare(data: &DatasetConfig) -> crate::XResult<Prepared> {
+fn prepare(data: &DatasetConfig) -> crate::Result<Prepared> {
     let t0 = Instant::now();
     let d = data.build()?;
     let summary = d.summary(data.demonstrations);
@@ -141,9 +141,21 @@ struct Collected {
     curve_panels: Vec<(String, Curves)>,
 }
 
+/// The columns of Avoiding's tables.
+pub const COLUMNS: [report::Column; 4] = [
+    report::Column::new("success_rate", "success rate", 3),
+    report::Column::new("task_entropy", "task entropy", 3),
+    report::Column::new("us_per_action", "µs / action", 1),
+    report::Column::new("train_seconds", "train s", 1),
+];
+
 impl Task for Avoiding {
     fn name(&self) -> &'static str {
         "avoiding"
+    }
+
+    fn columns(&self) -> Vec<report::Column> {
+        COLUMNS.to_vec()
     }
 
     /// `--tuning`: the tuning seeds (unless given) and the tuning demonstrations; `--teacher
@@ -168,13 +180,13 @@ impl Task for Avoiding {
         Ok(())
     }
 
-    fn run(&self, ctx: &RunContext) -> crate::XResult {
+    fn run(&self, ctx: &RunContext) -> crate::Result {
         let resolved = recipe::resolve(&AvoidingRecipe::defaults()?, &ctx.file, &ctx.overrides)?;
         let base = &resolved.base;
         if !base.imported.teacher.is_empty() {
             return avoiding_imported::run(ctx, &resolved);
         }
-        let plan = pipeline::plan(&resolved, "avoiding")?;
+        let plan = driver::plan(&ctx.registry, &resolved, "avoiding", &ctx.overrides.sets)?;
         for (_, cfg) in resolved.configs() {
             // Before any training: a bad setting would otherwise fail after it.
             cfg.eval.check().map_err(|e| format!("eval: {e}"))?;
@@ -203,7 +215,7 @@ impl Task for Avoiding {
             run_plan(ctx, base, &plan, &dir, &log, is_tuning.then_some(log_path.as_path()));
         if let (Err(e), true) = (&result, is_tuning) {
             // A configuration that failed was still tried: the log says so, with the error.
-            let mut rows = pipeline::empty_rows(&plan);
+            let mut rows = driver::empty_rows(&plan);
             let mut entries = tuning_entries(ctx, &plan, &log, &dir, &mut rows)?;
             for entry in &mut entries {
                 entry.seeds.clone_from(&base.header.seeds);
@@ -211,10 +223,10 @@ impl Task for Avoiding {
             }
             let n = entries.len();
             tuning::append_log(&log_path, entries)?;
-            eprintln!(
+            crate::progress::log(format!(
                 "tuning log: {n} entries with the run's error appended to {}",
                 teachers::rel(&log_path)
-            );
+            ));
         }
         result
     }
@@ -229,18 +241,18 @@ fn run_plan(
     dir: &std::path::Path,
     log: &[tuning::LogEntry],
     tuning_log: Option<&std::path::Path>,
-) -> crate::XResult {
+) -> crate::Result {
     let mut stages = StageTimes::default();
     let cores = std::thread::available_parallelism().map_or(1, |p| p.get());
     let threads = base.eval.eval_threads();
     let jobs = if base.jobs == 0 { cores } else { base.jobs };
 
     // One dataset per distinct `data` table (usually one), whatever the seed.
-    let key = |_, pi: usize| -> crate::XResult<_> { Ok(recipe::config_hash(&plan[pi].cfg.data)?) };
+    let key = |_, pi: usize| -> crate::Result<_> { Ok(recipe::config_hash(&plan[pi].cfg.data)?) };
     let prepare = |_, pi: usize| stages.time("data", || prepare(&plan[pi].cfg.data));
     let data = Datasets::build(base.header.seeds.len(), plan.len(), key, prepare)?;
     let students = StudentCache { dir: &ctx.student_cache_dir, fresh: ctx.fresh };
-    let mut trainings = pipeline::train_all(
+    let mut trainings = driver::train_all(
         ctx,
         plan,
         &base.header.seeds,
@@ -252,7 +264,7 @@ fn run_plan(
 
     // Evaluation, one method at a time (rollouts on every core), then the seed's
     // single-threaded timing with nothing else running.
-    let mut out = Collected { rows: pipeline::empty_rows(plan), ..Default::default() };
+    let mut out = Collected { rows: driver::empty_rows(plan), ..Default::default() };
     for (si, &seed) in base.header.seeds.iter().enumerate() {
         let mut timed = Vec::with_capacity(plan.len());
         for (pi, e) in plan.iter().enumerate() {
@@ -273,7 +285,10 @@ fn run_plan(
     if let Some(path) = tuning_log {
         let n = entries.len();
         tuning::append_log(path, entries)?;
-        println!("tuning log: {n} entries appended to {}", teachers::rel(path));
+        crate::progress::print(format!(
+            "tuning log: {n} entries appended to {}",
+            teachers::rel(path)
+        ));
     }
     Ok(())
 }
@@ -286,7 +301,7 @@ fn tuning_entries(
     log: &[tuning::LogEntry],
     dir: &std::path::Path,
     rows: &mut [(String, Vec<Row>)],
-) -> crate::XResult<Vec<tuning::LogEntry>> {
+) -> crate::Result<Vec<tuning::LogEntry>> {
     let (revision, dirty) = crate::context::git_revision();
     let revision = if dirty == Some(true) { format!("{revision}+dirty") } else { revision };
     let mut entries = Vec::with_capacity(plan.len());
@@ -320,7 +335,7 @@ fn evaluate(
     dir: &std::path::Path,
     out: &mut Collected,
     stages: &mut StageTimes,
-) -> crate::XResult<(Row, Windowed<TrainedPolicy>)> {
+) -> crate::Result<(Row, Windowed<TrainedPolicy>)> {
     let (label, cfg) = (&e.label, e.cfg);
     let tag = format!("{label} s{seed}");
     let spec = cfg.data.deploy_spec();
@@ -396,7 +411,7 @@ fn time_seed(
     seed: u64,
     mut timed: Vec<(usize, Windowed<TrainedPolicy>)>,
     rows: &mut [(String, Vec<Row>)],
-) -> crate::XResult {
+) -> crate::Result {
     let eval_seed = EvalProtocol::seed(seed);
     while let Some((first, _)) = timed.first() {
         let (timing, id) = (plan[*first].cfg.eval.timing(), data.id(si, *first));
@@ -427,11 +442,11 @@ fn write_outputs(
     teacher_log: Vec<Value>,
     jobs: usize,
     stages: &mut StageTimes,
-) -> crate::XResult {
+) -> crate::Result {
     let mut metrics = report::metrics_json(&ctx.name, "avoiding", &base.header.seeds, &out.rows);
     metrics.insert("data".into(), data_summary.clone());
     if let Some(w) = report::unequal_budgets(&out.rows) {
-        eprintln!("\nWARNING: unequal budgets: {w}\n");
+        crate::progress::log(format!("\nWARNING: unequal budgets: {w}\n"));
         metrics.insert("budget_warning".into(), json!(w));
     }
     let curves = serde_json::to_string(&out.curves)?;
@@ -440,7 +455,7 @@ fn write_outputs(
         "## {} (Avoiding)\n\n{}\n\n{}\nmean ± std over seeds {:?}; {} rollouts per method and seed; µs per action: single-threaded `Policy::act` on one observation.\n",
         ctx.name,
         base.header.description,
-        report::markdown_table(&out.rows, &report::columns_for("avoiding")),
+        report::markdown_table(&out.rows, &COLUMNS),
         base.header.seeds,
         base.eval.rollouts
     );
@@ -464,18 +479,19 @@ fn write_outputs(
         "jobs": jobs,
         "stage_seconds": stages.to_json(),
     });
-    pipeline::write_results(ctx, dir, &metrics, &table, details)?;
-    vdd_report::acceptance::avoiding_acceptance(&out.rows).iter().for_each(|l| println!("{l}"));
-    println!("stages: {}", stages.summary());
+    driver::write_results(ctx, dir, &metrics, &table, details)?;
+    crate::acceptance::avoiding_acceptance(&out.rows).iter().for_each(crate::progress::print);
+    crate::progress::print(format!("stages: {}", stages.summary()));
     let cpu = crate::context::cpu_seconds().map_or(String::new(), |c| format!(", {c:.0} s CPU"));
     let wall = ctx.started.elapsed().as_secs_f64();
-    println!("results in {} ({wall:.1} s wall{cpu})", teachers::rel(dir));
+    crate::progress::print(format!("results in {} ({wall:.1} s wall{cpu})", teachers::rel(dir)));
     Ok(())
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::Registry;
 
     #[test]
     fn the_defaults_file_is_complete_and_valid() {
@@ -501,9 +517,40 @@ mod tests {
                 let o = recipe::Overrides { quick, ..Default::default() };
                 let r = recipe::resolve(&AvoidingRecipe::defaults().unwrap(), &file, &o)
                     .unwrap_or_else(|e| panic!("{name}: {e}"));
-                pipeline::plan(&r, "avoiding").unwrap_or_else(|e| panic!("{name}: {e}"));
+                driver::plan(&Registry::builtin(), &r, "avoiding", &[])
+                    .unwrap_or_else(|e| panic!("{name}: {e}"));
             }
         }
+    }
+
+    #[test]
+    fn a_set_that_a_row_would_not_read_is_refused_naming_both_keys() {
+        let file = recipe::read_recipe(&recipe::recipe_path("avoiding").unwrap()).unwrap();
+        let defaults = AvoidingRecipe::defaults().unwrap();
+        let plan_with = |methods: &str, sets: &[&str]| {
+            let sets: Vec<(String, String)> = sets
+                .iter()
+                .map(|s| s.split_once('=').map(|(k, v)| (k.into(), v.into())).unwrap())
+                .collect();
+            let methods = Some(methods.split(',').map(String::from).collect());
+            let o = recipe::Overrides { quick: true, methods, sets: sets.clone(), seeds: None };
+            let r = recipe::resolve(&defaults, &file, &o).unwrap();
+            driver::plan(&Registry::builtin(), &r, "avoiding", &sets)
+                .map(|p| p.len())
+                .map_err(|e| e.to_string())
+        };
+        // `cargo xtask experiment avoiding --quick --methods vdd-beso --set student.num_experts=4`
+        let e = plan_with("vdd-beso", &["student.num_experts=4"]).unwrap_err();
+        assert!(e.contains("student.num_experts") && e.contains("vdd.beso_experts"), "{e}");
+        let e = plan_with("em,vdd-ddpm", &["student.num_experts=4"]).unwrap_err();
+        assert!(e.contains("vdd-ddpm") && e.contains("vdd.ddpm_experts"), "{e}");
+        let e = plan_with("vdd-beso-learned", &["vdd.beso_gating=uniform"]).unwrap_err();
+        assert!(e.contains("vdd-beso-learned") && e.contains("fixes"), "{e}");
+        // Rows that read the shared key take it; a row's own key set beside it takes effect.
+        assert_eq!(plan_with("em,imc", &["student.num_experts=4"]), Ok(2));
+        assert_eq!(plan_with("vdd-ddpm", &["student.gating=uniform"]), Ok(1));
+        let both = ["student.num_experts=4", "vdd.beso_experts=4"];
+        assert_eq!(plan_with("em,vdd-beso", &both), Ok(2));
     }
 
     #[test]
@@ -518,7 +565,10 @@ mod tests {
             let (k, v) = set.split_once('=').unwrap();
             let o = recipe::Overrides { sets: vec![(k.into(), v.into())], ..Default::default() };
             let e = match recipe::resolve(&defaults, &file, &o) {
-                Ok(r) => pipeline::plan(&r, "avoiding").err().unwrap().to_string(),
+                Ok(r) => driver::plan(&Registry::builtin(), &r, "avoiding", &o.sets)
+                    .err()
+                    .unwrap()
+                    .to_string(),
                 Err(e) => e.to_string(),
             };
             assert!(e.contains(what), "{set}: {e}");

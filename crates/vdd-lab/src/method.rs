@@ -1,6 +1,6 @@
 //! What a method is to the recipes: the [`Method`] trait, the task-agnostic [`Job`] it trains
 //! from, and the [`Trained`] policy it returns. The methods themselves, one file each, and their
-//! registry are in `xtask/src/methods/`.
+//! registry are in [`crate::methods`].
 //!
 //! A method reads its own settings from the recipe by key path ([`MethodRecipe::get`]), so its
 //! defaults live in `recipes/defaults/<task>.toml` under the keys it declares
@@ -38,13 +38,20 @@ pub trait Method: Sync {
     /// Name, teacher, tasks and keys.
     fn info(&self) -> &Info;
     /// Reads its settings from `recipe`, failing as training would on a missing or bad one.
-    fn check(&self, recipe: &MethodRecipe<'_>) -> crate::XResult;
+    fn check(&self, recipe: &MethodRecipe<'_>) -> crate::Result;
     /// Trains on `job`.
-    fn train(&self, job: &Job<'_>) -> crate::XResult<Trained>;
+    fn train(&self, job: &Job<'_>) -> crate::Result<Trained>;
     /// The learned teachers it is distilled from or is: the recipe's `teachers` unless the
     /// method brings its own (the D3IL-style BESO rows). Their cache keys follow from it.
-    fn teachers(&self, recipe: &MethodRecipe<'_>) -> crate::XResult<TeachersConfig> {
+    fn teachers(&self, recipe: &MethodRecipe<'_>) -> crate::Result<TeachersConfig> {
         Ok(recipe.teachers.clone())
+    }
+    /// The shared recipe keys this method does not read, as `(shared key, the key it reads
+    /// instead)`; `None` when the method fixes the value itself. A `--set` of such a shared key
+    /// is refused for the method while its own key is set ([`crate::driver::plan`]): it would
+    /// not take effect.
+    fn shadowed_keys(&self) -> Vec<(&'static str, Option<String>)> {
+        Vec::new()
     }
     /// [`Info::name`].
     fn name(&self) -> &'static str {
@@ -65,15 +72,12 @@ pub struct MethodRecipe<'a> {
 
 impl MethodRecipe<'_> {
     /// The value at `path` (`baselines.em`); unknown keys inside it are errors.
-    pub fn get<T: Serialize + DeserializeOwned>(&self, path: &str) -> crate::XResult<T> {
+    pub fn get<T: Serialize + DeserializeOwned>(&self, path: &str) -> crate::Result<T> {
         self.get_opt(path)?.ok_or_else(|| format!("the recipe has no `{path}`").into())
     }
 
     /// The value at `path`, `None` when the key is absent ([`recipe::get_path`]).
-    pub fn get_opt<T: Serialize + DeserializeOwned>(
-        &self,
-        path: &str,
-    ) -> crate::XResult<Option<T>> {
+    pub fn get_opt<T: Serialize + DeserializeOwned>(&self, path: &str) -> crate::Result<Option<T>> {
         Ok(recipe::get_path(self.tree, path)?)
     }
 }
@@ -119,7 +123,7 @@ impl<'a> Job<'a> {
     }
 
     /// The trained teacher, or an error for a method that declared none.
-    pub fn teacher(&self) -> crate::XResult<&TrainedTeacher> {
+    pub fn teacher(&self) -> crate::Result<&TrainedTeacher> {
         self.teacher.ok_or_else(|| format!("internal: {} got no teacher", self.label).into())
     }
 }

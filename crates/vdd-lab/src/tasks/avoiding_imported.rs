@@ -49,7 +49,7 @@ pub struct ImportedSettings {
 }
 
 /// Runs the imported teacher's methods of `resolved` (see the module docs).
-pub fn run(ctx: &RunContext, resolved: &Resolved<AvoidingRecipe>) -> crate::XResult {
+pub fn run(ctx: &RunContext, resolved: &Resolved<AvoidingRecipe>) -> crate::Result {
     if !resolved.variants.is_empty() {
         return Err("--teacher runs take no recipe variants".into());
     }
@@ -136,10 +136,10 @@ pub fn run(ctx: &RunContext, resolved: &Resolved<AvoidingRecipe>) -> crate::XRes
         "## {} (Avoiding, imported teacher {})\n\n{}\n\nmean ± std over seeds {seeds:?}; {} rollouts per method and seed; µs per action: single-threaded `Policy::act` on one observation.\n",
         ctx.name,
         cfg.imported.teacher,
-        report::markdown_table(&rows, &report::columns_for("avoiding")),
+        report::markdown_table(&rows, &super::avoiding::COLUMNS),
         cfg.eval.rollouts
     );
-    crate::pipeline::write_results(
+    crate::driver::write_results(
         ctx,
         &dir,
         &metrics,
@@ -151,7 +151,7 @@ pub fn run(ctx: &RunContext, resolved: &Resolved<AvoidingRecipe>) -> crate::XRes
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::pipeline::Task;
+    use crate::driver::Task;
     use crate::recipe::{self, Overrides};
 
     fn resolved(shorthands: &[(String, String)], mut o: Overrides) -> AvoidingRecipe {

@@ -1,8 +1,9 @@
-//! The methods an experiment can run, one file each, and their [`REGISTRY`]: the source of the
-//! names `--methods` accepts, of `all` and of the table order.
+//! The methods an experiment can run, one file each, and their list [`BUILTIN`] (what
+//! [`crate::registry::Registry::builtin`] holds): the source of the names `--methods` accepts,
+//! of `all` and of the table order.
 //!
 //! Adding a method: a new file here implementing [`crate::method::Method`], one line in
-//! [`REGISTRY`], and its settings in `recipes/defaults/<task>.toml` under the keys it declares
+//! [`BUILTIN`], and its settings in `recipes/defaults/<task>.toml` under the keys it declares
 //! (docs/recipes.md, "Adding a method", walks through an example).
 
 use crate::method::Method;
@@ -18,7 +19,7 @@ mod vdd_learned;
 
 /// Every method, in the paper's table order, then the paper's own configurations beside ours
 /// (D3IL's BESO teacher and its rows, VDD-BESO with a learned gating, the authors' IMC).
-pub static REGISTRY: &[&dyn Method] = &[
+pub static BUILTIN: &[&dyn Method] = &[
     &teacher::DDPM,
     &teacher::BESO,
     &teacher::DDPM_1,
@@ -37,53 +38,10 @@ pub static REGISTRY: &[&dyn Method] = &[
     &imc::IMC_AUTHORS,
 ];
 
-/// The method called `name`.
-pub fn find(name: &str) -> Result<&'static dyn Method, String> {
-    REGISTRY.iter().copied().find(|m| m.name() == name).ok_or_else(|| {
-        let names: Vec<&str> = REGISTRY.iter().map(|m| m.name()).collect();
-        format!("unknown method `{name}` (known: {})", names.join(", "))
-    })
-}
-
-/// Whether `method` runs on `task`.
-pub fn supports(method: &dyn Method, task: &str) -> bool {
-    method.info().tasks.contains(&task)
-}
-
-/// Parses and checks a recipe's method list: known names available on `task`, no duplicates.
-/// `all` stands for every method the task supports, in the paper's table order.
-pub fn parse_methods(names: &[String], task: &str) -> Result<Vec<&'static dyn Method>, String> {
-    if names.is_empty() {
-        return Err("the recipe lists no methods".into());
-    }
-    if names.len() == 1 && names[0] == "all" {
-        return Ok(REGISTRY.iter().copied().filter(|m| supports(*m, task)).collect());
-    }
-    let mut out: Vec<&'static dyn Method> = Vec::with_capacity(names.len());
-    for n in names {
-        let m = find(n)?;
-        if !supports(m, task) {
-            return Err(format!("method `{n}` is not available on task `{task}`"));
-        }
-        if out.iter().any(|o| o.name() == m.name()) {
-            return Err(format!("method `{n}` is listed twice"));
-        }
-        out.push(m);
-    }
-    Ok(out)
-}
-
-/// The label of a method in results: `vdd-beso`, or `vdd-beso-z4` under variant `z4`.
-pub fn label(method: &dyn Method, variant: Option<&str>) -> String {
-    match variant {
-        Some(v) => format!("{}-{v}", method.name()),
-        None => method.name().to_owned(),
-    }
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::registry::{Registry, label};
 
     fn names(ms: &[&dyn Method]) -> Vec<&'static str> {
         ms.iter().map(|m| m.name()).collect()
@@ -91,20 +49,24 @@ mod tests {
 
     #[test]
     fn names_are_unique_lower_case_hyphenated_and_found() {
-        for (i, m) in REGISTRY.iter().enumerate() {
+        let r = Registry::builtin();
+        for (i, m) in BUILTIN.iter().enumerate() {
             let n = m.name();
-            assert_eq!(find(n).unwrap().name(), n);
+            assert_eq!(r.method(n).unwrap().name(), n);
             assert!(n.chars().all(|c| c.is_ascii_lowercase() || c.is_ascii_digit() || c == '-'));
-            assert!(REGISTRY[..i].iter().all(|o| o.name() != n), "{n} twice");
+            assert!(BUILTIN[..i].iter().all(|o| o.name() != n), "{n} twice");
             assert!(!m.info().tasks.is_empty(), "{n} runs nowhere");
         }
-        assert!(find("VDD-BESO").is_err());
-        assert!(find("vdd").err().unwrap().contains("known: ddpm, beso"));
+        assert!(r.method("VDD-BESO").is_err());
+        assert!(r.method("vdd").err().unwrap().to_string().contains("known: ddpm, beso"));
     }
 
     #[test]
     fn unavailable_methods_fail_clearly() {
-        let e = parse_methods(&["beso".into(), "cd".into()], "toy-gmm").err().unwrap();
+        let r = Registry::builtin();
+        let parse_methods = |names: &[String], task: &str| r.parse_methods(names, task);
+        let find = |name: &str| r.method(name);
+        let e = parse_methods(&["beso".into(), "cd".into()], "toy-gmm").err().unwrap().to_string();
         assert!(e.contains("not available on task `toy-gmm`"), "{e}");
         let all = parse_methods(&["all".into()], "avoiding").unwrap();
         let expected = "ddpm beso ddpm-1 beso-1 cd ctm em imc vdd-ddpm vdd-beso beso-d3il \

@@ -27,7 +27,7 @@ pub fn method_config_hash<D: serde::Serialize>(
     method: &dyn Method,
     recipe: &MethodRecipe<'_>,
     data: &D,
-) -> crate::XResult<String> {
+) -> crate::Result<String> {
     let info = method.info();
     let mut keys = serde_json::Map::new();
     for k in info.keys {

@@ -26,9 +26,10 @@ use vdd_moe::MoeConfig;
 use vdd_tasks::toy::ToyData;
 
 use super::toy_eval::{ToyPlots, ToyStudent, circle_modes, density_panel};
+use crate::Registry;
 use crate::context::{RunContext, StageTimes};
+use crate::driver::{self, Datasets, Entry, Task, TaskRecipe, Trainings};
 use crate::method::{Trained, TrainingData};
-use crate::pipeline::{self, Datasets, Entry, Task, TaskRecipe, Trainings};
 use crate::plots;
 use crate::policy::TrainedPolicy;
 use crate::recipe::{self, Header, Overrides};
@@ -49,7 +50,7 @@ pub struct ToyRecipe {
     pub teachers: TeachersConfig,
     /// The student (`state_dim` / `action_dim` come from the task).
     pub student: MoeConfig,
-    /// VDD's settings for each teacher, read by the VDD methods (`xtask/src/methods/vdd.rs`).
+    /// VDD's settings for each teacher, read by the VDD methods ([`crate::methods`]).
     pub vdd: Table,
     /// Evaluation.
     pub eval: GmmEval,
@@ -60,17 +61,17 @@ pub struct ToyRecipe {
 /// `recipes/defaults/toy-gmm.toml` and the `toy-conditional` keys merged on top of it,
 /// embedded so that the binary is self-contained.
 const DEFAULTS: [(&str, &str); 2] = [
-    ("recipes/defaults/toy-gmm.toml", include_str!("../../../recipes/defaults/toy-gmm.toml")),
+    ("recipes/defaults/toy-gmm.toml", include_str!("../../../../recipes/defaults/toy-gmm.toml")),
     (
         "recipes/defaults/toy-conditional.toml",
-        include_str!("../../../recipes/defaults/toy-conditional.toml"),
+        include_str!("../../../../recipes/defaults/toy-conditional.toml"),
     ),
 ];
 
 impl ToyRecipe {
     /// The defaults of `task` (`toy-gmm` or `toy-conditional`), from `recipes/defaults/`,
     /// which a recipe file overrides.
-    pub fn defaults(task: &str) -> crate::XResult<Self> {
+    pub fn defaults(task: &str) -> crate::Result<Self> {
         Ok(match task {
             "toy-gmm" => recipe::defaults_from_toml(&DEFAULTS[..1])?,
             "toy-conditional" => recipe::defaults_from_toml(&DEFAULTS)?,
@@ -82,9 +83,9 @@ impl ToyRecipe {
 /// Resolves a `toy-gmm` recipe file and checks it without doing any work (the fuzzer's
 /// `recipe` target): the plan and the methods' settings as `experiment` checks them, the
 /// ranges of the student, the teachers and every VDD section, and the student's size.
-pub fn check_toy_gmm(file: &Table) -> crate::XResult {
+pub fn check_toy_gmm(file: &Table) -> crate::Result {
     let resolved = recipe::resolve(&ToyRecipe::defaults("toy-gmm")?, file, &Overrides::default())?;
-    pipeline::plan(&resolved, "toy-gmm")?;
+    driver::plan(&Registry::builtin(), &resolved, "toy-gmm", &[])?;
     for (_, cfg) in resolved.configs() {
         let s = &cfg.student;
         s.validate()?;
@@ -137,6 +138,25 @@ impl Task for Toy {
         self.name
     }
 
+    fn columns(&self) -> Vec<report::Column> {
+        use report::Column as C;
+        let first: &[C] = if self.conditional {
+            &[
+                C::new("states_fully_covered", "states fully covered", 2),
+                C::new("mean_reverse_kl", "reverse KL (nats)", 4),
+                C::new("mean_forward_kl", "forward KL (nats)", 4),
+            ]
+        } else {
+            &[
+                C::new("reverse_kl", "reverse KL (nats)", 4),
+                C::new("forward_kl", "forward KL (nats)", 4),
+                C::new("modes_covered", "modes covered", 2),
+            ]
+        };
+        let last = [C::new("ms_per_iter", "ms / iter", 3), C::new("train_seconds", "train s", 1)];
+        first.iter().copied().chain(last).collect()
+    }
+
     /// Translates the original commands' options into recipe overrides: `toy-gmm --teacher X`
     /// (methods = `vdd-X`), `--iterations N`; `toy-conditional --iterations N --experts N
     /// --lr X --weighting gating|uniform`.
@@ -179,11 +199,11 @@ impl Task for Toy {
         Ok(())
     }
 
-    fn run(&self, ctx: &RunContext) -> crate::XResult {
+    fn run(&self, ctx: &RunContext) -> crate::Result {
         let task = self.name;
         let resolved = recipe::resolve(&ToyRecipe::defaults(task)?, &ctx.file, &ctx.overrides)?;
         let base = &resolved.base;
-        let plan = pipeline::plan(&resolved, task)?;
+        let plan = driver::plan(&ctx.registry, &resolved, task, &ctx.overrides.sets)?;
         for (_, cfg) in resolved.configs() {
             cfg.data.validate()?;
             cfg.eval.validate()?;
@@ -193,12 +213,12 @@ impl Task for Toy {
         ctx.write_resolved(&dir, &resolved.to_toml()?)?;
         let mut stages = StageTimes::default();
         let seeds = &base.header.seeds;
-        let key = |si, pi: usize| -> crate::XResult<String> {
+        let key = |si, pi: usize| -> crate::Result<String> {
             Ok(format!("{}-{}", recipe::config_hash(&plan[pi].cfg.data)?, seeds[si]))
         };
         let prepare = |si, pi: usize| stages.time("data", || self.prepare(plan[pi].cfg, seeds[si]));
         let data = Datasets::build(seeds.len(), plan.len(), key, prepare)?;
-        let mut trainings = pipeline::train_all(
+        let mut trainings = driver::train_all(
             ctx,
             &plan,
             &base.header.seeds,
@@ -208,7 +228,7 @@ impl Task for Toy {
             &mut stages,
         )?;
 
-        let mut rows = pipeline::empty_rows(&plan);
+        let mut rows = driver::empty_rows(&plan);
         let mut panels = Vec::new();
         for (si, &seed) in base.header.seeds.iter().enumerate() {
             for (pi, e) in plan.iter().enumerate() {
@@ -243,7 +263,7 @@ impl Toy {
         trained: &Trained,
         s: &mut ToyStudent,
         seed: u64,
-    ) -> crate::XResult<Row> {
+    ) -> crate::Result<Row> {
         let (cfg, train_seconds) = (e.cfg, trained.train_seconds);
         let iterations = trained.iterations.unwrap_or(0);
         let tag = format!("{} s{seed}", e.label);
@@ -274,7 +294,7 @@ impl Toy {
     }
 
     /// The run seed's samples of the toy's mixture and its exact teacher.
-    fn prepare(&self, cfg: &ToyRecipe, seed: u64) -> crate::XResult<TrainingData> {
+    fn prepare(&self, cfg: &ToyRecipe, seed: u64) -> crate::Result<TrainingData> {
         let n = cfg.data.points;
         let task = vdd_tasks::toy::CircleGmm::toy_conditional();
         // The toy-gmm state is constant (0); toy-conditional samples states and actions.
@@ -297,7 +317,7 @@ impl Toy {
         rows: &[(String, Vec<Row>)],
         panels: &[plots::DensityPanel],
         teacher_log: Vec<Value>,
-    ) -> crate::XResult {
+    ) -> crate::Result {
         let task = self.name;
         let mut metrics = report::metrics_json(&ctx.name, task, &base.header.seeds, rows);
         report::toy_summary(&mut metrics, rows, base.header.seeds[0], self.conditional, MODES);
@@ -305,7 +325,7 @@ impl Toy {
             "## {} ({task})\n\n{}\n\n{}\nmean ± std over seeds {:?}\n",
             ctx.name,
             base.header.description,
-            report::markdown_table(rows, &report::columns_for(task)),
+            report::markdown_table(rows, &self.columns()),
             base.header.seeds
         );
         let mut figures = Vec::new();
@@ -313,8 +333,8 @@ impl Toy {
             figures = plots::toy_density(&dir.join("density"), panels, base.plots.png)?;
         }
         let details = json!({ "figures": figures, "teachers": teacher_log });
-        pipeline::write_results(ctx, dir, &metrics, &table, details)?;
-        println!("wrote {}", dir.join("metrics.json").display());
+        driver::write_results(ctx, dir, &metrics, &table, details)?;
+        crate::progress::print(format!("wrote {}", dir.join("metrics.json").display()));
         Ok(())
     }
 }
@@ -326,7 +346,7 @@ fn student(
     d: &TrainingData,
     trainings: &Trainings,
     seed: u64,
-) -> crate::XResult<ToyStudent> {
+) -> crate::Result<ToyStudent> {
     let TrainedPolicy::Moe(student) = &trained.policy else {
         return Err(format!("{}: the toys evaluate mixtures of experts", e.label).into());
     };
@@ -357,7 +377,7 @@ mod tests {
     fn toy_recipes_resolve_and_shorthands_translate() {
         for task in [&TOY_GMM, &TOY_CONDITIONAL] {
             let r = resolve(task.name, &Overrides::default());
-            pipeline::plan(&r, task.name).unwrap();
+            driver::plan(&Registry::builtin(), &r, task.name, &[]).unwrap();
             assert_eq!(r.base.header.task, task.name);
         }
         let mut o = Overrides::default();
@@ -370,7 +390,7 @@ mod tests {
         assert!(TOY_GMM.apply_shorthands(&bad, &mut Overrides::default()).is_err());
         let teacher = [("teacher".into(), "beso".into())];
         assert!(TOY_CONDITIONAL.apply_shorthands(&teacher, &mut Overrides::default()).is_err());
-        let avoiding = crate::tasks::find("avoiding").unwrap();
+        let avoiding = Registry::builtin().task("avoiding").unwrap();
         let toy_only = [("iterations".into(), "7".into())];
         assert!(avoiding.apply_shorthands(&toy_only, &mut Overrides::default()).is_err());
         let mut o = Overrides::default();

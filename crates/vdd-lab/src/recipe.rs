@@ -9,9 +9,11 @@ use std::path::{Path, PathBuf};
 
 pub use vdd_recipe::*;
 
-/// The repository root (the parent of the `xtask` crate).
+/// The workspace this crate belongs to (two levels above `crates/vdd-lab`): where the recipes,
+/// the results and the tuning logs live.
 pub fn repo_root() -> PathBuf {
     let manifest = Path::new(env!("CARGO_MANIFEST_DIR"));
+    let manifest = manifest.parent().unwrap_or(manifest);
     manifest.parent().unwrap_or(manifest).to_path_buf()
 }
 

@@ -36,6 +36,8 @@ pub struct RunContext {
     pub command: String,
     /// When the command started.
     pub started: Instant,
+    /// The methods and tasks the recipe may name.
+    pub registry: crate::Registry,
 }
 
 impl RunContext {
@@ -52,7 +54,7 @@ impl RunContext {
 
     /// Writes `resolved.toml` into `dir` (created; a directory this creates is removed again
     /// when the run fails, [`remove_created_run_dir`]).
-    pub fn write_resolved(&self, dir: &Path, resolved_toml: &str) -> crate::XResult {
+    pub fn write_resolved(&self, dir: &Path, resolved_toml: &str) -> crate::Result {
         if !dir.exists() {
             *CREATED.lock().unwrap_or_else(|e| e.into_inner()) = Some(dir.to_owned());
         }
@@ -63,7 +65,7 @@ impl RunContext {
     }
 
     /// Writes `run.json` ([`vdd_recipe::run::run_info`]) into `dir`.
-    pub fn write_run_info(&self, dir: &Path, extra: serde_json::Value) -> crate::XResult {
+    pub fn write_run_info(&self, dir: &Path, extra: serde_json::Value) -> crate::Result {
         let times = (self.started.elapsed().as_secs_f64(), cpu_seconds());
         let info = run::run_info(&self.name, &self.command, &recipe::repo_root(), times, extra);
         let text = serde_json::to_string_pretty(&info)?;

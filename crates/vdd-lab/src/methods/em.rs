@@ -3,7 +3,7 @@
 
 use std::time::Instant;
 
-use indicatif::ProgressBar;
+use crate::progress::Bar;
 use vdd_mixture::{Dataset, EmConfig};
 use vdd_moe::{Moe, MoeConfig};
 
@@ -21,10 +21,10 @@ impl Method for Em {
     fn info(&self) -> &Info {
         &INFO
     }
-    fn check(&self, recipe: &MethodRecipe<'_>) -> crate::XResult {
+    fn check(&self, recipe: &MethodRecipe<'_>) -> crate::Result {
         recipe.get::<EmConfig>("baselines.em").map(drop)
     }
-    fn train(&self, job: &Job<'_>) -> crate::XResult<Trained> {
+    fn train(&self, job: &Job<'_>) -> crate::Result<Trained> {
         let config = EmConfig { seed: job.seed, ..job.recipe.get("baselines.em")? };
         let budget =
             mixture_budget(job, config.iterations, config.expert_steps_per_iter, config.batch_size);
@@ -56,7 +56,7 @@ pub fn mixture_budget(
 }
 
 /// A snapshot of a mixture trained on the task's normalised data, acting on raw states.
-pub fn snapshot_policy(job: &Job<'_>, mut student: Moe) -> crate::XResult<TrainedPolicy> {
+pub fn snapshot_policy(job: &Job<'_>, mut student: Moe) -> crate::Result<TrainedPolicy> {
     let (sn, an) = (&job.data.state_normalizer, &job.data.action_normalizer);
     student.set_normalizers(Some(sn.clone()), Some(an.clone()))?;
     Ok(TrainedPolicy::Moe(Box::new(student)))
@@ -72,11 +72,11 @@ pub fn fit(
     train: impl FnOnce(
         MoeConfig,
         Dataset,
-        &ProgressBar,
+        &dyn Bar,
         &mut Curves,
         &mut CurveProbe<'_>,
-    ) -> crate::XResult<Moe>,
-) -> crate::XResult<Trained> {
+    ) -> crate::Result<Moe>,
+) -> crate::Result<Trained> {
     let d = job.data;
     let data = Dataset::new(d.states_normalized.clone(), d.actions_normalized.clone())?;
     let mut mc = job.recipe.student.clone();
@@ -86,7 +86,7 @@ pub fn fit(
     let bar = crate::progress::bar(iterations as u64, job.label);
     let mut curves = Curves::default();
     let mut probe = job.probe();
-    let student = train(mc, data, &bar, &mut curves, &mut probe)?;
+    let student = train(mc, data, bar.as_ref(), &mut curves, &mut probe)?;
     bar.finish_and_clear();
     let curve_seconds = probe.take_into(&mut curves);
     let train_seconds = t0.elapsed().as_secs_f64() - curve_seconds;

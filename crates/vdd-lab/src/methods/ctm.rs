@@ -23,11 +23,11 @@ impl Method for Ctm {
     fn info(&self) -> &Info {
         &INFO
     }
-    fn check(&self, recipe: &MethodRecipe<'_>) -> crate::XResult {
+    fn check(&self, recipe: &MethodRecipe<'_>) -> crate::Result {
         recipe.get::<CtmConfig>("baselines.ctm")?;
         recipe.get::<bool>(cd::FOLLOW).map(drop)
     }
-    fn train(&self, job: &Job<'_>) -> crate::XResult<Trained> {
+    fn train(&self, job: &Job<'_>) -> crate::Result<Trained> {
         let train = job.recipe.get::<CtmConfig>("baselines.ctm")?.base.train;
         let budget = Budget::student(train.steps, train.batch_size);
         let trained = cd::distil(job, |beso, follow, curves, probe| {

@@ -2,7 +2,7 @@
 //! least 0.90, task entropy at least 0.70, success within 0.05 of the teacher's and at least
 //! 10x faster per action ([`avoiding_acceptance`]).
 
-use crate::metrics::{Row, mean_std};
+use vdd_report::metrics::{Row, mean_std};
 
 /// One line per VDD method in `rows` (`vdd-beso`, `vdd-ddpm`) that has success rate, task
 /// entropy and µs per action: its means over seeds against the bars and, when its teacher

@@ -29,10 +29,10 @@ impl Method for TeacherRow {
     fn info(&self) -> &Info {
         &self.0
     }
-    fn check(&self, _: &MethodRecipe<'_>) -> crate::XResult {
+    fn check(&self, _: &MethodRecipe<'_>) -> crate::Result {
         Ok(())
     }
-    fn train(&self, job: &Job<'_>) -> crate::XResult<Trained> {
+    fn train(&self, job: &Job<'_>) -> crate::Result<Trained> {
         let t = job.teacher()?;
         let mut teacher = t.teacher.clone();
         if self.1 {

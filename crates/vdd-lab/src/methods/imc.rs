@@ -39,7 +39,7 @@ pub const IMC_AUTHORS: Imc = Imc {
 };
 
 impl Imc {
-    fn config(&self, recipe: &MethodRecipe<'_>) -> crate::XResult<ImcConfig> {
+    fn config(&self, recipe: &MethodRecipe<'_>) -> crate::Result<ImcConfig> {
         let c: ImcConfig = recipe.get(self.key)?;
         match self.variant {
             Some(v) if c.variant != v => {
@@ -55,10 +55,10 @@ impl Method for Imc {
     fn info(&self) -> &Info {
         &self.info
     }
-    fn check(&self, recipe: &MethodRecipe<'_>) -> crate::XResult {
+    fn check(&self, recipe: &MethodRecipe<'_>) -> crate::Result {
         self.config(recipe).map(drop)
     }
-    fn train(&self, job: &Job<'_>) -> crate::XResult<Trained> {
+    fn train(&self, job: &Job<'_>) -> crate::Result<Trained> {
         let config = ImcConfig { seed: job.seed, ..self.config(&job.recipe)? };
         let (its, steps, batch) =
             (config.iterations, config.expert_steps_per_iter, config.batch_size);

@@ -33,7 +33,7 @@ pub fn density_panel(
     title: String,
     modes: Vec<(f32, f32)>,
     p: &ToyPlots,
-) -> crate::XResult<DensityPanel> {
+) -> crate::Result<DensityPanel> {
     let e = p.extent;
     let map = eval::density_map(&mut d.student, &[s], e, p.grid)?;
     let (sn, an, level) = (&d.state_norm, &d.action_norm, d.noise_level);
@@ -51,7 +51,7 @@ pub fn density_panel(
 }
 
 /// `k` modes on the circle of radius 2 rotated by `offset` ([`Gmm::circle`]'s means).
-pub fn circle_modes(k: usize, offset: f32) -> crate::XResult<Vec<(f32, f32)>> {
+pub fn circle_modes(k: usize, offset: f32) -> crate::Result<Vec<(f32, f32)>> {
     let gmm = Gmm::circle(k, 2.0, 0.5, offset)?;
     Ok((0..k).map(|i| (gmm.mean(i)[0], gmm.mean(i)[1])).collect())
 }

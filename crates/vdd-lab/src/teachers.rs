@@ -24,7 +24,7 @@ pub fn train_or_load(
     cache_dir: &Path,
     fresh: bool,
     label: &str,
-) -> crate::XResult<TrainedTeacher> {
+) -> crate::Result<TrainedTeacher> {
     let key = TeacherCacheKey::new(kind, config, states, actions, seed)?;
     let hash = crate::recipe::config_hash(&key)?;
     let steps = match kind {

@@ -99,7 +99,7 @@ struct Settings {
 }
 
 impl VddMethod {
-    fn settings(&self, r: &MethodRecipe<'_>) -> crate::XResult<Settings> {
+    fn settings(&self, r: &MethodRecipe<'_>) -> crate::Result<Settings> {
         let flag = |k: &str| r.get_opt::<bool>(k).map(|b| b.unwrap_or(false));
         let clamp = r.get_opt::<bool>(CLAMP)?.unwrap_or(true);
         Ok(Settings {
@@ -127,7 +127,13 @@ impl Method for VddMethod {
     fn info(&self) -> &Info {
         &self.0
     }
-    fn check(&self, recipe: &MethodRecipe<'_>) -> crate::XResult {
+    fn shadowed_keys(&self) -> Vec<(&'static str, Option<String>)> {
+        vec![
+            ("student.num_experts", Some(format!("vdd.{}_experts", self.1))),
+            ("student.gating", Some(format!("vdd.{}_gating", self.1))),
+        ]
+    }
+    fn check(&self, recipe: &MethodRecipe<'_>) -> crate::Result {
         let s = self.settings(recipe)?;
         if s.gating_fit.is_some() && self.0.teacher.is_none() {
             let t = self.1;
@@ -138,7 +144,7 @@ impl Method for VddMethod {
         Ok(s.vdd.check(&s.student).map_err(|e| format!("vdd.{}: {e}", self.1))?)
     }
 
-    fn train(&self, job: &Job<'_>) -> crate::XResult<Trained> {
+    fn train(&self, job: &Job<'_>) -> crate::Result<Trained> {
         let (s, d, label) = (self.settings(&job.recipe)?, job.data, job.label);
         let vc = VddConfig { seed: job.seed, ..s.vdd };
         let teacher = self.0.teacher.map(|_| job.teacher()).transpose()?;
@@ -188,7 +194,7 @@ impl Method for VddMethod {
             None => {
                 let clip = s.clip_margin;
                 let (sn, an, act) = (sn.clone(), an.clone(), s.act);
-                let policy = move |mut student: Moe| -> crate::XResult<TrainedPolicy> {
+                let policy = move |mut student: Moe| -> crate::Result<TrainedPolicy> {
                     student.set_normalizers(Some(sn.clone()), Some(an.clone()))?;
                     student.set_act_mode(act);
                     Ok(TrainedPolicy::Moe(Box::new(student)))
@@ -264,8 +270,8 @@ fn distill<S: ScoreModel>(
     (states, actions): (Mat<f32>, Mat<f32>),
     clip_margin: Option<f32>,
     job: &Job<'_>,
-    policy: &dyn Fn(Moe) -> crate::XResult<TrainedPolicy>,
-) -> crate::XResult<(CachedStudent, f32, f64)> {
+    policy: &dyn Fn(Moe) -> crate::Result<TrainedPolicy>,
+) -> crate::Result<(CachedStudent, f32, f64)> {
     let teacher = match clip_margin {
         Some(m) => ClampedDenoiser::around_data(teacher, actions.as_ref(), m)?,
         None => ClampedDenoiser::unclamped(teacher),
@@ -287,4 +293,24 @@ fn distill<S: ScoreModel>(
     let _ = std::fs::remove_dir(job.checkpoints.0); // when empty
     let ResumableOutcome { student, train_seconds, curves, mean_noise_level } = out;
     Ok((CachedStudent { student, train_seconds, curves }, mean_noise_level, probe.seconds))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::recipe;
+    use crate::tasks::AvoidingRecipe;
+
+    #[test]
+    fn a_rows_own_number_of_experts_reaches_its_student() {
+        let file = recipe::read_recipe(&recipe::recipe_path("avoiding").unwrap()).unwrap();
+        let sets = vec![("vdd.beso_experts".to_owned(), "4".to_owned())];
+        let o = recipe::Overrides { sets, ..Default::default() };
+        let r = recipe::resolve(&AvoidingRecipe::defaults().unwrap(), &file, &o).unwrap();
+        let tree = recipe::to_tree(&r.base).unwrap();
+        let view =
+            MethodRecipe { teachers: &r.base.teachers, student: &r.base.student, tree: &tree };
+        assert_eq!(VDD_BESO.settings(&view).unwrap().student.num_experts, 4);
+        assert_eq!(VDD_DDPM.settings(&view).unwrap().student.num_experts, 16);
+    }
 }

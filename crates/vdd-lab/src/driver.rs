@@ -1,7 +1,7 @@
 //! The stages every task pipeline shares: the [`Task`] and [`TaskRecipe`] traits, the run's
 //! plan (methods × variants, [`plan`]), its datasets ([`Datasets`]), the training phases with
 //! the teacher store and the student cache ([`train_all`]), and writing the results
-//! ([`write_results`]). The tasks themselves are in `xtask/src/tasks/`.
+//! ([`write_results`]). The tasks themselves are in [`crate::tasks`].
 //!
 //! Training runs in two parallel phases of single-threaded jobs (`jobs` at a time): the
 //! teachers with the methods that need none, then the methods that need a teacher. Every job is
@@ -22,13 +22,15 @@ use crate::method::{CurveEval, Job, Method, MethodRecipe, Trained, TrainingData}
 use crate::recipe::{self, Header, Overrides, Resolved};
 use crate::report::Row;
 use crate::teachers::{self, TeachersConfig, TrainedTeacher};
-use crate::{XResult, methods};
+use crate::{Registry, Result as XResult};
 use vdd_moe::cache::StudentCache;
 
 /// A task of `cargo xtask experiment` (the `task` key of a recipe).
 pub trait Task: Sync {
     /// `avoiding`, `toy-gmm`, ...
     fn name(&self) -> &'static str;
+    /// The columns of its results tables (after `method` and `seeds`).
+    fn columns(&self) -> Vec<crate::report::Column>;
     /// Runs a recipe of this task.
     fn run(&self, ctx: &RunContext) -> XResult;
     /// Translates the task's command-line shorthands (`--teacher`, `--iterations`, ...; as
@@ -78,12 +80,15 @@ impl<R: TaskRecipe> Entry<'_, R> {
     }
 }
 
-/// The methods of every variant of `resolved`, in order, after checking the task, the seeds
-/// and the method sections (every key claimed by a method; every method of the task reads its
-/// settings).
+/// The methods of every variant of `resolved`, in order, after checking the task, the seeds,
+/// the method sections (every key claimed by a method; every method of the task reads its
+/// settings) and that every `--set` of `sets` reaches the methods it names
+/// ([`Method::shadowed_keys`]).
 pub fn plan<'r, R: TaskRecipe>(
+    registry: &Registry,
     resolved: &'r Resolved<R>,
     task: &str,
+    sets: &[(String, String)],
 ) -> XResult<Vec<Entry<'r, R>>> {
     let header = resolved.base.header();
     if header.task != task {
@@ -96,20 +101,57 @@ pub fn plan<'r, R: TaskRecipe>(
     for (variant, cfg) in resolved.configs() {
         let tree = recipe::to_tree(cfg)?;
         cfg.student().check(1).map_err(|e| format!("student: {e}"))?;
-        check_method_sections::<R>(task, &tree, cfg)?;
-        for method in methods::parse_methods(&cfg.header().methods, task)? {
-            let label = methods::label(method, variant.map(|v| v.name.as_str()));
+        check_method_sections::<R>(registry, task, &tree, cfg)?;
+        for method in registry.parse_methods(&cfg.header().methods, task)? {
+            let label = crate::registry::label(method, variant.map(|v| v.name.as_str()));
             let view =
                 MethodRecipe { teachers: cfg.teachers(), student: cfg.student(), tree: &tree };
             let teachers = method.teachers(&view).map_err(|e| format!("{label}: {e}"))?;
+            check_sets_reach(method, &label, &view, sets)?;
             out.push(Entry { label, method, cfg, tree: tree.clone(), teachers });
         }
     }
     Ok(out)
 }
 
-fn check_method_sections<R: TaskRecipe>(task: &str, tree: &Table, cfg: &R) -> XResult {
-    let claimed = |key: &str| methods::REGISTRY.iter().any(|m| m.info().keys.contains(&key));
+/// Refuses a `--set` of a shared key that `method` would not read (see
+/// [`Method::shadowed_keys`]), naming both keys.
+fn check_sets_reach(
+    method: &dyn Method,
+    label: &str,
+    view: &MethodRecipe<'_>,
+    sets: &[(String, String)],
+) -> XResult {
+    for (shared, own) in method.shadowed_keys() {
+        let covers = |k: &str| shared == k || shared.starts_with(&format!("{k}."));
+        let Some((k, _)) = sets.iter().find(|(k, _)| covers(k)) else { continue };
+        let message = match own {
+            None => format!("`--set {k}` does not reach {label}, which fixes `{shared}` itself"),
+            Some(own)
+                if sets.iter().any(|(k, _)| own == *k || own.starts_with(&format!("{k}."))) =>
+            {
+                continue; // set too: the method takes its own key's value
+            }
+            Some(own) => match view.get_opt::<toml::Value>(&own)? {
+                None => continue,
+                Some(v) => format!(
+                    "`--set {k}` does not reach {label}, which reads `{own}` (= {v}) instead of \
+                     `{shared}`; set `{own}`"
+                ),
+            },
+        };
+        return Err(message.into());
+    }
+    Ok(())
+}
+
+fn check_method_sections<R: TaskRecipe>(
+    registry: &Registry,
+    task: &str,
+    tree: &Table,
+    cfg: &R,
+) -> XResult {
+    let claimed = |key: &str| registry.methods().iter().any(|m| m.info().keys.contains(&key));
     for section in R::METHOD_SECTIONS {
         let keys = tree.get(*section).and_then(|v| v.as_table()).into_iter().flatten();
         for (k, _) in keys {
@@ -120,7 +162,7 @@ fn check_method_sections<R: TaskRecipe>(task: &str, tree: &Table, cfg: &R) -> XR
         }
     }
     let view = MethodRecipe { teachers: cfg.teachers(), student: cfg.student(), tree };
-    for m in methods::REGISTRY.iter().filter(|m| methods::supports(**m, task)) {
+    for m in registry.methods_of(task) {
         m.check(&view).map_err(|e| format!("{}: {e}", m.name()))?;
     }
     Ok(())
@@ -284,6 +326,6 @@ pub fn write_results(
     write("metrics.json", &serde_json::to_string_pretty(metrics)?)?;
     write("table.md", table)?;
     ctx.write_run_info(dir, details)?;
-    println!("\n{table}");
+    crate::progress::print(format!("\n{table}"));
     Ok(())
 }

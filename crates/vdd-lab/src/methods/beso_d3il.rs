@@ -47,14 +47,14 @@ impl<M: Method> Method for D3il<M> {
     fn info(&self) -> &Info {
         self.0.info()
     }
-    fn check(&self, recipe: &MethodRecipe<'_>) -> crate::XResult {
+    fn check(&self, recipe: &MethodRecipe<'_>) -> crate::Result {
         let teachers = self.teachers(recipe)?;
         self.0.check(&MethodRecipe { teachers: &teachers, ..*recipe })
     }
-    fn train(&self, job: &Job<'_>) -> crate::XResult<Trained> {
+    fn train(&self, job: &Job<'_>) -> crate::Result<Trained> {
         self.0.train(job)
     }
-    fn teachers(&self, recipe: &MethodRecipe<'_>) -> crate::XResult<TeachersConfig> {
+    fn teachers(&self, recipe: &MethodRecipe<'_>) -> crate::Result<TeachersConfig> {
         let beso: BesoTeacherConfig = recipe.get(KEY)?;
         beso.config.validate().map_err(|e| format!("`{KEY}`: {e}"))?;
         Ok(TeachersConfig { beso, ..recipe.teachers.clone() })

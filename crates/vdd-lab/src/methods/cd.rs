@@ -30,11 +30,11 @@ impl Method for Cd {
     fn info(&self) -> &Info {
         &INFO
     }
-    fn check(&self, recipe: &MethodRecipe<'_>) -> crate::XResult {
+    fn check(&self, recipe: &MethodRecipe<'_>) -> crate::Result {
         recipe.get::<CdConfig>("baselines.cd")?;
         recipe.get::<bool>(FOLLOW).map(drop)
     }
-    fn train(&self, job: &Job<'_>) -> crate::XResult<Trained> {
+    fn train(&self, job: &Job<'_>) -> crate::Result<Trained> {
         let train = job.recipe.get::<CdConfig>("baselines.cd")?.train;
         let budget = Budget::student(train.steps, train.batch_size);
         let trained = distil(job, |beso, follow, curves, probe| {
@@ -62,8 +62,8 @@ pub fn distil(
         bool,
         &mut Curves,
         &mut CurveProbe<'_>,
-    ) -> crate::XResult<(TrainedPolicy, usize)>,
-) -> crate::XResult<Trained> {
+    ) -> crate::Result<(TrainedPolicy, usize)>,
+) -> crate::Result<Trained> {
     let t = job.teacher()?;
     let DiffusionTeacher::Beso(beso) = t.teacher.clone() else {
         return Err("CD and CTM need the BESO teacher".into());
@@ -90,8 +90,11 @@ pub fn run_trainer<T: Snapshot<Report = ConsistencyStep>>(
     log_every: u64,
     job: &Job<'_>,
     (curves, probe): (&mut Curves, &mut CurveProbe<'_>),
-    policy: impl Fn(T::Output) -> crate::XResult<TrainedPolicy>,
-) -> crate::XResult<T::Output> {
+    policy: impl Fn(T::Output) -> crate::Result<TrainedPolicy>,
+) -> crate::Result<T::Output>
+where
+    crate::LabError: From<T::Error>,
+{
     let total = trainer.iterations() as u64;
     let every = log_every.max(1);
     let bar = crate::progress::bar(total, job.label);
@@ -100,7 +103,11 @@ pub fn run_trainer<T: Snapshot<Report = ConsistencyStep>>(
         meter.add(s);
         let done = s.step + 1;
         if done % every == 0 || done == total {
-            record(curves, &bar, &meter.report(done, total, s.lr, t0.elapsed().as_secs_f64()));
+            record(
+                curves,
+                bar.as_ref(),
+                &meter.report(done, total, s.lr, t0.elapsed().as_secs_f64()),
+            );
         }
     };
     probe.run(trainer, report, policy)?;
@@ -117,7 +124,7 @@ pub fn config_for(c: &CdConfig, beso: &BesoConfig, seed: u64, follow_teacher: bo
 }
 
 /// Records a training report in the progress bar and the curves.
-pub fn record(curves: &mut Curves, bar: &indicatif::ProgressBar, p: &ConsistencyProgress) {
+pub fn record(curves: &mut Curves, bar: &dyn crate::progress::Bar, p: &ConsistencyProgress) {
     bar.set_position(p.step);
     bar.set_message(format!("loss {:.4}", p.loss));
     let x = p.step as f64;

@@ -21,7 +21,7 @@ const INFO: Info = Info {
 };
 
 /// `tree` with `vdd.beso_gating = "learned"`.
-fn learned(tree: &toml::Table) -> crate::XResult<toml::Table> {
+fn learned(tree: &toml::Table) -> crate::Result<toml::Table> {
     let mut tree = tree.clone();
     let vdd = tree.entry("vdd").or_insert_with(|| Value::Table(Default::default()));
     let vdd = vdd.as_table_mut().ok_or("the recipe's `vdd` is not a table")?;
@@ -33,11 +33,18 @@ impl Method for VddBesoLearned {
     fn info(&self) -> &Info {
         &INFO
     }
-    fn check(&self, recipe: &MethodRecipe<'_>) -> crate::XResult {
+    fn shadowed_keys(&self) -> Vec<(&'static str, Option<String>)> {
+        let mut keys = VDD_BESO.shadowed_keys();
+        keys.retain(|(shared, _)| *shared != "student.gating");
+        keys.push(("student.gating", None));
+        keys.push(("vdd.beso_gating", None));
+        keys
+    }
+    fn check(&self, recipe: &MethodRecipe<'_>) -> crate::Result {
         let tree = learned(recipe.tree)?;
         VDD_BESO.check(&MethodRecipe { tree: &tree, ..*recipe })
     }
-    fn train(&self, job: &Job<'_>) -> crate::XResult<Trained> {
+    fn train(&self, job: &Job<'_>) -> crate::Result<Trained> {
         let tree = learned(job.recipe.tree)?;
         let recipe = MethodRecipe { tree: &tree, ..job.recipe };
         VDD_BESO.train(&Job { recipe, ..*job })

@@ -1,0 +1,49 @@
+//! The experiment layer: what turns teacher × method × task into a row of results.
+//!
+//! * [`method`]: the [`method::Method`] trait (a row of the results table), the [`method::Job`]
+//!   it trains from and the [`method::Trained`] policy it returns; [`methods`]: the methods,
+//!   one file each, and their registry.
+//! * [`driver`]: the [`driver::Task`] trait and the stages every task shares: the plan
+//!   (methods × variants), datasets, the training phases with the teacher store and the
+//!   student cache, writing `metrics.json`; [`tasks`]: the tasks, one file each, and their
+//!   registry.
+//! * [`experiment`]: running a recipe ([`experiment::Request`]), what `cargo xtask
+//!   experiment` calls.
+//! * [`teachers`], [`policy`], [`plots`], [`tuning`], [`acceptance`]: the learned teachers'
+//!   cache, every method's trained policy as one type, the tasks' figures, the tuning protocol
+//!   and log, the acceptance lines.
+//!
+//! The layer never prints: progress and result lines go to the [`progress`] sink the program
+//! installs.
+//!
+//! ```no_run
+//! // What `cargo xtask experiment avoiding --quick` does.
+//! let request = vdd_lab::experiment::Request {
+//!     recipe: "avoiding".into(),
+//!     overrides: vdd_lab::recipe::Overrides { quick: true, ..Default::default() },
+//!     command: "example".into(),
+//!     ..Default::default()
+//! };
+//! vdd_lab::experiment::run(&request)?;
+//! # Ok::<(), vdd_lab::LabError>(())
+//! ```
+
+pub mod acceptance;
+pub mod context;
+pub mod driver;
+mod error;
+pub mod experiment;
+pub mod method;
+pub mod methods;
+pub mod plots;
+pub mod policy;
+pub mod progress;
+pub mod recipe;
+pub mod registry;
+pub mod report;
+pub mod tasks;
+pub mod teachers;
+pub mod tuning;
+
+pub use error::{LabError, Result};
+pub use registry::Registry;
