@@ -76,6 +76,8 @@ fn crate_dependency_rules_hold() {
         ("vdd-core", &[]),
         // Layers are reusable by any model.
         ("vdd-nn", &["vdd-core"]),
+        // PyTorch architectures are networks: they know no files, importers or tasks.
+        ("vdd-torch", &["vdd-core", "vdd-nn"]),
         // Datasets and the observation pipeline serve any model and any task.
         ("vdd-data", &["vdd-core"]),
         // A teacher is trained and used on its own.
@@ -95,7 +97,7 @@ fn crate_dependency_rules_hold() {
         // Recipes of any tool resolve the same way (vdd-core only for its stable hash).
         ("vdd-recipe", &["vdd-core"]),
         // PyTorch teachers are networks plus noise processes; they know no student or trainer.
-        ("vdd-import", &["vdd-core", "vdd-nn", "vdd-diffusion", "vdd-data"]),
+        ("vdd-import", &["vdd-core", "vdd-nn", "vdd-torch", "vdd-diffusion", "vdd-data"]),
         // The Python package binds the deployed student, the trainer and the learned teachers.
         (
             "vdd-py",

@@ -16,7 +16,7 @@ use vdd_core::gaussian::exp_fast;
 use super::conv::ensure;
 use super::norm::mish;
 use super::ops::gelu;
-use crate::{LayerNorm, Linear};
+use vdd_nn::{LayerNorm, Linear};
 
 /// Rows a layer norm or an attention head processes at a time (their scratch stays in L1).
 const BLOCK: usize = 64;
