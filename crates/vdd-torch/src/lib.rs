@@ -40,6 +40,7 @@
 #![warn(missing_docs)]
 
 mod cols;
+mod dispatch;
 mod gpt;
 mod ops;
 mod resnet_mlp;

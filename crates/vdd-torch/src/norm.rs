@@ -4,7 +4,7 @@
 use faer::reborrow::ReborrowMut as _;
 use faer::{Mat, MatMut};
 
-use super::cols::avx2_dispatch;
+use super::dispatch::avx2_dispatch;
 use vdd_nn::{NnError, Param, Parameters, join_name};
 
 /// PyTorch's default `GroupNorm` epsilon.
