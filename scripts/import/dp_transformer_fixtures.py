@@ -1,5 +1,5 @@
 #!/usr/bin/env python3
-"""Fixtures for diffusion_policy's TransformerForDiffusion (vdd_nn::torch::TransformerForDiffusion),
+"""Fixtures for diffusion_policy's TransformerForDiffusion (vdd_torch::TransformerForDiffusion),
 made with the package's own module.
 
     python scripts/import/dp_transformer_fixtures.py --dp PATH/TO/diffusion_policy \

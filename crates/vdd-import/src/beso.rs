@@ -9,10 +9,10 @@ use faer::{Mat, MatMut, MatRef};
 use serde::{Deserialize, Serialize};
 use vdd_core::{Affine, DenoiserForm, ScoreModel, check_score_args};
 use vdd_diffusion::{KarrasSampler, Preconditioning};
-use vdd_nn::torch::{
+use vdd_nn::{Param, Parameters};
+use vdd_torch::{
     DiffusionGpt, DiffusionGptConfig, ResMlpScore, ResMlpScoreConfig, diffusion_gpt_buffer_suffixes,
 };
-use vdd_nn::{Param, Parameters};
 
 use crate::beso_error::BesoError;
 use crate::karras::SigmaSchedule;

@@ -8,9 +8,7 @@ use serde::Deserialize;
 use serde_yaml_ng::Value;
 use vdd_core::Affine;
 use vdd_diffusion::KarrasSampler;
-use vdd_nn::torch::{
-    BlockNorm, DiffusionGptConfig, MlpActivation, ResMlpScoreConfig, SigmaEmbedding,
-};
+use vdd_torch::{BlockNorm, DiffusionGptConfig, MlpActivation, ResMlpScoreConfig, SigmaEmbedding};
 
 use crate::beso::{BesoNetworkConfig, BesoScaler, BesoTeacher, BesoTeacherConfig};
 use crate::beso_error::BesoError;

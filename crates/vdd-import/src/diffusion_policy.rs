@@ -6,7 +6,7 @@
 use std::path::Path;
 
 use serde_json::Value;
-use vdd_nn::torch::{Unet1dConfig, UnetLayout};
+use vdd_torch::{Unet1dConfig, UnetLayout};
 
 use crate::diffusers::{SamplerKind, SchedulerConfig};
 use crate::error::ImportError;

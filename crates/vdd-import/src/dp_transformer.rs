@@ -11,7 +11,7 @@ use std::time::Instant;
 use faer::Mat;
 use serde::Deserialize;
 use vdd_nn::Parameters;
-use vdd_nn::torch::{
+use vdd_torch::{
     TransformerForDiffusion, TransformerForDiffusionConfig, transformer_for_diffusion_buffer_names,
 };
 

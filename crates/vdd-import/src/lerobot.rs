@@ -10,7 +10,7 @@ use std::path::Path;
 use safetensors::SafeTensors;
 use serde_json::Value;
 use vdd_data::features::FeatureMapId;
-use vdd_nn::torch::{Unet1dConfig, UnetLayout};
+use vdd_torch::{Unet1dConfig, UnetLayout};
 
 use crate::diffusers::{BetaSchedule, Prediction, SamplerKind, SchedulerConfig};
 use crate::error::ImportError;

@@ -7,7 +7,7 @@
 //!   conventions ([`diffusers`]);
 //! - BESO/D3IL's GPT and ResNet-MLP score networks with Karras (EDM) preconditioning.
 //!
-//! The networks themselves (forward only) live in [`vdd_nn::torch`]; this crate reads the
+//! The networks themselves (forward only) live in [`vdd_torch`]; this crate reads the
 //! packages' files (safetensors, JSON, YAML), checks them, and wires network, noise process and
 //! normalisers into one teacher, saved to and loaded from one teacher file ([`load_teacher`]).
 //! [`convert`] has one call per package format (package in, teacher file out); [`bench`]

@@ -11,8 +11,8 @@ use vdd_core::{
 };
 use vdd_data::features::FeatureMapId;
 use vdd_data::{DeploySpec, Windowed};
-use vdd_nn::torch::{ConditionalUnet1d, Unet1dConfig};
 use vdd_nn::{Param, Parameters, join_name};
+use vdd_torch::{ConditionalUnet1d, Unet1dConfig};
 
 use crate::diffusers::{Prediction, Scheduler, SchedulerConfig};
 use crate::error::ImportError;

@@ -29,7 +29,6 @@ mod optim;
 pub mod parallel;
 mod param;
 mod schedule;
-pub mod torch;
 
 pub use activation::{Activation, ActivationLayer, erf, exp_fast};
 pub use ema::Ema;

@@ -11,7 +11,7 @@ use super::cols::{
     linear_add,
 };
 use super::conv::ensure;
-use crate::{LayerNorm, Linear, NnError, Param, Parameters, join_name};
+use vdd_nn::{LayerNorm, Linear, NnError, Param, Parameters, join_name};
 
 /// The constructor arguments of `DiffusionGPT` that fix its weights' shapes and its forward.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -110,7 +110,7 @@ impl Default for Buffers {
 /// BESO/D3IL's `DiffusionGPT` (forward only), with PyTorch's parameter names.
 ///
 /// ```
-/// use vdd_nn::torch::{DiffusionGpt, DiffusionGptConfig};
+/// use vdd_torch::{DiffusionGpt, DiffusionGptConfig};
 /// let cfg = DiffusionGptConfig {
 ///     state_dim: 4, action_dim: 2, embed_dim: 8, n_layers: 1, n_heads: 2,
 ///     obs_seq_len: 3, goal_seq_len: 0, goal_conditioned: false, linear_output: true,
@@ -139,7 +139,7 @@ pub struct DiffusionGpt {
 }
 
 impl DiffusionGpt {
-    /// The network with zero weights (load them with [`crate::io::load_safetensors`] or
+    /// The network with zero weights (load them with [`vdd_nn::io::load_safetensors`] or
     /// [`Parameters::visit_params_mut`]).
     pub fn new(config: DiffusionGptConfig) -> Result<Self, NnError> {
         config.validate()?;

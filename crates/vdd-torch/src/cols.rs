@@ -14,41 +14,13 @@ use faer::{Accum, Mat, MatMut, MatRef, Par};
 use vdd_core::gaussian::exp_fast;
 
 use super::conv::ensure;
+use super::dispatch::avx2_dispatch;
 use super::norm::mish;
 use super::ops::gelu;
-use crate::{LayerNorm, Linear};
+use vdd_nn::{LayerNorm, Linear};
 
 /// Rows a layer norm or an attention head processes at a time (their scratch stays in L1).
 const BLOCK: usize = 64;
-
-/// Defines `$name($args)` running `$body($args)` compiled for AVX2 where the CPU has it.
-macro_rules! avx2_dispatch {
-    ($(#[$doc:meta])* fn $name:ident($($a:ident: $t:ty),* $(,)?) => $body:ident) => {
-        $(#[$doc])*
-        pub(crate) fn $name($($a: $t),*) {
-            #[cfg(target_arch = "x86_64")]
-            {
-                /// The body compiled for AVX2.
-                ///
-                /// # Safety
-                /// The CPU must support AVX2.
-                #[allow(clippy::too_many_arguments)]
-                #[target_feature(enable = "avx2")]
-                unsafe fn avx2($($a: $t),*) {
-                    $body($($a),*)
-                }
-                if std::arch::is_x86_feature_detected!("avx2") {
-                    // SAFETY: the CPU supports AVX2, checked just above.
-                    unsafe { avx2($($a),*) };
-                    return;
-                }
-            }
-            $body($($a),*)
-        }
-    };
-}
-
-pub(crate) use avx2_dispatch;
 
 /// `out = x Wᵀ + b` into a view, for `wt = Wᵀ` (`in × out`, e.g. a column range of
 /// [`Linear::weight_t`]) and `bias` (`out`).

@@ -9,7 +9,7 @@ use serde::{Deserialize, Serialize};
 use super::cols::{Act, activate, affine, affine_into, layer_norm, linear, linear_add};
 use super::conv::ensure;
 use super::ops::affine_rows;
-use crate::{Activation, LayerNorm, Linear, NnError, Param, Parameters, join_name};
+use vdd_nn::{Activation, LayerNorm, Linear, NnError, Param, Parameters, join_name};
 
 /// The noise-level embedding (`embed_fn.embedding_type` of BESO's
 /// `return_time_sigma_embedding_model`) applied to `t = ln(σ)/4`.
@@ -127,7 +127,7 @@ impl Default for Buffers {
 /// BESO/D3IL's ResNet-MLP score network (forward only), with PyTorch's parameter names.
 ///
 /// ```
-/// use vdd_nn::torch::{BlockNorm, MlpActivation, ResMlpScore, ResMlpScoreConfig, SigmaEmbedding};
+/// use vdd_torch::{BlockNorm, MlpActivation, ResMlpScore, ResMlpScoreConfig, SigmaEmbedding};
 /// let cfg = ResMlpScoreConfig {
 ///     obs_dim: 3, action_dim: 2, goal_dim: 0, goal_conditional: false, hidden_dim: 16,
 ///     num_hidden_layers: 2, output_dim: 2, time_embed_dim: 4,

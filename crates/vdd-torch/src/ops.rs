@@ -4,7 +4,7 @@
 use faer::linalg::matmul::matmul;
 use faer::{Accum, MatMut, MatRef, Par};
 
-use crate::{Linear, Module as _};
+use vdd_nn::{Linear, Module as _};
 
 /// `out = x Wᵀ + b` for `rows` row-major rows of `x` (`rows x in`); `out` is resized to
 /// `rows x out` (row-major) and reuses its allocation.

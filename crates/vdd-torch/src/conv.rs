@@ -9,8 +9,7 @@
 use faer::linalg::matmul::matmul;
 use faer::{Accum, Mat, MatRef, Par};
 
-use crate::error::NnError;
-use crate::param::{Param, Parameters, join_name};
+use vdd_nn::{NnError, Param, Parameters, join_name};
 
 /// Checks the sizes of a convolution `layer` and makes its zeroed weight (of `shape`) and
 /// bias buffers.
@@ -51,7 +50,7 @@ pub(crate) fn column<'a>(x: MatRef<'a, f32>, j: usize, scratch: &'a mut Vec<f32>
 /// zero padding on both sides, a stride. Output length `(len + 2·padding − kernel)/stride + 1`.
 ///
 /// ```
-/// use vdd_nn::torch::Conv1d;
+/// use vdd_torch::Conv1d;
 /// let mut conv = Conv1d::new(2, 3, 3, 1, 1).unwrap();
 /// conv.bias.value = vec![1.0, 2.0, 3.0];
 /// let x = faer::Mat::<f32>::zeros(2 * 4, 2); // batch 2, length 4, 2 channels
@@ -243,7 +242,7 @@ impl Parameters for Conv1d {
 /// `Upsample1d` is kernel 4, stride 2, padding 1 (doubling the length).
 ///
 /// ```
-/// use vdd_nn::torch::ConvTranspose1d;
+/// use vdd_torch::ConvTranspose1d;
 /// let mut up = ConvTranspose1d::new(1, 1, 4, 2, 1).unwrap();
 /// up.weight.value = vec![1.0, 1.0, 1.0, 1.0];
 /// let x = faer::Mat::from_fn(2, 1, |i, _| (i + 1) as f32); // batch 1, length 2

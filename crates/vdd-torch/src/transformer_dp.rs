@@ -12,7 +12,7 @@ use super::cols::{
     Act, Cols, activate, add_row, affine, affine_into, attention, layer_norm, linear, linear_add,
 };
 use super::conv::ensure;
-use crate::{LayerNorm, Linear, NnError, Param, Parameters, join_name};
+use vdd_nn::{LayerNorm, Linear, NnError, Param, Parameters, join_name};
 
 /// The constructor arguments of `TransformerForDiffusion`.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -131,7 +131,7 @@ impl Default for Buffers {
 /// diffusion_policy's `TransformerForDiffusion` (forward only), with PyTorch's parameter names.
 ///
 /// ```
-/// use vdd_nn::torch::{TransformerForDiffusion, TransformerForDiffusionConfig};
+/// use vdd_torch::{TransformerForDiffusion, TransformerForDiffusionConfig};
 /// let cfg = TransformerForDiffusionConfig {
 ///     input_dim: 2, output_dim: 2, horizon: 4, n_obs_steps: 2, cond_dim: 3, n_layer: 1,
 ///     n_head: 2, n_emb: 8, causal_attn: true, time_as_cond: true, n_cond_layers: 0,

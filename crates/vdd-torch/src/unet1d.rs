@@ -3,7 +3,7 @@
 //!
 //! Both packages build the same network and differ only in parameter names
 //! ([`UnetLayout`]). Sequences are `(batch · horizon) × channels` matrices as in
-//! [`crate::torch::Conv1d`]; the network's input and output are `(batch · horizon) × input_dim`,
+//! [`crate::Conv1d`]; the network's input and output are `(batch · horizon) × input_dim`,
 //! row `b · horizon + t` holding PyTorch's `x[b, t, :]`.
 
 use faer::linalg::matmul::matmul;
@@ -12,8 +12,7 @@ use serde::{Deserialize, Serialize};
 
 use super::conv::{Conv1d, ConvTranspose1d, ensure};
 use super::norm::{GroupNorm, mish_mat, sinusoidal_embedding};
-use crate::error::NnError;
-use crate::param::{Param, Parameters, join_name};
+use vdd_nn::{NnError, Param, Parameters, join_name};
 
 /// Whose parameter names the U-Net uses (the networks are the same).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
@@ -278,7 +277,7 @@ struct Up {
 /// `diffusion.unet.` and diffusion_policy's `model.` prefixes are the caller's).
 ///
 /// ```
-/// use vdd_nn::torch::{ConditionalUnet1d, Unet1dConfig, UnetLayout};
+/// use vdd_torch::{ConditionalUnet1d, Unet1dConfig, UnetLayout};
 /// let config = Unet1dConfig {
 ///     input_dim: 2, global_cond_dim: 3, step_embed_dim: 8, down_dims: vec![8, 16],
 ///     kernel_size: 3, n_groups: 4, film_scale: true, layout: UnetLayout::Lerobot,
@@ -308,7 +307,7 @@ pub struct ConditionalUnet1d {
 }
 
 impl ConditionalUnet1d {
-    /// A zero-initialised U-Net (load weights with [`crate::io::load_safetensors`] or by
+    /// A zero-initialised U-Net (load weights with [`vdd_nn::io::load_safetensors`] or by
     /// visiting its parameters).
     pub fn new(config: Unet1dConfig) -> Result<Self, NnError> {
         config.validate()?;

@@ -4,9 +4,8 @@
 use faer::reborrow::ReborrowMut as _;
 use faer::{Mat, MatMut};
 
-use super::cols::avx2_dispatch;
-use crate::error::NnError;
-use crate::param::{Param, Parameters, join_name};
+use super::dispatch::avx2_dispatch;
+use vdd_nn::{NnError, Param, Parameters, join_name};
 
 /// PyTorch's default `GroupNorm` epsilon.
 pub const GROUP_NORM_EPS: f32 = 1e-5;
@@ -15,9 +14,9 @@ pub const GROUP_NORM_EPS: f32 = 1e-5;
 /// `tanh(log(1 + eˣ)) = n / (n + 2)` with `n = eˣ (eˣ + 2)`.
 ///
 /// ```
-/// let m = vdd_nn::torch::mish(1.0);
+/// let m = vdd_torch::mish(1.0);
 /// assert!((m - 0.865_098_4).abs() < 1e-5, "{m}");
-/// assert!((vdd_nn::torch::mish(30.0) - 30.0).abs() < 1e-5);
+/// assert!((vdd_torch::mish(30.0) - 30.0).abs() < 1e-5);
 /// ```
 #[inline(always)]
 pub fn mish(x: f32) -> f32 {
@@ -54,7 +53,7 @@ pub fn mish_mat(mut m: MatMut<'_, f32>) {
 ///
 /// ```
 /// let mut out = faer::Mat::<f32>::zeros(1, 4);
-/// vdd_nn::torch::sinusoidal_embedding(&[0.0], out.as_mut()).unwrap();
+/// vdd_torch::sinusoidal_embedding(&[0.0], out.as_mut()).unwrap();
 /// assert_eq!([out[(0, 0)], out[(0, 1)], out[(0, 2)], out[(0, 3)]], [0.0, 0.0, 1.0, 1.0]);
 /// ```
 pub fn sinusoidal_embedding(steps: &[f32], mut out: MatMut<'_, f32>) -> Result<(), NnError> {
@@ -81,7 +80,7 @@ pub fn sinusoidal_embedding(steps: &[f32], mut out: MatMut<'_, f32>) -> Result<(
 }
 
 /// `torch.nn.GroupNorm(groups, channels)` (affine) on sequences stored as `(batch · len) ×
-/// channels` (see [`crate::torch::Conv1d`]): each sample's channels are split into `groups`
+/// channels` (see [`crate::Conv1d`]): each sample's channels are split into `groups`
 /// consecutive groups, normalised over the group's channels and time steps, then scaled and
 /// shifted per channel. Works in place.
 #[derive(Debug, Clone)]
