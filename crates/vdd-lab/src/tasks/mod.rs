@@ -11,7 +11,6 @@
 use crate::driver::Task;
 
 mod avoiding;
-mod avoiding_imported;
 mod toy;
 mod toy_eval;
 

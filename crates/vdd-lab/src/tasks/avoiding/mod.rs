@@ -22,7 +22,8 @@ use vdd_tasks::avoiding::dataset::DatasetConfig;
 use vdd_tasks::avoiding::{AvoidingEval, DeployedCurves, EvalProtocol, PlotSettings};
 use vdd_tasks::timing::us_per_action;
 
-use super::avoiding_imported::{self, ImportedSettings};
+mod imported;
+
 use crate::context::{RunContext, StageTimes};
 use crate::driver::{self, Datasets, Entry, Task, TaskRecipe};
 use crate::method::{CurveEval, Trained, TrainingData};
@@ -32,6 +33,7 @@ use crate::recipe::{self, Overrides};
 use crate::report::{self, Row};
 use crate::teachers::{self, TeachersConfig};
 use crate::tuning;
+use imported::ImportedSettings;
 use vdd_moe::cache::StudentCache;
 
 /// A recipe of the Avoiding task (see `recipes/avoiding.toml`): the schema of the recipe files;
@@ -59,7 +61,7 @@ pub struct AvoidingRecipe {
     pub eval: AvoidingEval,
     /// Figures.
     pub plots: PlotSettings,
-    /// A teacher imported from PyTorch (`--teacher FILE`; [`super::avoiding_imported`]).
+    /// A teacher imported from PyTorch (`--teacher FILE`; [`imported`]).
     pub imported: ImportedSettings,
 }
 
@@ -184,7 +186,7 @@ impl Task for Avoiding {
         let resolved = recipe::resolve(&AvoidingRecipe::defaults()?, &ctx.file, &ctx.overrides)?;
         let base = &resolved.base;
         if !base.imported.teacher.is_empty() {
-            return avoiding_imported::run(ctx, &resolved);
+            return imported::run(ctx, &resolved);
         }
         let plan = driver::plan(&ctx.registry, &resolved, "avoiding", &ctx.overrides.sets)?;
         for (_, cfg) in resolved.configs() {

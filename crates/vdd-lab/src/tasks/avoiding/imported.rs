@@ -20,7 +20,7 @@ use vdd_moe::{GatingKind, MoeConfig};
 use vdd_tasks::avoiding::EvalProtocol;
 use vdd_tasks::timing::us_per_action;
 
-use super::avoiding::AvoidingRecipe;
+use super::AvoidingRecipe;
 use crate::context::RunContext;
 use crate::recipe::Resolved;
 use crate::report::{self, Row};
@@ -136,7 +136,7 @@ pub fn run(ctx: &RunContext, resolved: &Resolved<AvoidingRecipe>) -> crate::Resu
         "## {} (Avoiding, imported teacher {})\n\n{}\n\nmean ± std over seeds {seeds:?}; {} rollouts per method and seed; µs per action: single-threaded `Policy::act` on one observation.\n",
         ctx.name,
         cfg.imported.teacher,
-        report::markdown_table(&rows, &super::avoiding::COLUMNS),
+        report::markdown_table(&rows, &super::COLUMNS),
         cfg.eval.rollouts
     );
     crate::driver::write_results(
@@ -155,7 +155,7 @@ mod tests {
     use crate::recipe::{self, Overrides};
 
     fn resolved(shorthands: &[(String, String)], mut o: Overrides) -> AvoidingRecipe {
-        super::super::avoiding::Avoiding.apply_shorthands(shorthands, &mut o).unwrap();
+        super::super::Avoiding.apply_shorthands(shorthands, &mut o).unwrap();
         let file = recipe::read_recipe(&recipe::recipe_path("avoiding").unwrap()).unwrap();
         recipe::resolve(&AvoidingRecipe::defaults().unwrap(), &file, &o).unwrap().base
     }
