@@ -1,4 +1,4 @@
-//! The stages every task pipeline shares: the [`Task`] and [`TaskRecipe`] traits, the run's
+//! The stages every task pipeline shares (a [`crate::task::Task`] runs them): the run's
 //! plan (methods × variants, [`plan`]), its datasets ([`Datasets`]), the training phases with
 //! the teacher store and the student cache ([`train_all`]), and writing the results
 //! ([`write_results`]). The tasks themselves are in [`crate::tasks`].
@@ -10,54 +10,18 @@
 use std::collections::HashMap;
 use std::time::Instant;
 
-use serde::Serialize;
-use serde::de::DeserializeOwned;
 use serde_json::Value;
 use toml::Table;
 use vdd_diffusion::TeacherKind;
-use vdd_moe::MoeConfig;
 
 use crate::context::{RunContext, StageTimes};
 use crate::method::{CurveEval, Job, Method, MethodRecipe, Trained, TrainingData};
-use crate::recipe::{self, Header, Overrides, Resolved};
+use crate::recipe::{self, Resolved};
 use crate::report::Row;
+pub use crate::task::{Task, TaskRecipe};
 use crate::teachers::{self, TeachersConfig, TrainedTeacher};
 use crate::{Registry, Result as XResult};
 use vdd_moe::cache::StudentCache;
-
-/// A task of `cargo xtask experiment` (the `task` key of a recipe).
-pub trait Task: Sync {
-    /// `avoiding`, `toy-gmm`, ...
-    fn name(&self) -> &'static str;
-    /// The columns of its results tables (after `method` and `seeds`).
-    fn columns(&self) -> Vec<crate::report::Column>;
-    /// Runs a recipe of this task.
-    fn run(&self, ctx: &RunContext) -> XResult;
-    /// Translates the task's command-line shorthands (`--teacher`, `--iterations`, ...; as
-    /// `(option, value)`) into recipe overrides. By default the task has none.
-    fn apply_shorthands(
-        &self,
-        shorthands: &[(String, String)],
-        _: &mut Overrides,
-    ) -> Result<(), String> {
-        match shorthands.first() {
-            Some((k, _)) => Err(format!("option --{k} does not apply to task `{}`", self.name())),
-            None => Ok(()),
-        }
-    }
-}
-
-/// What the shared stages need of a task's recipe type.
-pub trait TaskRecipe: Serialize + DeserializeOwned + Sync {
-    /// The top-level tables read by the methods ([`Method::keys`] lists their keys).
-    const METHOD_SECTIONS: &'static [&'static str];
-    /// Name, description, task, seeds and methods.
-    fn header(&self) -> &Header;
-    /// The learned teachers.
-    fn teachers(&self) -> &TeachersConfig;
-    /// The students' mixture.
-    fn student(&self) -> &MoeConfig;
-}
 
 /// One method of one variant of the recipe.
 pub struct Entry<'r, R> {

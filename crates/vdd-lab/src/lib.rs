@@ -3,10 +3,12 @@
 //! * [`method`]: the [`method::Method`] trait (a row of the results table), the [`method::Job`]
 //!   it trains from and the [`method::Trained`] policy it returns; [`methods`]: the methods,
 //!   one file each, and their registry.
-//! * [`driver`]: the [`driver::Task`] trait and the stages every task shares: the plan
-//!   (methods × variants), datasets, the training phases with the teacher store and the
-//!   student cache, writing `metrics.json`; [`tasks`]: the tasks, one file each, and their
-//!   registry.
+//! * [`task`]: the [`task::Task`] trait (a recipe's `task`); [`tasks`]: the tasks, one file
+//!   each; [`driver`]: the stages every task shares: the plan (methods × variants), datasets,
+//!   the training phases with the teacher store and the student cache, writing
+//!   `metrics.json`.
+//! * [`Registry`]: the methods and tasks a run can name, the workspace's
+//!   ([`Registry::builtin`]) and a program's own.
 //! * [`experiment`]: running a recipe ([`experiment::Request`]), what `cargo xtask
 //!   experiment` calls.
 //! * [`teachers`], [`policy`], [`plots`], [`tuning`], [`acceptance`]: the learned teachers'
@@ -41,9 +43,24 @@ pub mod progress;
 pub mod recipe;
 pub mod registry;
 pub mod report;
+pub mod task;
 pub mod tasks;
 pub mod teachers;
 pub mod tuning;
 
 pub use error::{LabError, Result};
 pub use registry::Registry;
+
+impl Registry {
+    /// The workspace's methods ([`methods::BUILTIN`], in table order) and tasks
+    /// ([`tasks::BUILTIN`]).
+    pub fn builtin() -> Self {
+        Registry::new(methods::BUILTIN.to_vec(), tasks::BUILTIN.to_vec())
+    }
+}
+
+impl Default for Registry {
+    fn default() -> Self {
+        Self::builtin()
+    }
+}

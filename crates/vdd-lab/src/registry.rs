@@ -1,12 +1,12 @@
-//! The methods and tasks a run can name: [`Registry::builtin`] holds the workspace's own
-//! ([`crate::methods::BUILTIN`], [`crate::tasks::BUILTIN`]); a program adds its own with
+//! The methods and tasks a run can name: `Registry::builtin` (in the crate root) holds the
+//! workspace's own (`methods::BUILTIN`, `tasks::BUILTIN`); a program adds its own with
 //! [`Registry::with_method`] and [`Registry::with_task`] and runs recipes through them with
 //! [`crate::experiment::run_with`]. The order of the methods is the table order and what
 //! `all` expands to.
 
-use crate::driver::Task;
 use crate::method::Method;
 use crate::report::Column;
+use crate::task::Task;
 
 /// The methods and tasks of a run.
 #[derive(Clone)]
@@ -23,9 +23,10 @@ impl std::fmt::Debug for Registry {
     }
 }
 
-impl Default for Registry {
-    fn default() -> Self {
-        Self::builtin()
+impl Registry {
+    /// A registry of `methods` (in table order) and `tasks`.
+    pub fn new(methods: Vec<&'static dyn Method>, tasks: Vec<&'static dyn Task>) -> Self {
+        Self { methods, tasks }
     }
 }
 
@@ -36,11 +37,6 @@ fn valid_name(name: &str) -> bool {
 }
 
 impl Registry {
-    /// The workspace's methods and tasks.
-    pub fn builtin() -> Self {
-        Self { methods: crate::methods::BUILTIN.to_vec(), tasks: crate::tasks::BUILTIN.to_vec() }
-    }
-
     /// Adds `method` after the others (its place in tables); an error for a name taken or not
     /// lower-case hyphenated.
     pub fn with_method(mut self, method: &'static dyn Method) -> crate::Result<Self> {

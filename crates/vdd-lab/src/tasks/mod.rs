@@ -1,14 +1,14 @@
 //! The tasks a recipe can name (its `task` key), one file each, and their list [`BUILTIN`]
 //! (what [`crate::registry::Registry::builtin`] holds).
 //!
-//! Adding a task: a new file here implementing [`crate::driver::Task`] (usually: a recipe type
-//! implementing [`crate::driver::TaskRecipe`], its defaults in `recipes/defaults/<task>.toml`,
+//! Adding a task: a new file here implementing [`crate::task::Task`] (usually: a recipe type
+//! implementing [`crate::task::TaskRecipe`], its defaults in `recipes/defaults/<task>.toml`,
 //! data preparation, evaluation), one line in [`BUILTIN`], and the task's name in the
 //! [`crate::method::Info::tasks`] of the methods that run on it (docs/recipes.md, "Adding a
 //! task"). A task outside this crate is added with
 //! [`crate::registry::Registry::with_task`].
 
-use crate::driver::Task;
+use crate::task::Task;
 
 mod avoiding;
 mod toy;

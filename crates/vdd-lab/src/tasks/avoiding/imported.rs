@@ -151,8 +151,8 @@ pub fn run(ctx: &RunContext, resolved: &Resolved<AvoidingRecipe>) -> crate::Resu
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::driver::Task;
     use crate::recipe::{self, Overrides};
+    use crate::task::Task;
 
     fn resolved(shorthands: &[(String, String)], mut o: Overrides) -> AvoidingRecipe {
         super::super::Avoiding.apply_shorthands(shorthands, &mut o).unwrap();

@@ -66,7 +66,7 @@ pub struct AvoidingRecipe {
 }
 
 /// `recipes/defaults/avoiding.toml`, embedded so that the binary is self-contained.
-const DEFAULTS: &str = include_str!("../../../../recipes/defaults/avoiding.toml");
+const DEFAULTS: &str = include_str!("../../../../../recipes/defaults/avoiding.toml");
 
 impl AvoidingRecipe {
     /// The task's defaults, `recipes/defaults/avoiding.toml`, which a recipe file overrides.
