@@ -189,6 +189,59 @@ fn xtask_implements_no_teacher_expert_or_policy() {
     assert!(hits.is_empty(), "xtask wires crates and implements none of their traits: {hits:#?}");
 }
 
+/// The `fn` names of the first block after the line containing `header`, up to the line
+/// that closes it (the first line `}` at the header's indentation).
+fn fns_of_block(text: &str, header: &str) -> Option<BTreeSet<String>> {
+    let lines: Vec<&str> = text.lines().collect();
+    let start = lines.iter().position(|l| l.contains(header))?;
+    let indent = lines[start].len() - lines[start].trim_start().len();
+    let close = format!("{}}}", " ".repeat(indent));
+    let mut names = BTreeSet::new();
+    for l in &lines[start + 1..] {
+        if *l == close {
+            return Some(names);
+        }
+        let t = l.trim_start();
+        if let Some(rest) = t.strip_prefix("fn ") {
+            let name: String =
+                rest.chars().take_while(|c| c.is_alphanumeric() || *c == '_').collect();
+            names.insert(name);
+        }
+    }
+    None
+}
+
+/// A teacher wrapper states every fact and capability of the teacher it wraps: each of these
+/// `ScoreModel` implementations defines every method of the trait, so none falls back to a
+/// default (a wrapper that forgot `noise_range` hid the in-house teachers' trained range from
+/// `Vdd::auto`).
+#[test]
+fn teacher_wrappers_forward_every_score_model_method() {
+    let read = |p: &str| std::fs::read_to_string(root().join(p)).expect("readable source");
+    let core = read("crates/vdd-core/src/score.rs");
+    let all = fns_of_block(&core, "pub trait ScoreModel").expect("the trait is in score.rs");
+    assert!(all.len() >= 9 && all.contains("noise_range"), "{all:?}");
+    let wrappers = [
+        ("crates/vdd-diffusion/src/teacher.rs", "impl ScoreModel for DiffusionTeacher"),
+        ("crates/vdd-core/src/denoiser.rs", "ScoreModel for ClampedDenoiser<S>"),
+        ("crates/vdd/src/spaces.rs", "ScoreModel for MappedTeacher<'_, S>"),
+        ("crates/vdd-import/src/teacher.rs", "impl ScoreModel for ImportedTeacher"),
+        ("crates/vdd-core/src/score.rs", "ScoreModel for $($pointer)*"),
+    ];
+    let mut missing = Vec::new();
+    for (file, header) in wrappers {
+        let Some(fns) = fns_of_block(&read(file), header) else {
+            missing.push(format!("{file}: no `{header}` block"));
+            continue;
+        };
+        let lacking: Vec<_> = all.difference(&fns).collect();
+        if !lacking.is_empty() {
+            missing.push(format!("{file}: `{header}` does not forward {lacking:?}"));
+        }
+    }
+    assert!(missing.is_empty(), "teacher wrappers drop methods: {missing:#?}");
+}
+
 /// xtask parses command lines and calls the crates; experiment logic lives in `vdd-lab`.
 #[test]
 fn xtask_is_a_command_line_of_at_most_1500_lines() {

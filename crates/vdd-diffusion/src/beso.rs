@@ -335,6 +335,11 @@ impl Process for BesoProcess {
         drawn.clamp(self.config.sigma_min, self.config.sigma_max)
     }
 
+    /// `[σ_min, σ_max]`.
+    fn level_range(&self) -> (f32, f32) {
+        (self.config.sigma_min, self.config.sigma_max)
+    }
+
     /// `D = a + σ² s`.
     fn denoiser_form(&self, sigma: f32) -> DenoiserForm {
         DenoiserForm::ve(sigma)

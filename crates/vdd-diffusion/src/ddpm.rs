@@ -290,6 +290,15 @@ impl Process for DdpmProcess {
         }
     }
 
+    /// `[MIN_TIME, N]`, or `[1, N]` with [`TimeSampling::Discrete`] training.
+    fn level_range(&self) -> (f32, f32) {
+        let n = self.schedule.num_steps() as f32;
+        match self.config.time_sampling {
+            TimeSampling::Discrete => (1.0, n),
+            _ => (MIN_TIME, n),
+        }
+    }
+
     /// `x̂₀ = (a + (1 − ᾱ(t)) s)/√ᾱ(t)`, `a` fed as `x_t`.
     fn denoiser_form(&self, t: f32) -> DenoiserForm {
         DenoiserForm::vp(self.schedule.alpha_bar(t))

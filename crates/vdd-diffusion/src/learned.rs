@@ -83,6 +83,9 @@ pub trait Process: DsmNoise + Clone + Debug + Send + Sized + 'static {
     ) -> Result<(), CoreError>;
     /// Maps a level drawn from a distillation noise schedule onto a valid query level.
     fn valid_level(&self, drawn: f32) -> f32;
+    /// The noise levels the network was trained on, `(lowest, highest)`, in the process's
+    /// convention ([`vdd_core::ScoreModel::noise_range`]).
+    fn level_range(&self) -> (f32, f32);
     /// How the score at `level` relates to the denoised estimate (VE: `D = a + σ² s`; VP:
     /// `x̂₀ = (a + (1 − ᾱ) s)/√ᾱ`).
     fn denoiser_form(&self, level: f32) -> DenoiserForm;
@@ -488,6 +491,12 @@ impl<P: Process> ScoreModel for LearnedTeacher<P> {
     /// A copy of the teacher (its network, normalisers and buffers).
     fn fork(&self) -> Option<Box<dyn ScoreModel + Send>> {
         Some(Box::new(self.clone()))
+    }
+
+    /// The levels it was trained on (BESO: `[σ_min, σ_max]`; DDPM: `[MIN_TIME, N]`, or
+    /// `[1, N]` with discrete training times).
+    fn noise_range(&self) -> Option<(f32, f32)> {
+        Some(self.process.level_range())
     }
 }
 

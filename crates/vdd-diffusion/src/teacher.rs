@@ -175,6 +175,9 @@ impl ScoreModel for DiffusionTeacher {
     fn fork(&self) -> Option<Box<dyn ScoreModel + Send>> {
         delegate!(self, t => t.fork())
     }
+    fn noise_range(&self) -> Option<(f32, f32)> {
+        delegate!(self, t => t.noise_range())
+    }
 }
 
 impl Policy for DiffusionTeacher {

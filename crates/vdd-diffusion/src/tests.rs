@@ -461,6 +461,12 @@ fn noise_levels_are_drawn_onto_valid_levels() {
     assert!(out.iter().all(|&s| (0.002..=0.1).contains(&s)));
     assert_eq!(ddpm.noise_convention(), vdd_core::NoiseConvention::Time);
     assert_eq!(beso.noise_convention(), vdd_core::NoiseConvention::Sigma);
+    // The trained ranges are stated, and the teacher enum passes them on.
+    assert_eq!(ddpm.noise_range(), Some((MIN_TIME, 16.0)));
+    assert_eq!(discrete.noise_range(), Some((1.0, 16.0)));
+    assert_eq!(beso.noise_range(), Some((0.002, 80.0)));
+    assert_eq!(crate::DiffusionTeacher::from(beso).noise_range(), Some((0.002, 80.0)));
+    assert_eq!(crate::DiffusionTeacher::from(ddpm).noise_range(), Some((MIN_TIME, 16.0)));
 }
 
 #[test]

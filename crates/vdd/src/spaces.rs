@@ -178,6 +178,15 @@ impl<S: ScoreModel + ?Sized> ScoreModel for MappedTeacher<'_, S> {
     fn noise_range(&self) -> Option<(f32, f32)> {
         self.teacher.noise_range()
     }
+    /// None: the map scales the actions, so the teacher's relation between score and denoised
+    /// estimate does not hold in the student's space (a clamp works in the teacher's own space).
+    fn denoiser_form(&self, _level: f32) -> Option<vdd_core::DenoiserForm> {
+        None
+    }
+    /// None: a view borrowed for one call; the trainer forks the teacher itself.
+    fn fork(&self) -> Option<Box<dyn ScoreModel + Send>> {
+        None
+    }
 }
 
 impl<S: ScoreModel> crate::Vdd<vdd_core::ClampedDenoiser<S>> {
