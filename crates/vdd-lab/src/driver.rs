@@ -136,7 +136,7 @@ fn check_method_sections<R: TaskRecipe>(
 /// entry) trains on.
 pub use vdd_recipe::run::Shared as Datasets;
 
-/// The teachers of a run, keyed by kind, configuration, seed and data ([`teacher_key`]): trained
+/// The teachers of a run, keyed by kind, configuration, seed and data (`teacher_key`): trained
 /// once per run and shared by every method and variant that needs them.
 #[derive(Default)]
 pub struct TeacherStore {

@@ -4,7 +4,7 @@
 //!
 //! A method reads its own settings from the recipe by key path ([`MethodRecipe::get`]), so its
 //! defaults live in `recipes/defaults/<task>.toml` under the keys it declares
-//! ([`Method::keys`]); the recipe types hold those tables without knowing their contents.
+//! ([`Info::keys`]); the recipe types hold those tables without knowing their contents.
 
 use serde::Serialize;
 use serde::de::DeserializeOwned;
@@ -91,7 +91,7 @@ pub struct Job<'a> {
     pub label: &'a str,
     /// The training data.
     pub data: &'a TrainingData,
-    /// The trained teacher of [`Method::teacher`].
+    /// The trained teacher of [`Info::teacher`].
     pub teacher: Option<&'a TrainedTeacher>,
     /// The recipe.
     pub recipe: MethodRecipe<'a>,

@@ -5,13 +5,18 @@
 //! Adding a method: a new file here implementing [`crate::method::Method`], one line in
 //! [`BUILTIN`], and its settings in `recipes/defaults/<task>.toml` under the keys it declares
 //! (docs/recipes.md, "Adding a method", walks through an example).
+//!
+//! [`em`] is public for its helpers: [`em::fit`] (fit a mixture to a job's normalised data,
+//! timed, normalisers set), [`em::snapshot_policy`] and [`em::mixture_budget`], which methods
+//! fitting a mixture to the demonstrations share, in this crate or outside it (see
+//! `tests/lab_plugins.rs`).
 
 use crate::method::Method;
 
 mod beso_d3il;
 mod cd;
 mod ctm;
-mod em;
+pub mod em;
 mod imc;
 mod teacher;
 mod vdd;

@@ -61,7 +61,7 @@ pub struct AvoidingRecipe {
     pub eval: AvoidingEval,
     /// Figures.
     pub plots: PlotSettings,
-    /// A teacher imported from PyTorch (`--teacher FILE`; [`imported`]).
+    /// A teacher imported from PyTorch (`--teacher FILE`; the `imported` module).
     pub imported: ImportedSettings,
 }
 
