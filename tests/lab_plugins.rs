@@ -287,6 +287,8 @@ fn run(registry: &Registry, dir: &Path, body: &str) -> vdd_lab::Result<PathBuf> 
         recipe: file.to_str().unwrap().to_owned(),
         out: Some(out.clone()),
         command: "tests/lab_plugins.rs".into(),
+        // The project root of the run: caches and logs go below it, not into the repository.
+        root: Some(dir.to_path_buf()),
         ..Default::default()
     };
     run_with(registry, &request).map(|()| out)

@@ -126,6 +126,7 @@ pub fn run(parsed: &ExperimentArgs, command: &str) -> crate::XResult {
         fresh: parsed.fresh,
         resume: parsed.resume,
         command: command.to_owned(),
+        root: None,
     };
     Ok(vdd_lab::experiment::run(&request)?)
 }

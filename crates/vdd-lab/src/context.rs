@@ -11,7 +11,7 @@ use std::time::Instant;
 
 use toml::Table;
 
-use crate::recipe::{self, Overrides, run};
+use crate::recipe::{Overrides, run};
 
 /// Everything a task pipeline needs to run a recipe.
 #[derive(Debug, Clone)]
@@ -38,6 +38,12 @@ pub struct RunContext {
     pub started: Instant,
     /// The methods and tasks the recipe may name.
     pub registry: crate::Registry,
+    /// The project root: where `results/` (default run directories) and `docs/` (tuning
+    /// logs) are, and whose git revision `run.json` records.
+    pub root: PathBuf,
+    /// The run directory this context created, removed again when the run fails
+    /// ([`RunContext::remove_created_run_dir`]).
+    pub created: std::sync::Arc<std::sync::Mutex<Option<PathBuf>>>,
 }
 
 impl RunContext {
@@ -45,18 +51,17 @@ impl RunContext {
     pub fn run_dir(&self, seeds: &[u64]) -> PathBuf {
         match &self.out {
             Some(o) => o.clone(),
-            None => recipe::repo_root()
-                .join("results")
-                .join(&self.name)
-                .join(run_name(seeds, &self.overrides)),
+            None => {
+                self.root.join("results").join(&self.name).join(run_name(seeds, &self.overrides))
+            }
         }
     }
 
     /// Writes `resolved.toml` into `dir` (created; a directory this creates is removed again
-    /// when the run fails, [`remove_created_run_dir`]).
+    /// when the run fails, [`RunContext::remove_created_run_dir`]).
     pub fn write_resolved(&self, dir: &Path, resolved_toml: &str) -> crate::Result {
         if !dir.exists() {
-            *CREATED.lock().unwrap_or_else(|e| e.into_inner()) = Some(dir.to_owned());
+            *self.created.lock().unwrap_or_else(|e| e.into_inner()) = Some(dir.to_owned());
         }
         std::fs::create_dir_all(dir).map_err(|e| format!("creating {}: {e}", dir.display()))?;
         let header = run::resolved_header(&self.name, &self.command, dir);
@@ -64,23 +69,27 @@ impl RunContext {
         Ok(())
     }
 
+    /// Removes the run directory [`RunContext::write_resolved`] created, if any: a failed run
+    /// leaves nothing behind (another run's directory, or one that existed, stays).
+    pub fn remove_created_run_dir(&self) {
+        if let Some(dir) = self.created.lock().unwrap_or_else(|e| e.into_inner()).take() {
+            let _ = std::fs::remove_dir_all(dir);
+        }
+    }
+
+    /// `(git rev-parse HEAD, working tree dirty)` of the project root
+    /// ([`vdd_recipe::run::git_revision`]).
+    pub fn git_revision(&self) -> (String, Option<bool>) {
+        vdd_recipe::run::git_revision(&self.root)
+    }
+
     /// Writes `run.json` ([`vdd_recipe::run::run_info`]) into `dir`.
     pub fn write_run_info(&self, dir: &Path, extra: serde_json::Value) -> crate::Result {
         let times = (self.started.elapsed().as_secs_f64(), cpu_seconds());
-        let info = run::run_info(&self.name, &self.command, &recipe::repo_root(), times, extra);
+        let info = run::run_info(&self.name, &self.command, &self.root, times, extra);
         let text = serde_json::to_string_pretty(&info)?;
         vdd_nn::io::write_atomic(&dir.join("run.json"), text.as_bytes())?;
         Ok(())
-    }
-}
-
-static CREATED: std::sync::Mutex<Option<PathBuf>> = std::sync::Mutex::new(None);
-
-/// Removes the run directory [`RunContext::write_resolved`] created, if any: a failed run
-/// leaves nothing behind.
-pub fn remove_created_run_dir() {
-    if let Some(dir) = CREATED.lock().unwrap_or_else(|e| e.into_inner()).take() {
-        let _ = std::fs::remove_dir_all(dir);
     }
 }
 
@@ -89,8 +98,3 @@ pub fn remove_created_run_dir() {
 pub use vdd_core::parallel::parallel_map;
 pub use vdd_recipe::run::run_name;
 pub use vdd_report::timing::{StageTimes, cpu_seconds};
-
-/// `(git rev-parse HEAD, working tree dirty)` of the repository ([`vdd_recipe::run::git_revision`]).
-pub fn git_revision() -> (String, Option<bool>) {
-    vdd_recipe::run::git_revision(&recipe::repo_root())
-}

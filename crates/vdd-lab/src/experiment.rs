@@ -31,6 +31,10 @@ pub struct Request {
     pub resume: bool,
     /// The command line, for `resolved.toml` and `run.json`.
     pub command: String,
+    /// The project root: `recipes/` (recipe names), `results/` (default run directories and
+    /// the caches), `docs/` (tuning logs); `None`: this workspace
+    /// ([`crate::recipe::repo_root`]).
+    pub root: Option<PathBuf>,
 }
 
 /// Resolves the request's recipe and runs its task with the workspace's methods and tasks
@@ -42,7 +46,8 @@ pub fn run(request: &Request) -> crate::Result {
 /// [`run`] with the methods and tasks of `registry` (a program's own added to the workspace's).
 pub fn run_with(registry: &Registry, request: &Request) -> crate::Result {
     let started = Instant::now();
-    let path = recipe::recipe_path(&request.recipe)?;
+    let root = request.root.clone().unwrap_or_else(recipe::repo_root);
+    let path = recipe::run::find_recipe(&root.join("recipes"), &request.recipe)?;
     let file = recipe::read_recipe(&path)?;
     let name = file
         .get("name")
@@ -58,7 +63,7 @@ pub fn run_with(registry: &Registry, request: &Request) -> crate::Result {
     let task = registry.task(task).map_err(|e| format!("{e} in {}", path.display()))?;
     let mut overrides = request.overrides.clone();
     task.apply_shorthands(&request.shorthands, &mut overrides)?;
-    let cache = recipe::repo_root().join("results").join("cache");
+    let cache = root.join("results").join("cache");
     let ctx = RunContext {
         name,
         file,
@@ -71,10 +76,12 @@ pub fn run_with(registry: &Registry, request: &Request) -> crate::Result {
         command: request.command.clone(),
         started,
         registry: registry.clone(),
+        root,
+        created: Default::default(),
     };
     let result = task.run(&ctx);
     if result.is_err() {
-        crate::context::remove_created_run_dir();
+        ctx.remove_created_run_dir();
     }
     result
 }

@@ -17,8 +17,8 @@ pub use vdd_recipe::tuning::*;
 use crate::method::{Method, MethodRecipe};
 
 /// The tuning log of `task`: `docs/<task>-tuning-log.toml`.
-pub fn log_path(task: &str) -> PathBuf {
-    crate::recipe::repo_root().join("docs").join(format!("{task}-tuning-log.toml"))
+pub fn log_path(root: &std::path::Path, task: &str) -> PathBuf {
+    root.join("docs").join(format!("{task}-tuning-log.toml"))
 }
 
 /// [`vdd_recipe::tuning::method_config_hash`] of `method`: `data`, its teachers (when it has

@@ -197,13 +197,14 @@ impl Task for Avoiding {
         let runs = resolved.configs().into_iter().map(|(_, c)| (&c.header.seeds[..], c.data.seed));
         let is_tuning = tuning::is_tuning_plan(runs)?;
         let dir = match (&ctx.out, is_tuning) {
-            (None, true) => recipe::repo_root()
+            (None, true) => ctx
+                .root
                 .join("results/tuning")
                 .join(&ctx.name)
                 .join(crate::context::run_name(&base.header.seeds, &ctx.overrides)),
             _ => ctx.run_dir(&base.header.seeds),
         };
-        let log_path = tuning::log_path("avoiding");
+        let log_path = tuning::log_path(&ctx.root, "avoiding");
         let log = tuning::read_log(&log_path)?;
         ctx.write_resolved(&dir, &resolved.to_toml()?)?;
         crate::progress::log(format!(
@@ -304,7 +305,7 @@ fn tuning_entries(
     dir: &std::path::Path,
     rows: &mut [(String, Vec<Row>)],
 ) -> crate::Result<Vec<tuning::LogEntry>> {
-    let (revision, dirty) = crate::context::git_revision();
+    let (revision, dirty) = ctx.git_revision();
     let revision = if dirty == Some(true) { format!("{revision}+dirty") } else { revision };
     let mut entries = Vec::with_capacity(plan.len());
     for (e, (_, rows)) in plan.iter().zip(rows.iter_mut()) {
