@@ -3,12 +3,24 @@
 
 use std::path::{Path, PathBuf};
 
-use crate::{BesoError, ImportError, UnetTeacherSpec};
+use crate::{BesoError, ImportError, LerobotOptions, UnetTeacherSpec};
 
 /// Imports a LeRobot DiffusionPolicy directory (`config.json`, `model.safetensors`, processor
-/// files) into the U-Net teacher file `out`; returns a one-line summary.
+/// files) into the U-Net teacher file `out`; returns a summary (see [`lerobot_to_file_with`]).
 pub fn lerobot_to_file(dir: &Path, out: &Path) -> Result<String, ImportError> {
-    let teacher = crate::import_lerobot(dir)?;
+    lerobot_to_file_with(dir, out, &LerobotOptions::default())
+}
+
+/// [`lerobot_to_file`] with the user's observation map and sampler
+/// ([`crate::import_lerobot_with`]); returns the summary: the file, the network, the sampler,
+/// and the observation map recorded in the file (the stated one, or the in-order layout of
+/// the features when none was stated) with the registered feature map applied before it.
+pub fn lerobot_to_file_with(
+    dir: &Path,
+    out: &Path,
+    options: &LerobotOptions,
+) -> Result<String, ImportError> {
+    let teacher = crate::import_lerobot_with(dir, options)?;
     crate::save_unet_teacher(out, &teacher)?;
     Ok(unet_summary(out, teacher.spec()))
 }
@@ -40,15 +52,39 @@ pub fn beso_to_file(run_dir: &Path, out: &Path) -> Result<String, BesoError> {
 
 fn unet_summary(out: &Path, s: &UnetTeacherSpec) -> String {
     format!(
-        "wrote {} ({} U-Net, {} obs steps, horizon {}, {} executed, {:?} {} steps)",
+        "wrote {} ({} U-Net, {} obs steps, horizon {}, {} executed, sampler {})\n{}",
         out.display(),
         s.source,
         s.n_obs_steps,
         s.horizon,
         s.n_action_steps,
-        s.scheduler.sampler,
-        s.scheduler.num_inference_steps
+        s.sampler(),
+        obs_map_summary(s)
     )
+}
+
+/// Which raw entries feed which feature, as the teacher file records it.
+pub fn obs_map_summary(s: &UnetTeacherSpec) -> String {
+    let mapping = match &s.obs_map {
+        Some(m) => format!("{m} (stated; raw observation {} wide)", m.raw_dim()),
+        None => {
+            let mut at = 0;
+            let parts: Vec<String> = s
+                .obs_features
+                .iter()
+                .map(|f| {
+                    at += f.dim;
+                    format!("{}={}..{}", f.name, at - f.dim, at)
+                })
+                .collect();
+            format!(
+                "{} (none stated: features in order; raw observation {} wide)",
+                parts.join(";"),
+                at
+            )
+        }
+    };
+    format!("observation map: {mapping}; feature map before it: {}", s.features)
 }
 
 /// Converts a diffusion_policy `.ckpt` (a pickle) into a directory [`diffusion_policy_to_file`]
@@ -86,6 +122,10 @@ mod tests {
         let e = convert_ckpt("/nonexistent/python", Path::new("x.py"), Path::new("a"), dir.clone());
         assert!(matches!(e, Err(ImportError::Io { .. })));
         let e = lerobot_to_file(&dir.join("none"), &dir.join("t.safetensors")).unwrap_err();
+        assert!(e.to_string().contains("config.json"), "{e}");
+        let opts = LerobotOptions::default();
+        let e = lerobot_to_file_with(&dir.join("none"), &dir.join("t.safetensors"), &opts);
+        let e = e.unwrap_err();
         assert!(e.to_string().contains("config.json"), "{e}");
         assert!(beso_to_file(&dir.join("none"), &dir.join("t.safetensors")).is_err());
     }

@@ -135,6 +135,7 @@ pub fn import_diffusion_policy(dir: &Path) -> Result<UnetTeacher, ImportError> {
         obs_features: vec![obs_norm.spec()],
         action: action_norm.spec(),
         features: vdd_data::features::IDENTITY.id(),
+        obs_map: None,
     };
     spec.validate(&policy.file)?;
     let mut teacher = UnetTeacher::new(spec)?;

@@ -11,11 +11,12 @@ use crate::error::ImportError;
 use crate::unet_teacher::UnetTeacher;
 
 impl UnetTeacher {
-    /// The samples of `episodes` (observations already through the spec's feature map) as
+    /// The samples of `episodes` (raw observations already through the spec's feature map,
+    /// `raw_obs_dim` wide; the spec's observation map is applied here) as
     /// LeRobot's dataset builds them for this teacher with `delta_timestamps`: for every step
     /// `t`, the observation window `t − n_obs_steps + 1 ..= t` and the action chunk
     /// `t − n_obs_steps + 1 .. t − n_obs_steps + 1 + horizon`, indices clamped to the episode
-    /// (the first and last steps repeat). Rows: the raw window (`n_obs_steps · obs_dim`,
+    /// (the first and last steps repeat). Rows: the mapped window (`n_obs_steps · obs_dim`,
     /// oldest first) and the raw chunk (`horizon · action_dim`, step-major) — the teacher's
     /// state and action before its normalisers.
     ///
@@ -37,13 +38,13 @@ impl UnetTeacher {
     ) -> Result<(Mat<f32>, Mat<f32>), ImportError> {
         let s = self.spec();
         let (w, h) = (s.n_obs_steps, s.horizon);
-        let (d_obs, d_act) = (s.obs_dim(), s.unet.input_dim);
-        if episodes.obs_dim() != d_obs || episodes.act_dim() != d_act {
+        let (d_obs, d_act, d_raw) = (s.obs_dim(), s.unet.input_dim, s.raw_obs_dim());
+        if episodes.obs_dim() != d_raw || episodes.act_dim() != d_act {
             return Err(ImportError::bad(
                 "episodes",
                 "dimensions",
                 format!(
-                    "observations {} and actions {} for a teacher of {d_obs} and {d_act}",
+                    "observations {} and actions {} for a teacher of {d_raw} and {d_act}",
                     episodes.obs_dim(),
                     episodes.act_dim()
                 ),
@@ -53,14 +54,19 @@ impl UnetTeacher {
         let mut states = Mat::<f32>::zeros(rows, w * d_obs);
         let mut chunks = Mat::<f32>::zeros(rows, h * d_act);
         let mut row = 0;
+        let (mut raw, mut mapped) = (vec![0.0f32; d_raw], Vec::with_capacity(d_obs));
         for e in 0..episodes.num_episodes() {
             let (obs, act) = (episodes.observations(e), episodes.actions(e));
             let len = obs.nrows();
             let at = |t: usize, k: usize| (t + k).saturating_sub(w - 1).min(len - 1);
             for t in 0..len {
                 for k in 0..w {
-                    for j in 0..d_obs {
-                        states[(row, k * d_obs + j)] = obs[(at(t, k), j)];
+                    for (j, v) in raw.iter_mut().enumerate() {
+                        *v = obs[(at(t, k), j)];
+                    }
+                    self.map_obs_window(&raw, &mut mapped);
+                    for (j, &v) in mapped.iter().enumerate() {
+                        states[(row, k * d_obs + j)] = v;
                     }
                 }
                 for k in 0..h {
@@ -97,10 +103,13 @@ impl UnetTeacher {
         Ok((states, actions))
     }
 
-    /// How a policy that emits the teacher's whole chunk (a distilled student: state the raw
+    /// How a policy that emits the teacher's whole chunk (a distilled student: state the
     /// observation window, action the raw chunk) acts as the teacher's package does: the
     /// spec's feature map, a window of `n_obs_steps`, a chunk of `horizon` steps executed from
-    /// index `action_start` for `n_action_steps` steps.
+    /// index `action_start` for `n_action_steps` steps. The spec's observation map
+    /// ([`crate::ObsMap`]) is not part of a `DeploySpec`: a student of a teacher imported
+    /// with one is trained on mapped windows ([`UnetTeacher::training_windows`]) and must be
+    /// given mapped observations.
     pub fn chunk_deploy_spec(&self) -> DeploySpec {
         let s = self.spec();
         DeploySpec {

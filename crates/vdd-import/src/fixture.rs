@@ -44,7 +44,17 @@ fn tensor<'a>(
 
 /// Imports the fixture in `dir` and compares it with its `expected.safetensors`.
 pub fn check_unet_fixture(dir: &Path) -> Result<(UnetTeacher, UnetFixtureCheck), ImportError> {
-    let mut teacher = import_fixture(dir)?;
+    check_unet_fixture_with(dir, import_fixture(dir)?)
+}
+
+/// Compares `teacher` (imported from the fixture in `dir`, possibly with another sampler or an
+/// observation map) with the fixture's `expected.safetensors`: the recorded observations are
+/// laid out as the teacher's raw observation (through its [`crate::ObsMap`], unmapped entries
+/// zero) before it acts.
+pub fn check_unet_fixture_with(
+    dir: &Path,
+    mut teacher: UnetTeacher,
+) -> Result<(UnetTeacher, UnetFixtureCheck), ImportError> {
     let path = dir.join("expected.safetensors");
     let file = path.display().to_string();
     let bytes = read_bounded(&path, MAX_WEIGHTS_BYTES)?;
@@ -97,6 +107,22 @@ pub fn check_unet_fixture(dir: &Path) -> Result<(UnetTeacher, UnetFixtureCheck),
             }
         }
         at += f.dim;
+    }
+    if let Some(map) = &spec.obs_map {
+        let raw_dim = map.raw_dim();
+        let mut raw = Mat::<f32>::zeros(m, no * raw_dim);
+        for r in 0..m {
+            for s in 0..no {
+                let mut at = 0;
+                for (_, idx) in map.features() {
+                    for (d, &j) in idx.iter().enumerate() {
+                        raw[(r, s * raw_dim + j)] = obs[(r, s * od + at + d)];
+                    }
+                    at += idx.len();
+                }
+            }
+        }
+        obs = raw;
     }
     let initial = row_mat(&tensor(&t, &file, "sample.noise")?.1, m, h * a, &file, "sample.noise")?;
     let step_noise = &tensor(&t, &file, "sample.step_noise")?.1;

@@ -16,6 +16,7 @@ use crate::diffusers::{BetaSchedule, Prediction, SamplerKind, SchedulerConfig};
 use crate::error::ImportError;
 use crate::json::{Fields, MAX_WEIGHTS_BYTES, Prefixed, load_strict, read_bounded, read_json};
 use crate::normalize::{FeatureNorm, NormKind};
+use crate::options::{ObsMap, Sampler};
 use crate::unet_teacher::{UnetTeacher, UnetTeacherSpec};
 
 /// The file a training run may write beside LeRobot's files to record the registered feature
@@ -27,8 +28,48 @@ pub const FEATURES_FILE: &str = "vdd_features.json";
 /// The observation features a state-only LeRobot diffusion policy conditions on, in order.
 const OBS_KEYS: [&str; 2] = ["observation.state", "observation.environment_state"];
 
-/// Imports a LeRobot diffusion policy directory.
+/// What a user states when importing a LeRobot policy, beyond the package's files.
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct LerobotOptions {
+    /// Where the policy's `observation.*` features come from in the raw observation; `None`:
+    /// the raw observation is the features concatenated in the policy's order
+    /// (`observation.state`, then `observation.environment_state`). Checked against the
+    /// features' shapes and stored in the teacher file.
+    pub obs_map: Option<ObsMap>,
+    /// The sampler the teacher acts with; `None`: the package's (`noise_scheduler_type`,
+    /// `num_inference_steps`). Can be changed after loading with
+    /// [`UnetTeacher::set_sampler`].
+    pub sampler: Option<Sampler>,
+}
+
+/// Imports a LeRobot diffusion policy directory (the raw observation is its features in
+/// order, the package's sampler: [`import_lerobot_with`] to state them).
 pub fn import_lerobot(dir: &Path) -> Result<UnetTeacher, ImportError> {
+    import_lerobot_with(dir, &LerobotOptions::default())
+}
+
+/// Imports a LeRobot diffusion policy directory with the user's `options`: an observation map
+/// that does not fit the policy's features (a feature missing or of another width, an index
+/// out of range or repeated within a feature, a key the policy does not have) is refused with
+/// an error naming the map's key.
+///
+/// ```
+/// # let dir = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../../tests/fixtures/import/lerobot_unet_ddim");
+/// use vdd_import::{LerobotOptions, ObsMap, import_lerobot_with};
+/// // The fixture's policy has observation.state [4] and observation.environment_state [3].
+/// let obs_map: ObsMap = "observation.state=3..7;observation.environment_state=0..3".parse()?;
+/// let options = LerobotOptions { obs_map: Some(obs_map), sampler: None };
+/// let teacher = import_lerobot_with(&dir, &options)?;
+/// assert_eq!(teacher.spec().raw_obs_dim(), 7);
+/// let bad: ObsMap = "observation.state=0..3;observation.environment_state=4..7".parse()?;
+/// let err = import_lerobot_with(&dir, &LerobotOptions { obs_map: Some(bad), sampler: None });
+/// assert!(err.unwrap_err().to_string().contains("obs_map.observation.state"));
+/// # Ok::<(), vdd_import::ImportError>(())
+/// ```
+pub fn import_lerobot_with(
+    dir: &Path,
+    options: &LerobotOptions,
+) -> Result<UnetTeacher, ImportError> {
     let cfg_path = dir.join("config.json");
     let cfg_json = read_json(&cfg_path)?;
     let cfg = Fields::new(cfg_path.display().to_string(), &cfg_json);
@@ -122,6 +163,7 @@ pub fn import_lerobot(dir: &Path) -> Result<UnetTeacher, ImportError> {
         obs_features: Vec::new(),
         action: FeatureNorm::identity("action", adim).spec(),
         features: read_features(dir)?,
+        obs_map: None,
     };
 
     let model_path = dir.join("model.safetensors");
@@ -146,11 +188,20 @@ pub fn import_lerobot(dir: &Path) -> Result<UnetTeacher, ImportError> {
     let obs_norms =
         obs.iter().map(|&(k, kind, d)| norm(k, kind, d)).collect::<Result<Vec<_>, _>>()?;
     let action_norm = norm("action", akind, adim)?;
-    let spec = UnetTeacherSpec {
-        obs_features: obs_norms.iter().map(FeatureNorm::spec).collect(),
-        action: action_norm.spec(),
-        ..spec
+    let obs_features: Vec<_> = obs_norms.iter().map(FeatureNorm::spec).collect();
+    let obs_map = match &options.obs_map {
+        Some(m) => {
+            m.check_features(&obs_features, "observation map")?;
+            Some(m.ordered(&obs_features))
+        }
+        None => None,
     };
+    let scheduler = match options.sampler {
+        Some(s) => s.apply(&spec.scheduler)?,
+        None => spec.scheduler.clone(),
+    };
+    let spec =
+        UnetTeacherSpec { obs_features, action: action_norm.spec(), obs_map, scheduler, ..spec };
     spec.validate(&cfg.file)?;
     let mut teacher = UnetTeacher::new(spec)?;
     teacher.set_normalizers(obs_norms, action_norm)?;

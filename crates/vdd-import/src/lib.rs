@@ -25,13 +25,15 @@ pub mod fixture;
 mod json;
 mod lerobot;
 pub mod normalize;
+mod options;
 mod teacher;
 mod unet_teacher;
 
 pub use diffusion_policy::import_diffusion_policy;
 pub use error::ImportError;
 pub use file::{KIND_KEY, KIND_UNET1D, SPEC_KEY, load_teacher, save_unet_teacher};
-pub use lerobot::{FEATURES_FILE, import_lerobot};
+pub use lerobot::{FEATURES_FILE, LerobotOptions, import_lerobot, import_lerobot_with};
+pub use options::{ObsMap, Sampler};
 pub use teacher::ImportedTeacher;
 pub use unet_teacher::{UnetTeacher, UnetTeacherSpec};
 

@@ -3,6 +3,7 @@
 use faer::{MatMut, MatRef};
 use vdd_core::{DenoiserForm, NoiseConvention, NoiseSchedule, Policy, ScoreModel};
 
+use crate::options::Sampler;
 use crate::unet_teacher::UnetTeacher;
 
 /// A teacher loaded from a teacher file ([`crate::load_teacher`]). As a [`Policy`] it acts on
@@ -27,6 +28,29 @@ impl ImportedTeacher {
         let spec = self.deploy_spec();
         vdd_data::Windowed::new(self, spec)
             .map_err(|e| crate::ImportError::bad("teacher", "deploy spec", e))
+    }
+
+    /// The sampler the teacher acts with.
+    pub fn sampler(&self) -> Sampler {
+        match self {
+            Self::Unet1d(t) => t.spec().sampler(),
+        }
+    }
+
+    /// Acts with `sampler` from now on ([`UnetTeacher::set_sampler`]): chosen when running,
+    /// not by editing the package's files.
+    ///
+    /// ```no_run
+    /// use vdd_import::Sampler;
+    /// let mut teacher = vdd_import::load_teacher("teacher.safetensors".as_ref())?;
+    /// teacher.set_sampler(Sampler::Ddim { steps: 10 })?; // rollouts
+    /// teacher.set_sampler(Sampler::Ddpm { steps: None })?; // the trained schedule
+    /// # Ok::<(), vdd_import::ImportError>(())
+    /// ```
+    pub fn set_sampler(&mut self, sampler: Sampler) -> Result<(), crate::ImportError> {
+        match self {
+            Self::Unet1d(t) => t.set_sampler(sampler),
+        }
     }
 
     fn score_model(&mut self) -> &mut dyn ScoreModel {

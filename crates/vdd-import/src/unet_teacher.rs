@@ -17,6 +17,7 @@ use vdd_torch::{ConditionalUnet1d, Unet1dConfig};
 use crate::diffusers::{Prediction, Scheduler, SchedulerConfig};
 use crate::error::ImportError;
 use crate::normalize::{FeatureNorm, FeatureNormSpec};
+use crate::options::{ObsMap, Sampler};
 
 /// Rows per U-Net call: bounds the im2col buffers of wide networks.
 const ROWS_PER_CALL: usize = 256;
@@ -49,6 +50,11 @@ pub struct UnetTeacherSpec {
     /// unless the training run recorded one; see [`crate::FEATURES_FILE`]).
     #[serde(default = "identity_features")]
     pub features: FeatureMapId,
+    /// Where each observation feature comes from in the raw per-step observation (after
+    /// [`UnetTeacherSpec::features`]), as the user stated it at import; `None`: the raw
+    /// observation is the features concatenated in order.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub obs_map: Option<ObsMap>,
 }
 
 fn identity_features() -> FeatureMapId {
@@ -83,8 +89,11 @@ impl UnetTeacherSpec {
         {
             return bad("horizon", self.horizon.to_string());
         }
+        if let Some(m) = &self.obs_map {
+            m.check_features(&self.obs_features, file)?;
+        }
         let map = self.features.resolve().map_err(|e| ImportError::bad(file, "features", e))?;
-        map.check_dim(obs_dim).map_err(|e| ImportError::bad(file, "features", e))?;
+        map.check_dim(self.raw_obs_dim()).map_err(|e| ImportError::bad(file, "features", e))?;
         if self.n_action_steps == 0 || self.action_start + self.n_action_steps > self.horizon {
             return bad(
                 "n_action_steps",
@@ -97,9 +106,21 @@ impl UnetTeacherSpec {
         Ok(())
     }
 
-    /// Width of one raw observation (all features of one step).
+    /// Width of one step's observation features (the policy's per-step input, all features
+    /// of one step concatenated).
     pub fn obs_dim(&self) -> usize {
         self.obs_features.iter().map(|f| f.dim).sum()
+    }
+
+    /// Width of one raw observation the teacher acts on: the [`ObsMap`]'s raw width, or
+    /// [`UnetTeacherSpec::obs_dim`] without a map.
+    pub fn raw_obs_dim(&self) -> usize {
+        self.obs_map.as_ref().map_or_else(|| self.obs_dim(), ObsMap::raw_dim)
+    }
+
+    /// The sampler the policy acts with.
+    pub fn sampler(&self) -> Sampler {
+        Sampler::of(&self.scheduler)
     }
 }
 
@@ -181,6 +202,31 @@ impl UnetTeacher {
         Ok(())
     }
 
+    /// Acts with `sampler` from now on (the noise process and the score are unchanged; saving
+    /// the teacher records it). Errors naming the sampler for a step count outside
+    /// `1..=num_train_timesteps`.
+    ///
+    /// ```
+    /// # let dir = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../../tests/fixtures/import/lerobot_unet_ddpm");
+    /// use vdd_import::Sampler;
+    /// let teacher = vdd_import::import_lerobot(&dir)?.with_sampler(Sampler::Ddim { steps: 10 })?;
+    /// assert_eq!(teacher.spec().sampler(), Sampler::Ddim { steps: 10 });
+    /// assert_eq!(teacher.scheduler().timesteps().len(), 10);
+    /// # Ok::<(), vdd_import::ImportError>(())
+    /// ```
+    pub fn set_sampler(&mut self, sampler: Sampler) -> Result<(), ImportError> {
+        let config = sampler.apply(&self.spec.scheduler)?;
+        self.scheduler = Scheduler::new(config.clone())?;
+        self.spec.scheduler = config;
+        Ok(())
+    }
+
+    /// [`UnetTeacher::set_sampler`], by value.
+    pub fn with_sampler(mut self, sampler: Sampler) -> Result<Self, ImportError> {
+        self.set_sampler(sampler)?;
+        Ok(self)
+    }
+
     /// The spec.
     pub fn spec(&self) -> &UnetTeacherSpec {
         &self.spec
@@ -225,7 +271,27 @@ impl UnetTeacher {
         Windowed::new(self, spec).map_err(|e| ImportError::bad("teacher", "deploy spec", e))
     }
 
-    /// Normalises a raw observation window (`n_obs_steps × obs_dim`, one row) in place.
+    /// The policy's observation window (`n_obs_steps × obs_dim`) of a raw window
+    /// (`n_obs_steps × raw_obs_dim`) through the spec's [`ObsMap`] (a copy without one).
+    pub fn map_obs_window(&self, raw: &[f32], out: &mut Vec<f32>) {
+        match &self.spec.obs_map {
+            None => {
+                out.clear();
+                out.extend_from_slice(raw);
+            }
+            Some(m) => {
+                out.clear();
+                let mut step = Vec::with_capacity(m.mapped_dim());
+                for chunk in raw.chunks_exact(m.raw_dim()) {
+                    m.gather(chunk, &mut step);
+                    out.extend_from_slice(&step);
+                }
+            }
+        }
+    }
+
+    /// Normalises an observation window (`n_obs_steps × obs_dim`, one row, features in the
+    /// spec's order) in place.
     pub fn normalize_obs_window(&self, window: &mut [f32]) {
         let d = self.spec.obs_dim();
         for step in window.chunks_exact_mut(d) {
@@ -327,8 +393,8 @@ impl UnetTeacher {
         Ok(())
     }
 
-    /// The [`Policy`] step with given noise: normalises the raw observation windows `obs`
-    /// (`n × n_obs_steps·obs_dim`), samples from `initial` with `noise` as
+    /// The [`Policy`] step with given noise: maps (with the spec's [`ObsMap`], if any) and
+    /// normalises the raw observation windows `obs` (`n × n_obs_steps·raw_obs_dim`), samples from `initial` with `noise` as
     /// [`UnetTeacher::sample_with_noise`], and writes the executed raw actions
     /// (`n × n_action_steps·action_dim`).
     pub fn act_batch_with_noise(
@@ -341,15 +407,17 @@ impl UnetTeacher {
         let n = obs.nrows();
         vdd_core::check_shape("observations", obs, n, Policy::obs_dim(self))?;
         vdd_core::check_shape("actions", actions.as_mut().as_ref(), n, Policy::action_dim(self))?;
-        let mut cond = obs.to_owned();
-        let mut row = vec![0.0f32; cond.ncols()];
+        let mut cond = Mat::<f32>::zeros(n, self.spec.unet.global_cond_dim);
+        let mut raw = vec![0.0f32; obs.ncols()];
+        let mut row = Vec::with_capacity(cond.ncols());
         for r in 0..n {
-            for (j, v) in row.iter_mut().enumerate() {
-                *v = cond[(r, j)];
+            for (j, v) in raw.iter_mut().enumerate() {
+                *v = obs[(r, j)];
             }
-            if row.iter().any(|v| !v.is_finite()) {
+            if raw.iter().any(|v| !v.is_finite()) {
                 return Err(CoreError::NonFinite { what: "observation" }.into());
             }
+            self.map_obs_window(&raw, &mut row);
             self.normalize_obs_window(&mut row);
             for (j, v) in row.iter().enumerate() {
                 cond[(r, j)] = *v;
@@ -477,7 +545,7 @@ impl ScoreModel for UnetTeacher {
 
 impl Policy for UnetTeacher {
     fn obs_dim(&self) -> usize {
-        self.spec.n_obs_steps * self.spec.obs_dim()
+        self.spec.n_obs_steps * self.spec.raw_obs_dim()
     }
 
     fn action_dim(&self) -> usize {

@@ -53,9 +53,11 @@ pub use transformer_dp::{
 };
 
 mod conv;
+mod flush;
 mod norm;
 mod unet1d;
 
 pub use conv::{Conv1d, ConvTranspose1d};
+pub use flush::{FlushSubnormals, flush_subnormal};
 pub use norm::{GROUP_NORM_EPS, GroupNorm, mish, mish_inplace, mish_mat, sinusoidal_embedding};
 pub use unet1d::{ConditionalUnet1d, Unet1dConfig, UnetLayout};

@@ -5,6 +5,7 @@ use faer::reborrow::ReborrowMut as _;
 use faer::{Mat, MatMut};
 
 use super::dispatch::avx2_dispatch;
+use super::flush::flush_subnormal;
 use vdd_nn::{NnError, Param, Parameters, join_name};
 
 /// PyTorch's default `GroupNorm` epsilon.
@@ -177,8 +178,8 @@ avx2_dispatch! {
 
 /// Each sample's group statistics (per-row `f32` sums over the group's channels, accumulated
 /// over the sample's rows in `f64`; the variance about the `f32` mean), then every
-/// element normalised, scaled, shifted (and passed through [`mish`]) in one pass over its
-/// channel's contiguous rows, the sample's mean and inverse deviation spread over its rows.
+/// element normalised, scaled, shifted (and passed through [`mish`]; subnormal results flushed
+/// to zero) in one pass over its channel's contiguous rows, the sample's mean and inverse deviation spread over its rows.
 #[allow(clippy::too_many_arguments)]
 #[inline(always)]
 fn group_norm_body(
@@ -225,10 +226,12 @@ fn group_norm_body(
                 let (wc, bc) = (w[c], bias[c]);
                 let ys = &mut x.col_as_slice_mut(c)[r0..r0 + rl];
                 let it = ys.iter_mut().zip(mexp.iter()).zip(iexp.iter());
+                // A channel at its group's mean with zero shift (or a subnormal input) makes a
+                // subnormal value here: flushed, so the layers after it never compute on one.
                 if then_mish {
-                    it.for_each(|((y, &m), &i)| *y = mish((*y - m) * i * wc + bc));
+                    it.for_each(|((y, &m), &i)| *y = flush_subnormal(mish((*y - m) * i * wc + bc)));
                 } else {
-                    it.for_each(|((y, &m), &i)| *y = (*y - m) * i * wc + bc);
+                    it.for_each(|((y, &m), &i)| *y = flush_subnormal((*y - m) * i * wc + bc));
                 }
             }
         }

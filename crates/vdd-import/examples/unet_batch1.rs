@@ -1,0 +1,131 @@
+//! Batch-1 U-Net calls on one input, 100 times: min / median / max CPU time per call, for a
+//! normal input and for a subnormal one (issue 34, item 4: "single-observation calls are slow
+//! and erratic").
+//!
+//! The network is LeRobot's `DiffusionConditionalUnet1d` at its default scale with seeded
+//! random weights (PyTorch's default initialisation): horizon 16, 2-D actions, 2 observation
+//! steps of 4 features, `diffusion_step_embed_dim` 128, kernel 5, 8 groups, FiLM scale.
+//!
+//! ```text
+//! cargo run --release -p vdd-import --example unet_batch1 -- [--dims 64,128,256] [--calls 100]
+//! ```
+//!
+//! `--dims 512,1024,2048` is LeRobot's default `down_dims`; 64,128,256 (the default here) is the
+//! scale of the LeRobot teacher of issue 34.
+
+use std::time::Instant;
+
+use faer::Mat;
+use rand::{Rng as _, SeedableRng as _};
+use rand_chacha::ChaCha8Rng;
+use vdd_nn::Parameters as _;
+use vdd_torch::{ConditionalUnet1d, Unet1dConfig, UnetLayout};
+
+/// This thread's CPU time in ns (`clock_gettime(CLOCK_THREAD_CPUTIME_ID)` on Linux: what
+/// other processes on a loaded machine take is not counted; `None` elsewhere, and the wall time
+/// is used).
+#[cfg(all(target_os = "linux", target_pointer_width = "64"))]
+fn cpu_ns() -> Option<u64> {
+    #[repr(C)]
+    struct Timespec {
+        sec: i64,
+        nsec: i64,
+    }
+    unsafe extern "C" {
+        fn clock_gettime(clock: i32, ts: *mut Timespec) -> i32;
+    }
+    const CLOCK_THREAD_CPUTIME_ID: i32 = 3;
+    let mut ts = Timespec { sec: 0, nsec: 0 };
+    // SAFETY: `ts` is a valid `struct timespec` (64-bit Linux layout) for the call to fill.
+    let rc = unsafe { clock_gettime(CLOCK_THREAD_CPUTIME_ID, &mut ts) };
+    (rc == 0).then(|| ts.sec as u64 * 1_000_000_000 + ts.nsec as u64)
+}
+
+/// Not measured off Linux: the wall time is used.
+#[cfg(not(all(target_os = "linux", target_pointer_width = "64")))]
+fn cpu_ns() -> Option<u64> {
+    None
+}
+
+fn main() -> Result<(), Box<dyn std::error::Error>> {
+    let mut dims = vec![64, 128, 256];
+    let mut calls = 100usize;
+    let mut args = std::env::args().skip(1);
+    while let Some(a) = args.next() {
+        match a.as_str() {
+            "--dims" => {
+                let v = args.next().ok_or("--dims needs a value")?;
+                dims = v.split(',').map(str::parse).collect::<Result<_, _>>()?;
+            }
+            "--calls" => calls = args.next().ok_or("--calls needs a value")?.parse()?,
+            other => return Err(format!("unknown argument {other}").into()),
+        }
+    }
+    let (horizon, action_dim, cond_dim) = (16, 2, 8);
+    let config = Unet1dConfig {
+        input_dim: action_dim,
+        global_cond_dim: cond_dim,
+        step_embed_dim: 128,
+        down_dims: dims.clone(),
+        kernel_size: 5,
+        n_groups: 8,
+        film_scale: true,
+        layout: UnetLayout::Lerobot,
+    };
+    let mut unet = ConditionalUnet1d::new(config)?;
+    let mut rng = ChaCha8Rng::seed_from_u64(0);
+    // PyTorch's default init: U(±1/√fan_in) for weights and biases; GroupNorm 1 / 0.
+    unet.visit_params_mut("", &mut |name, p| {
+        if name.contains("block.1.") {
+            return; // GroupNorm keeps weight 1, bias 0
+        }
+        let fan_in = if p.shape.len() >= 2 { p.shape[1..].iter().product::<usize>() } else { 64 };
+        let bound = 1.0 / (fan_in as f32).sqrt();
+        p.value.iter_mut().for_each(|v| *v = rng.random_range(-bound..bound));
+    });
+    let params: usize = {
+        let mut n = 0;
+        unet.visit_params("", &mut |_, p| n += p.value.len());
+        n
+    };
+    println!("U-Net down_dims {dims:?}, {params} parameters, batch 1, {calls} calls per input");
+    let clock = if cpu_ns().is_some() { "thread CPU time" } else { "wall time" };
+    println!("per-call {clock}");
+    let x = Mat::from_fn(horizon, action_dim, |_, _| rng.random_range(-1.0f32..1.0));
+    let cond = Mat::from_fn(1, cond_dim, |_, _| rng.random_range(-1.0f32..1.0));
+    let tiny = f32::MIN_POSITIVE / 64.0; // subnormal
+    let xs = Mat::from_fn(horizon, action_dim, |i, j| tiny * (1 + i + j) as f32);
+    let cs = Mat::from_fn(1, cond_dim, |_, j| -tiny * (1 + j) as f32);
+    let zero_x = Mat::<f32>::zeros(horizon, action_dim);
+    let cases: [(&str, &Mat<f32>, &Mat<f32>, f32); 4] = [
+        ("normal input, step 50", &x, &cond, 50.0),
+        ("normal input, step 0", &x, &cond, 0.0),
+        ("zero input, step 0", &zero_x, &cond, 0.0),
+        ("subnormal input, step 0", &xs, &cs, 0.0),
+    ];
+    println!(
+        "{:<26} {:>10} {:>10} {:>10} {:>8}",
+        "case", "min µs", "median µs", "max µs", "max/min"
+    );
+    for (name, x, c, step) in cases {
+        let mut times = Vec::with_capacity(calls);
+        for _ in 0..calls {
+            let (t0, c0) = (Instant::now(), cpu_ns());
+            let y = unet.forward(x.as_ref(), &[step], c.as_ref())?;
+            std::hint::black_box(y[(0, 0)]);
+            let wall = t0.elapsed().as_secs_f64() * 1e6;
+            times.push(match (c0, cpu_ns()) {
+                (Some(a), Some(b)) => (b - a) as f64 / 1e3,
+                _ => wall,
+            });
+        }
+        let y = unet.forward(x.as_ref(), &[step], c.as_ref())?;
+        if !y.col_iter().all(|col| col.iter().all(|v| v.is_finite())) {
+            return Err(format!("{name}: non-finite output").into());
+        }
+        times.sort_by(f64::total_cmp);
+        let (lo, med, hi) = (times[0], times[times.len() / 2], times[times.len() - 1]);
+        println!("{name:<26} {lo:>10.0} {med:>10.0} {hi:>10.0} {:>8.2}", hi / lo);
+    }
+    Ok(())
+}
