@@ -41,12 +41,30 @@ pub struct Args {
     /// The Python that converts a .ckpt.
     #[arg(long, default_value = "python3")]
     pub python: String,
+    /// LeRobot: where each `observation.*` feature comes from in the raw observation, e.g.
+    /// `observation.state=2,3;observation.environment_state=0,1` (`raw_dim=N;` may lead;
+    /// `a..b` ranges are half-open); default: the features concatenated in the policy's order.
+    #[arg(long, value_name = "MAP", value_parser = |s: &str| s.parse::<vdd_import::ObsMap>().map_err(|e| e.to_string()))]
+    pub obs_map: Option<vdd_import::ObsMap>,
+    /// LeRobot: the sampler the teacher acts with (`ddpm`, `ddpm:N`, `ddim:N`); default: the
+    /// package's.
+    #[arg(long, value_name = "SAMPLER", value_parser = |s: &str| s.parse::<vdd_import::Sampler>().map_err(|e| e.to_string()))]
+    pub sampler: Option<vdd_import::Sampler>,
 }
 
 /// Runs an import ([`vdd_import::convert`]).
 pub fn run(cmd: &Import) -> XResult {
+    if let Import::DiffusionPolicy(a) | Import::Beso(a) = cmd {
+        if a.obs_map.is_some() || a.sampler.is_some() {
+            return Err("--obs-map and --sampler apply to `import lerobot` only".into());
+        }
+    }
     let line = match cmd {
-        Import::Lerobot(a) => convert::lerobot_to_file(&a.input, &a.out)?,
+        Import::Lerobot(a) => {
+            let options =
+                vdd_import::LerobotOptions { obs_map: a.obs_map.clone(), sampler: a.sampler };
+            convert::lerobot_to_file_with(&a.input, &a.out, &options)?
+        }
         Import::DiffusionPolicy(a) => {
             let dir = if a.input.is_dir() {
                 a.input.clone()

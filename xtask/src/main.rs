@@ -240,6 +240,17 @@ mod tests {
         assert!(matches!(t, Cli::Bench(Bench::Teachers(a)) if a.noise_mean == -1.2 && a.retrain));
         let i = parse(&words("import lerobot d --out f")).unwrap();
         assert!(matches!(i, Cli::Import(import::Import::Lerobot(a)) if a.out.ends_with("f")));
+        let m = "import lerobot d --out f --obs-map observation.state=2,3;observation.environment_state=0,1 --sampler ddim:10";
+        let i = parse(&words(m)).unwrap();
+        let Cli::Import(import::Import::Lerobot(a)) = i else { panic!("not an import") };
+        assert_eq!(a.sampler.map(|s| s.to_string()).as_deref(), Some("ddim:10"));
+        assert!(a.obs_map.is_some());
+        assert!(
+            parse(&words("import lerobot d --out f --sampler ddim:x")).unwrap_err().use_stderr()
+        );
+        assert!(
+            parse(&words("import lerobot d --out f --obs-map nonsense")).unwrap_err().use_stderr()
+        );
         let r = parse(&words("bench robustness --quick --out /tmp/r")).unwrap();
         assert!(matches!(r, Cli::Bench(Bench::Robustness(a)) if a.quick && a.threads == 2));
         let d = parse(&words("demos avoiding --n 5 --seed 2 --out /tmp/d")).unwrap();
