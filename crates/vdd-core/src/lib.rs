@@ -10,7 +10,7 @@
 //!   the trainers are tested against;
 //! * [`ClampedDenoiser`]: a teacher whose denoised estimate is clamped to a box (a deviation
 //!   from the paper, for learned teachers that extrapolate far from their data);
-//! * shared helpers: [`Seeds`] (independent ChaCha streams per purpose), the stable hash
+//! * shared helpers: [`files`] (the one bounded reader of regular files), [`Seeds`] (independent ChaCha streams per purpose), the stable hash
 //!   [`hash::fnv1a`] (seed purposes, cache keys, config hashes), Gaussian kernels in
 //!   [`gaussian`], element-wise [`lanes`] kernels for batched mixtures, independent jobs on a few threads
 //!   ([`parallel::parallel_map`]), shape and finiteness checks, and [`CoreError`].
@@ -22,6 +22,7 @@ pub mod curves;
 mod denoiser;
 mod error;
 mod expert;
+pub mod files;
 pub mod gaussian;
 pub mod gmm;
 pub mod hash;

@@ -105,16 +105,28 @@ pub fn save_safetensors(
 /// a header of the `safetensors` format's largest size (100 MB).
 pub const MAX_FILE_BYTES: u64 = crate::limits::MAX_PARAMS as u64 * 8 + 100_000_000;
 
-/// Reads a whole weights file after checking its size against [`MAX_FILE_BYTES`].
-fn read_bounded(path: &Path) -> Result<Vec<u8>, NnError> {
-    let len = std::fs::metadata(path).map_err(io_err(path))?.len();
-    if len > MAX_FILE_BYTES {
-        return Err(format_err(
-            path,
-            format!("the file has {len} bytes, more than the limit of {MAX_FILE_BYTES}"),
-        ));
-    }
-    std::fs::read(path).map_err(io_err(path))
+/// Reads the whole file `path`, at most `max_bytes`, through the workspace's one bounded
+/// reader ([`vdd_core::files::read_bounded`]): a FIFO, a device (`/dev/zero`), a socket or a
+/// directory is refused before it is opened, and no more than the bound is read whatever
+/// length the file reports. Errors are [`NnError::Io`] naming the file.
+///
+/// ```
+/// let e = vdd_nn::io::read_bounded(std::path::Path::new("/dev/zero"), 1 << 20).unwrap_err();
+/// assert!(e.to_string().contains("/dev/zero"), "{e}");
+/// ```
+pub fn read_bounded(path: &Path, max_bytes: u64) -> Result<Vec<u8>, NnError> {
+    vdd_core::files::read_bounded(path, max_bytes).map_err(io_err(path))
+}
+
+/// [`read_bounded`] as UTF-8 text.
+pub fn read_bounded_string(path: &Path, max_bytes: u64) -> Result<String, NnError> {
+    vdd_core::files::read_bounded_string(path, max_bytes).map_err(io_err(path))
+}
+
+/// Opens the regular file `path` (or a symlink to one) for reading, refusing anything else
+/// before opening it ([`vdd_core::files::open_regular`]); errors name the file.
+pub fn open_regular(path: &Path) -> Result<std::fs::File, NnError> {
+    vdd_core::files::open_regular(path).map_err(io_err(path))
 }
 
 /// Reads only the string metadata of a `safetensors` file (for example a model's config, to
@@ -126,7 +138,7 @@ pub fn read_metadata(path: &Path) -> Result<BTreeMap<String, String>, NnError> {
 /// Reads the string metadata of a `safetensors` file and the total number of tensor elements
 /// it holds (over all its tensors), which bounds the parameters of any model it can fill.
 pub fn read_header(path: &Path) -> Result<(BTreeMap<String, String>, usize), NnError> {
-    let bytes = read_bounded(path)?;
+    let bytes = read_bounded(path, MAX_FILE_BYTES)?;
     let (_, meta) = SafeTensors::read_metadata(&bytes).map_err(malformed(path))?;
     let mut elements = 0usize;
     for (name, info) in meta.tensors() {
@@ -171,7 +183,7 @@ pub fn load_safetensors(
     path: &Path,
     model: &mut dyn Parameters,
 ) -> Result<BTreeMap<String, String>, NnError> {
-    let bytes = read_bounded(path)?;
+    let bytes = read_bounded(path, MAX_FILE_BYTES)?;
     load_safetensors_bytes(path, &bytes, model)
 }
 
