@@ -2,6 +2,11 @@
 //! them, and atomic writes (temporary file, fsync, rename) so a crash never leaves a
 //! half-written file behind.
 //!
+//! Reading goes through the workspace's one bounded reader ([`read_bounded`]): only regular
+//! files, at most [`MAX_FILE_BYTES`]. Writing checks every value with the loader's rules and
+//! writes the metadata in key order, so a written file can always be read back and the same
+//! model always gives the same bytes.
+//!
 //! ```
 //! use std::collections::BTreeMap;
 //! use vdd_nn::{io, Linear, Parameters};
