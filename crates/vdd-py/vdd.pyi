@@ -7,6 +7,12 @@ Arrays go in as anything NumPy can turn into ``float32`` and come out as ``float
 arrays. The GIL is released while Rust computes (it is taken again only to call a Python
 ``score_fn``). Invalid arguments raise ``ValueError``; other failures of the Rust side raise
 :class:`VddError`; an exception raised by a ``score_fn`` is raised again as itself.
+
+Batches are bounded before anything is allocated: ``act_batch``, ``log_likelihood``,
+``components`` and a teacher's score take at most ``2**20`` rows per call (more raise
+``ValueError``: split the batch), and a batch whose estimated memory exceeds what the machine
+has available raises ``MemoryError``. No call raises ``PanicException``: an internal error of
+the Rust side, should one happen, raises ``RuntimeError``.
 """
 
 from os import PathLike

@@ -10,7 +10,7 @@
 //!   the trainers are tested against;
 //! * [`ClampedDenoiser`]: a teacher whose denoised estimate is clamped to a box (a deviation
 //!   from the paper, for learned teachers that extrapolate far from their data);
-//! * shared helpers: [`Seeds`] (independent ChaCha streams per purpose), the stable hash
+//! * shared helpers: [`files`] (the one bounded reader of regular files), [`Seeds`] (independent ChaCha streams per purpose), the stable hash
 //!   [`hash::fnv1a`] (seed purposes, cache keys, config hashes), Gaussian kernels in
 //!   [`gaussian`], element-wise [`lanes`] kernels for batched mixtures, independent jobs on a few threads
 //!   ([`parallel::parallel_map`]), shape and finiteness checks, and [`CoreError`].
@@ -22,6 +22,7 @@ pub mod curves;
 mod denoiser;
 mod error;
 mod expert;
+pub mod files;
 pub mod gaussian;
 pub mod gmm;
 pub mod hash;
@@ -37,7 +38,9 @@ pub mod trainer;
 pub use denoiser::{ClampedDenoiser, data_box};
 pub use error::{CoreError, Result, check_finite, check_finite_slice, check_len, check_shape};
 pub use expert::{Expert, ScaleActivation, sigmoid, softplus};
-pub use normalize::Affine;
+pub use normalize::{
+    Affine, MAX_ABS_NORMALIZER_OFFSET, MAX_NORMALIZER_SCALE, MIN_NORMALIZER_SCALE,
+};
 pub use policy::{Policy, check_act_args};
 pub use score::{DenoiserForm, NoiseConvention, NoiseSchedule, ScoreModel, check_score_args};
 pub use seed::{Rng, Seeds, fill_standard_normal, standard_normal};

@@ -19,7 +19,9 @@
 //! Reading is bounded: an array's header must declare at most [`MAX_ARRAY_BYTES`] of data (and
 //! have at most [`MAX_NPY_HEADER_BYTES`] of header), and a compressed archive entry is
 //! decompressed only up to the size its header declares, so a small hostile archive cannot
-//! make the loader allocate gigabytes.
+//! make the loader allocate gigabytes. Only regular files (or symlinks to them) are opened:
+//! a FIFO, a device such as `/dev/zero`, a socket or a directory where a file is expected is
+//! refused before it is opened ([`vdd_core::files::open_regular`]).
 //!
 //! Writes are atomic: each file is written to a temporary sibling, fsynced, then renamed over
 //! the target, so a crash leaves either the old file or the complete new one. The npz entries
@@ -120,8 +122,11 @@ impl Episodes {
 
     /// Loads an `.npz` archive with the given keys and layout.
     pub fn load_npz_with(path: &Path, options: &LoadOptions) -> Result<Self> {
-        let bytes = std::fs::read(path).map_err(io_err(path))?;
-        let mut zip = zip::ZipArchive::new(Cursor::new(bytes)).map_err(archive_err(path, None))?;
+        // Only a regular file is opened (never a FIFO or a device), and it is read entry by
+        // entry, each bounded by its array header ([`crate::npy`]), never whole.
+        let file = vdd_core::files::open_regular(path).map_err(io_err(path))?;
+        let mut zip =
+            zip::ZipArchive::new(std::io::BufReader::new(file)).map_err(archive_err(path, None))?;
         let present: Vec<String> =
             zip.file_names().filter_map(|f| f.strip_suffix(".npy")).map(str::to_owned).collect();
         let mut read = |key: &str| -> Result<Vec<u8>> {
@@ -167,7 +172,7 @@ impl Episodes {
         for (file, key) in
             files.iter().zip([&options.observations_key, &options.actions_key, &options.mask_key])
         {
-            match std::fs::File::open(file) {
+            match vdd_core::files::open_regular(file) {
                 Ok(mut f) => bytes.push(crate::npy::read_bounded(&mut f, file, key)?),
                 Err(e) if e.kind() == std::io::ErrorKind::NotFound => {
                     return Err(DataError::MissingKey {
@@ -500,6 +505,35 @@ mod tests {
         std::fs::write(&file, b"x").unwrap();
         assert!(matches!(ramp_episodes(2, 1, 1).save_npy_dir(&file), Err(DataError::Io { .. })));
         assert!(matches!(Episodes::load_npz(&dir.0.join("absent.npz")), Err(DataError::Io { .. })));
+    }
+
+    /// Before, an npz path naming `/dev/zero` was read until memory ran out, and a FIFO (as a
+    /// file of an npy directory too) blocked forever in `open`.
+    #[cfg(unix)]
+    #[test]
+    fn special_files_are_refused_before_they_are_opened() {
+        use std::os::unix::ffi::OsStrExt;
+        let is_special = |e: &DataError| match e {
+            DataError::Io { source, .. } => vdd_core::files::is_not_regular(source),
+            _ => false,
+        };
+        if Path::new("/dev/zero").exists() {
+            let e = Episodes::load_npz(Path::new("/dev/zero")).unwrap_err();
+            assert!(is_special(&e) && e.to_string().contains("/dev/zero"), "{e}");
+        }
+        let dir = TempDir::new("special");
+        ramp_episodes(2, 2, 1).save_npy_dir(&dir.0).unwrap();
+        for target in ["actions_seq.npy", "data.npz"] {
+            let fifo = dir.0.join(target);
+            let _ = std::fs::remove_file(&fifo);
+            let c = std::ffi::CString::new(fifo.as_os_str().as_bytes()).unwrap();
+            // SAFETY: a valid NUL-terminated path.
+            assert_eq!(unsafe { libc::mkfifo(c.as_ptr(), 0o600) }, 0);
+        }
+        let e = Episodes::load_npz(&dir.0.join("data.npz")).unwrap_err();
+        assert!(is_special(&e) && e.to_string().contains("data.npz"), "{e}");
+        let e = Episodes::load_npy_dir(&dir.0).unwrap_err();
+        assert!(is_special(&e) && e.to_string().contains("actions_seq.npy"), "{e}");
     }
 
     #[test]

@@ -26,6 +26,9 @@ use crate::{
 /// then retrained once). Version 2 is the format since the sidecar files.
 pub const TEACHER_CACHE_VERSION: u32 = 2;
 
+/// Largest sidecar read (its loss curve included; a real one has a few hundred KB).
+pub const MAX_SIDECAR_BYTES: u64 = 1 << 30;
+
 /// Errors of the teacher cache.
 #[derive(Debug, thiserror::Error)]
 pub enum CacheError {
@@ -253,7 +256,7 @@ impl TeacherCache<'_> {
     ) -> Result<CachedTeacher, CacheError> {
         let (weights, sidecar) = self.paths(kind, hash);
         if !self.fresh && weights.is_file() && sidecar.is_file() {
-            let text = std::fs::read_to_string(&sidecar)
+            let text = vdd_core::files::read_bounded_string(&sidecar, MAX_SIDECAR_BYTES)
                 .map_err(|source| CacheError::Io { path: sidecar.clone(), source })?;
             let side: Sidecar = serde_json::from_str(&text)
                 .map_err(|source| CacheError::Json { path: sidecar.clone(), source })?;

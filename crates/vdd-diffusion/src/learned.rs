@@ -271,7 +271,17 @@ impl<P: Process> LearnedTeacher<P> {
 
     /// Saves the EMA weights (`safetensors`) with the config, dimensions, normalisers and the
     /// training config as JSON metadata; the write is atomic.
+    ///
+    /// What is written can be loaded: weights beyond the loader's bound or normalisers outside
+    /// theirs ([`vdd_core::Affine::new`]) are an error naming the value, and nothing is written.
     pub fn save(&self, path: &Path) -> Result<()> {
+        for n in [&self.state_norm, &self.action_norm] {
+            n.validate().map_err(|e| crate::DiffusionError::BadMetadata {
+                path: path.to_owned(),
+                key: common::SHAPE_KEY,
+                source: Box::new(e),
+            })?;
+        }
         let shape = SavedShape {
             state_dim: self.state_dim(),
             action_dim: self.action_dim(),

@@ -16,6 +16,9 @@ use crate::{Moe, MoeError};
 /// student would be (every student is then retrained once).
 pub const STUDENT_CACHE_VERSION: u32 = 1;
 
+/// Largest sidecar read (its training curves included; a real one has a few hundred KB).
+pub const MAX_SIDECAR_BYTES: u64 = 1 << 30;
+
 /// Named learning curves, `(x, y)` points each.
 pub type Curves = BTreeMap<String, Vec<(f64, f64)>>;
 
@@ -102,7 +105,7 @@ impl StudentCache<'_> {
         if self.fresh || !weights.is_file() || !sidecar.is_file() {
             return Ok(None);
         }
-        let text = std::fs::read_to_string(&sidecar)
+        let text = vdd_core::files::read_bounded_string(&sidecar, MAX_SIDECAR_BYTES)
             .map_err(|source| StudentCacheError::Io { path: sidecar.clone(), source })?;
         let side: Sidecar = match serde_json::from_str(&text) {
             Ok(side) => side,

@@ -7,17 +7,25 @@
 //! * `LATEST`: the name of the newest complete generation, replaced atomically (written to a
 //!   temporary file, fsynced, renamed, and the directory fsynced) after every file of the
 //!   generation and the generation directory itself have been fsynced;
-//! * `LOCK`: the process id (and start time) of the writer, created exclusively.
+//! * `LOCK`: the file the writer's lock is taken on: an OS advisory lock (`flock(2)`,
+//!   exclusive, non-blocking) held through an open file descriptor for the writer's whole life.
+//!   The file's text (the writer's pid and start time) is only informational, for the error a
+//!   second writer gets.
 //!
 //! A crash (even `kill -9`, or a power cut once the data reached the disk) at any point leaves
 //! `LATEST` naming a complete generation, or no `LATEST` when none was completed: the pointer
 //! only ever moves to a generation that is complete on disk. Older generations are pruned, the
-//! newest [`KEEP`] kept. A lock left by a process that no longer runs (on Linux: its pid is gone,
-//! a zombie, or a different process with the same pid) is taken over; a live owner is an
-//! error ([`NnError::Locked`]).
+//! newest [`KEEP`] kept.
+//!
+//! The lock is the kernel's, not the file's presence: a writer that dies, however it dies,
+//! releases it, so a `LOCK` file left behind is simply locked again by the next writer (no
+//! takeover, and so no way to take a live writer's lock). A live writer's lock is an error
+//! ([`NnError::Locked`]). Dropping a [`CheckpointDir`] removes `LOCK` while still holding it, and
+//! an opener that locked a file it then finds unlinked or replaced at the path tries again, so
+//! a removal never strands a second writer on an orphaned file. Locking needs a Unix platform.
 
 use std::fs::{self, File, OpenOptions};
-use std::io::Write;
+use std::io::{Read, Seek, Write};
 use std::path::{Path, PathBuf};
 
 use crate::error::NnError;
@@ -55,36 +63,50 @@ fn io(path: &Path) -> impl FnOnce(std::io::Error) -> NnError + '_ {
 pub struct CheckpointDir {
     root: PathBuf,
     lock: PathBuf,
+    /// The open `LOCK` file: its descriptor holds the `flock` until it is closed.
+    held: File,
 }
 
+/// Largest `LATEST` pointer read (a generation name is 24 bytes).
+const MAX_POINTER_BYTES: u64 = 4096;
+
+/// Attempts at locking a `LOCK` file that keeps being replaced under the opener.
+const LOCK_ATTEMPTS: usize = 16;
+
 impl CheckpointDir {
-    /// Creates `root` if needed and takes its lock (see the module docs).
+    /// Creates `root` if needed and takes its lock (see the module docs): an error
+    /// ([`NnError::Locked`]) when another writer holds it.
     pub fn open(root: &Path) -> Result<Self, NnError> {
         fs::create_dir_all(root).map_err(io(root))?;
         let lock = root.join(LOCK);
-        let me = owner_tag(std::process::id());
-        for _ in 0..3 {
-            match OpenOptions::new().write(true).create_new(true).open(&lock) {
-                Ok(mut f) => {
-                    f.write_all(me.as_bytes()).and_then(|()| f.sync_all()).map_err(io(&lock))?;
-                    sync_dir(root);
-                    return Ok(Self { root: root.to_owned(), lock });
-                }
-                Err(e) if e.kind() == std::io::ErrorKind::AlreadyExists => {
-                    let owner = fs::read_to_string(&lock).unwrap_or_default();
-                    if owner_alive(&owner) {
-                        return Err(NnError::Locked { path: lock, owner: owner.trim().into() });
-                    }
-                    // Stale: move it aside under a unique name (only one taker succeeds).
-                    let aside = root.join(format!(".{LOCK}.stale-{}", std::process::id()));
-                    if fs::rename(&lock, &aside).is_ok() {
-                        let _ = fs::remove_file(&aside);
-                    }
-                }
-                Err(e) => return Err(io(&lock)(e)),
+        for _ in 0..LOCK_ATTEMPTS {
+            let held = open_lock_file(&lock)?;
+            if !try_flock(&held).map_err(io(&lock))? {
+                let mut owner = String::new();
+                let _ = (&held).take(MAX_POINTER_BYTES).read_to_string(&mut owner);
+                let owner = match owner.trim() {
+                    "" => "unknown (still starting)".to_owned(),
+                    o => o.to_owned(),
+                };
+                return Err(NnError::Locked { path: lock, owner });
             }
+            // The previous holder may have removed `LOCK` (dropping) between our open and our
+            // lock: then we hold an orphaned file, and try again on the one at the path.
+            if !same_file(&held, &lock) {
+                continue;
+            }
+            let me = owner_tag(std::process::id());
+            let write_owner = |mut f: &File| {
+                f.set_len(0)?;
+                f.rewind()?;
+                f.write_all(me.as_bytes())?;
+                f.sync_all()
+            };
+            write_owner(&held).map_err(io(&lock))?;
+            sync_dir(root);
+            return Ok(Self { root: root.to_owned(), lock, held });
         }
-        Err(NnError::Locked { path: lock, owner: "contended".into() })
+        Err(NnError::Locked { path: lock, owner: "contended (replaced while locking)".into() })
     }
 
     /// The directory.
@@ -148,15 +170,82 @@ impl CheckpointDir {
 
 impl Drop for CheckpointDir {
     fn drop(&mut self) {
-        let _ = fs::remove_file(&self.lock);
+        // Removed while the lock is still held (it is released when `held` closes, after
+        // this): no other writer holds this file, and one that opened it meanwhile finds it
+        // gone from the path once it locks it, and retries.
+        if same_file(&self.held, &self.lock) {
+            let _ = fs::remove_file(&self.lock);
+        }
     }
+}
+
+/// Opens (creating it if needed) the lock file: never following a symlink, never blocking on a
+/// FIFO, and only a regular file.
+fn open_lock_file(lock: &Path) -> Result<File, NnError> {
+    let mut options = OpenOptions::new();
+    options.read(true).write(true).create(true).truncate(false);
+    #[cfg(unix)]
+    {
+        use std::os::unix::fs::OpenOptionsExt;
+        options.custom_flags(libc::O_NOFOLLOW | libc::O_NONBLOCK);
+    }
+    let file = options.open(lock).map_err(io(lock))?;
+    if !file.metadata().map_err(io(lock))?.is_file() {
+        return Err(NnError::Format {
+            path: lock.to_owned(),
+            reason: "the lock file is not a regular file".into(),
+        });
+    }
+    Ok(file)
+}
+
+/// Takes the exclusive `flock` on `file` without waiting: `false` when another open file holds
+/// it.
+#[cfg(unix)]
+fn try_flock(file: &File) -> std::io::Result<bool> {
+    use std::os::unix::io::AsRawFd;
+    loop {
+        // SAFETY: `file` owns an open descriptor for the duration of the call.
+        if unsafe { libc::flock(file.as_raw_fd(), libc::LOCK_EX | libc::LOCK_NB) } == 0 {
+            return Ok(true);
+        }
+        let e = std::io::Error::last_os_error();
+        match e.raw_os_error() {
+            Some(libc::EINTR) => continue,
+            Some(libc::EWOULDBLOCK) => return Ok(false),
+            _ => return Err(e),
+        }
+    }
+}
+
+#[cfg(not(unix))]
+fn try_flock(_: &File) -> std::io::Result<bool> {
+    Err(std::io::Error::new(
+        std::io::ErrorKind::Unsupported,
+        "checkpoint directories are locked with flock, which needs a Unix platform",
+    ))
+}
+
+/// Whether the open `file` is still the file at `path` (not unlinked or replaced).
+#[cfg(unix)]
+fn same_file(file: &File, path: &Path) -> bool {
+    use std::os::unix::fs::MetadataExt;
+    match (file.metadata(), fs::symlink_metadata(path)) {
+        (Ok(a), Ok(b)) => a.dev() == b.dev() && a.ino() == b.ino() && a.nlink() > 0,
+        _ => false,
+    }
+}
+
+#[cfg(not(unix))]
+fn same_file(_: &File, _: &Path) -> bool {
+    false
 }
 
 /// The newest complete generation of the checkpoint directory `root`, `(step, directory)`, or
 /// `None` when no generation was completed (or `root` does not exist). Reading needs no lock.
 pub fn latest(root: &Path) -> Result<Option<(u64, PathBuf)>, NnError> {
     let pointer = root.join(POINTER);
-    let name = match fs::read_to_string(&pointer) {
+    let name = match vdd_core::files::read_bounded_string(&pointer, MAX_POINTER_BYTES) {
         Ok(n) => n.trim().to_owned(),
         Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(None),
         Err(e) => return Err(io(&pointer)(e)),
@@ -223,23 +312,6 @@ fn proc_stat(pid: u32) -> Option<(char, String)> {
     Some((f.first()?.chars().next()?, (*f.get(19)?).to_owned()))
 }
 
-/// Whether the owner recorded in a lock file still runs. Without `/proc` a well-formed lock
-/// counts as alive (the user removes it); an unreadable one as stale.
-fn owner_alive(owner: &str) -> bool {
-    let mut words = owner.split_whitespace();
-    let Some(pid) = words.next().and_then(|p| p.parse::<u32>().ok()) else {
-        return false;
-    };
-    if !Path::new("/proc/self/stat").exists() {
-        return true;
-    }
-    match proc_stat(pid) {
-        None => false,
-        Some(('Z' | 'X', _)) => false,
-        Some((_, start)) => words.next().is_none_or(|s| s == start),
-    }
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -293,17 +365,124 @@ mod tests {
         assert!(matches!(e, NnError::Locked { .. }), "{e}");
         assert!(e.to_string().contains(&std::process::id().to_string()), "{e}");
         drop(ck);
-        // A lock left by a process that is gone (pid beyond any real one), or garbage.
-        for stale in [format!("{}", u32::MAX - 1), "not a pid".to_owned()] {
+        // Lock files left by writers that are gone (a pid beyond any real one, garbage, our own
+        // pid): nobody holds them, so they are simply locked again.
+        for stale in [
+            format!("{}", u32::MAX - 1),
+            "not a pid".to_owned(),
+            format!("{} 1", std::process::id()),
+        ] {
             fs::write(root.join(LOCK), stale).unwrap();
-            drop(CheckpointDir::open(&root).unwrap());
-        }
-        if Path::new("/proc/self/stat").exists() {
-            // Our pid with another start time: a reused pid, so stale.
-            fs::write(root.join(LOCK), format!("{} 1", std::process::id())).unwrap();
-            drop(CheckpointDir::open(&root).unwrap());
+            let ck = CheckpointDir::open(&root).unwrap();
+            assert!(CheckpointDir::open(&root).is_err(), "locked again");
+            drop(ck);
         }
         assert!(!root.join(LOCK).exists(), "dropping releases the lock");
+        fs::remove_dir_all(&root).unwrap();
+    }
+
+    /// Two writers opening one directory at the same instant: never both hold it, on a fresh
+    /// directory and over a stale `LOCK` file. Before, both held it in about one trial in seven
+    /// (a window between `create_new` and writing the owner, a takeover renaming whatever
+    /// `LOCK` was there, and `Drop` removing the lock by path).
+    #[test]
+    fn two_writers_racing_never_both_hold_the_lock() {
+        use std::sync::{Arc, Barrier};
+        let root = temp("race");
+        for stale in [false, true] {
+            for trial in 0..200 {
+                if stale {
+                    fs::create_dir_all(&root).unwrap();
+                    fs::write(root.join(LOCK), format!("{} 1\n", u32::MAX - 1)).unwrap();
+                }
+                let start = Arc::new(Barrier::new(2));
+                let done = Arc::new(Barrier::new(2));
+                let racers: Vec<_> = (0..2)
+                    .map(|_| {
+                        let (root, start, done) = (root.clone(), start.clone(), done.clone());
+                        std::thread::spawn(move || {
+                            start.wait();
+                            let held = CheckpointDir::open(&root);
+                            // Hold it until both have tried.
+                            done.wait();
+                            match held {
+                                Ok(_) => true,
+                                Err(NnError::Locked { .. }) => false,
+                                Err(e) => panic!("{e}"),
+                            }
+                        })
+                    })
+                    .collect();
+                let holders =
+                    racers.into_iter().map(|r| r.join().unwrap()).filter(|&held| held).count();
+                assert_eq!(holders, 1, "trial {trial} (stale lock: {stale})");
+            }
+        }
+        fs::remove_dir_all(&root).unwrap();
+    }
+
+    /// Writers taking and dropping the lock in a loop: a drop (which removes `LOCK`) never lets
+    /// a second writer in while another holds it.
+    #[test]
+    fn taking_and_dropping_the_lock_in_a_loop_never_gives_two_holders() {
+        use std::sync::Arc;
+        use std::sync::atomic::{AtomicUsize, Ordering};
+        let root = temp("churn");
+        fs::create_dir_all(&root).unwrap();
+        let holders = Arc::new(AtomicUsize::new(0));
+        let acquired = Arc::new(AtomicUsize::new(0));
+        let threads: Vec<_> = (0..3)
+            .map(|_| {
+                let (root, holders, acquired) = (root.clone(), holders.clone(), acquired.clone());
+                std::thread::spawn(move || {
+                    for _ in 0..200 {
+                        match CheckpointDir::open(&root) {
+                            Ok(ck) => {
+                                assert_eq!(
+                                    holders.fetch_add(1, Ordering::SeqCst),
+                                    0,
+                                    "two holders"
+                                );
+                                acquired.fetch_add(1, Ordering::SeqCst);
+                                std::thread::yield_now();
+                                holders.fetch_sub(1, Ordering::SeqCst);
+                                drop(ck);
+                            }
+                            Err(NnError::Locked { .. }) => {}
+                            Err(e) => panic!("{e}"),
+                        }
+                    }
+                })
+            })
+            .collect();
+        for t in threads {
+            t.join().unwrap();
+        }
+        assert!(acquired.load(Ordering::SeqCst) > 0);
+        fs::remove_dir_all(&root).unwrap();
+    }
+
+    #[cfg(unix)]
+    #[test]
+    fn special_lock_and_pointer_files_are_errors_not_hangs() {
+        use std::os::unix::ffi::OsStrExt;
+        let root = temp("special");
+        fs::create_dir_all(&root).unwrap();
+        for name in [LOCK, POINTER] {
+            let c = std::ffi::CString::new(root.join(name).as_os_str().as_bytes()).unwrap();
+            // SAFETY: a valid NUL-terminated path.
+            assert_eq!(unsafe { libc::mkfifo(c.as_ptr(), 0o600) }, 0);
+        }
+        let e = CheckpointDir::open(&root).unwrap_err().to_string();
+        assert!(e.contains("LOCK") && e.contains("not a regular file"), "{e}");
+        let e = latest(&root).unwrap_err().to_string();
+        assert!(e.contains("LATEST") && e.contains("FIFO"), "{e}");
+        // A symlinked LOCK is not followed (its target is never truncated).
+        fs::remove_file(root.join(LOCK)).unwrap();
+        fs::write(root.join("precious"), "keep me").unwrap();
+        std::os::unix::fs::symlink(root.join("precious"), root.join(LOCK)).unwrap();
+        assert!(CheckpointDir::open(&root).is_err());
+        assert_eq!(fs::read_to_string(root.join("precious")).unwrap(), "keep me");
         fs::remove_dir_all(&root).unwrap();
     }
 

@@ -101,7 +101,8 @@ impl Ema {
     }
 
     /// Checks a restored average (e.g. from a checkpoint) against `model`: the decay in
-    /// `[0, 1]`, the same parameter names and sizes in the same order, and finite values. The
+    /// `[0, 1]`, the same parameter names and sizes in the same order, and finite values within
+    /// [`MAX_ABS_WEIGHT`](crate::limits::MAX_ABS_WEIGHT) (the average becomes weights). The
     /// error names the first parameter that does not match.
     pub fn validate(&self, model: &dyn Parameters) -> Result<(), NnError> {
         if !(0.0..=1.0).contains(&self.decay) {
@@ -127,6 +128,8 @@ impl Ema {
             if !p.value.iter().all(|v| v.is_finite()) {
                 return Err(mismatch(format!("`{name}` holds non-finite values")));
             }
+            // The average becomes a model's weights: the weights' bound applies.
+            crate::io::check_values(name, &p.value).map_err(mismatch)?;
         }
         Ok(())
     }

@@ -65,6 +65,15 @@ pub enum NnError {
         /// The file's shape.
         got: Vec<usize>,
     },
+    /// A value that its loader would refuse (non-finite, beyond a documented bound), caught
+    /// before anything is written, so that whatever is written can be read back.
+    #[error("refusing to write {what}: {reason} (its loader would refuse it)")]
+    Unwritable {
+        /// What was being written (a file, an optimiser's state).
+        what: String,
+        /// The value and the bound it breaks.
+        reason: String,
+    },
     /// A checkpoint directory is locked by another process that still runs
     /// ([`crate::checkpoint::CheckpointDir`]).
     #[error(

@@ -2,6 +2,11 @@
 //! them, and atomic writes (temporary file, fsync, rename) so a crash never leaves a
 //! half-written file behind.
 //!
+//! Reading goes through the workspace's one bounded reader ([`read_bounded`]): only regular
+//! files, at most [`MAX_FILE_BYTES`]. Writing checks every value with the loader's rules and
+//! writes the metadata in key order, so a written file can always be read back and the same
+//! model always gives the same bytes.
+//!
 //! ```
 //! use std::collections::BTreeMap;
 //! use vdd_nn::{io, Linear, Parameters};
@@ -19,7 +24,7 @@
 //! # std::fs::remove_dir_all(&dir).unwrap();
 //! ```
 
-use std::collections::{BTreeMap, HashMap};
+use std::collections::BTreeMap;
 use std::io::Write;
 use std::path::{Path, PathBuf};
 
@@ -71,25 +76,90 @@ pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<(), NnError> {
 
 /// Serialises every parameter of `model` (f32, PyTorch names and shapes) plus `metadata` to
 /// `safetensors` bytes.
+///
+/// What is written can be read back: every value is checked with the loader's rules (finite,
+/// `|w| <=` [`MAX_ABS_WEIGHT`](crate::limits::MAX_ABS_WEIGHT)) and a value breaking them is an
+/// error naming the tensor, the index and the value. The bytes depend only on the model and
+/// the metadata (tensors sorted by name, metadata keys in order), so the same model always
+/// gives the same file.
 pub fn to_safetensors_bytes(
     model: &dyn Parameters,
     metadata: &BTreeMap<String, String>,
 ) -> Result<Vec<u8>, NnError> {
     let mut tensors: Vec<(String, Vec<usize>, Vec<u8>)> = Vec::new();
+    let mut invalid: Option<String> = None;
     model.visit_params("", &mut |name, p| {
+        if invalid.is_none() {
+            invalid = check_values(name, &p.value).err();
+        }
         let bytes = p.value.iter().flat_map(|v| v.to_le_bytes()).collect();
         tensors.push((name.to_owned(), p.shape.clone(), bytes));
     });
+    if let Some(reason) = invalid {
+        return Err(NnError::Unwritable { what: "a safetensors file".into(), reason });
+    }
     let mut views = Vec::with_capacity(tensors.len());
     for (name, shape, bytes) in &tensors {
         let view = TensorView::new(Dtype::F32, shape.clone(), bytes)
             .map_err(|source| NnError::Serialize { what: format!("tensor `{name}`"), source })?;
         views.push((name.clone(), view));
     }
-    let meta: HashMap<String, String> =
-        metadata.iter().map(|(k, v)| (k.clone(), v.clone())).collect();
-    safetensors::serialize(views, Some(meta))
-        .map_err(|source| NnError::Serialize { what: "the safetensors file".into(), source })
+    // The safetensors crate writes its metadata from a `HashMap`, in a per-process random
+    // order; the header is written here instead with the keys in order.
+    let bytes = safetensors::serialize(views, None)
+        .map_err(|source| NnError::Serialize { what: "the safetensors file".into(), source })?;
+    with_ordered_metadata(bytes, metadata)
+}
+
+/// Inserts `metadata` (keys in order) as the `__metadata__` entry of the header of `bytes`, a
+/// `safetensors` file written without metadata. Data offsets are relative to the end of the
+/// header, so the data is unchanged.
+fn with_ordered_metadata(
+    bytes: Vec<u8>,
+    metadata: &BTreeMap<String, String>,
+) -> Result<Vec<u8>, NnError> {
+    let broken = |what: &str| NnError::Config(format!("safetensors serialisation: {what}"));
+    let len_bytes: [u8; 8] =
+        bytes.get(..8).and_then(|b| b.try_into().ok()).ok_or_else(|| broken("no header"))?;
+    let n = usize::try_from(u64::from_le_bytes(len_bytes)).map_err(|_| broken("header size"))?;
+    let end = n.checked_add(8).filter(|&e| e <= bytes.len()).ok_or_else(|| broken("header"))?;
+    let header = std::str::from_utf8(&bytes[8..end]).map_err(|_| broken("header not UTF-8"))?;
+    let tensors = header
+        .trim_end()
+        .strip_prefix('{')
+        .and_then(|h| h.strip_suffix('}'))
+        .ok_or_else(|| broken("header not an object"))?;
+    let meta = serde_json::to_string(metadata).map_err(|e| broken(&e.to_string()))?;
+    let mut text = format!("{{\"__metadata__\":{meta}");
+    if !tensors.is_empty() {
+        text.push(',');
+        text.push_str(tensors);
+    }
+    text.push('}');
+    let padded = text.len().next_multiple_of(8);
+    text.extend(std::iter::repeat_n(' ', padded - text.len()));
+    let mut out = Vec::with_capacity(8 + text.len() + bytes.len() - end);
+    out.extend_from_slice(&(text.len() as u64).to_le_bytes());
+    out.extend_from_slice(text.as_bytes());
+    out.extend_from_slice(&bytes[end..]);
+    Ok(out)
+}
+
+/// The loader's rule for values: finite and `|w| <=`
+/// [`MAX_ABS_WEIGHT`](crate::limits::MAX_ABS_WEIGHT); the error names the tensor, the index and
+/// the value.
+pub(crate) fn check_values(name: &str, values: &[f32]) -> Result<(), String> {
+    if let Some(i) = values.iter().position(|v| !v.is_finite()) {
+        return Err(format!("tensor `{name}` has a non-finite value ({}) at {i}", values[i]));
+    }
+    let limit = crate::limits::MAX_ABS_WEIGHT;
+    if let Some(i) = values.iter().position(|v| v.abs() > limit) {
+        return Err(format!(
+            "tensor `{name}` holds {:e} at index {i}, beyond the limit |w| <= {limit:e}",
+            values[i]
+        ));
+    }
+    Ok(())
 }
 
 /// Saves `model`'s parameters and `metadata` to `path` atomically.
@@ -98,23 +168,41 @@ pub fn save_safetensors(
     model: &dyn Parameters,
     metadata: &BTreeMap<String, String>,
 ) -> Result<(), NnError> {
-    write_atomic(path, &to_safetensors_bytes(model, metadata)?)
+    let bytes = to_safetensors_bytes(model, metadata).map_err(|e| match e {
+        NnError::Unwritable { reason, .. } => {
+            NnError::Unwritable { what: path.display().to_string(), reason }
+        }
+        other => other,
+    })?;
+    write_atomic(path, &bytes)
 }
 
 /// Largest weights file read: [`MAX_PARAMS`](crate::limits::MAX_PARAMS) values in `f64` plus
 /// a header of the `safetensors` format's largest size (100 MB).
 pub const MAX_FILE_BYTES: u64 = crate::limits::MAX_PARAMS as u64 * 8 + 100_000_000;
 
-/// Reads a whole weights file after checking its size against [`MAX_FILE_BYTES`].
-fn read_bounded(path: &Path) -> Result<Vec<u8>, NnError> {
-    let len = std::fs::metadata(path).map_err(io_err(path))?.len();
-    if len > MAX_FILE_BYTES {
-        return Err(format_err(
-            path,
-            format!("the file has {len} bytes, more than the limit of {MAX_FILE_BYTES}"),
-        ));
-    }
-    std::fs::read(path).map_err(io_err(path))
+/// Reads the whole file `path`, at most `max_bytes`, through the workspace's one bounded
+/// reader ([`vdd_core::files::read_bounded`]): a FIFO, a device (`/dev/zero`), a socket or a
+/// directory is refused before it is opened, and no more than the bound is read whatever
+/// length the file reports. Errors are [`NnError::Io`] naming the file.
+///
+/// ```
+/// let e = vdd_nn::io::read_bounded(std::path::Path::new("/dev/zero"), 1 << 20).unwrap_err();
+/// assert!(e.to_string().contains("/dev/zero"), "{e}");
+/// ```
+pub fn read_bounded(path: &Path, max_bytes: u64) -> Result<Vec<u8>, NnError> {
+    vdd_core::files::read_bounded(path, max_bytes).map_err(io_err(path))
+}
+
+/// [`read_bounded`] as UTF-8 text.
+pub fn read_bounded_string(path: &Path, max_bytes: u64) -> Result<String, NnError> {
+    vdd_core::files::read_bounded_string(path, max_bytes).map_err(io_err(path))
+}
+
+/// Opens the regular file `path` (or a symlink to one) for reading, refusing anything else
+/// before opening it ([`vdd_core::files::open_regular`]); errors name the file.
+pub fn open_regular(path: &Path) -> Result<std::fs::File, NnError> {
+    vdd_core::files::open_regular(path).map_err(io_err(path))
 }
 
 /// Reads only the string metadata of a `safetensors` file (for example a model's config, to
@@ -126,7 +214,7 @@ pub fn read_metadata(path: &Path) -> Result<BTreeMap<String, String>, NnError> {
 /// Reads the string metadata of a `safetensors` file and the total number of tensor elements
 /// it holds (over all its tensors), which bounds the parameters of any model it can fill.
 pub fn read_header(path: &Path) -> Result<(BTreeMap<String, String>, usize), NnError> {
-    let bytes = read_bounded(path)?;
+    let bytes = read_bounded(path, MAX_FILE_BYTES)?;
     let (_, meta) = SafeTensors::read_metadata(&bytes).map_err(malformed(path))?;
     let mut elements = 0usize;
     for (name, info) in meta.tensors() {
@@ -171,7 +259,7 @@ pub fn load_safetensors(
     path: &Path,
     model: &mut dyn Parameters,
 ) -> Result<BTreeMap<String, String>, NnError> {
-    let bytes = read_bounded(path)?;
+    let bytes = read_bounded(path, MAX_FILE_BYTES)?;
     load_safetensors_bytes(path, &bytes, model)
 }
 
@@ -239,19 +327,7 @@ fn read_tensor(
             ));
         }
     };
-    if let Some(i) = values.iter().position(|v| !v.is_finite()) {
-        return Err(format_err(path, format!("tensor `{name}` has a non-finite value at {i}")));
-    }
-    let limit = crate::limits::MAX_ABS_WEIGHT;
-    if let Some(i) = values.iter().position(|v| v.abs() > limit) {
-        return Err(format_err(
-            path,
-            format!(
-                "tensor `{name}` holds {:e} at index {i}, beyond the limit |w| <= {limit:e}",
-                values[i]
-            ),
-        ));
-    }
+    check_values(name, &values).map_err(|reason| format_err(path, reason))?;
     Ok(values)
 }
 
@@ -391,8 +467,10 @@ mod tests {
     fn hostile_files_are_refused_before_anything_large_is_built() {
         let path = tmp("hostile");
         let mut a = net(1);
-        a.output_layer_mut().weight.value[3] = -2e6;
+        // The writer refuses the value (see below): write a marker and patch the file.
+        a.output_layer_mut().weight.value[3] = 0.123_456_7;
         save_safetensors(&path, &a, &BTreeMap::new()).unwrap();
+        patch_f32(&path, 0.123_456_7, -2e6);
         let err = load_safetensors(&path, &mut net(2)).unwrap_err().to_string();
         assert!(
             err.contains("-2e6") && err.contains("index 3") && err.contains("hostile"),
@@ -429,5 +507,88 @@ mod tests {
             .filter(|e| e.as_ref().unwrap().file_name().to_string_lossy().contains(".tmp-"))
             .count();
         assert_eq!(leftovers, 0);
+    }
+
+    /// Replaces the one occurrence of `from`'s bytes in the file `path` by `to`'s.
+    fn patch_f32(path: &Path, from: f32, to: f32) {
+        let mut bytes = std::fs::read(path).unwrap();
+        let at = bytes.windows(4).position(|w| w == from.to_le_bytes()).unwrap();
+        bytes[at..at + 4].copy_from_slice(&to.to_le_bytes());
+        std::fs::write(path, bytes).unwrap();
+    }
+
+    #[test]
+    fn the_writer_refuses_what_the_loader_would_refuse() {
+        let path = tmp("unwritable");
+        let _ = std::fs::remove_file(&path);
+        for (bad, shown) in [(-2e6f32, "-2e6"), (f32::NAN, "NaN"), (f32::INFINITY, "inf")] {
+            let mut a = net(1);
+            a.output_layer_mut().weight.value[3] = bad;
+            let err = save_safetensors(&path, &a, &BTreeMap::new()).unwrap_err();
+            assert!(matches!(err, NnError::Unwritable { .. }), "{err}");
+            let msg = err.to_string();
+            assert!(msg.contains(shown) && msg.contains("refusing to write"), "{msg}");
+            assert!(!path.exists(), "nothing is written");
+        }
+        // At the bound itself: written and read back.
+        let mut a = net(1);
+        a.output_layer_mut().weight.value[3] = crate::limits::MAX_ABS_WEIGHT;
+        save_safetensors(&path, &a, &BTreeMap::new()).unwrap();
+        load_safetensors(&path, &mut net(2)).unwrap();
+    }
+
+    #[test]
+    fn the_same_model_saves_to_the_same_bytes() {
+        // Before, the metadata came out of a `HashMap` in a random order per map.
+        let meta: BTreeMap<String, String> =
+            (0..32).map(|k| (format!("key{k}"), format!("\"value {k}\""))).collect();
+        let a = net(1);
+        let first = to_safetensors_bytes(&a, &meta).unwrap();
+        for _ in 0..4 {
+            assert_eq!(to_safetensors_bytes(&a, &meta).unwrap(), first);
+        }
+        let header_len = u64::from_le_bytes(first[..8].try_into().unwrap()) as usize;
+        assert_eq!(header_len % 8, 0);
+        let header = std::str::from_utf8(&first[8..8 + header_len]).unwrap();
+        assert!(header.starts_with("{\"__metadata__\":{\"key0\":"), "{header}");
+        let mut b = net(2);
+        assert_eq!(load_safetensors_bytes(Path::new("mem"), &first, &mut b).unwrap(), meta);
+        // No metadata and no tensors are well-formed too.
+        struct Empty;
+        impl Parameters for Empty {
+            fn visit_params(&self, _: &str, _: &mut dyn FnMut(&str, &Param)) {}
+            fn visit_params_mut(&mut self, _: &str, _: &mut dyn FnMut(&str, &mut Param)) {}
+        }
+        let bytes = to_safetensors_bytes(&Empty, &BTreeMap::new()).unwrap();
+        assert!(SafeTensors::deserialize(&bytes).is_ok());
+        assert!(
+            SafeTensors::deserialize(&to_safetensors_bytes(&a, &BTreeMap::new()).unwrap()).is_ok()
+        );
+    }
+
+    #[test]
+    fn special_files_are_refused_naming_them_and_never_read_endlessly() {
+        let mut m = net(1);
+        if Path::new("/dev/zero").exists() {
+            // Length 0 reported, endless content: before, read until memory ran out.
+            let err = load_safetensors(Path::new("/dev/zero"), &mut m).unwrap_err().to_string();
+            assert!(err.contains("/dev/zero") && err.contains("character device"), "{err}");
+            assert!(read_header(Path::new("/dev/urandom")).is_err());
+        }
+        #[cfg(unix)]
+        {
+            use std::os::unix::ffi::OsStrExt;
+            let fifo = tmp("fifo").with_file_name("pipe.safetensors");
+            let _ = std::fs::remove_file(&fifo);
+            let c = std::ffi::CString::new(fifo.as_os_str().as_bytes()).unwrap();
+            // SAFETY: a valid NUL-terminated path.
+            assert_eq!(unsafe { libc::mkfifo(c.as_ptr(), 0o600) }, 0);
+            // Before, this blocked in `open` forever.
+            let err = read_metadata(&fifo).unwrap_err().to_string();
+            assert!(err.contains("pipe.safetensors") && err.contains("FIFO"), "{err}");
+        }
+        let dir = tmp("dir").with_file_name("");
+        let err = read_bounded(&dir, 10).unwrap_err().to_string();
+        assert!(err.contains("directory"), "{err}");
     }
 }

@@ -11,7 +11,13 @@
 //! | [`MAX_WIDTH`] | 65,536 | any single input, hidden or output width |
 //! | [`MAX_BLOCKS`] | 1,024 | residual blocks of one network |
 //! | [`MAX_PARAMS`] | 2^27 (134,217,728; 512 MiB of `f32`) | parameters of one model |
-//! | [`MAX_ABS_WEIGHT`] | 10^6 | magnitude of any weight read from a file |
+//! | [`MAX_ABS_WEIGHT`] | 10^6 | magnitude of any weight read or written |
+//! | [`MAX_ABS_ADAM_FIRST_MOMENT`] | 10^15 | magnitude of an Adam first moment (a gradient average) |
+//! | [`MAX_ADAM_SECOND_MOMENT`] | 10^30 | an Adam second moment (a squared-gradient average) |
+//!
+//! Normaliser offsets and scales are bounded in `vdd_core` ([`vdd_core::MAX_ABS_NORMALIZER_OFFSET`],
+//! [`vdd_core::MIN_NORMALIZER_SCALE`], [`vdd_core::MAX_NORMALIZER_SCALE`]). Writers check the
+//! same bounds as loaders, so whatever is written can be read back.
 //!
 //! ```
 //! use vdd_nn::{limits, Activation, ResidualMlpConfig};
@@ -36,6 +42,15 @@ pub const MAX_PARAMS: usize = 1 << 27;
 /// Largest magnitude of a weight read from a file. Trained networks stay orders of magnitude
 /// below it; a value beyond it is corruption, and it would turn outputs non-finite.
 pub const MAX_ABS_WEIGHT: f32 = 1e6;
+
+/// Largest magnitude of an Adam first moment (a moving average of gradients) read from or
+/// written to a checkpoint. A gradient of this size means a diverged run; beyond it, the next
+/// update would throw the weights past [`MAX_ABS_WEIGHT`] at once.
+pub const MAX_ABS_ADAM_FIRST_MOMENT: f32 = 1e15;
+
+/// Largest Adam second moment (a moving average of squared gradients), the square of
+/// [`MAX_ABS_ADAM_FIRST_MOMENT`].
+pub const MAX_ADAM_SECOND_MOMENT: f32 = 1e30;
 
 /// Checks that `value` (the setting `what`) is in `1..=max`.
 pub fn check_size(what: &str, value: usize, max: usize) -> Result<(), NnError> {

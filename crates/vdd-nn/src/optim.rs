@@ -108,7 +108,11 @@ impl Adam {
     /// Checks that this optimiser's state belongs to `params`: its hyper-parameters are in
     /// range ([`AdamConfig::validate`]), and its moments are either empty (no step taken) or one
     /// finite pair per parameter, in visiting order, of the parameter's size (second moments
-    /// `>= 0`). The error names the first parameter that does not match. A restored
+    /// `>= 0`), within the bounds of [`crate::limits`] (`|m| <=`
+    /// [`MAX_ABS_ADAM_FIRST_MOMENT`](crate::limits::MAX_ABS_ADAM_FIRST_MOMENT), `v <=`
+    /// [`MAX_ADAM_SECOND_MOMENT`](crate::limits::MAX_ADAM_SECOND_MOMENT)). The error names the
+    /// first parameter that does not match (and the value out of bounds). Checkpoint writers
+    /// call it before writing, loaders after reading. A restored
     /// optimiser (e.g. from a checkpoint) should be checked before it steps.
     ///
     /// ```
@@ -141,7 +145,7 @@ impl Adam {
                     {
                         Some(format!("the moments of `{name}` are not finite (or negative)"))
                     }
-                    (Some(_), Some(_)) => None,
+                    (Some(m), Some(v)) => check_moments(name, m, v).err(),
                     _ => Some(format!("no moments for `{name}` (parameter {k})")),
                 };
             }
@@ -384,6 +388,27 @@ pub fn clip_grad_norm_checked(
     Ok(())
 }
 
+/// The bounds on moments ([`MAX_ABS_ADAM_FIRST_MOMENT`](crate::limits::MAX_ABS_ADAM_FIRST_MOMENT),
+/// [`MAX_ADAM_SECOND_MOMENT`](crate::limits::MAX_ADAM_SECOND_MOMENT)); the error names the
+/// parameter, the index and the value.
+fn check_moments(name: &str, m: &[f32], v: &[f32]) -> Result<(), String> {
+    let (max_m, max_v) =
+        (crate::limits::MAX_ABS_ADAM_FIRST_MOMENT, crate::limits::MAX_ADAM_SECOND_MOMENT);
+    if let Some(i) = m.iter().position(|x| x.abs() > max_m) {
+        return Err(format!(
+            "the first moment of `{name}` holds {:e} at index {i}, beyond the bound {max_m:e}",
+            m[i]
+        ));
+    }
+    if let Some(i) = v.iter().position(|x| *x > max_v) {
+        return Err(format!(
+            "the second moment of `{name}` holds {:e} at index {i}, beyond the bound {max_v:e}",
+            v[i]
+        ));
+    }
+    Ok(())
+}
+
 #[cfg(test)]
 mod tests {
     use faer::Mat;
@@ -529,5 +554,27 @@ mod tests {
         eps.config.eps = -1.0;
         assert!(eps.check(&small).is_err());
         assert!(opt.check(&small).is_ok());
+    }
+
+    #[test]
+    fn moments_beyond_their_bounds_are_refused_naming_the_value() {
+        // Before, a checkpoint's Adam moments of 2^63 were accepted.
+        let mut rng = vdd_core::Seeds::new(0).stream("init");
+        let mut layer = crate::Linear::new(2, 1, &mut rng);
+        let mut opt = Adam::new(AdamConfig::default());
+        opt.step(&mut layer, 1.0).unwrap();
+        opt.check(&layer).unwrap();
+        let mut bad = opt.clone();
+        bad.m[0][1] = 2f32.powi(63);
+        let e = bad.check(&layer).unwrap_err().to_string();
+        assert!(e.contains("first moment") && e.contains("weight") && e.contains("e18"), "{e}");
+        let mut bad = opt.clone();
+        bad.v[1][0] = 1e36;
+        let e = bad.check(&layer).unwrap_err().to_string();
+        assert!(e.contains("second moment") && e.contains("1e36"), "{e}");
+        let mut edge = opt;
+        edge.m[0][0] = crate::limits::MAX_ABS_ADAM_FIRST_MOMENT;
+        edge.v[0][0] = crate::limits::MAX_ADAM_SECOND_MOMENT;
+        edge.check(&layer).unwrap();
     }
 }

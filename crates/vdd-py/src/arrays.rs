@@ -4,7 +4,7 @@
 use faer::{Mat, MatRef};
 use numpy::ndarray::{Array, ArrayView1, ArrayView2, Dimension, IxDyn};
 use numpy::{IntoPyArray, PyArray1, PyArray2, PyArrayDyn};
-use pyo3::exceptions::PyValueError;
+use pyo3::exceptions::{PyMemoryError, PyValueError};
 use pyo3::prelude::*;
 
 /// A vector of `len` entries (`what` names the argument in errors).
@@ -49,4 +49,28 @@ pub fn shaped<'py>(
         .map_err(|e| PyValueError::new_err(format!("internal shape error: {e}")))?;
     debug_assert_eq!(a.raw_dim().size(), a.len());
     Ok(a.into_pyarray(py))
+}
+
+/// Largest number of rows of one call (`act_batch`, `log_likelihood`, `components`, a teacher's
+/// score): 2^20, far above any number of environments stepped together. A larger batch is a
+/// `ValueError` raised before anything is allocated; split it into several calls.
+pub const MAX_BATCH_ROWS: usize = 1 << 20;
+
+/// Checks a batch of `rows` rows (`what` names the call) against [`MAX_BATCH_ROWS`]
+/// (`ValueError`) and its estimated memory `bytes` against the memory available
+/// ([`vdd_core::memory::check_fits`], `MemoryError`), before anything is allocated.
+pub fn check_batch(what: &str, rows: usize, bytes: u64) -> PyResult<()> {
+    if rows > MAX_BATCH_ROWS {
+        return Err(PyValueError::new_err(format!(
+            "{what}: {rows} rows, more than the limit of {MAX_BATCH_ROWS} rows per call; \
+             split the batch"
+        )));
+    }
+    vdd_core::memory::check_fits(&format!("{what} on {rows} rows"), bytes)
+        .map_err(|e| PyMemoryError::new_err(e.to_string()))
+}
+
+/// Bytes of `rows` rows of `floats` `f32` values each (saturating).
+pub fn row_bytes(rows: usize, floats: usize) -> u64 {
+    vdd_core::memory::product(&[rows, floats, 4])
 }

@@ -10,7 +10,7 @@ use serde_json::{Map, Value};
 use vdd::{Affine, DistillData, Moe, MoeConfig, ScoreModel, Vdd, VddConfig, VddError};
 use vdd_core::{CoreError, check_score_args};
 
-use crate::arrays::{mat_to_numpy, matrix};
+use crate::arrays::{mat_to_numpy, matrix, row_bytes};
 use crate::errors::{IntoPy as _, to_py};
 use crate::policy::PyPolicy;
 use crate::teacher::PyTeacher;
@@ -207,6 +207,12 @@ pub fn distill(
     settings: Option<Bound<'_, PyDict>>,
 ) -> PyResult<PyPolicy> {
     let state_dim = states.as_array().ncols();
+    // The dataset is copied once or twice (states, their normalised copy): bounded by memory,
+    // not by the batch limit (a dataset may hold many more states than one batch).
+    let rows = states.as_array().nrows();
+    let bytes = row_bytes(rows, state_dim.saturating_add(action_dim).saturating_mul(3));
+    vdd_core::memory::check_fits(&format!("the {rows} states of `distill`"), bytes)
+        .map_err(|e| pyo3::exceptions::PyMemoryError::new_err(e.to_string()))?;
     let states = matrix(states.as_array(), state_dim, "states")?;
     let actions = actions.map(|a| matrix(a.as_array(), action_dim, "actions")).transpose()?;
     let mut config = VddConfig { seed, ..VddConfig::toy() };
@@ -236,14 +242,24 @@ pub fn distill(
                 inner.action_dim()
             )));
         }
-        py.detach(|| train(config, inner, student, data, actions.as_ref()))
+        run_train(py, || train(config, inner, student, data, actions.as_ref()))
     } else {
         if !score_fn.is_callable() {
             return Err(PyTypeError::new_err("score_fn must be callable"));
         }
         let teacher = PyScore { score_fn: score_fn.unbind(), state_dim, action_dim };
-        py.detach(|| train(config, teacher, student, data, actions.as_ref()))
+        run_train(py, || train(config, teacher, student, data, actions.as_ref()))
     };
-    let student = trained.map_err(|e| to_py(py, &e))?;
+    let student = trained?.map_err(|e| to_py(py, &e))?;
     Ok(PyPolicy::new(student.into_policy().py_err(py)?))
+}
+
+/// Runs a training closure with the GIL released; a panic becomes `RuntimeError`
+/// ([`crate::errors::panic_error`]), the training error is kept for [`to_py`].
+fn run_train<T: Send, E: Send>(
+    py: Python<'_>,
+    f: impl FnOnce() -> Result<T, E> + Send,
+) -> PyResult<Result<T, E>> {
+    py.detach(|| std::panic::catch_unwind(std::panic::AssertUnwindSafe(f)))
+        .map_err(|payload| crate::errors::panic_error(payload.as_ref()))
 }

@@ -4,8 +4,13 @@
 //! everything else raises `vdd.VddError`, with the whole source chain in its message. A Python
 //! exception raised inside a `score_fn` travels through the trainer as the source of a
 //! [`vdd_core::CoreError::Implementor`] and is raised again as itself, traceback included.
+//!
+//! No panic crosses into Python: batch sizes are checked before anything is allocated
+//! ([`crate::arrays::check_batch`]: `ValueError` over the documented row limit, `MemoryError`
+//! over the memory available), and every call into the crates runs through [`run`], which turns
+//! a panic, as a last resort, into `RuntimeError` instead of pyo3's `PanicException`.
 
-use pyo3::exceptions::PyValueError;
+use pyo3::exceptions::{PyRuntimeError, PyValueError};
 use pyo3::prelude::*;
 use vdd_core::CoreError;
 
@@ -66,4 +71,31 @@ impl<T, E: std::error::Error + 'static> IntoPy<T> for Result<T, E> {
     fn py_err(self, py: Python<'_>) -> PyResult<T> {
         self.map_err(|e| to_py(py, &e))
     }
+}
+
+/// Runs `f` with the GIL released ([`Python::detach`]) and converts its error ([`to_py`]); a
+/// panic inside it becomes a Python `RuntimeError` naming it, never a `PanicException`.
+pub fn run<T, E, F>(py: Python<'_>, f: F) -> PyResult<T>
+where
+    T: Send,
+    E: std::error::Error + Send + 'static,
+    F: FnOnce() -> Result<T, E> + Send,
+{
+    let caught = py.detach(|| std::panic::catch_unwind(std::panic::AssertUnwindSafe(f)));
+    match caught {
+        Ok(result) => result.py_err(py),
+        Err(payload) => Err(panic_error(payload.as_ref())),
+    }
+}
+
+/// A caught panic as `RuntimeError`, with its message.
+pub fn panic_error(payload: &(dyn std::any::Any + Send)) -> PyErr {
+    let msg = payload
+        .downcast_ref::<&str>()
+        .map(|s| (*s).to_owned())
+        .or_else(|| payload.downcast_ref::<String>().cloned())
+        .unwrap_or_else(|| "(no message)".to_owned());
+    PyRuntimeError::new_err(format!(
+        "internal error in vdd (a Rust panic, please report it): {msg}"
+    ))
 }

@@ -8,8 +8,8 @@ use pyo3::types::PyTuple;
 use vdd_core::Policy as _;
 use vdd_moe::DeployedPolicy;
 
-use crate::arrays::{mat_to_numpy, matrix, shaped, vec_to_numpy, vector};
-use crate::errors::IntoPy as _;
+use crate::arrays::{check_batch, mat_to_numpy, matrix, row_bytes, shaped, vec_to_numpy, vector};
+use crate::errors::run;
 
 /// A distilled mixture-of-experts policy acting on raw environment observations.
 #[pyclass(module = "vdd", name = "Policy")]
@@ -28,6 +28,15 @@ impl PyPolicy {
         let spec = self.inner.spec();
         (spec.obs_window * self.inner.obs_dim(), spec.action_chunk * self.inner.action_dim())
     }
+
+    /// Checks a call on `rows` rows with `io_floats` input and output values per row
+    /// ([`check_batch`]): the mixture's activations on the batch
+    /// ([`vdd_moe::MoeConfig::training_bytes`], an upper bound for inference) plus the inputs
+    /// and outputs, twice (the Rust and the NumPy copies).
+    fn check_rows(&self, what: &str, rows: usize, io_floats: usize) -> PyResult<()> {
+        let model = self.inner.inner().config().training_bytes(rows);
+        check_batch(what, rows, model.saturating_add(row_bytes(rows, io_floats).saturating_mul(2)))
+    }
 }
 
 #[pymethods]
@@ -36,7 +45,7 @@ impl PyPolicy {
     /// `Policy.save`.
     #[staticmethod]
     fn load(py: Python<'_>, path: PathBuf) -> PyResult<Self> {
-        let inner = py.detach(|| vdd_moe::load_policy(&path)).py_err(py)?;
+        let inner = run(py, || vdd_moe::load_policy(&path))?;
         Ok(Self::new(inner))
     }
 
@@ -49,7 +58,7 @@ impl PyPolicy {
         let obs = vector(obs.as_array(), self.inner.obs_dim(), "obs")?;
         let mut action = vec![0.0f32; self.inner.action_dim()];
         let inner = &mut self.inner;
-        py.detach(|| inner.act_into(&obs, &mut action)).py_err(py)?;
+        run(py, || inner.act_into(&obs, &mut action))?;
         Ok(vec_to_numpy(py, action))
     }
 
@@ -60,10 +69,12 @@ impl PyPolicy {
         py: Python<'py>,
         obs: PyArrayLike2<'py, f32, AllowTypeChange>,
     ) -> PyResult<Bound<'py, PyArray2<f32>>> {
+        let (rows, io) = (obs.as_array().nrows(), self.inner.obs_dim() + self.inner.action_dim());
+        self.check_rows("act_batch", rows, io)?;
         let obs = matrix(obs.as_array(), self.inner.obs_dim(), "obs")?;
         let mut actions = faer::Mat::<f32>::zeros(obs.nrows(), self.inner.action_dim());
         let inner = &mut self.inner;
-        py.detach(|| inner.act_batch(obs.as_ref(), actions.as_mut())).py_err(py)?;
+        run(py, || inner.act_batch(obs.as_ref(), actions.as_mut()))?;
         Ok(mat_to_numpy(py, actions.as_ref()))
     }
 
@@ -76,6 +87,7 @@ impl PyPolicy {
         actions: PyArrayLike2<'py, f32, AllowTypeChange>,
     ) -> PyResult<Bound<'py, PyArray1<f32>>> {
         let (w, c) = self.window_dims();
+        self.check_rows("log_likelihood", obs.as_array().nrows(), w + c + 1)?;
         let obs = matrix(obs.as_array(), w, "obs")?;
         let actions = matrix(actions.as_array(), c, "actions")?;
         if actions.nrows() != obs.nrows() {
@@ -87,10 +99,9 @@ impl PyPolicy {
         }
         let mut out = vec![0.0f32; obs.nrows()];
         let inner = &mut self.inner;
-        py.detach(|| {
+        run(py, || {
             vdd_moe::deployed_log_likelihood(inner, obs.as_ref(), actions.as_ref(), &mut out)
-        })
-        .py_err(py)?;
+        })?;
         Ok(vec_to_numpy(py, out))
     }
 
@@ -102,9 +113,14 @@ impl PyPolicy {
         py: Python<'py>,
         obs: PyArrayLike2<'py, f32, AllowTypeChange>,
     ) -> PyResult<Bound<'py, PyTuple>> {
-        let obs = matrix(obs.as_array(), self.window_dims().0, "obs")?;
+        let (w, c) = self.window_dims();
+        let z = self.inner.inner().num_experts();
+        // log_gating, means and scale factors: Z·(1 + A + A²) per row.
+        let out = z.saturating_mul(c.saturating_mul(c).saturating_add(c).saturating_add(1));
+        self.check_rows("components", obs.as_array().nrows(), w.saturating_add(out))?;
+        let obs = matrix(obs.as_array(), w, "obs")?;
         let inner = &mut self.inner;
-        let c = py.detach(|| vdd_moe::deployed_components(inner, obs.as_ref())).py_err(py)?;
+        let c = run(py, || vdd_moe::deployed_components(inner, obs.as_ref()))?;
         let (n, z, a) = (c.n, c.num_experts, c.action_dim);
         let parts: [Bound<'py, PyArrayDyn<f32>>; 3] = [
             shaped(py, c.log_gating, &[n, z])?,
@@ -128,7 +144,7 @@ impl PyPolicy {
     /// Saves the policy (weights, normalisers, act mode, deployment spec) to one file.
     fn save(&self, py: Python<'_>, path: PathBuf) -> PyResult<()> {
         let moe = self.inner.inner();
-        py.detach(|| moe.save(&path)).py_err(py)
+        run(py, || moe.save(&path))
     }
 
     /// Writes the policy as an ONNX graph (`vdd_onnx`): input `obs`
@@ -136,12 +152,11 @@ impl PyPolicy {
     /// `components(obs)`.
     fn export_onnx(&self, py: Python<'_>, path: PathBuf) -> PyResult<()> {
         let moe = self.inner.inner();
-        py.detach(|| {
+        run(py, || {
             let bytes = vdd_onnx::export(moe)?;
             std::fs::write(&path, bytes)
                 .map_err(|source| vdd_onnx::OnnxError::Io { path: path.clone(), source })
         })
-        .py_err(py)
     }
 
     /// Rust's own µs per `act` call for this policy (`vdd_tasks::timing::us_per_action`, the
@@ -159,9 +174,7 @@ impl PyPolicy {
         let episode = matrix(obs.as_array(), self.inner.obs_dim(), "obs")?;
         let timing = vdd_tasks::timing::Timing { calls, warmup, min_round_ms };
         let mut copies = [self.inner.clone()];
-        let us = py
-            .detach(|| vdd_tasks::timing::us_per_action(&mut copies, &[episode], timing, 0))
-            .py_err(py)?;
+        let us = run(py, || vdd_tasks::timing::us_per_action(&mut copies, &[episode], timing, 0))?;
         Ok(us[0])
     }
 

@@ -10,8 +10,8 @@ use vdd::TeacherSpace;
 use vdd_core::{NoiseConvention, ScoreModel};
 use vdd_diffusion::DiffusionTeacher;
 
-use crate::arrays::{mat_to_numpy, matrix, vector};
-use crate::errors::IntoPy as _;
+use crate::arrays::{check_batch, mat_to_numpy, matrix, row_bytes, vector};
+use crate::errors::run;
 
 /// A learned diffusion teacher (DDPM or BESO) saved by the crates.
 #[pyclass(module = "vdd", name = "Teacher")]
@@ -31,7 +31,7 @@ impl PyTeacher {
 #[pyfunction]
 #[pyo3(signature = (path, seed = 0))]
 pub fn load_teacher(py: Python<'_>, path: PathBuf, seed: u64) -> PyResult<PyTeacher> {
-    let inner = py.detach(|| DiffusionTeacher::load(&path, seed)).py_err(py)?;
+    let inner = run(py, || DiffusionTeacher::load(&path, seed))?;
     Ok(PyTeacher { inner })
 }
 
@@ -48,6 +48,10 @@ impl PyTeacher {
         levels: PyArrayLike1<'py, f32, AllowTypeChange>,
     ) -> PyResult<Bound<'py, PyArray2<f32>>> {
         let (ds, da) = (self.inner.state_dim(), self.inner.action_dim());
+        // Inputs, output and the teacher's working copies: a few rows' worth of each, far
+        // below its network's activations, which the row limit bounds.
+        let rows = actions.as_array().nrows();
+        check_batch("a teacher's score", rows, row_bytes(rows, (ds + 2 * da).saturating_mul(4)))?;
         let mut actions = matrix(actions.as_array(), da, "actions")?;
         let mut states = matrix(states.as_array(), ds, "states")?;
         let n = actions.nrows();
@@ -70,8 +74,7 @@ impl PyTeacher {
         }
         let mut out = faer::Mat::<f32>::zeros(n, da);
         let inner = &mut self.inner;
-        py.detach(|| inner.score(actions.as_ref(), states.as_ref(), &levels, out.as_mut()))
-            .py_err(py)?;
+        run(py, || inner.score(actions.as_ref(), states.as_ref(), &levels, out.as_mut()))?;
         // The chain rule of the normaliser: ∇_raw = ∇_normalised / scale.
         for i in 0..n {
             for j in 0..da {

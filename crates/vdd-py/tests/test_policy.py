@@ -95,3 +95,22 @@ def test_bad_input_raises_value_error_and_bad_files_raise_vdd_error(saved_policy
         vdd.Policy.load(junk)
     with pytest.raises(vdd.VddError):
         vdd.load_teacher(saved_policy)  # a student, not a teacher
+
+
+def test_a_batch_over_the_row_limit_is_a_value_error_raised_before_allocating(saved_policy):
+    # Before, 10^7 rows raised PanicException (an unwrapped faer allocation).
+    import time
+
+    p = vdd.Policy.load(saved_policy)
+    obs = np.zeros((10**7, 1), dtype=np.float32)
+    start = time.perf_counter()
+    for call in (
+        lambda: p.act_batch(obs),
+        lambda: p.components(obs),
+        lambda: p.log_likelihood(obs, np.zeros((10**7, 2), dtype=np.float32)),
+    ):
+        with pytest.raises(ValueError, match="rows per call"):
+            call()
+    assert time.perf_counter() - start < 5.0, "refused before allocating"
+    # The policy still works afterwards.
+    assert p.act_batch(np.zeros((3, 1), dtype=np.float32)).shape == (3, 2)

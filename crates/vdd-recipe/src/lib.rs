@@ -80,8 +80,8 @@ pub use error::{RecipeError, RecipeResult};
 pub use hash::{config_hash, fnv1a};
 pub use header::Header;
 pub use resolve::{
-    Overrides, Resolved, Variant, check_complete_defaults, defaults_from_toml, defaults_tree,
-    read_recipe, resolve,
+    MAX_RECIPE_BYTES, Overrides, Resolved, Variant, check_complete_defaults, defaults_from_toml,
+    defaults_tree, read_recipe, resolve,
 };
 pub use seeds::{MAX_SEEDS, parse_seeds};
 pub use tree::{

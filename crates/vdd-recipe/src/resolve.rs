@@ -214,9 +214,13 @@ pub fn check_complete_defaults<R: Serialize + DeserializeOwned>(
     }
 }
 
-/// Reads and parses a recipe file.
+/// Largest recipe file read (a real one has a few KB).
+pub const MAX_RECIPE_BYTES: u64 = 1 << 20;
+
+/// Reads and parses a recipe file: only a regular file (not a FIFO or a device), at most
+/// [`MAX_RECIPE_BYTES`].
 pub fn read_recipe(path: &Path) -> RecipeResult<Table> {
-    let text = std::fs::read_to_string(path)
+    let text = vdd_core::files::read_bounded_string(path, MAX_RECIPE_BYTES)
         .map_err(|e| RecipeError::Io { path: path.to_path_buf(), source: e })?;
     text.parse::<Table>()
         .map_err(|e| RecipeError::Parse { name: path.display().to_string(), source: e })

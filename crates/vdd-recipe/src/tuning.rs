@@ -188,7 +188,17 @@ pub fn read_log(path: &Path) -> RecipeResult<Vec<LogEntry>> {
     if len > MAX_LOG_BYTES {
         return Err(RecipeError::LogTooLarge { path: path.to_owned(), bytes: len });
     }
-    let text = std::fs::read_to_string(path).map_err(io_error(path))?;
+    let text = match vdd_core::files::read_bounded_string(path, MAX_LOG_BYTES) {
+        Ok(text) => text,
+        // Grown past the bound since its size was checked.
+        Err(e) if e.kind() == std::io::ErrorKind::FileTooLarge => {
+            return Err(RecipeError::LogTooLarge {
+                path: path.to_owned(),
+                bytes: len.max(MAX_LOG_BYTES + 1),
+            });
+        }
+        Err(e) => return Err(io_error(path)(e)),
+    };
     let log: Log = toml::from_str(&text)
         .map_err(|source| RecipeError::Parse { name: path.display().to_string(), source })?;
     Ok(log.entry)

@@ -40,9 +40,14 @@ fn read_config(path: &Path) -> Result<Header, MoeError> {
 
 /// A `config` metadata entry out of its documented ranges.
 fn bad_config(path: &Path, e: vdd_core::CoreError) -> MoeError {
+    bad_entry(path, "config", e)
+}
+
+/// The metadata entry `key` out of its documented ranges.
+fn bad_entry(path: &Path, key: &str, e: vdd_core::CoreError) -> MoeError {
     MoeError::Nn(vdd_nn::NnError::Format {
         path: path.to_owned(),
-        reason: format!("`config` metadata: {e}"),
+        reason: format!("`{key}` metadata: {e}"),
     })
 }
 
@@ -66,7 +71,22 @@ impl<E: Expert> Moe<E> {
     /// Saves weights, configuration, normalisers, act mode, deployment spec
     /// ([`Moe::deploy_spec`]) and a fingerprint of the expert family to one `safetensors` file
     /// (atomically), so a deployed policy needs nothing else ([`crate::load_policy`]).
+    ///
+    /// What is written can be loaded: the same rules as [`Moe::load`]'s are checked first
+    /// (weights finite with `|w| <=` [`MAX_ABS_WEIGHT`](vdd_nn::limits::MAX_ABS_WEIGHT),
+    /// normaliser offsets and scales within their bounds, [`vdd_core::Affine::new`]), and a
+    /// value breaking them is an error naming it, with nothing written. The same model always
+    /// gives the same bytes.
     pub fn save(&self, path: &Path) -> Result<(), MoeError> {
+        self.config.validate().map_err(|e| bad_config(path, e))?;
+        for (key, n) in [
+            ("obs_normalizer", &self.obs_normalizer),
+            ("action_normalizer", &self.action_normalizer),
+        ] {
+            if let Some(n) = n {
+                n.validate().map_err(|e| bad_entry(path, key, e))?;
+            }
+        }
         fn put<T: Serialize>(
             meta: &mut BTreeMap<String, String>,
             key: &'static str,
@@ -126,6 +146,13 @@ impl<E: Expert> Moe<E> {
         let obs: Option<Affine> = parse_meta(path, &meta, "obs_normalizer")?;
         let act: Option<Affine> = parse_meta(path, &meta, "action_normalizer")?;
         moe.act_mode = parse_meta(path, &meta, "act_mode")?;
+        // Offsets and scales within their bounds (an offset of 2^63 or a scale of 1e-38 would
+        // act at 1e18..1e38): the error names the file and the entry.
+        for (key, n) in [("obs_normalizer", &obs), ("action_normalizer", &act)] {
+            if let Some(n) = n {
+                n.validate().map_err(|e| bad_entry(path, key, e))?;
+            }
+        }
         moe.set_normalizers(obs, act)?;
         // Files written before the spec existed act on raw observations (the identity spec).
         if meta.contains_key(DEPLOY_SPEC_KEY) {

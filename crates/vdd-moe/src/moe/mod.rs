@@ -381,6 +381,16 @@ impl<E: Expert> Moe<E> {
         &mut self.experts
     }
 
+    /// The experts' networks, read-only (to check an optimiser's state against them).
+    pub fn expert_networks(&self) -> &ExpertNetworks {
+        &self.experts
+    }
+
+    /// The gating network, if learned, read-only.
+    pub fn gating_network(&self) -> Option<&ResidualMlp> {
+        self.gating.as_ref()
+    }
+
     /// The experts' residual MLPs with, for each, the experts whose raw outputs it emits (a
     /// shared trunk emits all `Z`, expert `z` in output columns `z·raw_dim..(z+1)·raw_dim`;
     /// separate networks one each), for custom initialisation.

@@ -101,6 +101,8 @@ impl<E: Expert> Moe<E> {
         check_shape("observations", obs, obs.nrows(), self.config.state_dim)?;
         check_finite("observations", obs)?;
         self.load_normalized_states(obs);
+        // Finite observations can still overflow when normalised (3e38 / a scale below 1).
+        check_finite("normalised observations", self.states.as_ref())?;
         let states = std::mem::replace(&mut self.states, Mat::zeros(0, 0));
         let r = f(self, states.as_ref());
         self.states = states;

@@ -33,11 +33,42 @@ struct TrainerState {
 const STUDENT: &str = "student.safetensors";
 const STATE: &str = "trainer.json";
 
+/// Largest `trainer.json` read: two Adam moments and a moving average of a model of
+/// [`MAX_PARAMS`](vdd_nn::limits::MAX_PARAMS) values, at most 32 bytes of JSON each, and 1 MiB
+/// for the rest.
+pub const MAX_STATE_BYTES: u64 = 3 * vdd_nn::limits::MAX_PARAMS as u64 * 32 + (1 << 20);
+
 impl<S: ScoreModel, E: Expert> Vdd<S, E> {
     /// Writes the trainer's files into the existing directory `dir` (`student.safetensors`,
     /// `trainer.json`), overwriting them. Crash safety comes from [`Vdd::save_checkpoint`],
     /// which calls this on a fresh generation directory.
+    ///
+    /// What is written can be resumed: the state is first checked with [`Vdd::resume`]'s rules
+    /// (the student's weights and normalisers by [`Moe::save`], the optimisers' moments by
+    /// [`Adam::check`], the moving average by [`Ema::validate`]), and a value breaking them is
+    /// an error ([`VddError::CheckpointInvalid`]) naming it, before anything is written.
     pub fn write_checkpoint(&self, dir: &Path) -> Result<(), VddError> {
+        let invalid = |what: &'static str| {
+            move |e: vdd_nn::NnError| VddError::CheckpointInvalid {
+                path: dir.to_owned(),
+                what,
+                source: e.into(),
+            }
+        };
+        self.expert_optimizer
+            .check(self.student.expert_networks())
+            .map_err(invalid("expert optimiser"))?;
+        match self.student.gating_network() {
+            Some(net) => self.gating_optimizer.check(net),
+            None if self.gating_optimizer.steps() == 0 => Ok(()),
+            None => Err(vdd_nn::NnError::ModelMismatch(
+                "steps on a student without a learned gating".into(),
+            )),
+        }
+        .map_err(invalid("gating optimiser"))?;
+        if let Some(ema) = &self.student_ema {
+            ema.validate(&self.student).map_err(invalid("student average"))?;
+        }
         self.student.save(&dir.join(STUDENT))?;
         let state = TrainerState {
             config: self.config.clone(),
@@ -105,7 +136,7 @@ impl<S: ScoreModel, E: Expert> Vdd<S, E> {
         data: DistillData,
     ) -> Result<Self, VddError> {
         let path = dir.join(STATE);
-        let bytes = std::fs::read(&path)
+        let bytes = vdd_core::files::read_bounded(&path, MAX_STATE_BYTES)
             .map_err(|source| VddError::CheckpointIo { path: path.clone(), source })?;
         let state: TrainerState = serde_json::from_slice(&bytes)
             .map_err(|source| VddError::CheckpointFormat { path, source })?;

@@ -45,6 +45,9 @@ pub struct ResumableOutcome {
 /// training and the curve seconds so far.
 const PROGRESS: &str = "progress.json";
 
+/// Largest `progress.json` read (the curves of a run; a real one has a few MB).
+const MAX_PROGRESS_BYTES: u64 = 1 << 30;
+
 impl Resumable<'_> {
     /// Distils `teacher` into `student` (freshly initialised) on `data` with `config`, or
     /// resumes from `self.dir` under `self.resume` (refusing a checkpoint of other settings or
@@ -94,7 +97,7 @@ impl Resumable<'_> {
         let (mut curves, mut noise_sum, mut train_seconds, mut vdd) = match latest {
             Some((_, generation)) => {
                 let path = generation.join(PROGRESS);
-                let bytes = std::fs::read(&path)
+                let bytes = vdd_core::files::read_bounded(&path, MAX_PROGRESS_BYTES)
                     .map_err(|source| VddError::CheckpointIo { path: path.clone(), source })?;
                 let (c, n, t, curve_seconds): (Curves, f64, f64, f64) =
                     serde_json::from_slice(&bytes)

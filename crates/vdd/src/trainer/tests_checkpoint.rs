@@ -152,3 +152,51 @@ fn a_resumable_run_continues_from_its_last_commit_like_a_straight_run() {
     assert!(resumable(&root, true, false).is_err());
     assert_eq!(params(&resumable(&root, false, false).unwrap().student), params(&straight.student));
 }
+
+/// Before, resume accepted Adam moments of 2^63.
+#[test]
+fn adam_moments_beyond_their_bounds_are_refused_on_resume() {
+    let e = resume_after("moment-m", |s| {
+        s["expert_optimizer"]["m"][0][0] = 9_223_372_036_854_775_808.0f64.into();
+    });
+    assert!(e.contains("expert optimiser") && e.contains("first moment"), "{e}");
+    let e = resume_after("moment-v", |s| s["gating_optimizer"]["v"][0][0] = 1e36.into());
+    assert!(e.contains("gating optimiser") && e.contains("second moment"), "{e}");
+}
+
+/// Before, a run that drifted past |w| = 1e6 committed a generation its resume refused. Now
+/// the commit fails naming the value, and `LATEST` stays on the previous generation.
+#[test]
+fn a_state_resume_would_refuse_is_not_committed() {
+    use vdd_nn::Parameters;
+    let root = temp("drift");
+    let generation = checkpoint(&root);
+    let resumed = || {
+        let (_, teacher, _, data) = small_run(6);
+        let mut vdd = Vdd::resume(&root, teacher, data).unwrap();
+        vdd.step().unwrap();
+        vdd
+    };
+    let store = CheckpointDir::open(&root).unwrap();
+    let mut drifted = resumed();
+    let mut first = true;
+    drifted.student_mut().expert_networks_mut().visit_params_mut("", &mut |_, p| {
+        if std::mem::take(&mut first) {
+            p.value[0] = 2.5e6;
+        }
+    });
+    let e = drifted.save_checkpoint(&store).unwrap_err().to_string();
+    assert!(e.contains("2.5e6"), "{e}");
+    // Adam moments of 2^63 (a diverged run) likewise.
+    let mut diverged = resumed();
+    let mut opt = serde_json::to_value(&diverged.expert_optimizer).unwrap();
+    opt["m"][0][0] = 9_223_372_036_854_775_808.0f64.into();
+    diverged.expert_optimizer = serde_json::from_value(opt).unwrap();
+    let e = diverged.save_checkpoint(&store).unwrap_err().to_string();
+    assert!(e.contains("expert optimiser"), "{e}");
+    assert_eq!(vdd_nn::checkpoint::latest(&root).unwrap().unwrap(), (3, generation));
+    // The sound state commits.
+    resumed().save_checkpoint(&store).unwrap();
+    drop(store);
+    std::fs::remove_dir_all(&root).unwrap();
+}

@@ -69,11 +69,13 @@ fn wrong_shapes_and_non_finite_inputs_are_errors() {
     let mut nan_acts = acts.clone();
     nan_acts[(0, 2)] = f32::NEG_INFINITY;
     assert!(nonfinite(moe.log_likelihood(obs.as_ref(), nan_acts.as_ref(), &mut ll)));
-    // An observation the normaliser maps out of f32 range.
+    // An observation the normaliser maps out of f32 range (offset and scale at their bounds).
     let huge = faer::mat![[3e38f32, 0.0]];
-    moe.set_normalizers(Some(Affine::new(vec![-3e38, 0.0], vec![0.5, 1.0]).unwrap()), None)
+    moe.set_normalizers(Some(Affine::new(vec![-1e6, 0.0], vec![1e-6, 1.0]).unwrap()), None)
         .unwrap();
     assert!(nonfinite(moe.act_batch(huge.as_ref(), Mat::zeros(1, 3).as_mut())));
+    let one = Mat::<f32>::zeros(1, 3);
+    assert!(nonfinite(moe.log_likelihood(huge.as_ref(), one.as_ref(), &mut [0.0])));
 
     // The trainer-facing API on normalised states.
     assert!(matches!(moe.forward(obs_batch(4, 3).as_ref()), Err(e) if is_shape(&e)));

@@ -86,31 +86,39 @@ fn a_damaged_family_fingerprint_is_an_error_not_a_panic() {
     assert!(matches!(e, MoeError::FamilyMismatch(_)), "{e}");
 }
 
+/// Replaces the one occurrence of `from`'s bytes in the file `path` by `to`'s (to write a value
+/// that `Moe::save` refuses).
+fn patch_f32(path: &std::path::Path, from: f32, to: f32) {
+    let mut bytes = std::fs::read(path).unwrap();
+    let at = bytes.windows(4).position(|w| w == from.to_le_bytes()).unwrap();
+    bytes[at..at + 4].copy_from_slice(&to.to_le_bytes());
+    std::fs::write(path, bytes).unwrap();
+}
+
 #[test]
 fn weights_beyond_the_limit_are_refused_and_overflowing_actions_are_errors() {
     let mut moe = built(MoeConfig::toy(2, 2, 4), 3);
     edit_expert_bias(&mut moe, |_, k, b| {
         if k == 0 {
-            *b = 3.4e38;
+            *b = 0.123_456_7;
         }
     });
     let path = scratch("huge-weight.safetensors");
     moe.save(&path).unwrap();
+    patch_f32(&path, 0.123_456_7, 3.4e38);
     let e = Moe::load(&path).unwrap_err().to_string();
     assert!(e.contains("huge-weight.safetensors") && e.contains("3.4e38"), "{e}");
 
-    // Weights within the limit can still overflow through the normaliser: an error, not an
-    // infinite action.
+    // Weights and normalisers within their bounds can still overflow through the network and
+    // the normaliser: an error, not an infinite action.
     let mut moe = built(MoeConfig::toy(2, 2, 4), 3);
-    edit_expert_bias(&mut moe, |_, k, b| {
-        if k == 0 {
-            *b = 1e6;
-        }
-    });
-    let huge = Affine::new(vec![0.0, 0.0], vec![1e33, 1e33]).unwrap();
-    moe.set_normalizers(None, Some(huge)).unwrap();
-    assert_eq!(moe.act(&[0.1, 0.2]).unwrap_err(), CoreError::NonFinite { what: "actions" });
+    moe.expert_networks_mut().visit_params_mut("", &mut |_, p| p.value.fill(1e6));
+    let wide = Affine::new(vec![0.0, 0.0], vec![1e6, 1e6]).unwrap();
+    let obs_norm = moe.normalizers().0.cloned();
+    moe.set_normalizers(obs_norm, Some(wide)).unwrap();
+    let e = moe.act(&[1e5, 1e5]).unwrap_err();
+    assert!(matches!(e, CoreError::NonFinite { .. }), "{e}");
     let mut out = Mat::<f32>::zeros(2, 2);
-    let obs = obs_batch(2, 2);
+    let obs = Mat::from_fn(2, 2, |_, _| 1e5f32);
     assert!(matches!(moe.act_batch(obs.as_ref(), out.as_mut()), Err(CoreError::NonFinite { .. })));
 }

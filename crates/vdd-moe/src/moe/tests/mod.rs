@@ -211,4 +211,5 @@ mod errors;
 mod gradients;
 mod hostile;
 mod io;
+mod io_hostile;
 mod likelihood;
