@@ -4,14 +4,14 @@
 use super::*;
 use vdd_core::{CoreError, Policy};
 
-fn scratch(name: &str) -> std::path::PathBuf {
+pub(super) fn scratch(name: &str) -> std::path::PathBuf {
     let dir = std::env::temp_dir().join(format!("vdd-moe-hostile-{}", std::process::id()));
     std::fs::create_dir_all(&dir).unwrap();
     dir.join(name)
 }
 
 /// Saves `moe` with its metadata entry `key` edited by `edit` (a JSON value), then loads it.
-fn load_edited(
+pub(super) fn load_edited(
     moe: &Moe,
     name: &str,
     key: &str,

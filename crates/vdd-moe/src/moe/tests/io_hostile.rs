@@ -1,32 +1,8 @@
 //! What `Moe::save` writes, `Moe::load` reads: the writer checks the loader's rules, the same
 //! model gives the same bytes, and values that would act or score non-finite are refused.
 
+use super::hostile::{load_edited, scratch};
 use super::*;
-
-fn scratch(name: &str) -> std::path::PathBuf {
-    let dir = std::env::temp_dir().join(format!("vdd-moe-io-hostile-{}", std::process::id()));
-    std::fs::create_dir_all(&dir).unwrap();
-    dir.join(name)
-}
-
-/// Saves `moe`, then rewrites its metadata entry `key` with `edit` (the weights untouched) and
-/// loads the result.
-fn load_edited(
-    moe: &Moe,
-    name: &str,
-    key: &str,
-    edit: impl FnOnce(&mut serde_json::Value),
-) -> Result<Moe, MoeError> {
-    let path = scratch(&format!("{name}-base.safetensors"));
-    moe.save(&path).unwrap();
-    let mut meta = vdd_nn::io::read_metadata(&path).unwrap();
-    let mut v: serde_json::Value = serde_json::from_str(&meta[key]).unwrap();
-    edit(&mut v);
-    meta.insert(key.to_owned(), v.to_string());
-    let edited = scratch(&format!("{name}.safetensors"));
-    vdd_nn::io::save_safetensors(&edited, moe, &meta).unwrap();
-    Moe::load(&edited)
-}
 
 /// The examples: an offset of 2^63 acted at 1e18, a scale of 1e-38 at 1e38 and gave a
 /// log-likelihood of −inf, all with `Ok`. Now the load is refused, naming the file and entry.
