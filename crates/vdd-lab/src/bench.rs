@@ -1,0 +1,4 @@
+//! The benchmarks of the experiment layer: what `cargo xtask bench robustness` measures
+//! ([`robustness`]).
+
+pub mod robustness;
