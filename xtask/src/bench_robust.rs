@@ -1,11 +1,11 @@
 //! `cargo xtask bench robustness [--quick] --out DIR`: the robustness benchmark of
-//! [`vdd::bench`] (VDD with library defaults only on the seeded family of exact-mixture
+//! [`vdd_lab::bench::robustness`] (VDD with library defaults only on the seeded family of exact-mixture
 //! teachers). Writes `DIR/robustness.json`: one record per run and the summary, which it also
 //! prints.
 
 use std::path::PathBuf;
 
-use vdd::bench::{RobustnessOptions, Variant, robustness};
+use vdd_lab::bench::robustness::{RobustnessOptions, Variant, robustness};
 
 /// The command line of `bench robustness`.
 #[derive(Debug, Clone, clap::Args)]

@@ -12,7 +12,7 @@
 //! Defaults: the accepted toy teachers ([`ToyTeachers::toy`]), 4000 training steps on the
 //! circle toy and 2000 on the rotating toy; a whole run from scratch uses about 100
 //! CPU-seconds (the two teachers train on two threads). The checks, their thresholds and the
-//! latency tables are [`vdd_diffusion::acceptance::report`]'s.
+//! latency tables are [`vdd_lab::bench::teachers::report`]'s.
 //!
 //! Trained teachers are cached under `--cache` (default `target/xtask-cache/teachers`) by the
 //! recipes' teacher cache ([`crate::teachers::train_or_load`]: keyed by the cache version, the
@@ -23,10 +23,9 @@ use std::path::PathBuf;
 use std::time::Instant;
 
 use faer::Mat;
-use vdd_diffusion::acceptance::ToyTeachers;
-use vdd_diffusion::acceptance::report::{self, BenchOptions};
 use vdd_diffusion::{DiffusionTeacher, TeacherKind};
-
+use vdd_lab::bench::teachers::ToyTeachers;
+use vdd_lab::bench::teachers::report::{self, BenchOptions};
 use vdd_lab::teachers;
 
 /// The command line of `bench teachers`.

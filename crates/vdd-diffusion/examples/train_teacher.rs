@@ -7,19 +7,21 @@
 //!
 //! The toy: 4 Gaussian modes on a circle of radius 2 (std 0.3). A few thousand steps of a
 //! 32-wide network take a few seconds and already put samples on every mode; the acceptance
-//! checks of `vdd_diffusion::acceptance` tell how close the samples are.
+//! checks of `cargo xtask bench teachers` (`vdd_lab::bench::teachers`) tell how close the
+//! samples are.
 
 use faer::Mat;
+use vdd_core::gmm::Gmm;
 use vdd_core::{Policy, Seeds, Trainer};
-use vdd_diffusion::acceptance::{MixtureParams, mode_shares, samples_at};
+use vdd_diffusion::metrics::mode_shares;
 use vdd_diffusion::{Beso, BesoConfig, NetConfig, TeacherTrainer, TrainConfig};
 
 fn main() -> Result<(), Box<dyn std::error::Error>> {
     let steps: u64 = std::env::args().nth(1).map_or(Ok(3000), |s| s.parse())?;
 
     // 2,000 demonstrations of the toy (state: a constant 0).
-    let toy = MixtureParams::circle(4, 2.0, 0.3, 0.0);
-    let gmm = toy.to_gmm()?;
+    let gmm = Gmm::circle(4, 2.0, 0.3, 0.0)?;
+    let means: Vec<Vec<f32>> = (0..gmm.num_components()).map(|k| gmm.mean(k).to_vec()).collect();
     let mut rng = Seeds::new(0).stream("toy-data");
     let states = Mat::<f32>::zeros(2000, 1);
     let mut actions = Mat::<f32>::zeros(2000, 2);
@@ -62,9 +64,11 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     let mut loaded = Beso::load(&path, 0)?;
     println!("saved and loaded {}", path.display());
 
-    // Sample as a policy on raw observations.
-    let x = samples_at(&mut loaded, &[0.0], 1000, 1)?;
-    let (min_share, shares) = mode_shares(x.as_ref(), &toy.means);
+    // Sample as a policy on raw observations (1000 actions at the observation 0).
+    loaded.seed(1);
+    let mut x = Mat::<f32>::zeros(1000, 2);
+    loaded.act_batch(Mat::<f32>::zeros(1000, 1).as_ref(), x.as_mut())?;
+    let (min_share, shares) = mode_shares(x.as_ref(), &means);
     println!("share of samples per mode: {shares:.3?} (smallest {min_share:.3})");
     println!("{}", figure(&x, 41, 21, 3.0));
     let one = loaded.act(&[0.0])?;

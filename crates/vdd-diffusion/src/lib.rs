@@ -59,7 +59,6 @@
 //! ```
 #![warn(missing_docs)]
 
-pub mod acceptance;
 mod beso;
 pub mod cache;
 mod common;

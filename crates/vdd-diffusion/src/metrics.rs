@@ -50,6 +50,22 @@ pub fn nearest_mode_counts(samples: MatRef<'_, f32>, modes: &[Vec<f32>]) -> Vec<
     counts
 }
 
+/// The share of the rows of `samples` nearest to each of `modes` (in order), and the smallest
+/// share.
+///
+/// ```
+/// let x = faer::mat![[0.1f32, 0.0], [0.9, 0.0], [1.1, 0.0], [1.0, 0.1]];
+/// let (min, shares) = vdd_diffusion::metrics::mode_shares(x.as_ref(), &[vec![0.0, 0.0], vec![1.0, 0.0]]);
+/// assert_eq!(shares, [0.25, 0.75]);
+/// assert_eq!(min, 0.25);
+/// ```
+pub fn mode_shares(samples: MatRef<'_, f32>, modes: &[Vec<f32>]) -> (f32, Vec<f32>) {
+    let counts = nearest_mode_counts(samples, modes);
+    let n = samples.nrows() as f32;
+    let shares: Vec<f32> = counts.iter().map(|&c| c as f32 / n).collect();
+    (shares.iter().copied().fold(f32::INFINITY, f32::min), shares)
+}
+
 /// Mean over rows of the cosine similarity between the rows of `a` and `b` (rows where either
 /// vector is zero count as 0).
 pub fn mean_cosine_similarity(a: MatRef<'_, f32>, b: MatRef<'_, f32>) -> f32 {

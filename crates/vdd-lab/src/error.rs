@@ -49,9 +49,12 @@ pub enum LabError {
     /// Metrics, tables and figures.
     #[error(transparent)]
     Report(#[from] vdd_report::Error),
-    /// Recipes: resolution, unknown keys, seeds, the tuning log.
+    /// Recipes: resolution, unknown keys, seeds.
     #[error(transparent)]
     Recipe(#[from] vdd_recipe::RecipeError),
+    /// The tuning protocol and the tuning log.
+    #[error(transparent)]
+    Tuning(#[from] crate::tuning::TuningError),
     /// The learned teachers' cache.
     #[error(transparent)]
     TeacherCache(#[from] vdd_diffusion::cache::CacheError),

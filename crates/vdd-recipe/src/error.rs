@@ -20,15 +20,6 @@ pub enum RecipeError {
         #[source]
         source: std::io::Error,
     },
-    /// A file could not be written (a tuning log).
-    #[error("writing {}: {source}", .path.display())]
-    Write {
-        /// The file.
-        path: PathBuf,
-        /// The underlying error.
-        #[source]
-        source: std::io::Error,
-    },
     /// A TOML text is not valid TOML.
     #[error("parsing {name}: {source}")]
     Parse {
@@ -110,19 +101,6 @@ pub enum RecipeError {
     /// A seed above `i64::MAX` (not a TOML integer).
     #[error("seed {0} is too large (at most {max})", max = i64::MAX)]
     SeedTooLarge(u64),
-    /// A run breaks the tuning protocol (see [`crate::tuning`]): it mixes tuning and reporting
-    /// seeds or uses the other protocol's demonstrations.
-    #[error("{0}")]
-    Tuning(String),
-    /// A tuning log larger than [`MAX_LOG_BYTES`](crate::tuning::MAX_LOG_BYTES), refused before
-    /// it is read.
-    #[error("{}: {bytes} bytes, more than a tuning log may hold", .path.display())]
-    LogTooLarge {
-        /// The file.
-        path: PathBuf,
-        /// Its size.
-        bytes: u64,
-    },
     /// No recipe of that name ([`find_recipe`](crate::run::find_recipe)).
     #[error("no recipe `{name}` ({} does not exist); available: {available}", .path.display())]
     NoRecipe {

@@ -34,11 +34,10 @@
 //! `0.10000000149011612`; see [`to_tree`]), so [`Resolved::to_toml`] reads like a hand-written
 //! recipe and resolves to the same configuration again.
 //!
-//! # Runs and tuning
+//! # Runs
 //!
 //! [`run`] names run directories after their seeds and overrides and records the revision they
-//! ran at; [`tuning`] keeps tuning runs apart from the reported ones and reads and appends the
-//! tuning log.
+//! ran at.
 //!
 //! # Hashes
 //!
@@ -74,7 +73,6 @@ mod resolve;
 pub mod run;
 mod seeds;
 mod tree;
-pub mod tuning;
 
 pub use error::{RecipeError, RecipeResult};
 pub use hash::{config_hash, fnv1a};

@@ -53,15 +53,13 @@
 //! * [`spaces`]: the raw, student's and teacher's spaces, and [`TeacherSpace`];
 //! * [`config`]: [`VddConfig`] with the paper's toy defaults;
 //! * [`auto`]: defaults picked from the teacher ([`Vdd::auto`], [`VddConfig::for_teacher`]);
-//! * [`eval`]: Monte-Carlo reverse/forward KL and mode coverage for toy problems;
-//! * [`bench`]: the robustness benchmark over the family of exact-mixture teachers.
+//! * [`eval`]: Monte-Carlo reverse/forward KL and mode coverage for toy problems.
 //!
 //! `examples/distil_own_teacher.rs` distils a user-defined teacher end to end
 //! (`cargo run --release -p vdd --example distil_own_teacher`).
 #![warn(missing_docs)]
 
 pub mod auto;
-pub mod bench;
 pub mod config;
 mod error;
 pub mod eval;

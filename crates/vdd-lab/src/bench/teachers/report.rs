@@ -10,7 +10,9 @@ use super::{
     CircleMeasures, CircleReference, RotatingReference, SamplerSetting, Thresholds, ToyTeachers,
     act_batch_latency_us, samples_at, score_cosine,
 };
-use crate::{DiffusionTeacher, Result, TeacherKind};
+use vdd_diffusion::{DiffusionTeacher, TeacherKind};
+
+use crate::Result;
 
 /// A section of the report: its text (lines ending in `\n`) and the checks that failed.
 #[derive(Debug, Clone, Default, PartialEq)]
@@ -227,9 +229,9 @@ pub fn latency_section(ts: &mut [DiffusionTeacher; 2], min_secs: f64) -> Result<
 mod tests {
     use vdd_core::Affine;
 
+    use vdd_diffusion::{Beso, Ddpm};
+
     use super::*;
-    use crate::acceptance::ToyTeachers;
-    use crate::{Beso, Ddpm};
 
     /// Untrained toy teachers (8 wide, one block).
     fn untrained() -> [DiffusionTeacher; 2] {
@@ -296,7 +298,7 @@ pub fn heading(options: &BenchOptions) -> String {
 /// actions)` trains or loads a task's DDPM and BESO teachers, in that order), then the rotating
 /// toy's ([`rotating_section`], 20,000 pairs), then the latency tables ([`latency_section`]),
 /// as `options` asks. Each section goes to `print` when it is ready; returns the failed checks.
-pub fn run<E: From<crate::DiffusionError>>(
+pub fn run<E: From<crate::LabError>>(
     options: &BenchOptions,
     mut train: impl FnMut(
         &str,
@@ -310,7 +312,7 @@ pub fn run<E: From<crate::DiffusionError>>(
     print(&heading(options));
     let mut rng = vdd_core::Seeds::new(seed).stream("toy-data");
     let (states, actions) = vdd_core::gmm::GmmTeacher::circle_toy_data(5000, &mut rng)
-        .map_err(crate::DiffusionError::from)?;
+        .map_err(crate::LabError::from)?;
     let mut circle = train("circle", options.steps, &states, &actions)?;
     let mut failures = Vec::new();
     if options.acceptance {

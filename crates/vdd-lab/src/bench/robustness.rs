@@ -1,6 +1,6 @@
 //! The robustness benchmark: VDD with library defaults only ([`Vdd::auto`]) on the seeded
 //! family of exact-mixture teachers ([`vdd_core::gmm::family`]), each student evaluated by
-//! [`evaluate_against_mixture`] ([`robustness`]).
+//! [`evaluate_against_mixture`] (the trainer's evaluation, `vdd::eval`) ([`robustness`]).
 //!
 //! Every problem is distilled once with as many experts as it has components and once with
 //! twice as many, on 8 problems and seed 0 ([`RobustnessOptions::quick`]) or 24 problems and
@@ -21,8 +21,8 @@ use vdd_core::parallel::parallel_map;
 use vdd_core::{Seeds, Trainer as _};
 use vdd_moe::{ExpertKind, GatingKind, MoeConfig};
 
-use crate::eval::evaluate_against_mixture;
-use crate::{AutoOptions, DistillData, InitKind, Vdd, VddConfig, VddError};
+use vdd::eval::evaluate_against_mixture;
+use vdd::{AutoOptions, DistillData, InitKind, Vdd, VddConfig};
 
 /// What runs instead of the library defaults, for comparisons.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
@@ -112,7 +112,7 @@ pub fn run_one(
     experts: usize,
     samples: usize,
     variant: Variant,
-) -> Result<Value, VddError> {
+) -> crate::Result<Value> {
     let data = DistillData::from_states(p.train_states.clone())?;
     let mut options = AutoOptions::new(experts, seed);
     match variant {
@@ -163,7 +163,7 @@ fn load() -> String {
 /// summary has the coverage rate (runs covering every component), the median and 90th
 /// percentile reverse KL with as many experts as components and with twice as many, the wall
 /// time, the threads, the load before and after, `quick` and the variant.
-pub fn robustness(o: &RobustnessOptions, log: impl Fn(String) + Sync) -> Result<Value, VddError> {
+pub fn robustness(o: &RobustnessOptions, log: impl Fn(String) + Sync) -> crate::Result<Value> {
     let (n, seeds): (usize, &[u64]) = if o.quick { (8, &[0]) } else { (24, &[0, 1, 2]) };
     let problems = robustness_family(n, 0)?;
     let jobs: Vec<(usize, u64, usize)> = (0..n)

@@ -4,7 +4,7 @@
 //! A teacher passes ([`Thresholds::check`]) when its samples
 //! * cover every mode: the share of samples nearest to each mode mean ([`mode_shares`]) is at
 //!   least [`Thresholds::min_mode_share`];
-//! * match the true distribution: the MMD² ([`crate::metrics::mmd2_rbf`]) between its samples
+//! * match the true distribution: the MMD² ([`vdd_diffusion::metrics::mmd2_rbf`]) between its samples
 //!   and true samples is at most [`Thresholds::max_mmd2_ratio`] times the MMD² of two
 //!   independent true samples of the same sizes (the statistic's own noise floor);
 //! * come from the right score: the mean cosine between its learned score and the exact
@@ -13,10 +13,12 @@
 //!
 //! `cargo xtask bench teachers` runs these checks on the circle and rotating toys and prints
 //! the sampler tables ([`SamplerSetting`], [`act_batch_latency_us`]); [`report`] builds its
-//! sections.
+//! sections. The teachers and their sample-quality measures ([`vdd_diffusion::metrics`]) are
+//! vdd-diffusion's; what a toy teacher must pass, and how it is measured, is the experiment
+//! layer's.
 //!
 //! ```
-//! use vdd_diffusion::acceptance::{Measures, Thresholds};
+//! use vdd_lab::bench::teachers::{Measures, Thresholds};
 //!
 //! let m = Measures { min_mode_share: 0.1, mmd2: 0.002, mmd2_baseline: 0.001, score_cosine: 0.95 };
 //! assert!(Thresholds::default().check(&m, 0.1).is_empty());
@@ -33,13 +35,14 @@ use faer::{Mat, MatRef};
 use rand::Rng as _;
 use vdd_core::gmm::{Gmm, GmmTeacher};
 use vdd_core::{Policy, ScoreModel, Seeds};
-
-use crate::cache::{BesoTeacherConfig, DdpmTeacherConfig, TeachersConfig};
-use crate::metrics::{mean_cosine_similarity, mmd2_rbf, nearest_mode_counts};
-use crate::{
-    BesoConfig, DdpmConfig, DiffusionError, DiffusionTeacher, KarrasSampler, NetConfig, Result,
+use vdd_diffusion::cache::{BesoTeacherConfig, DdpmTeacherConfig, TeachersConfig};
+use vdd_diffusion::metrics::{mean_cosine_similarity, mmd2_rbf, mode_shares};
+use vdd_diffusion::{
+    BesoConfig, DdpmConfig, DiffusionError, DiffusionTeacher, KarrasSampler, NetConfig,
     SigmaDistribution, TeacherKind, TimeSampling, TrainConfig, VpSampler,
 };
+
+use crate::Result;
 
 /// The settings of the toy teachers that the acceptance checks accept (`cargo xtask bench
 /// teachers`): a residual MLP `width` wide with `blocks` blocks, Adam at `lr` with a warm-up
@@ -48,7 +51,7 @@ use crate::{
 /// noise_std²)` for both teachers ([`ToyTeachers::toy`] has the values).
 ///
 /// ```
-/// use vdd_diffusion::acceptance::ToyTeachers;
+/// use vdd_lab::bench::teachers::ToyTeachers;
 /// let teachers = ToyTeachers::toy().config(4000);
 /// assert_eq!(teachers.beso.config.sampling_steps, 24);
 /// assert_eq!(teachers.ddpm.train.warmup_steps, 200);
@@ -145,22 +148,6 @@ impl Default for ToyTeachers {
     }
 }
 
-/// The share of the rows of `samples` nearest to each of `modes` (in order), and the smallest
-/// share.
-///
-/// ```
-/// let x = faer::mat![[0.1f32, 0.0], [0.9, 0.0], [1.1, 0.0], [1.0, 0.1]];
-/// let (min, shares) = vdd_diffusion::acceptance::mode_shares(x.as_ref(), &[vec![0.0, 0.0], vec![1.0, 0.0]]);
-/// assert_eq!(shares, [0.25, 0.75]);
-/// assert_eq!(min, 0.25);
-/// ```
-pub fn mode_shares(samples: MatRef<'_, f32>, modes: &[Vec<f32>]) -> (f32, Vec<f32>) {
-    let counts = nearest_mode_counts(samples, modes);
-    let n = samples.nrows() as f32;
-    let shares: Vec<f32> = counts.iter().map(|&c| c as f32 / n).collect();
-    (shares.iter().copied().fold(f32::INFINITY, f32::min), shares)
-}
-
 /// What [`score_cosine`] found: the mean cosine and the noise level the teacher was queried
 /// at (its own convention: `σ` for BESO, the matching time `t` for DDPM).
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -190,7 +177,7 @@ impl MixtureParams {
     /// the rotating toy at state `s`: `circle(8, 2.0, 0.5, s)`).
     ///
     /// ```
-    /// let m = vdd_diffusion::acceptance::MixtureParams::circle(4, 2.0, 0.5, 0.0);
+    /// let m = vdd_lab::bench::teachers::MixtureParams::circle(4, 2.0, 0.5, 0.0);
     /// assert_eq!(m.means[0], [2.0, 0.0]);
     /// assert_eq!(m.covariances[0], [0.25, 0.0, 0.0, 0.25]);
     /// assert!(m.to_gmm().is_ok());
@@ -258,7 +245,8 @@ pub fn score_cosine(
             state.len(),
             sn.offset.len(),
             an.offset.len()
-        )));
+        ))
+        .into());
     }
     let mut exact = GmmTeacher::fixed(exact.normalized(&an.offset, &an.scale).to_gmm()?, 1);
     let a = an.normalize_rows(actions)?;
@@ -538,7 +526,8 @@ impl SamplerSetting {
             _ => {
                 return Err(DiffusionError::Config(format!(
                     "sampler {self:?} is of the other teacher kind"
-                )));
+                ))
+                .into());
             }
         }
         Ok(old)
