@@ -89,6 +89,13 @@ impl BesoTeacherConfig {
     /// Checks ranges and that the scaler, window and network agree.
     pub fn validate(&self) -> Result<(), BesoError> {
         let bad = |what: String| Err(BesoError::Core(vdd_core::CoreError::Config(what)));
+        let sizes = match &self.network {
+            BesoNetworkConfig::DiffusionGpt(c) => crate::limits::check_gpt(c).map(drop),
+            BesoNetworkConfig::ResMlp(c) => crate::limits::check_resmlp(c).map(drop),
+        };
+        if let Err(r) = sizes {
+            return bad(format!("network `{}` = {}: {}", r.key, r.value, r.reason));
+        }
         let finite_pos = |x: f32| x.is_finite() && x > 0.0;
         let ordered = self.sigma_max.is_finite() && self.sigma_max > self.sigma_min;
         if !(finite_pos(self.sigma_data) && finite_pos(self.sigma_min) && ordered) {
@@ -241,7 +248,7 @@ impl BesoTeacher {
     /// naming it, and so is a tensor the configured network does not have (apart from the
     /// causal-mask buffers the forward pass rebuilds).
     pub fn load_state_dict(&mut self, path: &Path) -> Result<(), BesoError> {
-        let bytes = std::fs::read(path)
+        let bytes = vdd_core::files::read_bounded(path, vdd_nn::io::MAX_FILE_BYTES)
             .map_err(|source| BesoError::Io { path: path.to_owned(), source })?;
         self.load_state_dict_bytes(path, &bytes)
     }
@@ -281,7 +288,7 @@ impl BesoTeacher {
 
     /// Loads a teacher file written by [`BesoTeacher::save`] (`cargo xtask import beso`).
     pub fn load(path: &Path) -> Result<Self, BesoError> {
-        let bytes = std::fs::read(path)
+        let bytes = vdd_core::files::read_bounded(path, vdd_nn::io::MAX_FILE_BYTES)
             .map_err(|source| BesoError::Io { path: path.to_owned(), source })?;
         let (_, meta) = safetensors::SafeTensors::read_metadata(&bytes)
             .map_err(|source| vdd_nn::NnError::Malformed { path: path.to_owned(), source })?;

@@ -94,12 +94,12 @@ pub fn check_beso_fixture(
     name: &str,
 ) -> Result<(BesoFixtureReport, BesoTeacher), BesoError> {
     let json_path = dir.join(format!("{name}.json"));
-    let text = std::fs::read_to_string(&json_path)
+    let text = vdd_core::files::read_bounded_string(&json_path, crate::limits::MAX_TEXT_BYTES)
         .map_err(|source| BesoError::Io { path: json_path.clone(), source })?;
     let fx: Fixture = serde_json::from_str(&text)
         .map_err(|source| BesoError::Json { what: json_path.display().to_string(), source })?;
     let yaml_path = dir.join(format!("{name}.yaml"));
-    let yaml = std::fs::read_to_string(&yaml_path)
+    let yaml = vdd_core::files::read_bounded_string(&yaml_path, crate::limits::MAX_TEXT_BYTES)
         .map_err(|source| BesoError::Io { path: yaml_path.clone(), source })?;
     let config = beso_config_from_yaml(&yaml_path, &yaml, None)?;
     let mut teacher = BesoTeacher::new(config)?;

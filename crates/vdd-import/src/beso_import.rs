@@ -13,26 +13,29 @@ use vdd_torch::{BlockNorm, DiffusionGptConfig, MlpActivation, ResMlpScoreConfig,
 use crate::beso::{BesoNetworkConfig, BesoScaler, BesoTeacher, BesoTeacherConfig};
 use crate::beso_error::BesoError;
 use crate::karras::SigmaSchedule;
+use crate::limits::{MAX_NESTING, MAX_TEXT_BYTES, json_nesting, yaml_nesting};
 
 /// The state dict as `beso_pth.py` writes it next to `model_state_dict.pth`.
 pub const BESO_WEIGHTS_FILE: &str = "model_state_dict.safetensors";
 /// The scaler statistics as `beso_pth.py` writes them.
 pub const BESO_SCALER_FILE: &str = "scaler.json";
-/// Largest YAML or JSON file the importer reads.
-const MAX_TEXT_BYTES: u64 = 16 << 20;
-
 fn read_text(path: &Path) -> Result<String, BesoError> {
-    let io = |source| BesoError::Io { path: path.to_owned(), source };
-    let len = std::fs::metadata(path).map_err(io)?.len();
-    if len > MAX_TEXT_BYTES {
+    vdd_core::files::read_bounded_string(path, MAX_TEXT_BYTES)
+        .map_err(|source| BesoError::Io { path: path.to_owned(), source })
+}
+
+/// Refuses text nested deeper than [`MAX_NESTING`] (`depth` as measured by
+/// [`crate::limits`]'s pre-scan) before a parser sees it.
+fn check_nesting(path: &Path, depth: usize) -> Result<(), BesoError> {
+    if depth > MAX_NESTING {
         return Err(BesoError::BadValue {
             path: path.to_owned(),
-            key: "<file size>".into(),
-            value: len.to_string(),
-            reason: format!("larger than {MAX_TEXT_BYTES} bytes"),
+            key: "<nesting depth>".into(),
+            value: format!("more than {depth} levels"),
+            reason: format!("nested deeper than {MAX_NESTING} levels"),
         });
     }
-    std::fs::read_to_string(path).map_err(io)
+    Ok(())
 }
 
 /// A hydra config with its root kept for `${…}` interpolations.
@@ -141,6 +144,15 @@ pub fn beso_config_from_yaml(
     yaml: &str,
     scaler: Option<BesoScaler>,
 ) -> Result<BesoTeacherConfig, BesoError> {
+    if yaml.len() as u64 > MAX_TEXT_BYTES {
+        return Err(BesoError::BadValue {
+            path: path.to_owned(),
+            key: "<file size>".into(),
+            value: yaml.len().to_string(),
+            reason: format!("larger than {MAX_TEXT_BYTES} bytes"),
+        });
+    }
+    check_nesting(path, yaml_nesting(yaml))?;
     let root: Value = serde_yaml_ng::from_str(yaml)
         .map_err(|source| BesoError::Yaml { path: path.to_owned(), source })?;
     let h = Hydra { path: path.to_owned(), root };
@@ -232,6 +244,12 @@ pub fn beso_config_from_yaml(
             "expected DiffusionGPT or GCTimeScoreNetwork",
         ));
     };
+    // Sizes first: nothing is built for a network past the limits.
+    match &network {
+        BesoNetworkConfig::DiffusionGpt(c) => crate::limits::check_gpt(c).map(drop),
+        BesoNetworkConfig::ResMlp(c) => crate::limits::check_resmlp(c).map(drop),
+    }
+    .map_err(|r| r.beso(path, inner))?;
     if let BesoNetworkConfig::ResMlp(c) = &network {
         if c.output_dim != c.action_dim {
             return Err(h.bad(&k("output_dim"), h.req(&k("output_dim"))?, "must equal plan_dim"));
@@ -306,6 +324,7 @@ struct ScalerFile {
 /// Reads `scaler.json` (D3IL's `Scaler` statistics) into a [`BesoScaler`].
 pub fn read_beso_scaler(path: &Path) -> Result<BesoScaler, BesoError> {
     let text = read_text(path)?;
+    check_nesting(path, json_nesting(text.as_bytes()))?;
     let s: ScalerFile = serde_json::from_str(&text)
         .map_err(|source| BesoError::Json { what: path.display().to_string(), source })?;
     let bad = |key: &str, reason: &str| BesoError::BadValue {

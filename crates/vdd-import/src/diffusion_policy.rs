@@ -103,6 +103,9 @@ pub fn import_diffusion_policy(dir: &Path) -> Result<UnetTeacher, ImportError> {
         },
         layout: UnetLayout::DiffusionPolicy,
     };
+    // Sizes first: nothing is read or built for a network past the limits.
+    let horizon = policy.usize("horizon")?;
+    crate::limits::check_unet(&unet, horizon, n_obs).map_err(|r| r.import(&model.file))?;
     let weights = dir.join("model.safetensors");
     let bytes = read_bounded(&weights, MAX_WEIGHTS_BYTES)?;
     let tensors = read_tensors(&weights, &bytes)?;
@@ -128,7 +131,7 @@ pub fn import_diffusion_policy(dir: &Path) -> Result<UnetTeacher, ImportError> {
         source: "diffusion_policy".into(),
         unet,
         scheduler,
-        horizon: policy.usize("horizon")?,
+        horizon,
         n_obs_steps: n_obs,
         n_action_steps: policy.usize("n_action_steps")?,
         action_start: if flag("oa_step_convention")? { n_obs.saturating_sub(1) } else { n_obs },

@@ -64,7 +64,7 @@ pub fn dp_transformer_config(
 ) -> Result<TransformerForDiffusionConfig, BesoError> {
     let a: Args = serde_json::from_value(model.clone())
         .map_err(|source| BesoError::Json { what: what.to_owned(), source })?;
-    Ok(TransformerForDiffusionConfig {
+    let config = TransformerForDiffusionConfig {
         input_dim: a.input_dim,
         output_dim: a.output_dim,
         horizon: a.horizon,
@@ -76,7 +76,11 @@ pub fn dp_transformer_config(
         causal_attn: a.causal_attn,
         time_as_cond: a.time_as_cond,
         n_cond_layers: a.n_cond_layers,
-    })
+    };
+    // Sizes first: nothing is built for a network past the limits.
+    crate::limits::check_transformer(&config)
+        .map_err(|r| r.beso(std::path::Path::new(what), ""))?;
+    Ok(config)
 }
 
 /// A [`Parameters`] view with a key prefix.
@@ -101,8 +105,8 @@ pub fn load_dp_transformer(
     path: &Path,
     prefix: &str,
 ) -> Result<TransformerForDiffusion, BesoError> {
-    let bytes =
-        std::fs::read(path).map_err(|source| BesoError::Io { path: path.to_owned(), source })?;
+    let bytes = vdd_core::files::read_bounded(path, vdd_nn::io::MAX_FILE_BYTES)
+        .map_err(|source| BesoError::Io { path: path.to_owned(), source })?;
     let (_, meta) = safetensors::SafeTensors::read_metadata(&bytes)
         .map_err(|source| vdd_nn::NnError::Malformed { path: path.to_owned(), source })?;
     let mut net = TransformerForDiffusion::new(config)?;
@@ -146,7 +150,7 @@ pub fn check_dp_transformer_fixture(
     name: &str,
 ) -> Result<(f64, f64, TransformerForDiffusion), BesoError> {
     let json_path = dir.join(format!("{name}.json"));
-    let text = std::fs::read_to_string(&json_path)
+    let text = vdd_core::files::read_bounded_string(&json_path, crate::limits::MAX_TEXT_BYTES)
         .map_err(|source| BesoError::Io { path: json_path.clone(), source })?;
     let what = json_path.display().to_string();
     let fx: Fixture = serde_json::from_str(&text)

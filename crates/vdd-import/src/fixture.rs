@@ -29,8 +29,11 @@ pub struct UnetFixtureCheck {
 /// Imports a fixture directory (LeRobot when it has `policy_preprocessor.json` or a LeRobot
 /// `config.json`, diffusion_policy otherwise).
 pub fn import_fixture(dir: &Path) -> Result<UnetTeacher, ImportError> {
-    let cfg = std::fs::read_to_string(dir.join("config.json"))
-        .map_err(|source| ImportError::Io { path: dir.join("config.json"), source })?;
+    let cfg = vdd_core::files::read_bounded_string(
+        &dir.join("config.json"),
+        crate::limits::MAX_TEXT_BYTES,
+    )
+    .map_err(|source| ImportError::Io { path: dir.join("config.json"), source })?;
     if cfg.contains("\"policy\"") { import_diffusion_policy(dir) } else { import_lerobot(dir) }
 }
 

@@ -8,31 +8,38 @@ use serde_json::Value;
 use vdd_nn::{Param, Parameters};
 
 use crate::error::ImportError;
+use crate::limits::{MAX_NESTING, MAX_TEXT_BYTES, json_nesting};
 
-/// Largest JSON file read (configs are a few kB).
-const MAX_JSON_BYTES: u64 = 16 << 20;
-/// Largest weights file read.
-pub(crate) const MAX_WEIGHTS_BYTES: u64 = 8 << 30;
+/// Largest weights file read ([`vdd_nn::io::MAX_FILE_BYTES`]).
+pub(crate) const MAX_WEIGHTS_BYTES: u64 = vdd_nn::io::MAX_FILE_BYTES;
 
-/// Reads a file no larger than `max` bytes.
+/// Reads the regular file `path` whole, at most `max` bytes, through the bounded reader
+/// ([`vdd_core::files::read_bounded`]): a FIFO or device is refused before it is opened, and
+/// no more than `max` bytes are read whatever length the file reports.
 pub(crate) fn read_bounded(path: &Path, max: u64) -> Result<Vec<u8>, ImportError> {
-    let io = |source| ImportError::Io { path: path.to_owned(), source };
-    let len = std::fs::metadata(path).map_err(io)?.len();
-    if len > max {
-        return Err(ImportError::bad(
-            path.display().to_string(),
-            "file size",
-            format!("{len} bytes (at most {max})"),
-        ));
-    }
-    std::fs::read(path).map_err(io)
+    vdd_core::files::read_bounded(path, max)
+        .map_err(|source| ImportError::Io { path: path.to_owned(), source })
 }
 
-/// Parses a JSON file.
+/// Parses a JSON file (at most [`MAX_TEXT_BYTES`], nested at most [`MAX_NESTING`] deep).
 pub(crate) fn read_json(path: &Path) -> Result<Value, ImportError> {
-    let bytes = read_bounded(path, MAX_JSON_BYTES)?;
+    let bytes = read_bounded(path, MAX_TEXT_BYTES)?;
+    check_json_nesting(&path.display().to_string(), &bytes)?;
     serde_json::from_slice(&bytes)
         .map_err(|source| ImportError::Json { path: path.to_owned(), source })
+}
+
+/// Refuses JSON text nested deeper than [`MAX_NESTING`] (`file` names it in the error).
+pub(crate) fn check_json_nesting(file: &str, bytes: &[u8]) -> Result<(), ImportError> {
+    let depth = json_nesting(bytes);
+    if depth > MAX_NESTING {
+        return Err(ImportError::bad(
+            file,
+            "nesting depth",
+            format!("more than {depth} levels (at most {MAX_NESTING})"),
+        ));
+    }
+    Ok(())
 }
 
 /// A JSON object's fields, with the file named in errors.

@@ -166,6 +166,8 @@ pub fn import_lerobot_with(
         obs_map: None,
     };
 
+    // Sizes first: nothing is read or built for a network past the limits.
+    crate::limits::check_unet(&spec.unet, spec.horizon, n_obs).map_err(|r| r.import(&cfg.file))?;
     let model_path = dir.join("model.safetensors");
     let model_bytes = read_bounded(&model_path, MAX_WEIGHTS_BYTES)?;
     let stats = Stats::find(dir, &model_path, &model_bytes)?;

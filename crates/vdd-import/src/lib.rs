@@ -24,6 +24,7 @@ mod file;
 pub mod fixture;
 mod json;
 mod lerobot;
+pub mod limits;
 pub mod normalize;
 mod options;
 mod teacher;

@@ -64,6 +64,8 @@ fn identity_features() -> FeatureMapId {
 impl UnetTeacherSpec {
     /// Checks that the sizes fit together (`file` names the source in errors).
     pub fn validate(&self, file: &str) -> Result<(), ImportError> {
+        crate::limits::check_unet(&self.unet, self.horizon, self.n_obs_steps)
+            .map_err(|r| r.import(file))?;
         self.unet.validate()?;
         self.scheduler.validate(file)?;
         let obs_dim: usize = self.obs_features.iter().map(|f| f.dim).sum();

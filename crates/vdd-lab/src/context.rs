@@ -60,6 +60,7 @@ impl RunContext {
     /// Writes `resolved.toml` into `dir` (created; a directory this creates is removed again
     /// when the run fails, [`RunContext::remove_created_run_dir`]).
     pub fn write_resolved(&self, dir: &Path, resolved_toml: &str) -> crate::Result {
+        check_run_dir(dir, &self.name)?;
         if !dir.exists() {
             *self.created.lock().unwrap_or_else(|e| e.into_inner()) = Some(dir.to_owned());
         }
@@ -90,6 +91,68 @@ impl RunContext {
         let text = serde_json::to_string_pretty(&info)?;
         vdd_nn::io::write_atomic(&dir.join("run.json"), text.as_bytes())?;
         Ok(())
+    }
+}
+
+/// Largest `resolved.toml` read when checking a run directory.
+const MAX_RESOLVED_BYTES: u64 = 16 << 20;
+
+/// Checks, before anything is written, that `dir` may receive a run of recipe `recipe`: it
+/// must not exist yet, be an empty directory, or be a previous run of the same recipe (a
+/// directory whose `resolved.toml` starts with [`run::resolved_header`]'s line for `recipe`).
+/// Anything else is refused with an error naming it: a symlink (whatever it points to; the
+/// path itself is checked with [`std::fs::symlink_metadata`]), a file, a special file, a
+/// non-empty directory that is not a run of this recipe.
+///
+/// ```
+/// let dir = std::env::temp_dir().join(format!("vdd-lab-run-dir-doc-{}", std::process::id()));
+/// assert!(vdd_lab::context::check_run_dir(&dir, "toy-gmm").is_ok()); // new
+/// std::fs::create_dir_all(&dir)?;
+/// assert!(vdd_lab::context::check_run_dir(&dir, "toy-gmm").is_ok()); // empty
+/// std::fs::write(dir.join("notes.txt"), "mine")?;
+/// let e = vdd_lab::context::check_run_dir(&dir, "toy-gmm").unwrap_err().to_string();
+/// assert!(e.contains(&dir.display().to_string()), "{e}");
+/// std::fs::remove_dir_all(&dir)?;
+/// # Ok::<(), Box<dyn std::error::Error>>(())
+/// ```
+pub fn check_run_dir(dir: &Path, recipe: &str) -> crate::Result {
+    let refuse = |why: &str| -> crate::Result {
+        Err(crate::LabError::Msg(format!(
+            "refusing to write a run of `{recipe}` into {}: {why}; give --out a new or empty \
+             directory or a previous run of this recipe",
+            dir.display()
+        )))
+    };
+    let context = |source: std::io::Error| crate::LabError::Context {
+        context: format!("checking the run directory {}", dir.display()),
+        source: Box::new(source.into()),
+    };
+    let meta = match std::fs::symlink_metadata(dir) {
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(()),
+        Err(e) => return Err(context(e)),
+        Ok(m) => m,
+    };
+    if meta.file_type().is_symlink() {
+        return refuse("it is a symbolic link");
+    }
+    if !meta.is_dir() {
+        return refuse("it is not a directory");
+    }
+    if std::fs::read_dir(dir).map_err(context)?.next().is_none() {
+        return Ok(());
+    }
+    let resolved = dir.join("resolved.toml");
+    let not_a_run = "it is not empty and not a previous run of this recipe";
+    match std::fs::symlink_metadata(&resolved) {
+        Ok(m) if m.is_file() => {}
+        _ => return refuse(not_a_run),
+    }
+    let text =
+        vdd_core::files::read_bounded_string(&resolved, MAX_RESOLVED_BYTES).map_err(context)?;
+    let header = run::resolved_header(recipe, "", Path::new(""));
+    match (text.lines().next(), header.lines().next()) {
+        (Some(have), Some(want)) if have == want => Ok(()),
+        _ => refuse(not_a_run),
     }
 }
 

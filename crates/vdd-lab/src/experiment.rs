@@ -63,6 +63,10 @@ pub fn run_with(registry: &Registry, request: &Request) -> crate::Result {
     let task = registry.task(task).map_err(|e| format!("{e} in {}", path.display()))?;
     let mut overrides = request.overrides.clone();
     task.apply_shorthands(&request.shorthands, &mut overrides)?;
+    // Before anything is written: `--out` is new, empty or a previous run of this recipe.
+    if let Some(out) = &request.out {
+        crate::context::check_run_dir(out, &name)?;
+    }
     let cache = root.join("results").join("cache");
     let ctx = RunContext {
         name,
