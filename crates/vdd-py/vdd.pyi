@@ -129,6 +129,7 @@ def distill(
     iterations: Optional[int] = None,
     seed: int = 0,
     actions: Optional[ArrayLike] = None,
+    sample_fn: Optional[Callable[[F32], ArrayLike]] = None,
     **settings: Any,
 ) -> Policy:
     """Distils a teacher into a mixture of ``experts`` Gaussian experts with the Rust VDD
@@ -139,13 +140,25 @@ def distill(
     levels (VE sigma). Any callable works: NumPy, or PyTorch on a GPU (convert to and from
     NumPy). A :class:`Teacher` runs in Rust. ``states`` ``(n, state_dim)`` are the raw states
     to distil on; the student normalises them by their mean and standard deviation.
-    ``actions`` (optional, ``(n, action_dim)``) are dataset actions for a learned gating.
-    ``iterations`` defaults to 600.
+    ``actions`` (optional, ``(n, action_dim)``) are dataset actions; ``sample_fn(states)``
+    (optional) returns one teacher action ``(n, action_dim)`` per state row ``(n, state_dim)``
+    (finite, or ``ValueError``). ``iterations`` defaults to 600.
 
-    ``settings`` are fields of the trainer's ``VddConfig`` (``batch_size``, ``vi_samples``,
-    ``noise={'kind': 'uniform', 'min': 0.1, 'max': 1.0}``, ``expert_optimizer={'lr': 1e-3,
-    ...}``, ...) or the student's ``MoeConfig`` (``expert_kind='full'``,
-    ``gating='learned'``, ``init_std``, ``experts_network={'hidden_dim': 64, 'num_blocks': 1,
-    'activation': 'mish'}``, ...); an unknown key raises ``ValueError`` naming it. The
-    defaults are the paper's toy settings (exact score, ``sigma = 0``).
+    The run is set up from the teacher as Rust's ``Vdd::auto`` does (``AutoOptions::new(experts,
+    seed)``): actions of the teacher (from ``sample_fn``, else ``actions``, else annealed reverse
+    diffusion with ``score_fn`` alone: 200 calls of 8192 rows, plus 4096 rows for the learned
+    gating when there are fewer states) give the student's normalisers, the noise annealed
+    from half their spread over 70 % of the run, and full-covariance experts with a learned
+    gating started on a mixture fitted to them.
+
+    ``settings`` are then applied to that plan: fields of the trainer's ``VddConfig``
+    (``batch_size``, ``vi_samples``, ``noise={'kind': 'uniform', 'min': 0.1, 'max': 1.0}``,
+    ``noise_anneal_until=0.5``, ``expert_optimizer={'lr': 1e-3, ...}``, ...) or the student's
+    ``MoeConfig`` (``expert_kind='diag'``, ``gating='uniform'``, ``init_std``,
+    ``experts_network={'hidden_dim': 64, 'num_blocks': 1, 'activation': 'mish'}``, ...); an
+    unknown key raises ``ValueError`` naming it (before the teacher is called).
+    ``defaults='toy'`` starts from the paper's toy settings instead (``VddConfig.toy()``,
+    ``MoeConfig.toy()``: exact score, ``sigma = 0``, actions of unit scale near the origin,
+    the student's action normaliser only from ``actions``), the behaviour before ``Vdd::auto``
+    became the default.
     """

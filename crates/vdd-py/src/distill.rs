@@ -7,7 +7,10 @@ use pyo3::exceptions::{PyTypeError, PyValueError};
 use pyo3::prelude::*;
 use pyo3::types::{PyDict, PyList, PyTuple};
 use serde_json::{Map, Value};
-use vdd::{Affine, DistillData, Moe, MoeConfig, ScoreModel, Vdd, VddConfig, VddError};
+use vdd::{
+    Affine, AutoOptions, AutoPlan, DistillData, Moe, MoeConfig, SampleSource, ScoreModel, Seeds,
+    Vdd, VddConfig, VddError,
+};
 use vdd_core::{CoreError, check_score_args};
 
 use crate::arrays::{mat_to_numpy, matrix, row_bytes};
@@ -21,6 +24,7 @@ use crate::teacher::PyTeacher;
 /// source, which `distill` raises again.
 pub struct PyScore {
     score_fn: Py<PyAny>,
+    sample_fn: Option<Py<PyAny>>,
     state_dim: usize,
     action_dim: usize,
 }
@@ -61,6 +65,45 @@ impl PyScore {
         }
         Ok(())
     }
+
+    /// Calls `sample_fn(states)` and checks its result: `(n, action_dim)`, finite.
+    fn sample(
+        &self,
+        py: Python<'_>,
+        sample_fn: &Py<PyAny>,
+        s: MatRef<'_, f32>,
+        mut out: MatMut<'_, f32>,
+    ) -> PyResult<()> {
+        py.check_signals()?;
+        let n = s.nrows();
+        let result = sample_fn.bind(py).call1((mat_to_numpy(py, s),))?;
+        let actions: PyArrayLike2<'_, f32, AllowTypeChange> = result.extract().map_err(|e| {
+            PyTypeError::new_err(format!(
+                "sample_fn must return a float array of shape ({n}, {}): {e}",
+                self.action_dim
+            ))
+        })?;
+        let actions = actions.as_array();
+        let (rows, cols) = actions.dim();
+        if (rows, cols) != (n, self.action_dim) {
+            return Err(PyValueError::new_err(format!(
+                "sample_fn returned shape ({rows}, {cols}), expected ({n}, {})",
+                self.action_dim
+            )));
+        }
+        for i in 0..n {
+            for j in 0..self.action_dim {
+                let x = actions[(i, j)];
+                if !x.is_finite() {
+                    return Err(PyValueError::new_err(format!(
+                        "sample_fn returned a non-finite action ({x} at row {i}, column {j})"
+                    )));
+                }
+                out[(i, j)] = x;
+            }
+        }
+        Ok(())
+    }
 }
 
 impl ScoreModel for PyScore {
@@ -80,6 +123,20 @@ impl ScoreModel for PyScore {
         check_score_args(self, actions, states, noise_levels, out.as_ref())?;
         Python::attach(|py| self.call(py, actions, states, noise_levels, out))
             .map_err(CoreError::implementor)
+    }
+    /// The Python teacher's `sample_fn(states)`, if it was given (unsupported otherwise).
+    fn sample_actions(
+        &mut self,
+        states: MatRef<'_, f32>,
+        _rng: &mut dyn vdd::rand::RngCore,
+        out: MatMut<'_, f32>,
+    ) -> Result<(), CoreError> {
+        let Some(sample_fn) = &self.sample_fn else {
+            return Err(CoreError::Unsupported("sampling actions from a score_fn (no sample_fn)"));
+        };
+        vdd_core::check_shape("states", states, states.nrows(), self.state_dim)?;
+        vdd_core::check_shape("sampled actions", out.as_ref(), states.nrows(), self.action_dim)?;
+        Python::attach(|py| self.sample(py, sample_fn, states, out)).map_err(CoreError::implementor)
     }
 }
 
@@ -134,11 +191,14 @@ pub fn apply_settings(
 ) -> Result<(), String> {
     let mut v = serde_json::to_value(&*vdd).map_err(|e| e.to_string())?;
     let mut m = serde_json::to_value(&*moe).map_err(|e| e.to_string())?;
+    // Every trainer field, those left out of the serialised form when unset included.
+    let probe = VddConfig { noise_anneal_until: Some(0.0), ..vdd.clone() };
+    let trainer_fields = serde_json::to_value(&probe).map_err(|e| e.to_string())?;
     for (key, value) in settings {
         if let Some((_, instead)) = RESERVED.iter().find(|(k, _)| k == key) {
             return Err(format!("setting `{key}`: give it as {instead}"));
         }
-        let target = if v.get(key).is_some() {
+        let target = if trainer_fields.get(key).is_some() {
             &mut v
         } else if m.get(key).is_some() {
             &mut m
@@ -150,7 +210,7 @@ pub fn apply_settings(
             };
             return Err(format!(
                 "unknown setting `{key}` (trainer settings: {}; student settings: {})",
-                names(&v).unwrap_or_default(),
+                names(&trainer_fields).unwrap_or_default(),
                 names(&m).unwrap_or_default()
             ));
         };
@@ -175,25 +235,165 @@ fn column_normalizer(m: MatRef<'_, f32>) -> Result<Affine, CoreError> {
     Affine::new(offset, scale)
 }
 
+/// Which defaults `distill` starts from (the setting `defaults`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Defaults {
+    /// [`Vdd::auto`]: picked from the teacher ([`AutoPlan::inspect`]).
+    Auto,
+    /// The paper's toy settings ([`VddConfig::toy`], [`MoeConfig::toy`]) with [`Vdd::new`].
+    Toy,
+}
+
+/// A failed run: a training error, or a setting the plan's configurations refuse.
+enum RunError {
+    Vdd(VddError),
+    Setting(String),
+}
+
+impl From<VddError> for RunError {
+    fn from(e: VddError) -> Self {
+        Self::Vdd(e)
+    }
+}
+
+impl From<CoreError> for RunError {
+    fn from(e: CoreError) -> Self {
+        Self::Vdd(e.into())
+    }
+}
+
+impl From<vdd::MoeError> for RunError {
+    fn from(e: vdd::MoeError) -> Self {
+        Self::Vdd(e.into())
+    }
+}
+
+/// What `distill` was asked for, besides the teacher and the data.
+struct Request {
+    defaults: Defaults,
+    experts: usize,
+    iterations: Option<usize>,
+    seed: u64,
+    state_dim: usize,
+    action_dim: usize,
+    settings: Vec<(String, Value)>,
+}
+
+impl Request {
+    /// The toy configurations with `iterations`, `seed` and the settings applied.
+    fn toy_configs(&self) -> Result<(VddConfig, MoeConfig), String> {
+        let mut config = VddConfig { seed: self.seed, ..VddConfig::toy() };
+        if let Some(it) = self.iterations {
+            config.iterations = it;
+        }
+        let mut moe = MoeConfig::toy(self.state_dim, self.action_dim, self.experts);
+        apply_settings(&mut config, &mut moe, &self.settings)?;
+        Ok((config, moe))
+    }
+}
+
 fn train<S: ScoreModel>(
-    config: VddConfig,
-    teacher: S,
-    mut student: Moe,
+    request: &Request,
+    mut teacher: S,
     data: DistillData,
     actions: Option<&Mat<f32>>,
-) -> Result<Moe, VddError> {
-    let obs = column_normalizer(data.states())?;
-    let act = actions.map(|a| column_normalizer(a.as_ref())).transpose()?;
-    student.set_normalizers(Some(obs), act)?;
-    let mut vdd = Vdd::new(config, teacher, student, data)?;
+) -> Result<Moe, RunError> {
+    let mut vdd = match request.defaults {
+        Defaults::Toy => {
+            let (config, moe) = request.toy_configs().map_err(RunError::Setting)?;
+            let mut student = Moe::from_config(moe, config.seed)?;
+            let obs = column_normalizer(data.states())?;
+            let act = actions.map(|a| column_normalizer(a.as_ref())).transpose()?;
+            student.set_normalizers(Some(obs), act)?;
+            Vdd::new(config, teacher, student, data)?
+        }
+        Defaults::Auto => {
+            let mut options = AutoOptions::new(request.experts, request.seed);
+            if let Some(it) = request.iterations {
+                options.iterations = it;
+            }
+            let mut plan = AutoPlan::inspect(&mut teacher, &data, &options)?;
+            apply_settings(&mut plan.vdd, &mut plan.student, &request.settings)
+                .map_err(RunError::Setting)?;
+            let data = more_gating_actions(&mut plan, &mut teacher, data, request.seed)?;
+            Vdd::from_plan(&plan, teacher, data)?
+        }
+    };
     vdd.train(|_| {})?;
     Ok(vdd.into_student())
+}
+
+/// Gating actions a score-only teacher gets at least: the learned gating trains on one action
+/// per data state, so with few states (a state-independent problem given as a handful of
+/// dummy states) its weights could only be multiples of one over their number.
+const MIN_GATING_ACTIONS: usize = 4096;
+
+/// For a teacher the plan sampled through its score ([`SampleSource::ScoreSampling`]) on fewer
+/// than [`MIN_GATING_ACTIONS`] states (in the raw space): the states repeated until there are
+/// that many, each row with its own score-sampled action as the plan's gating actions.
+/// Otherwise `data` unchanged.
+fn more_gating_actions<S: ScoreModel>(
+    plan: &mut AutoPlan,
+    teacher: &mut S,
+    data: DistillData,
+    seed: u64,
+) -> Result<DistillData, RunError> {
+    let space = data.teacher_space();
+    let raw = space.states.is_none() && space.actions.is_none();
+    let n = data.states().nrows();
+    if plan.source != SampleSource::ScoreSampling || !raw || n >= MIN_GATING_ACTIONS {
+        return Ok(data);
+    }
+    let reps = MIN_GATING_ACTIONS.div_ceil(n);
+    let states = Mat::from_fn(n * reps, data.states().ncols(), |i, j| data.states()[(i / reps, j)]);
+    let mut rng = Seeds::new(seed).child("vdd-py").stream("gating-actions");
+    plan.gating_actions =
+        Some(score_sampling(teacher, states.as_ref(), plan.noise_range, &mut rng)?);
+    Ok(DistillData::new(states, None)?)
+}
+
+/// Annealed reverse diffusion with the score of a VE teacher, one sample per row of `states`:
+/// 200 geometric levels from `σ_max` (the teacher's, at most 10³) down to its `σ_min` (at
+/// least `10⁻⁶ σ_max`), ancestral steps, then one denoising step (as `Vdd::auto` samples a
+/// teacher without a sampler).
+fn score_sampling<S: ScoreModel>(
+    teacher: &mut S,
+    states: MatRef<'_, f32>,
+    range: Option<(f32, f32)>,
+    rng: &mut vdd::Rng,
+) -> Result<Mat<f32>, RunError> {
+    let (n, d) = (states.nrows(), teacher.action_dim());
+    let hi = range.map_or(1e3, |r| r.1.min(1e3));
+    let lo = range.map_or(0.0, |r| r.0).max(1e-6 * hi);
+    let levels = 200;
+    let sigma = |k: usize| hi * (lo / hi).powf(k as f32 / (levels - 1) as f32);
+    let mut x = Mat::from_fn(n, d, |_, _| hi * vdd::standard_normal(rng));
+    let mut score = Mat::zeros(n, d);
+    for k in 0..levels {
+        let s = sigma(k);
+        teacher.score(x.as_ref(), states, &vec![s; n], score.as_mut())?;
+        let (step, noise) = if k + 1 == levels {
+            (s * s, 0.0)
+        } else {
+            let next = sigma(k + 1);
+            let var = s * s - next * next;
+            (var, (var * next * next / (s * s)).sqrt())
+        };
+        for i in 0..n {
+            for j in 0..d {
+                let z = if noise > 0.0 { noise * vdd::standard_normal(rng) } else { 0.0 };
+                x[(i, j)] += step * score[(i, j)] + z;
+            }
+        }
+    }
+    vdd::check_finite("score-sampled actions", x.as_ref())?;
+    Ok(x)
 }
 
 /// Distils a teacher into a mixture of experts with the Rust VDD trainer; returns the
 /// student as a `vdd.Policy` (acting on raw states).
 #[pyfunction]
-#[pyo3(signature = (score_fn, states, *, action_dim, experts = 8, iterations = None, seed = 0, actions = None, **settings))]
+#[pyo3(signature = (score_fn, states, *, action_dim, experts = 8, iterations = None, seed = 0, actions = None, sample_fn = None, **settings))]
 #[allow(clippy::too_many_arguments)]
 pub fn distill(
     py: Python<'_>,
@@ -204,6 +404,7 @@ pub fn distill(
     iterations: Option<usize>,
     seed: u64,
     actions: Option<PyArrayLike2<'_, f32, AllowTypeChange>>,
+    sample_fn: Option<Bound<'_, PyAny>>,
     settings: Option<Bound<'_, PyDict>>,
 ) -> PyResult<PyPolicy> {
     let state_dim = states.as_array().ncols();
@@ -215,23 +416,45 @@ pub fn distill(
         .map_err(|e| pyo3::exceptions::PyMemoryError::new_err(e.to_string()))?;
     let states = matrix(states.as_array(), state_dim, "states")?;
     let actions = actions.map(|a| matrix(a.as_array(), action_dim, "actions")).transpose()?;
-    let mut config = VddConfig { seed, ..VddConfig::toy() };
-    if let Some(it) = iterations {
-        config.iterations = it;
+    if experts == 0 {
+        return Err(PyValueError::new_err("experts must be at least 1"));
     }
-    let mut moe_config = MoeConfig::toy(state_dim, action_dim, experts);
+    if iterations == Some(0) {
+        return Err(PyValueError::new_err("iterations must be at least 1"));
+    }
+    let mut defaults = Defaults::Auto;
     let mut pairs = Vec::new();
     if let Some(s) = &settings {
         for (k, v) in s.iter() {
             let k: String = k.extract()?;
+            if k == "defaults" {
+                defaults = match v.extract::<String>().as_deref() {
+                    Ok("auto") => Defaults::Auto,
+                    Ok("toy") => Defaults::Toy,
+                    _ => {
+                        return Err(PyValueError::new_err(format!(
+                            "setting `defaults`: expected 'auto' or 'toy', got {}",
+                            v.repr()?
+                        )));
+                    }
+                };
+                continue;
+            }
             let value = to_json(&v, &k)?;
             pairs.push((k, value));
         }
     }
-    apply_settings(&mut config, &mut moe_config, &pairs).map_err(PyValueError::new_err)?;
-    let student = Moe::from_config(moe_config, config.seed).py_err(py)?;
+    let request =
+        Request { defaults, experts, iterations, seed, state_dim, action_dim, settings: pairs };
+    // Settings are checked before the teacher is inspected (which may take many calls).
+    request.toy_configs().map_err(PyValueError::new_err)?;
     let data = DistillData::new(states, actions.clone()).py_err(py)?;
     let trained = if let Ok(teacher) = score_fn.cast::<PyTeacher>() {
+        if sample_fn.is_some() {
+            return Err(PyValueError::new_err(
+                "sample_fn is for a Python score_fn; a vdd.Teacher samples itself",
+            ));
+        }
         let teacher = teacher.borrow();
         let data = data.with_teacher_space(teacher.space());
         let inner = teacher.inner.clone();
@@ -242,16 +465,27 @@ pub fn distill(
                 inner.action_dim()
             )));
         }
-        run_train(py, || train(config, inner, student, data, actions.as_ref()))
+        run_train(py, || train(&request, inner, data, actions.as_ref()))
     } else {
         if !score_fn.is_callable() {
             return Err(PyTypeError::new_err("score_fn must be callable"));
         }
-        let teacher = PyScore { score_fn: score_fn.unbind(), state_dim, action_dim };
-        run_train(py, || train(config, teacher, student, data, actions.as_ref()))
+        if sample_fn.as_ref().is_some_and(|f| !f.is_callable()) {
+            return Err(PyTypeError::new_err("sample_fn must be callable (or None)"));
+        }
+        let teacher = PyScore {
+            score_fn: score_fn.unbind(),
+            sample_fn: sample_fn.map(Bound::unbind),
+            state_dim,
+            action_dim,
+        };
+        run_train(py, || train(&request, teacher, data, actions.as_ref()))
     };
-    let student = trained?.map_err(|e| to_py(py, &e))?;
-    Ok(PyPolicy::new(student.into_policy().py_err(py)?))
+    match trained? {
+        Ok(student) => Ok(PyPolicy::new(student.into_policy().py_err(py)?)),
+        Err(RunError::Vdd(e)) => Err(to_py(py, &e)),
+        Err(RunError::Setting(msg)) => Err(PyValueError::new_err(msg)),
+    }
 }
 
 /// Runs a training closure with the GIL released; a panic becomes `RuntimeError`

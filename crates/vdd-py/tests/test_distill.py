@@ -70,3 +70,14 @@ def test_the_score_fn_gets_float32_arrays_of_the_documented_shapes():
                 vi_samples=5)
     (a, s, sig, dtype) = seen[0]
     assert a[1] == 2 and s[1] == 3 and a[0] == s[0] == sig[0] and dtype == np.float32
+
+
+def test_toy_defaults_stay_reachable_and_trainer_settings_are_accepted():
+    toy = vdd.distill(four_modes_score, np.zeros((4, 1)), action_dim=2, experts=2, iterations=2,
+                      defaults="toy")
+    assert toy.num_experts == 2
+    auto = vdd.distill(four_modes_score, np.zeros((4, 1)), action_dim=2, experts=2,
+                       iterations=2, noise_anneal_until=0.5, batch_size=4)
+    assert auto.num_experts == 2
+    with pytest.raises(ValueError, match="setting `defaults`: expected 'auto' or 'toy'"):
+        vdd.distill(four_modes_score, np.zeros((4, 1)), action_dim=2, defaults="paper")
