@@ -348,46 +348,8 @@ fn more_gating_actions<S: ScoreModel>(
     let states = Mat::from_fn(n * reps, data.states().ncols(), |i, j| data.states()[(i / reps, j)]);
     let mut rng = Seeds::new(seed).child("vdd-py").stream("gating-actions");
     plan.gating_actions =
-        Some(score_sampling(teacher, states.as_ref(), plan.noise_range, &mut rng)?);
+        Some(vdd::auto::score_sampling(teacher, states.as_ref(), plan.noise_range, &mut rng)?);
     Ok(DistillData::new(states, None)?)
-}
-
-/// Annealed reverse diffusion with the score of a VE teacher, one sample per row of `states`:
-/// 200 geometric levels from `σ_max` (the teacher's, at most 10³) down to its `σ_min` (at
-/// least `10⁻⁶ σ_max`), ancestral steps, then one denoising step (as `Vdd::auto` samples a
-/// teacher without a sampler).
-fn score_sampling<S: ScoreModel>(
-    teacher: &mut S,
-    states: MatRef<'_, f32>,
-    range: Option<(f32, f32)>,
-    rng: &mut vdd::Rng,
-) -> Result<Mat<f32>, RunError> {
-    let (n, d) = (states.nrows(), teacher.action_dim());
-    let hi = range.map_or(1e3, |r| r.1.min(1e3));
-    let lo = range.map_or(0.0, |r| r.0).max(1e-6 * hi);
-    let levels = 200;
-    let sigma = |k: usize| hi * (lo / hi).powf(k as f32 / (levels - 1) as f32);
-    let mut x = Mat::from_fn(n, d, |_, _| hi * vdd::standard_normal(rng));
-    let mut score = Mat::zeros(n, d);
-    for k in 0..levels {
-        let s = sigma(k);
-        teacher.score(x.as_ref(), states, &vec![s; n], score.as_mut())?;
-        let (step, noise) = if k + 1 == levels {
-            (s * s, 0.0)
-        } else {
-            let next = sigma(k + 1);
-            let var = s * s - next * next;
-            (var, (var * next * next / (s * s)).sqrt())
-        };
-        for i in 0..n {
-            for j in 0..d {
-                let z = if noise > 0.0 { noise * vdd::standard_normal(rng) } else { 0.0 };
-                x[(i, j)] += step * score[(i, j)] + z;
-            }
-        }
-    }
-    vdd::check_finite("score-sampled actions", x.as_ref())?;
-    Ok(x)
 }
 
 /// Distils a teacher into a mixture of experts with the Rust VDD trainer; returns the

@@ -528,9 +528,11 @@ fn thin(m: Mat<f32>, per: usize) -> Mat<f32> {
 }
 
 /// Annealed reverse diffusion with the score of a VE teacher, one sample per row of
-/// `states` (teacher space): 200 geometric levels from `σ_max` (the teacher's, at most 10³)
-/// down to its `σ_min` (at least `10⁻⁶ σ_max`), ancestral steps, then one denoising step.
-fn score_sampling<S: ScoreModel>(
+/// `states` (teacher space): 200 geometric levels from `σ_max` (the teacher's `range`, at most
+/// 10³) down to its `σ_min` (at least `10⁻⁶ σ_max`), ancestral steps, then one denoising step.
+/// What [`AutoPlan::inspect`] samples a teacher without a sampler with; a teacher of another
+/// noise convention is an error.
+pub fn score_sampling<S: ScoreModel>(
     teacher: &mut S,
     states: MatRef<'_, f32>,
     range: Option<(f32, f32)>,
