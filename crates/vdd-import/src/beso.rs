@@ -128,6 +128,13 @@ impl BesoTeacherConfig {
         {
             return bad(format!("scaler dimensions do not match obs {od} / action {ad}"));
         }
+        // Statistics of 1e300 become ±inf in f32 and every score NaN: refused here, as a
+        // normaliser anywhere else is.
+        for (what, a) in [("observation", &s.obs), ("action", &s.action)] {
+            if let Err(e) = a.validate() {
+                return bad(format!("scaler {what} statistics: {e}"));
+            }
+        }
         if s.action_min
             .iter()
             .zip(&s.action_max)

@@ -132,6 +132,14 @@ fn the_policy_is_seeded_windowed_and_clamped() {
     p.reset();
     p.seed(8);
     assert_ne!(run(&mut p), first);
+    // Statistics that overflow f32 (a scaler.json of ±1e300) are refused, not scored as NaN.
+    let mut t = gpt();
+    for big in [f32::INFINITY, f32::NEG_INFINITY, 3e38] {
+        let mut bad = t.config().scaler.clone();
+        bad.obs.offset[0] = big;
+        let e = t.set_scaler(bad).unwrap_err().to_string();
+        assert!(e.contains("scaler observation statistics"), "{e}");
+    }
     // With the scaler's box shrunk to a point, every action is that point (unscaled).
     let mut t = gpt();
     let mut scaler = t.config().scaler.clone();
