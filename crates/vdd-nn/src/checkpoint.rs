@@ -154,6 +154,18 @@ impl CheckpointDir {
         Ok(dir)
     }
 
+    /// Removes every generation and the `LATEST` pointer, under the lock: what a run that
+    /// starts afresh in a directory of an earlier one does (removing the directory instead
+    /// could delete another writer's checkpoints).
+    pub fn clear(&self) -> Result<(), NnError> {
+        let pointer = self.root.join(POINTER);
+        match fs::remove_file(&pointer) {
+            Err(e) if e.kind() != std::io::ErrorKind::NotFound => return Err(io(&pointer)(e)),
+            _ => {}
+        }
+        self.prune(&[])
+    }
+
     /// Removes every generation but `keep` (the new one and the previous complete one, so
     /// [`KEEP`]): older ones, and any other left incomplete by a crash or abandoned by resuming
     /// an older generation.

@@ -3,6 +3,7 @@
 //! generation when asked (bit for bit, see [`Vdd::resume`]), records curves over training
 //! through a [`CurveProbe`], and removes its checkpoints when done.
 
+use std::io::ErrorKind;
 use std::path::Path;
 use std::time::Instant;
 
@@ -88,10 +89,11 @@ impl Resumable<'_> {
     {
         let root = self.dir;
         let io = |source| VddError::CheckpointIo { path: root.to_owned(), source };
-        if !self.resume && root.exists() {
-            std::fs::remove_dir_all(root).map_err(io)?;
-        }
+        // The lock first: a live writer's checkpoints are never removed (an error instead).
         let store = CheckpointDir::open(root).map_err(VddError::from)?;
+        if !self.resume {
+            store.clear().map_err(VddError::from)?;
+        }
         let iterations = config.iterations;
         let latest = store.latest().map_err(VddError::from)?;
         let (mut curves, mut noise_sum, mut train_seconds, mut vdd) = match latest {
@@ -157,8 +159,15 @@ impl Resumable<'_> {
             }
         }
         train_seconds += t0.elapsed().as_secs_f64();
-        drop(store);
-        std::fs::remove_dir_all(root).map_err(io)?;
+        store.clear().map_err(VddError::from)?;
+        drop(store); // removes `LOCK` while holding it
+        // The directory itself when empty; another writer may have opened it meanwhile.
+        match std::fs::remove_dir(root) {
+            Err(e) if !matches!(e.kind(), ErrorKind::NotFound | ErrorKind::DirectoryNotEmpty) => {
+                return Err(E::from(io(e)));
+            }
+            _ => {}
+        }
         let mean_noise_level = (noise_sum / iterations.max(1) as f64) as f32;
         let student = vdd.into_student();
         Ok(ResumableOutcome { student, train_seconds, curves, mean_noise_level })

@@ -153,6 +153,22 @@ fn a_resumable_run_continues_from_its_last_commit_like_a_straight_run() {
     assert_eq!(params(&resumable(&root, false, false).unwrap().student), params(&straight.student));
 }
 
+/// Before, a run that did not resume removed its directory whoever held it: another writer's
+/// checkpoints went with it. Now the lock comes first, and a held one is an error.
+#[test]
+fn a_fresh_run_never_removes_a_live_writers_checkpoints() {
+    let root = temp("held");
+    let generation = checkpoint(&root);
+    let held = CheckpointDir::open(&root).unwrap();
+    let e = resumable(&root, false, false).unwrap_err().to_string();
+    assert!(e.contains("LOCK"), "{e}");
+    assert!(generation.exists(), "the holder's generation stays");
+    drop(held);
+    // Unheld, the earlier generations are discarded and the run starts afresh.
+    assert!(resumable(&root, false, false).is_ok());
+    assert!(!root.exists(), "a finished run removes its checkpoints");
+}
+
 /// Before, resume accepted Adam moments of 2^63.
 #[test]
 fn adam_moments_beyond_their_bounds_are_refused_on_resume() {
