@@ -24,7 +24,7 @@ pub struct ExperimentArgs {
     pub seeds: Option<SeedList>,
     /// Methods, comma-separated, or `all` (ddpm, beso, ddpm-1, beso-1, cd, ctm, em, imc,
     /// vdd-ddpm, vdd-beso, then beso-d3il, beso-d3il-1, vdd-beso-learned, vdd-beso-d3il,
-    /// imc-authors; toys: vdd-exact; the registry in xtask/src/methods/).
+    /// imc-authors; toys: vdd-exact; the registry is vdd_lab::methods::BUILTIN).
     #[arg(long, value_name = "A,B")]
     pub methods: Option<String>,
     /// Override any recipe key; the value is parsed as TOML, a bare word is a string
