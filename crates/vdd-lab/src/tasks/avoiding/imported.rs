@@ -61,6 +61,16 @@ pub fn run(ctx: &RunContext, resolved: &Resolved<AvoidingRecipe>) -> crate::Resu
     let ImportedTeacher::Unet1d(teacher) =
         vdd_import::load_teacher(Path::new(&cfg.imported.teacher))?;
     let src = teacher.spec().source.clone();
+    if let (Some(m), true) = (&teacher.spec().obs_map, methods.iter().any(|m| m == "vdd")) {
+        // The student's deployment spec cannot carry the map yet: it would act on the mapped
+        // observation and refuse the task's raw one.
+        return Err(format!(
+            "{}: the teacher was imported with the observation map `{m}`, which a VDD student \
+             cannot carry yet; roll the teacher out alone with --methods teacher",
+            cfg.imported.teacher
+        )
+        .into());
+    }
     let map = teacher.spec().features.resolve()?;
     let (train, raw_obs) = cfg.data.train_episodes()?;
     let featured: Result<Vec<_>, _> = raw_obs.iter().map(|o| map.apply_rows(o.as_ref())).collect();
