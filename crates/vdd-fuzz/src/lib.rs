@@ -2,13 +2,14 @@
 //! ([`runner`]: each case in a child process with memory and time limits).
 //!
 //! A [`Target`] is one family of files a loader reads (`npy`, `npz`, `safetensors`, `moe`,
-//! `teacher`, `checkpoint`, `recipe`). For each the crate writes valid seed inputs
+//! `teacher`, `checkpoint`, `recipe`, `lerobot`). For each the crate writes valid seed inputs
 //! ([`write_seeds`]), derives a mutated case from them with a stream of the campaign's seed
 //! indexed by the case number ([`prepare_case`]: bit flips, interesting bytes and floats,
 //! truncation, extension, header and JSON/TOML field edits with huge, negative, non-finite and
 //! `1e39` values, shape and dtype edits), and runs a case: load the input, use it (act, score,
 //! forward, a training step) and check every output is finite ([`run_case`]). The child's
-//! exit code gives the case's [`Outcome`]; [`Report`] holds the counts and writes `fuzz.json`.
+//! exit code gives the case's [`Outcome`] (a file a writer committed that its loader refuses
+//! is [`Outcome::Unreadable`]); [`Report`] holds the counts and writes `fuzz.json`.
 //! The crate never prints.
 //!
 //! ```
@@ -50,7 +51,9 @@ pub type BoxError = Box<dyn std::error::Error>;
 #[derive(Debug, thiserror::Error)]
 pub enum Error {
     /// A target name that is none of [`Target::ALL`].
-    #[error("unknown fuzz target `{0}` (npy, npz, safetensors, moe, teacher, checkpoint, recipe)")]
+    #[error(
+        "unknown fuzz target `{0}` (npy, npz, safetensors, moe, teacher, checkpoint, recipe, lerobot)"
+    )]
     UnknownTarget(String),
     /// Writing seeds, mutating or running a case of `target` failed (for a case: the loader
     /// refused the input, the expected outcome of most mutations).
@@ -93,11 +96,14 @@ pub enum Target {
     Checkpoint,
     /// A toy-gmm recipe (`recipe.toml`); its check is the caller's (see [`run_case`]).
     Recipe,
+    /// A LeRobot diffusion policy directory (`vdd_import::import_lerobot`), then the round
+    /// trip of the importer's output: `save_unet_teacher`, `load_teacher`, a score.
+    Lerobot,
 }
 
 impl Target {
     /// Every target, in the order `all` runs them.
-    pub const ALL: [Target; 7] = [
+    pub const ALL: [Target; 8] = [
         Target::Npy,
         Target::Npz,
         Target::Safetensors,
@@ -105,6 +111,7 @@ impl Target {
         Target::Teacher,
         Target::Checkpoint,
         Target::Recipe,
+        Target::Lerobot,
     ];
 
     /// The target's name on the command line and in `fuzz.json`.
@@ -117,6 +124,7 @@ impl Target {
             Target::Teacher => "teacher",
             Target::Checkpoint => "checkpoint",
             Target::Recipe => "recipe",
+            Target::Lerobot => "lerobot",
         }
     }
 }

@@ -24,15 +24,18 @@ pub enum Loaded {
     Finite,
     /// Loaded, and using it returned a non-finite number without an error.
     NonFinite(String),
+    /// Loaded, and a file the case's writer then committed was refused by its own loader.
+    Unreadable(String),
 }
 
 impl Loaded {
-    /// The exit code of a child whose case ended so (0 finite, 3 non-finite; see
+    /// The exit code of a child whose case ended so (0 finite, 3 non-finite, 4 unreadable; see
     /// [`Outcome::from_exit_code`](crate::Outcome::from_exit_code)).
     pub fn exit_code(&self) -> i32 {
         match self {
             Loaded::Finite => 0,
             Loaded::NonFinite(_) => crate::report::EXIT_NONFINITE,
+            Loaded::Unreadable(_) => crate::report::EXIT_UNREADABLE,
         }
     }
 }
@@ -120,9 +123,37 @@ pub(crate) fn write_seeds(target: Target, dir: &Path) -> Result<Vec<PathBuf>> {
             std::fs::write(d.join("recipe.toml"), include_str!("../../../recipes/toy-gmm.toml"))?;
             out.push(d);
         }
+        Target::Lerobot => {
+            let d = seed_dir(0)?;
+            for (name, bytes) in LEROBOT_FILES {
+                std::fs::write(d.join(name), bytes)?;
+            }
+            out.push(d);
+        }
     }
     Ok(out)
 }
+
+/// The LeRobot seed policy: the files of `tests/fixtures/import/lerobot_unet_ddpm` the
+/// importer reads (a DDPM 1-D U-Net, its config and its processors' JSON and statistics).
+const LEROBOT_FILES: [(&str, &[u8]); 6] = {
+    macro_rules! fixture {
+        ($name:literal) => {
+            (
+                $name,
+                include_bytes!(concat!("../../../tests/fixtures/import/lerobot_unet_ddpm/", $name)),
+            )
+        };
+    }
+    [
+        fixture!("config.json"),
+        fixture!("model.safetensors"),
+        fixture!("policy_preprocessor.json"),
+        fixture!("policy_preprocessor_step_3_normalizer_processor.safetensors"),
+        fixture!("policy_postprocessor.json"),
+        fixture!("policy_postprocessor_step_0_unnormalizer_processor.safetensors"),
+    ]
+};
 
 fn net_config() -> vdd_nn::ResidualMlpConfig {
     vdd_nn::ResidualMlpConfig {
@@ -226,6 +257,16 @@ fn mutate_case(target: Target, case: &Path, rng: &mut Rng) -> Result {
         }
         Target::Checkpoint => edit("student.safetensors", &mut |b| mutate::safetensors(rng, b)),
         Target::Recipe => edit("recipe.toml", &mut |b| mutate::toml_file(rng, b, RECIPE_KEYS)),
+        Target::Lerobot => {
+            // The JSON files and the weights' header most of the time: the importer's checks
+            // sit behind them.
+            let (name, _) = LEROBOT_FILES.choose(rng).copied().unwrap_or(LEROBOT_FILES[0]);
+            if name.ends_with(".json") {
+                edit(name, &mut |b| mutate::json_file(rng, b))
+            } else {
+                edit(name, &mut |b| mutate::safetensors(rng, b))
+            }
+        }
     }
 }
 
@@ -328,6 +369,27 @@ pub(crate) fn run_case(
             outputs.extend(student.act(&[0.0])?);
         }
         Target::Recipe => check_recipe(&case.join("recipe.toml"))?,
+        Target::Lerobot => {
+            let imported = vdd_import::import_lerobot(case)?;
+            // The round trip: whatever the importer's output the writer commits, the loader
+            // accepts (a refusal is no clean error but a broken file).
+            let file = case.join("teacher.safetensors");
+            vdd_import::save_unet_teacher(&file, &imported)?;
+            let mut t = match vdd_import::load_teacher(&file) {
+                Ok(t) => t,
+                Err(e) => return Ok(Loaded::Unreadable(format!("{}: {e}", file.display()))),
+            };
+            let (ds, da) = (ScoreModel::state_dim(&t), ScoreModel::action_dim(&t));
+            let n = 2;
+            let mut levels = vec![0.0; n];
+            let mut rng = Seeds::new(0).stream("levels");
+            t.draw_noise_levels(&NoiseSchedule::Fixed { level: 0.5 }, 0.5, &mut rng, &mut levels);
+            let a = Mat::from_fn(n, da, |i, j| (i + j) as f32 * 0.02 - 0.3);
+            let s = Mat::from_fn(n, ds, |i, j| (i * j) as f32 * 0.01);
+            let mut out = Mat::zeros(n, da);
+            t.score(a.as_ref(), s.as_ref(), &levels, out.as_mut())?;
+            outputs.extend((0..n).flat_map(|i| (0..da).map(move |j| (i, j))).map(|ij| out[ij]));
+        }
     }
     Ok(match outputs.iter().position(|v| !v.is_finite()) {
         Some(i) => Loaded::NonFinite(format!("output {i} is {}", outputs[i])),

@@ -21,7 +21,7 @@ fn files(dir: &Path) -> Vec<(std::ffi::OsString, Vec<u8>)> {
 #[test]
 fn mutations_are_deterministic_for_a_seed() {
     let dir = scratch("determinism");
-    for target in [Target::Npz, Target::Moe, Target::Recipe] {
+    for target in [Target::Npz, Target::Moe, Target::Recipe, Target::Lerobot] {
         let seeds = crate::write_seeds(target, &dir.join(target.name())).unwrap();
         let original: Vec<_> = seeds.iter().map(|s| files(s)).collect();
         let case = |seed, k| {
@@ -79,6 +79,9 @@ fn names_parse_and_exit_codes_classify() {
     assert_eq!(Outcome::from_exit_code(Some(nonfinite)), Outcome::OkNonfinite);
     assert_eq!(Outcome::from_exit_code(Some(Loaded::Finite.exit_code())), Outcome::Ok);
     assert_eq!(Outcome::from_exit_code(Some(101)), Outcome::Panic);
+    let unreadable = Loaded::Unreadable("teacher.safetensors: bad spec".into()).exit_code();
+    assert_eq!(Outcome::from_exit_code(Some(unreadable)), Outcome::Unreadable);
+    assert!(Outcome::Unreadable.is_failure());
     assert_eq!(Outcome::from_exit_code(None), Outcome::Abort);
     let mut c = crate::Counts::default();
     for o in [Outcome::Ok, Outcome::Err, Outcome::Hang] {
