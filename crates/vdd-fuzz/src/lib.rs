@@ -92,7 +92,9 @@ pub enum Target {
     Moe,
     /// A diffusion teacher file (`DiffusionTeacher::load`).
     Teacher,
-    /// A VDD trainer checkpoint directory (`Vdd::resume`, then a step).
+    /// A VDD trainer checkpoint: a flat directory (`Vdd::resume`, then a step), or a directory
+    /// of generations with its `LATEST` and `LOCK` edited (taken, resumed, stepped, committed,
+    /// and the commit resumed again).
     Checkpoint,
     /// A toy-gmm recipe (`recipe.toml`); its check is the caller's (see [`run_case`]).
     Recipe,
@@ -177,13 +179,17 @@ pub fn run_case(
     at(target, targets::run_case(target, dir, check_recipe))
 }
 
-/// Copies the files (not subdirectories) of `from` into `to`, creating it.
+/// Copies the regular files and directories of `from` into `to`, creating it (symlinks,
+/// FIFOs and other special files are left out).
 pub fn copy_case(from: &Path, to: &Path) -> std::io::Result<()> {
     std::fs::create_dir_all(to)?;
     for e in std::fs::read_dir(from)? {
         let e = e?;
-        if e.file_type()?.is_file() {
+        let kind = e.file_type()?;
+        if kind.is_file() {
             std::fs::copy(e.path(), to.join(e.file_name()))?;
+        } else if kind.is_dir() {
+            copy_case(&e.path(), &to.join(e.file_name()))?;
         }
     }
     Ok(())

@@ -117,6 +117,10 @@ pub(crate) fn write_seeds(target: Target, dir: &Path) -> Result<Vec<PathBuf>> {
             let d = seed_dir(0)?;
             v.write_checkpoint(&d)?;
             out.push(d);
+            // A checkpoint directory of generations: `LATEST` names the one to resume.
+            let d = seed_dir(1)?;
+            v.save_checkpoint(&vdd_nn::checkpoint::CheckpointDir::open(&d)?)?;
+            out.push(d);
         }
         Target::Recipe => {
             let d = seed_dir(0)?;
@@ -252,6 +256,7 @@ fn mutate_case(target: Target, case: &Path, rng: &mut Rng) -> Result {
         Target::Safetensors => edit("net.safetensors", &mut |b| mutate::safetensors(rng, b)),
         Target::Moe => edit("policy.safetensors", &mut |b| mutate::safetensors(rng, b)),
         Target::Teacher => edit("teacher.safetensors", &mut |b| mutate::safetensors(rng, b)),
+        Target::Checkpoint if case.join(LATEST).is_file() => pointer_or_lock(case, rng),
         Target::Checkpoint if rng.random() => {
             edit("trainer.json", &mut |b| mutate::json_file(rng, b))
         }
@@ -268,6 +273,41 @@ fn mutate_case(target: Target, case: &Path, rng: &mut Rng) -> Result {
             }
         }
     }
+}
+
+/// `LATEST` of a checkpoint directory.
+const LATEST: &str = "LATEST";
+
+/// Rewrites `LATEST` (garbage, a missing generation, a path out of the directory, a very long
+/// name) or writes a `LOCK` (garbage, a stale owner, huge) in the checkpoint directory `case`.
+fn pointer_or_lock(case: &Path, rng: &mut Rng) -> Result {
+    let latest = case.join(LATEST);
+    let name = std::fs::read_to_string(&latest)?;
+    let name = name.trim();
+    let lock = case.join("LOCK");
+    match rng.random_range(0..9) {
+        0 => {
+            let mut b = name.as_bytes().to_vec();
+            mutate::bytes(rng, &mut b);
+            std::fs::write(&latest, b)?
+        }
+        1 => std::fs::write(&latest, mutate::text_number(rng, name))?,
+        2 => std::fs::write(&latest, name.replace(|c: char| c.is_ascii_digit(), "9"))?,
+        3 => {
+            let up = ["../", "..", "/", "../seed0", "/etc/passwd", "."];
+            std::fs::write(&latest, up.choose(rng).copied().unwrap_or("../"))?
+        }
+        4 => std::fs::write(&latest, name.repeat(rng.random_range(2..5000)))?,
+        5 => std::fs::write(&latest, "")?,
+        6 => {
+            let mut b: Vec<u8> = (0..rng.random_range(0..64)).map(|_| rng.random()).collect();
+            mutate::bytes(rng, &mut b);
+            std::fs::write(&lock, b)?
+        }
+        7 => std::fs::write(&lock, format!("{} 1\n", u32::MAX - 1))?,
+        _ => std::fs::File::create(&lock)?.set_len(1 << 28)?,
+    }
+    Ok(())
 }
 
 /// The archive with one entry mutated as an `.npy` file, rewritten stored or deflated.
@@ -361,10 +401,23 @@ pub(crate) fn run_case(
         }
         Target::Checkpoint => {
             let (_, teacher, data) = checkpoint_run()?;
+            // A directory of generations is resumed as a run does: under its lock; the step's
+            // state is then committed, and what was committed must resume.
+            let store = match case.join(LATEST).is_file() {
+                true => Some(vdd_nn::checkpoint::CheckpointDir::open(case)?),
+                false => None,
+            };
             let mut v = vdd::Vdd::resume(case, teacher, data)?;
             let m = v.step()?;
             outputs.extend([m.expert.expert_entropy, m.gating_entropy, m.expert_lr]);
             outputs.extend(m.gating_loss);
+            if let Some(store) = &store {
+                v.save_checkpoint(store)?;
+                let (_, teacher, data) = checkpoint_run()?;
+                if let Err(e) = vdd::Vdd::resume(case, teacher, data) {
+                    return Ok(Loaded::Unreadable(format!("committed checkpoint: {e}")));
+                }
+            }
             let mut student = v.into_student();
             outputs.extend(student.act(&[0.0])?);
         }

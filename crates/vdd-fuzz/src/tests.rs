@@ -89,3 +89,21 @@ fn names_parse_and_exit_codes_classify() {
     }
     assert_eq!((c.get(Outcome::Ok), c.failures()), (1, 1));
 }
+
+#[test]
+fn a_bad_latest_pointer_is_a_clean_error_and_a_stale_lock_is_taken_over() {
+    let dir = scratch("latest");
+    let seeds = crate::write_seeds(Target::Checkpoint, &dir).unwrap();
+    let root = seeds.iter().find(|s| s.join("LATEST").is_file()).expect("a generations seed");
+    let latest = std::fs::read_to_string(root.join("LATEST")).unwrap();
+    for bad in ["../", "", "gen-x", &latest.repeat(3000)] {
+        std::fs::write(root.join("LATEST"), bad).unwrap();
+        let e = crate::run_case(Target::Checkpoint, root, |_| Ok(())).unwrap_err();
+        assert!(matches!(e, crate::Error::Target { target: Target::Checkpoint, .. }), "{e}");
+    }
+    std::fs::write(root.join("LATEST"), &latest).unwrap();
+    std::fs::write(root.join("LOCK"), "garbage\n").unwrap();
+    let loaded = crate::run_case(Target::Checkpoint, root, |_| Ok(())).unwrap();
+    assert_eq!(loaded, Loaded::Finite);
+    let _ = std::fs::remove_dir_all(&dir);
+}
