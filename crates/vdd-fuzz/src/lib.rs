@@ -6,7 +6,8 @@
 //! ([`write_seeds`]), derives a mutated case from them with a stream of the campaign's seed
 //! indexed by the case number ([`prepare_case`]: bit flips, interesting bytes and floats,
 //! truncation, extension, header and JSON/TOML field edits with huge, negative, non-finite and
-//! `1e39` values, shape and dtype edits), and runs a case: load the input, use it (act, score,
+//! `1e39` values, shape and dtype edits; a checkpoint's `LATEST` and `LOCK`; an input replaced
+//! by a FIFO or a symlink to `/dev/zero` or a directory), and runs a case: load the input, use it (act, score,
 //! forward, a training step) and check every output is finite ([`run_case`]). The child's
 //! exit code gives the case's [`Outcome`] (a file a writer committed that its loader refuses
 //! is [`Outcome::Unreadable`]); [`Report`] holds the counts and writes `fuzz.json`.

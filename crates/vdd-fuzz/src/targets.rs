@@ -228,7 +228,39 @@ pub(crate) fn prepare_case(
     let _ = std::fs::remove_dir_all(dir);
     let mut rng = Seeds::new(seed).stream_indexed(&format!("fuzz-{target}"), case as u64);
     crate::copy_case(&seeds[rng.random_range(0..seeds.len())], dir)?;
+    if rng.random_bool(NOT_REGULAR) {
+        return not_regular(dir, &mut rng);
+    }
     mutate_case(target, dir, &mut rng)
+}
+
+/// The share of cases whose input file is replaced by a non-regular one ([`not_regular`]).
+const NOT_REGULAR: f64 = 0.06;
+
+/// Replaces one input file of `case` by a FIFO (no writer: opening it for reading would
+/// block), a symlink to `/dev/zero` (endless) or a symlink to a directory.
+fn not_regular(case: &Path, rng: &mut Rng) -> Result {
+    let mut names: Vec<_> = std::fs::read_dir(case)?
+        .filter_map(|e| e.ok())
+        .filter(|e| e.file_type().is_ok_and(|t| t.is_file()))
+        .map(|e| e.path())
+        .collect();
+    names.sort();
+    let Some(path) = names.choose(rng).cloned() else { return Ok(()) };
+    std::fs::remove_file(&path)?;
+    match rng.random_range(0..3) {
+        0 => {
+            use std::os::unix::ffi::OsStrExt as _;
+            let c = std::ffi::CString::new(path.as_os_str().as_bytes())?;
+            // SAFETY: mkfifo reads the NUL-terminated path we pass and creates one file.
+            if unsafe { libc::mkfifo(c.as_ptr(), 0o644) } != 0 {
+                return Err(std::io::Error::last_os_error().into());
+            }
+        }
+        1 => std::os::unix::fs::symlink("/dev/zero", &path)?,
+        _ => std::os::unix::fs::symlink(case, &path)?,
+    }
+    Ok(())
 }
 
 /// Mutates one file of `case` (a copy of a seed directory) in place.
