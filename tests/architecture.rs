@@ -125,7 +125,10 @@ fn crate_dependency_rules_hold() {
             ],
         ),
         // The fuzzer's engine exercises the loaders it fuzzes; no task, recipe or tool code.
-        ("vdd-fuzz", &["vdd-core", "vdd-nn", "vdd-data", "vdd-moe", "vdd-diffusion", "vdd"]),
+        (
+            "vdd-fuzz",
+            &["vdd-core", "vdd-nn", "vdd-data", "vdd-moe", "vdd-diffusion", "vdd", "vdd-import"],
+        ),
     ];
     let mut broken = Vec::new();
     for (krate, deps) in &deps {

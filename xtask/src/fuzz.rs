@@ -21,7 +21,7 @@ use crate::progress;
 /// Options of `cargo xtask fuzz`.
 #[derive(Debug, Clone, clap::Args)]
 pub struct Args {
-    /// npy, npz, safetensors, moe, teacher, checkpoint, recipe, or all.
+    /// npy, npz, safetensors, moe, teacher, checkpoint, recipe, lerobot, or all.
     pub target: String,
     /// Cases per target.
     #[arg(long, default_value_t = 1000)]
@@ -59,7 +59,7 @@ pub struct CaseArgs {
 }
 
 /// Runs one case in this process and exits with its outcome's code (0 ok, 1 err, 3
-/// ok_nonfinite; a panic exits 101).
+/// ok_nonfinite, 4 unreadable; a panic exits 101).
 pub fn case(a: &CaseArgs) -> ! {
     set_limits(a.memory_mib, a.cpu_seconds);
     let check_recipe = |path: &Path| -> XResult {
@@ -68,8 +68,10 @@ pub fn case(a: &CaseArgs) -> ! {
     let run = a.target.parse().and_then(|t| vdd_fuzz::run_case(t, &a.dir, check_recipe));
     match run {
         Ok(loaded) => {
-            if let vdd_fuzz::Loaded::NonFinite(what) = &loaded {
-                eprintln!("non-finite output: {what}");
+            match &loaded {
+                vdd_fuzz::Loaded::NonFinite(what) => eprintln!("non-finite output: {what}"),
+                vdd_fuzz::Loaded::Unreadable(what) => eprintln!("committed but unreadable: {what}"),
+                vdd_fuzz::Loaded::Finite => {}
             }
             std::process::exit(loaded.exit_code())
         }

@@ -2,13 +2,15 @@
 //! ([`runner`]: each case in a child process with memory and time limits).
 //!
 //! A [`Target`] is one family of files a loader reads (`npy`, `npz`, `safetensors`, `moe`,
-//! `teacher`, `checkpoint`, `recipe`). For each the crate writes valid seed inputs
+//! `teacher`, `checkpoint`, `recipe`, `lerobot`). For each the crate writes valid seed inputs
 //! ([`write_seeds`]), derives a mutated case from them with a stream of the campaign's seed
 //! indexed by the case number ([`prepare_case`]: bit flips, interesting bytes and floats,
 //! truncation, extension, header and JSON/TOML field edits with huge, negative, non-finite and
-//! `1e39` values, shape and dtype edits), and runs a case: load the input, use it (act, score,
+//! `1e39` values, shape and dtype edits; a checkpoint's `LATEST` and `LOCK`; an input replaced
+//! by a FIFO or a symlink to `/dev/zero` or a directory), and runs a case: load the input, use it (act, score,
 //! forward, a training step) and check every output is finite ([`run_case`]). The child's
-//! exit code gives the case's [`Outcome`]; [`Report`] holds the counts and writes `fuzz.json`.
+//! exit code gives the case's [`Outcome`] (a file a writer committed that its loader refuses
+//! is [`Outcome::Unreadable`]); [`Report`] holds the counts and writes `fuzz.json`.
 //! The crate never prints.
 //!
 //! ```
@@ -50,7 +52,9 @@ pub type BoxError = Box<dyn std::error::Error>;
 #[derive(Debug, thiserror::Error)]
 pub enum Error {
     /// A target name that is none of [`Target::ALL`].
-    #[error("unknown fuzz target `{0}` (npy, npz, safetensors, moe, teacher, checkpoint, recipe)")]
+    #[error(
+        "unknown fuzz target `{0}` (npy, npz, safetensors, moe, teacher, checkpoint, recipe, lerobot)"
+    )]
     UnknownTarget(String),
     /// Writing seeds, mutating or running a case of `target` failed (for a case: the loader
     /// refused the input, the expected outcome of most mutations).
@@ -89,15 +93,20 @@ pub enum Target {
     Moe,
     /// A diffusion teacher file (`DiffusionTeacher::load`).
     Teacher,
-    /// A VDD trainer checkpoint directory (`Vdd::resume`, then a step).
+    /// A VDD trainer checkpoint: a flat directory (`Vdd::resume`, then a step), or a directory
+    /// of generations with its `LATEST` and `LOCK` edited (taken, resumed, stepped, committed,
+    /// and the commit resumed again).
     Checkpoint,
     /// A toy-gmm recipe (`recipe.toml`); its check is the caller's (see [`run_case`]).
     Recipe,
+    /// A LeRobot diffusion policy directory (`vdd_import::import_lerobot`), then the round
+    /// trip of the importer's output: `save_unet_teacher`, `load_teacher`, a score.
+    Lerobot,
 }
 
 impl Target {
     /// Every target, in the order `all` runs them.
-    pub const ALL: [Target; 7] = [
+    pub const ALL: [Target; 8] = [
         Target::Npy,
         Target::Npz,
         Target::Safetensors,
@@ -105,6 +114,7 @@ impl Target {
         Target::Teacher,
         Target::Checkpoint,
         Target::Recipe,
+        Target::Lerobot,
     ];
 
     /// The target's name on the command line and in `fuzz.json`.
@@ -117,6 +127,7 @@ impl Target {
             Target::Teacher => "teacher",
             Target::Checkpoint => "checkpoint",
             Target::Recipe => "recipe",
+            Target::Lerobot => "lerobot",
         }
     }
 }
@@ -169,13 +180,17 @@ pub fn run_case(
     at(target, targets::run_case(target, dir, check_recipe))
 }
 
-/// Copies the files (not subdirectories) of `from` into `to`, creating it.
+/// Copies the regular files and directories of `from` into `to`, creating it (symlinks,
+/// FIFOs and other special files are left out).
 pub fn copy_case(from: &Path, to: &Path) -> std::io::Result<()> {
     std::fs::create_dir_all(to)?;
     for e in std::fs::read_dir(from)? {
         let e = e?;
-        if e.file_type()?.is_file() {
+        let kind = e.file_type()?;
+        if kind.is_file() {
             std::fs::copy(e.path(), to.join(e.file_name()))?;
+        } else if kind.is_dir() {
+            copy_case(&e.path(), &to.join(e.file_name()))?;
         }
     }
     Ok(())

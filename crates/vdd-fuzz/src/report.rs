@@ -8,6 +8,8 @@ use crate::Target;
 
 /// Exit code of a case that loaded and returned a non-finite output.
 pub(crate) const EXIT_NONFINITE: i32 = 3;
+/// Exit code of a case whose writer committed a file its own loader then refused.
+pub(crate) const EXIT_UNREADABLE: i32 = 4;
 
 /// How one case ended.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord, Hash)]
@@ -24,17 +26,21 @@ pub enum Outcome {
     Hang,
     /// Loaded, and use returned a non-finite number without an error (exit 3).
     OkNonfinite,
+    /// A writer committed a file (e.g. an importer's teacher) that its loader refused: the
+    /// round trip "whatever a writer commits, its loader accepts" broken (exit 4).
+    Unreadable,
 }
 
 impl Outcome {
     /// Every outcome, in report order.
-    pub const ALL: [Outcome; 6] = [
+    pub const ALL: [Outcome; 7] = [
         Outcome::Ok,
         Outcome::Err,
         Outcome::Panic,
         Outcome::Abort,
         Outcome::Hang,
         Outcome::OkNonfinite,
+        Outcome::Unreadable,
     ];
 
     /// The outcome's name in `fuzz.json`.
@@ -46,6 +52,7 @@ impl Outcome {
             Outcome::Abort => "abort",
             Outcome::Hang => "hang",
             Outcome::OkNonfinite => "ok_nonfinite",
+            Outcome::Unreadable => "unreadable",
         }
     }
 
@@ -55,6 +62,7 @@ impl Outcome {
             Some(0) => Outcome::Ok,
             Some(1) => Outcome::Err,
             Some(EXIT_NONFINITE) => Outcome::OkNonfinite,
+            Some(EXIT_UNREADABLE) => Outcome::Unreadable,
             Some(101) => Outcome::Panic,
             _ => Outcome::Abort,
         }
@@ -68,7 +76,7 @@ impl Outcome {
 
 /// Cases per outcome.
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
-pub struct Counts([usize; 6]);
+pub struct Counts([usize; 7]);
 
 impl Counts {
     /// Counts one case.

@@ -24,15 +24,18 @@ pub enum Loaded {
     Finite,
     /// Loaded, and using it returned a non-finite number without an error.
     NonFinite(String),
+    /// Loaded, and a file the case's writer then committed was refused by its own loader.
+    Unreadable(String),
 }
 
 impl Loaded {
-    /// The exit code of a child whose case ended so (0 finite, 3 non-finite; see
+    /// The exit code of a child whose case ended so (0 finite, 3 non-finite, 4 unreadable; see
     /// [`Outcome::from_exit_code`](crate::Outcome::from_exit_code)).
     pub fn exit_code(&self) -> i32 {
         match self {
             Loaded::Finite => 0,
             Loaded::NonFinite(_) => crate::report::EXIT_NONFINITE,
+            Loaded::Unreadable(_) => crate::report::EXIT_UNREADABLE,
         }
     }
 }
@@ -114,15 +117,47 @@ pub(crate) fn write_seeds(target: Target, dir: &Path) -> Result<Vec<PathBuf>> {
             let d = seed_dir(0)?;
             v.write_checkpoint(&d)?;
             out.push(d);
+            // A checkpoint directory of generations: `LATEST` names the one to resume.
+            let d = seed_dir(1)?;
+            v.save_checkpoint(&vdd_nn::checkpoint::CheckpointDir::open(&d)?)?;
+            out.push(d);
         }
         Target::Recipe => {
             let d = seed_dir(0)?;
             std::fs::write(d.join("recipe.toml"), include_str!("../../../recipes/toy-gmm.toml"))?;
             out.push(d);
         }
+        Target::Lerobot => {
+            let d = seed_dir(0)?;
+            for (name, bytes) in LEROBOT_FILES {
+                std::fs::write(d.join(name), bytes)?;
+            }
+            out.push(d);
+        }
     }
     Ok(out)
 }
+
+/// The LeRobot seed policy: the files of `tests/fixtures/import/lerobot_unet_ddpm` the
+/// importer reads (a DDPM 1-D U-Net, its config and its processors' JSON and statistics).
+const LEROBOT_FILES: [(&str, &[u8]); 6] = {
+    macro_rules! fixture {
+        ($name:literal) => {
+            (
+                $name,
+                include_bytes!(concat!("../../../tests/fixtures/import/lerobot_unet_ddpm/", $name)),
+            )
+        };
+    }
+    [
+        fixture!("config.json"),
+        fixture!("model.safetensors"),
+        fixture!("policy_preprocessor.json"),
+        fixture!("policy_preprocessor_step_3_normalizer_processor.safetensors"),
+        fixture!("policy_postprocessor.json"),
+        fixture!("policy_postprocessor_step_0_unnormalizer_processor.safetensors"),
+    ]
+};
 
 fn net_config() -> vdd_nn::ResidualMlpConfig {
     vdd_nn::ResidualMlpConfig {
@@ -193,7 +228,39 @@ pub(crate) fn prepare_case(
     let _ = std::fs::remove_dir_all(dir);
     let mut rng = Seeds::new(seed).stream_indexed(&format!("fuzz-{target}"), case as u64);
     crate::copy_case(&seeds[rng.random_range(0..seeds.len())], dir)?;
+    if rng.random_bool(NOT_REGULAR) {
+        return not_regular(dir, &mut rng);
+    }
     mutate_case(target, dir, &mut rng)
+}
+
+/// The share of cases whose input file is replaced by a non-regular one ([`not_regular`]).
+const NOT_REGULAR: f64 = 0.06;
+
+/// Replaces one input file of `case` by a FIFO (no writer: opening it for reading would
+/// block), a symlink to `/dev/zero` (endless) or a symlink to a directory.
+fn not_regular(case: &Path, rng: &mut Rng) -> Result {
+    let mut names: Vec<_> = std::fs::read_dir(case)?
+        .filter_map(|e| e.ok())
+        .filter(|e| e.file_type().is_ok_and(|t| t.is_file()))
+        .map(|e| e.path())
+        .collect();
+    names.sort();
+    let Some(path) = names.choose(rng).cloned() else { return Ok(()) };
+    std::fs::remove_file(&path)?;
+    match rng.random_range(0..3) {
+        0 => {
+            use std::os::unix::ffi::OsStrExt as _;
+            let c = std::ffi::CString::new(path.as_os_str().as_bytes())?;
+            // SAFETY: mkfifo reads the NUL-terminated path we pass and creates one file.
+            if unsafe { libc::mkfifo(c.as_ptr(), 0o644) } != 0 {
+                return Err(std::io::Error::last_os_error().into());
+            }
+        }
+        1 => std::os::unix::fs::symlink("/dev/zero", &path)?,
+        _ => std::os::unix::fs::symlink(case, &path)?,
+    }
+    Ok(())
 }
 
 /// Mutates one file of `case` (a copy of a seed directory) in place.
@@ -221,12 +288,58 @@ fn mutate_case(target: Target, case: &Path, rng: &mut Rng) -> Result {
         Target::Safetensors => edit("net.safetensors", &mut |b| mutate::safetensors(rng, b)),
         Target::Moe => edit("policy.safetensors", &mut |b| mutate::safetensors(rng, b)),
         Target::Teacher => edit("teacher.safetensors", &mut |b| mutate::safetensors(rng, b)),
+        Target::Checkpoint if case.join(LATEST).is_file() => pointer_or_lock(case, rng),
         Target::Checkpoint if rng.random() => {
             edit("trainer.json", &mut |b| mutate::json_file(rng, b))
         }
         Target::Checkpoint => edit("student.safetensors", &mut |b| mutate::safetensors(rng, b)),
         Target::Recipe => edit("recipe.toml", &mut |b| mutate::toml_file(rng, b, RECIPE_KEYS)),
+        Target::Lerobot => {
+            // The JSON files and the weights' header most of the time: the importer's checks
+            // sit behind them.
+            let (name, _) = LEROBOT_FILES.choose(rng).copied().unwrap_or(LEROBOT_FILES[0]);
+            if name.ends_with(".json") {
+                edit(name, &mut |b| mutate::json_file(rng, b))
+            } else {
+                edit(name, &mut |b| mutate::safetensors(rng, b))
+            }
+        }
     }
+}
+
+/// `LATEST` of a checkpoint directory.
+const LATEST: &str = "LATEST";
+
+/// Rewrites `LATEST` (garbage, a missing generation, a path out of the directory, a very long
+/// name) or writes a `LOCK` (garbage, a stale owner, huge) in the checkpoint directory `case`.
+fn pointer_or_lock(case: &Path, rng: &mut Rng) -> Result {
+    let latest = case.join(LATEST);
+    let name = std::fs::read_to_string(&latest)?;
+    let name = name.trim();
+    let lock = case.join("LOCK");
+    match rng.random_range(0..9) {
+        0 => {
+            let mut b = name.as_bytes().to_vec();
+            mutate::bytes(rng, &mut b);
+            std::fs::write(&latest, b)?
+        }
+        1 => std::fs::write(&latest, mutate::text_number(rng, name))?,
+        2 => std::fs::write(&latest, name.replace(|c: char| c.is_ascii_digit(), "9"))?,
+        3 => {
+            let up = ["../", "..", "/", "../seed0", "/etc/passwd", "."];
+            std::fs::write(&latest, up.choose(rng).copied().unwrap_or("../"))?
+        }
+        4 => std::fs::write(&latest, name.repeat(rng.random_range(2..5000)))?,
+        5 => std::fs::write(&latest, "")?,
+        6 => {
+            let mut b: Vec<u8> = (0..rng.random_range(0..64)).map(|_| rng.random()).collect();
+            mutate::bytes(rng, &mut b);
+            std::fs::write(&lock, b)?
+        }
+        7 => std::fs::write(&lock, format!("{} 1\n", u32::MAX - 1))?,
+        _ => std::fs::File::create(&lock)?.set_len(1 << 28)?,
+    }
+    Ok(())
 }
 
 /// The archive with one entry mutated as an `.npy` file, rewritten stored or deflated.
@@ -320,14 +433,48 @@ pub(crate) fn run_case(
         }
         Target::Checkpoint => {
             let (_, teacher, data) = checkpoint_run()?;
+            // A directory of generations is resumed as a run does: under its lock; the step's
+            // state is then committed, and what was committed must resume.
+            let store = match case.join(LATEST).is_file() {
+                true => Some(vdd_nn::checkpoint::CheckpointDir::open(case)?),
+                false => None,
+            };
             let mut v = vdd::Vdd::resume(case, teacher, data)?;
             let m = v.step()?;
             outputs.extend([m.expert.expert_entropy, m.gating_entropy, m.expert_lr]);
             outputs.extend(m.gating_loss);
+            if let Some(store) = &store {
+                v.save_checkpoint(store)?;
+                let (_, teacher, data) = checkpoint_run()?;
+                if let Err(e) = vdd::Vdd::resume(case, teacher, data) {
+                    return Ok(Loaded::Unreadable(format!("committed checkpoint: {e}")));
+                }
+            }
             let mut student = v.into_student();
             outputs.extend(student.act(&[0.0])?);
         }
         Target::Recipe => check_recipe(&case.join("recipe.toml"))?,
+        Target::Lerobot => {
+            let imported = vdd_import::import_lerobot(case)?;
+            // The round trip: whatever the importer's output the writer commits, the loader
+            // accepts (a refusal is no clean error but a broken file).
+            let file = case.join("teacher.safetensors");
+            vdd_import::save_unet_teacher(&file, &imported)?;
+            let mut t = match vdd_import::load_teacher(&file) {
+                Ok(t) => t,
+                Err(e) => return Ok(Loaded::Unreadable(format!("{}: {e}", file.display()))),
+            };
+            let (ds, da) = (ScoreModel::state_dim(&t), ScoreModel::action_dim(&t));
+            let n = 2;
+            let mut levels = vec![0.0; n];
+            let mut rng = Seeds::new(0).stream("levels");
+            t.draw_noise_levels(&NoiseSchedule::Fixed { level: 0.5 }, 0.5, &mut rng, &mut levels);
+            let a = Mat::from_fn(n, da, |i, j| (i + j) as f32 * 0.02 - 0.3);
+            let s = Mat::from_fn(n, ds, |i, j| (i * j) as f32 * 0.01);
+            let mut out = Mat::zeros(n, da);
+            t.score(a.as_ref(), s.as_ref(), &levels, out.as_mut())?;
+            outputs.extend((0..n).flat_map(|i| (0..da).map(move |j| (i, j))).map(|ij| out[ij]));
+        }
     }
     Ok(match outputs.iter().position(|v| !v.is_finite()) {
         Some(i) => Loaded::NonFinite(format!("output {i} is {}", outputs[i])),

@@ -12,7 +12,13 @@ fn files(dir: &Path) -> Vec<(std::ffi::OsString, Vec<u8>)> {
     let mut out: Vec<_> = std::fs::read_dir(dir)
         .unwrap()
         .map(|e| e.unwrap())
-        .map(|e| (e.file_name(), std::fs::read(e.path()).unwrap()))
+        .map(|e| {
+            // A FIFO or a symlink (a non-regular case) is compared by its kind, never read.
+            let regular = e.file_type().unwrap().is_file();
+            let bytes =
+                if regular { std::fs::read(e.path()).unwrap() } else { b"special".to_vec() };
+            (e.file_name(), bytes)
+        })
         .collect();
     out.sort();
     out
@@ -21,7 +27,7 @@ fn files(dir: &Path) -> Vec<(std::ffi::OsString, Vec<u8>)> {
 #[test]
 fn mutations_are_deterministic_for_a_seed() {
     let dir = scratch("determinism");
-    for target in [Target::Npz, Target::Moe, Target::Recipe] {
+    for target in [Target::Npz, Target::Moe, Target::Recipe, Target::Lerobot] {
         let seeds = crate::write_seeds(target, &dir.join(target.name())).unwrap();
         let original: Vec<_> = seeds.iter().map(|s| files(s)).collect();
         let case = |seed, k| {
@@ -79,10 +85,59 @@ fn names_parse_and_exit_codes_classify() {
     assert_eq!(Outcome::from_exit_code(Some(nonfinite)), Outcome::OkNonfinite);
     assert_eq!(Outcome::from_exit_code(Some(Loaded::Finite.exit_code())), Outcome::Ok);
     assert_eq!(Outcome::from_exit_code(Some(101)), Outcome::Panic);
+    let unreadable = Loaded::Unreadable("teacher.safetensors: bad spec".into()).exit_code();
+    assert_eq!(Outcome::from_exit_code(Some(unreadable)), Outcome::Unreadable);
+    assert!(Outcome::Unreadable.is_failure());
     assert_eq!(Outcome::from_exit_code(None), Outcome::Abort);
     let mut c = crate::Counts::default();
     for o in [Outcome::Ok, Outcome::Err, Outcome::Hang] {
         c.add(o);
     }
     assert_eq!((c.get(Outcome::Ok), c.failures()), (1, 1));
+}
+
+#[test]
+fn a_bad_latest_pointer_is_a_clean_error_and_a_stale_lock_is_taken_over() {
+    let dir = scratch("latest");
+    let seeds = crate::write_seeds(Target::Checkpoint, &dir).unwrap();
+    let root = seeds.iter().find(|s| s.join("LATEST").is_file()).expect("a generations seed");
+    let latest = std::fs::read_to_string(root.join("LATEST")).unwrap();
+    for bad in ["../", "", "gen-x", &latest.repeat(3000)] {
+        std::fs::write(root.join("LATEST"), bad).unwrap();
+        let e = crate::run_case(Target::Checkpoint, root, |_| Ok(())).unwrap_err();
+        assert!(matches!(e, crate::Error::Target { target: Target::Checkpoint, .. }), "{e}");
+    }
+    std::fs::write(root.join("LATEST"), &latest).unwrap();
+    std::fs::write(root.join("LOCK"), "garbage\n").unwrap();
+    let loaded = crate::run_case(Target::Checkpoint, root, |_| Ok(())).unwrap();
+    assert_eq!(loaded, Loaded::Finite);
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+#[test]
+fn a_fifo_or_a_symlink_to_dev_zero_or_a_directory_is_a_clean_error() {
+    use std::os::unix::fs::FileTypeExt as _;
+    let dir = scratch("not-regular");
+    let seeds = crate::write_seeds(Target::Moe, &dir.join("seeds")).unwrap();
+    let mut seen = [false; 3];
+    for k in 0..2000 {
+        let case = dir.join("case");
+        crate::prepare_case(Target::Moe, &seeds, 0, k, &case).unwrap();
+        let file = case.join("policy.safetensors");
+        let meta = std::fs::symlink_metadata(&file).unwrap();
+        let kind = match std::fs::read_link(&file) {
+            _ if meta.file_type().is_fifo() => 0,
+            Ok(to) if to == Path::new("/dev/zero") => 1,
+            Ok(_) => 2,
+            Err(_) => continue,
+        };
+        let e = crate::run_case(Target::Moe, &case, |_| Ok(())).unwrap_err();
+        assert!(matches!(e, crate::Error::Target { target: Target::Moe, .. }), "{e}");
+        seen[kind] = true;
+        if seen.iter().all(|s| *s) {
+            break;
+        }
+    }
+    assert_eq!(seen, [true; 3], "FIFO, /dev/zero, directory");
+    let _ = std::fs::remove_dir_all(&dir);
 }
