@@ -86,16 +86,15 @@ fn check_sets_reach(
     view: &MethodRecipe<'_>,
     sets: &[(String, String)],
 ) -> XResult {
+    // The `--set` that sets `path` (the key itself or a table holding it), if any.
+    let set_of =
+        |path: &str| sets.iter().find(|(k, _)| path == k || path.starts_with(&format!("{k}.")));
     for (shared, own) in method.shadowed_keys() {
-        let covers = |k: &str| shared == k || shared.starts_with(&format!("{k}."));
-        let Some((k, _)) = sets.iter().find(|(k, _)| covers(k)) else { continue };
+        let Some((k, _)) = set_of(shared) else { continue };
         let message = match own {
             None => format!("`--set {k}` does not reach {label}, which fixes `{shared}` itself"),
-            Some(own)
-                if sets.iter().any(|(k, _)| own == *k || own.starts_with(&format!("{k}."))) =>
-            {
-                continue; // set too: the method takes its own key's value
-            }
+            // Set too: the method takes its own key's value.
+            Some(own) if set_of(&own).is_some() => continue,
             Some(own) => match view.get_opt::<toml::Value>(&own)? {
                 None => continue,
                 Some(v) => format!(
