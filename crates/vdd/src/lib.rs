@@ -45,6 +45,11 @@
 //! # Ok::<(), Box<dyn std::error::Error>>(())
 //! ```
 //!
+//! These are the paper's toy settings ([`VddConfig::toy`]), for actions of unit scale near the
+//! origin. For any other teacher, [`Vdd::auto`] picks the settings from the teacher itself
+//! (normalisers, noise schedule, run length, experts started on its modes; see [`auto`]), and
+//! [`Vdd::convergence`] says whether the run converged; the README's first example uses it.
+//!
 //! Where things live:
 //! * [`expert_step`]: the expert step — corrected score `g = score + ∇ log q̃` and the
 //!   closed-form gradients for means and scales;
@@ -77,7 +82,7 @@ pub use config::{
 };
 pub use error::VddError;
 pub use spaces::TeacherSpace;
-pub use trainer::{DistillData, IterationMetrics, Resumable, ResumableOutcome, Vdd};
+pub use trainer::{Convergence, DistillData, IterationMetrics, Resumable, ResumableOutcome, Vdd};
 
 // The front door: everything a user of the trainer names, from one dependency.
 /// Exact Gaussian-mixture teachers ([`vdd_core::gmm`]), the robustness family among them.

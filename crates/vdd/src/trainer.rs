@@ -14,6 +14,10 @@ use crate::error::VddError;
 use crate::expert_step::{
     ExpertStepBuffers, ExpertStepStats, corrected_score_moments, raw_gradients,
 };
+pub use convergence::{
+    CONVERGED_MISMATCH, Convergence, LATE_SHARE, PROBE_ACTIONS, PROBE_STATES, PROBES, RISE,
+    probe_points,
+};
 pub use resumable::{Resumable, ResumableOutcome};
 
 use crate::spaces::{ActionMap, TeacherSpace, normalize_rows, same_map, with_map};
@@ -29,6 +33,8 @@ use crate::spaces::{ActionMap, TeacherSpace, normalize_rows, same_map, with_map}
 pub struct DistillData {
     pub(crate) states: Mat<f32>,
     pub(crate) actions: Option<Mat<f32>>,
+    /// (State, action) pairs of the gating step, when given apart from the states.
+    pub(crate) gating: Option<(Mat<f32>, Mat<f32>)>,
     pub(crate) teacher_space: TeacherSpace,
 }
 
@@ -49,7 +55,44 @@ impl DistillData {
             check_len("dataset actions (rows)", a.nrows(), states.nrows())?;
             check_finite("dataset actions", a.as_ref())?;
         }
-        Ok(Self { states, actions, teacher_space: TeacherSpace::raw() })
+        Ok(Self { states, actions, gating: None, teacher_space: TeacherSpace::raw() })
+    }
+
+    /// Gives the gating step its own raw (state, action) pairs (row `i` of each belongs
+    /// together), used instead of the dataset's actions or the teacher's samples: e.g. many
+    /// actions drawn once from a teacher that cannot sample during training, several per state
+    /// ([`crate::AutoPlan::gating_pairs`]). The expert step still draws from the data's states.
+    ///
+    /// ```
+    /// use vdd::DistillData;
+    /// use vdd::faer::Mat;
+    /// let data = DistillData::from_states(Mat::zeros(4, 1))?
+    ///     .with_gating_pairs(Mat::zeros(64, 1), Mat::from_fn(64, 2, |i, _| i as f32))?;
+    /// assert_eq!(data.gating_pairs().map(|(s, a)| (s.nrows(), a.ncols())), Some((64, 2)));
+    /// assert!(DistillData::from_states(Mat::zeros(4, 1))?
+    ///     .with_gating_pairs(Mat::zeros(3, 1), Mat::zeros(2, 2))
+    ///     .is_err());
+    /// # Ok::<(), vdd::CoreError>(())
+    /// ```
+    pub fn with_gating_pairs(
+        mut self,
+        states: Mat<f32>,
+        actions: Mat<f32>,
+    ) -> Result<Self, CoreError> {
+        if states.nrows() == 0 {
+            return Err(CoreError::Config("gating pairs need at least one pair".into()));
+        }
+        check_len("gating pair states (columns)", states.ncols(), self.states.ncols())?;
+        check_len("gating pair actions (rows)", actions.nrows(), states.nrows())?;
+        check_finite("gating pair states", states.as_ref())?;
+        check_finite("gating pair actions", actions.as_ref())?;
+        self.gating = Some((states, actions));
+        Ok(self)
+    }
+
+    /// The gating step's own pairs ([`DistillData::with_gating_pairs`]), if given.
+    pub fn gating_pairs(&self) -> Option<(MatRef<'_, f32>, MatRef<'_, f32>)> {
+        self.gating.as_ref().map(|(s, a)| (s.as_ref(), a.as_ref()))
     }
 
     /// Declares the space the teacher takes states and actions in (default: the raw space).
@@ -89,6 +132,14 @@ pub struct IterationMetrics {
     pub expert_lr: f32,
     /// Gating learning rate used (0 when not trained).
     pub gating_lr: f32,
+    /// The student's score mismatch with the teacher after this iteration, at the eighths of
+    /// the run where it is measured ([`Convergence`]; `None` elsewhere).
+    #[serde(default)]
+    pub score_mismatch: Option<f32>,
+    /// On the run's last iteration: whether it converged ([`Vdd::convergence`]); `None` on
+    /// every other iteration (and when a resumed run lacks the measurement it needs).
+    #[serde(default)]
+    pub converged: Option<bool>,
 }
 
 /// Variational Diffusion Distillation of a teacher `S` into a mixture of experts of family `E`.
@@ -163,6 +214,8 @@ pub struct Vdd<S: ScoreModel, E: Expert = ExpertFamily> {
     chunks: Vec<chunks::Chunk<E>>,
     workers: Workers,
     flat: Vec<f32>,
+    /// The convergence probe's measurements: (iterations done, score mismatch).
+    probes: Vec<(usize, f32)>,
 }
 
 impl<S: ScoreModel> Vdd<S, ExpertFamily> {
@@ -197,7 +250,7 @@ impl<S: ScoreModel, E: Expert> Vdd<S, E> {
     /// Sets up a run with a student built elsewhere (pretrained, or initialised with a seed of
     /// its own; [`Vdd::from_config`] initialises it from the run's seed). Checks that teacher,
     /// student and data agree on dimensions, and that the gating step has actions to learn
-    /// from (dataset actions or a teacher that samples).
+    /// from (gating pairs, dataset actions or a teacher that samples).
     ///
     /// The data are raw; the student's normalisers ([`Moe::normalizers`], as set now) map them
     /// into the student's space, and the data's [`TeacherSpace`] says what the teacher sees.
@@ -215,6 +268,9 @@ impl<S: ScoreModel, E: Expert> Vdd<S, E> {
         check_len("data state columns", data.states.ncols(), ds)?;
         if let Some(a) = &data.actions {
             check_len("data action columns", a.ncols(), d)?;
+        }
+        if let Some((_, a)) = &data.gating {
+            check_len("gating pair action columns", a.ncols(), d)?;
         }
         // Spaces: the teacher's states from the raw ones, then the data into the student's.
         let space = data.teacher_space.clone();
@@ -241,10 +297,20 @@ impl<S: ScoreModel, E: Expert> Vdd<S, E> {
             normalize_rows(a, m);
             check_finite("dataset actions in the student's space", a.as_ref())?;
         }
+        if let Some((s, a)) = data.gating.as_mut() {
+            if let Some(m) = obs_norm {
+                normalize_rows(s, m);
+            }
+            if let Some(m) = act_norm {
+                normalize_rows(a, m);
+            }
+            check_finite("gating pairs in the student's space", s.as_ref())?;
+            check_finite("gating pairs in the student's space", a.as_ref())?;
+        }
         if let Some(t) = &teacher_states {
             check_finite("states in the teacher's space", t.as_ref())?;
         }
-        if student.has_learned_gating() && data.actions.is_none() {
+        if student.has_learned_gating() && data.actions.is_none() && data.gating.is_none() {
             let mut probe = Mat::zeros(1, mc.action_dim);
             let mut rng = Seeds::new(config.seed).stream("probe");
             let states = teacher_states.as_ref().unwrap_or(&data.states);
@@ -270,6 +336,7 @@ impl<S: ScoreModel, E: Expert> Vdd<S, E> {
             chunks,
             workers: Workers::default(),
             flat: Vec::new(),
+            probes: Vec::new(),
             expert_optimizer: Adam::new(config.expert_optimizer),
             gating_optimizer: Adam::new(config.gating_optimizer),
             student_ema,
@@ -399,7 +466,9 @@ impl<S: ScoreModel, E: Expert> Vdd<S, E> {
         if let Some(ema) = &mut self.student_ema {
             ema.update(&self.student)?;
         }
+        let score_mismatch = self.probe_after(it + 1)?;
         self.iteration += 1;
+        let converged = self.convergence().map(|c| c.converged);
         Ok(IterationMetrics {
             iteration: it,
             expert: stats,
@@ -407,6 +476,8 @@ impl<S: ScoreModel, E: Expert> Vdd<S, E> {
             gating_entropy,
             expert_lr,
             gating_lr,
+            score_mismatch,
+            converged,
         })
     }
 
@@ -480,7 +551,8 @@ impl<S: ScoreModel, E: Expert> Vdd<S, E> {
 
     /// One gating step ([`vdd_moe::step::gating_step`] with learning-rate factor `factor`) on
     /// the soft cross-entropy `−mean Σ_z q̃(z|a,s) log q(z|s)` towards the current student's
-    /// responsibilities of dataset actions (or teacher samples); returns the loss.
+    /// responsibilities of the data's gating pairs ([`DistillData::with_gating_pairs`]), else
+    /// of dataset actions, else of teacher samples; returns the loss.
     fn gating_step(
         &mut self,
         it: usize,
@@ -491,6 +563,18 @@ impl<S: ScoreModel, E: Expert> Vdd<S, E> {
         let mut rng = self.seeds.stream_indexed("gating-batch", stream);
         let n_data = self.data.states.nrows();
         let (ds, d) = (self.data.states.ncols(), self.student.config().action_dim);
+        if let Some((states, actions)) = &self.data.gating {
+            for b in 0..n {
+                let i = rng.random_range(0..states.nrows());
+                for j in 0..ds {
+                    self.gating_states[(b, j)] = states[(i, j)];
+                }
+                for j in 0..d {
+                    self.gating_actions[(b, j)] = actions[(i, j)];
+                }
+            }
+            return self.gating_update(it, factor);
+        }
         let mut idx = Vec::with_capacity(n);
         for b in 0..n {
             let i = rng.random_range(0..n_data);
@@ -528,6 +612,13 @@ impl<S: ScoreModel, E: Expert> Vdd<S, E> {
                 })?;
             }
         }
+        self.gating_update(it, factor)
+    }
+
+    /// The gating's update on the batch in `gating_states` and `gating_actions` (student's
+    /// space); returns the loss.
+    fn gating_update(&mut self, it: usize, factor: f32) -> Result<Option<f32>, VddError> {
+        let n = self.config.gating_batch_size;
         let (actions, action, resp, work) =
             (&self.gating_actions, &mut self.action, &mut self.resp, &mut self.work);
         let loss = vdd_moe::step::gating_step(
@@ -625,6 +716,7 @@ pub(super) fn at_iteration(iteration: usize) -> impl Fn(CoreError) -> VddError {
 
 mod checkpoint;
 mod chunks;
+mod convergence;
 mod resumable;
 #[cfg(test)]
 mod tests;

@@ -28,6 +28,9 @@ struct TrainerState {
     gating_optimizer: Adam,
     #[serde(default)]
     student_ema: Option<Ema>,
+    /// The convergence probe's measurements so far (absent in older checkpoints).
+    #[serde(default)]
+    probes: Vec<(usize, f32)>,
 }
 
 const STUDENT: &str = "student.safetensors";
@@ -76,6 +79,7 @@ impl<S: ScoreModel, E: Expert> Vdd<S, E> {
             expert_optimizer: self.expert_optimizer.clone(),
             gating_optimizer: self.gating_optimizer.clone(),
             student_ema: self.student_ema.clone(),
+            probes: self.probes.clone(),
         };
         let path = dir.join(STATE);
         let json = serde_json::to_vec(&state)
@@ -178,6 +182,11 @@ impl<S: ScoreModel, E: Expert> Vdd<S, E> {
         .map_err(|e| invalid("gating optimiser")(e.into()))?;
         vdd.expert_optimizer = state.expert_optimizer;
         vdd.gating_optimizer = state.gating_optimizer;
+        if let Some(p) = state.probes.iter().find(|p| p.0 > state.iteration || !p.1.is_finite()) {
+            let e = format!("a measurement after {} iterations: {}", p.0, p.1);
+            return Err(invalid("convergence probe")(e.into()));
+        }
+        vdd.probes = state.probes;
         match (state.student_ema, vdd.config.student_ema) {
             (Some(ema), Some(decay)) => {
                 ema.validate(&vdd.student).map_err(|e| invalid("student average")(e.into()))?;

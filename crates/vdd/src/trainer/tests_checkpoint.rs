@@ -57,6 +57,9 @@ fn an_unchanged_checkpoint_resumes_and_continues_like_a_straight_run() {
     let mut resumed = Vdd::resume(&root, teacher, data).unwrap();
     assert_eq!(resumed.iteration(), 3);
     resumed.train(|_| {}).unwrap();
+    // The convergence probe's measurements before the checkpoint were kept.
+    assert!(straight.convergence().is_some());
+    assert_eq!(straight.convergence(), resumed.convergence());
     assert_eq!(params(&straight.into_student()), params(&resumed.into_student()));
     std::fs::remove_dir_all(&root).unwrap();
 }
