@@ -142,14 +142,16 @@ def distill(
     to distil on; the student normalises them by their mean and standard deviation.
     ``actions`` (optional, ``(n, action_dim)``) are dataset actions; ``sample_fn(states)``
     (optional) returns one teacher action ``(n, action_dim)`` per state row ``(n, state_dim)``
-    (finite, or ``ValueError``). ``iterations`` defaults to 600.
+    (finite, or ``ValueError``). ``iterations`` is picked from the teacher unless given: 600
+    for a teacher that ignores the state, up to 2400 the more the state decides which
+    component an action belongs to.
 
     The run is set up from the teacher as Rust's ``Vdd::auto`` does (``AutoOptions::new(experts,
     seed)``): actions of the teacher (from ``sample_fn``, else ``actions``, else annealed reverse
-    diffusion with ``score_fn`` alone: 200 calls of 8192 rows, plus 4096 rows for the learned
-    gating when there are fewer states) give the student's normalisers, the noise annealed
-    from half their spread over 70 % of the run, and full-covariance experts with a learned
-    gating started on a mixture fitted to them.
+    diffusion with ``score_fn`` alone: 200 calls of 8192 rows, at up to 256 of the states; the
+    learned gating then trains on all 8192) give the student's normalisers, the noise annealed
+    from half their spread over the first 420 iterations (70 % of a 600-iteration run), and
+    full-covariance experts with a learned gating started on a mixture fitted to them.
 
     ``settings`` are then applied to that plan: fields of the trainer's ``VddConfig``
     (``batch_size``, ``vi_samples``, ``noise={'kind': 'uniform', 'min': 0.1, 'max': 1.0}``,

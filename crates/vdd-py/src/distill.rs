@@ -8,8 +8,8 @@ use pyo3::prelude::*;
 use pyo3::types::{PyDict, PyList, PyTuple};
 use serde_json::{Map, Value};
 use vdd::{
-    Affine, AutoOptions, AutoPlan, DistillData, Moe, MoeConfig, SampleSource, ScoreModel, Seeds,
-    Vdd, VddConfig, VddError,
+    Affine, AutoOptions, AutoPlan, DistillData, Moe, MoeConfig, ScoreModel, Vdd, VddConfig,
+    VddError,
 };
 use vdd_core::{CoreError, check_score_args};
 
@@ -308,48 +308,18 @@ fn train<S: ScoreModel>(
             Vdd::new(config, teacher, student, data)?
         }
         Defaults::Auto => {
-            let mut options = AutoOptions::new(request.experts, request.seed);
-            if let Some(it) = request.iterations {
-                options.iterations = it;
-            }
+            let options = AutoOptions {
+                iterations: request.iterations,
+                ..AutoOptions::new(request.experts, request.seed)
+            };
             let mut plan = AutoPlan::inspect(&mut teacher, &data, &options)?;
             apply_settings(&mut plan.vdd, &mut plan.student, &request.settings)
                 .map_err(RunError::Setting)?;
-            let data = more_gating_actions(&mut plan, &mut teacher, data, request.seed)?;
             Vdd::from_plan(&plan, teacher, data)?
         }
     };
     vdd.train(|_| {})?;
     Ok(vdd.into_student())
-}
-
-/// Gating actions a score-only teacher gets at least: the learned gating trains on one action
-/// per data state, so with few states (a state-independent problem given as a handful of
-/// dummy states) its weights could only be multiples of one over their number.
-const MIN_GATING_ACTIONS: usize = 4096;
-
-/// For a teacher the plan sampled through its score ([`SampleSource::ScoreSampling`]) on fewer
-/// than [`MIN_GATING_ACTIONS`] states (in the raw space): the states repeated until there are
-/// that many, each row with its own score-sampled action as the plan's gating actions.
-/// Otherwise `data` unchanged.
-fn more_gating_actions<S: ScoreModel>(
-    plan: &mut AutoPlan,
-    teacher: &mut S,
-    data: DistillData,
-    seed: u64,
-) -> Result<DistillData, RunError> {
-    let space = data.teacher_space();
-    let raw = space.states.is_none() && space.actions.is_none();
-    let n = data.states().nrows();
-    if plan.source != SampleSource::ScoreSampling || !raw || n >= MIN_GATING_ACTIONS {
-        return Ok(data);
-    }
-    let reps = MIN_GATING_ACTIONS.div_ceil(n);
-    let states = Mat::from_fn(n * reps, data.states().ncols(), |i, j| data.states()[(i / reps, j)]);
-    let mut rng = Seeds::new(seed).child("vdd-py").stream("gating-actions");
-    plan.gating_actions =
-        Some(vdd::auto::score_sampling(teacher, states.as_ref(), plan.noise_range, &mut rng)?);
-    Ok(DistillData::new(states, None)?)
 }
 
 /// Distils a teacher into a mixture of experts with the Rust VDD trainer; returns the

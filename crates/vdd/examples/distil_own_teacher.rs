@@ -95,7 +95,8 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
 
     // One seed for the run: the trainer's draws and the student's initialisation.
     let seed = std::env::args().nth(1).map_or(Ok(2), |s| s.parse())?;
-    let iterations = std::env::args().nth(2).map_or(Ok(600), |s| s.parse())?;
+    // The run length: picked from the teacher unless given.
+    let iterations = std::env::args().nth(2).map(|s| s.parse()).transpose()?;
     // Defaults picked from the teacher: normalisers, noise schedule, and three experts started
     // on a mixture fitted to the teacher's samples (see `vdd::auto`).
     let options = AutoOptions { iterations, ..AutoOptions::new(3, seed) };

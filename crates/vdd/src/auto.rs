@@ -8,26 +8,43 @@
 //! * **What it learns from.** Actions of the teacher: its own samples
 //!   ([`ScoreModel::sample_actions`]) at up to 256 of the data's states; the dataset's actions
 //!   when it cannot sample; otherwise samples of an annealed reverse diffusion driven by its
-//!   score (VE teachers only).
+//!   score (VE teachers only, [`score_sampling`]). A teacher seen through its score alone
+//!   cannot give the gating step fresh actions, so the gating then trains on all of those
+//!   score-sampled (state, action) pairs ([`AutoPlan::gating_pairs`], 8192 by default) rather
+//!   than on one action per data state, whose weights could only be multiples of one over the
+//!   number of states; [`AutoPlan::notes`] says so.
+//! * **The run's length.** [`BASE_ITERATIONS`] (600) for a teacher whose components and
+//!   weights do not depend on the state beyond a shared linear motion, growing linearly with
+//!   [`AutoPlan::state_dependence`] (the share of the variance of the fitted components'
+//!   responsibilities that the state explains) up to [`MAX_AUTO_ITERATIONS`] (2400) at
+//!   [`FULL_STATE_DEPENDENCE`]: a student whose gating and experts must learn how the state
+//!   moves and reweights the modes needs more steps than one that starts on them
+//!   ([`auto_iterations`]; [`AutoOptions::iterations`] overrides it).
 //! * **The student's space.** Observation and action normalisers (mean and standard deviation
 //!   per dimension of the data's states and of those actions), so the networks see unit-scale
 //!   inputs and outputs whatever the units and offsets of the problem.
-//! * **Noise levels.** The level is annealed geometrically from half the actions' spread (RMS
-//!   standard deviation, in the teacher's space) down to the smallest level the teacher reports
-//!   as trustworthy ([`ScoreModel::noise_range`]; 0 for an exact score, where the end is 10⁻³
-//!   of the spread), over the first 70 % of the run, then held. Large levels smooth the
-//!   teacher so that experts slide into the basins they start in rather than onto the nearest
-//!   bump; small ones give the exact target at the end. Teachers that count noise in diffusion
-//!   time ([`NoiseConvention::Time`]) keep a fixed level, the smallest they report (or 0).
+//! * **Noise levels.** The level is annealed geometrically from a tenth of the actions' spread
+//!   (RMS standard deviation, in the teacher's space; half of it with the official
+//!   initialisation, [`START_NOISE_FROM_TEACHER`], [`START_NOISE_OFFICIAL`]) down to the
+//!   smallest level the teacher reports as trustworthy ([`ScoreModel::noise_range`]; 0 for
+//!   an exact score, where the end is 10⁻³ of the spread), over the first
+//!   [`ANNEAL_ITERATIONS`] (420) iterations or 70 % of a shorter run, then held. Large levels
+//!   smooth the teacher so that experts slide into the basins they start in rather than onto
+//!   the nearest bump; small ones give the exact target at the end; too large ones merge the
+//!   teacher's modes, and experts that follow them there can end between modes. The anneal
+//!   does not stretch with the run: a longer run spends its extra iterations at the end
+//!   level, where it refines, rather than longer at large levels. Teachers that count noise
+//!   in diffusion time ([`NoiseConvention::Time`]) keep a fixed level, the smallest they
+//!   report (or 0).
 //! * **Initialisation from the teacher** ([`InitKind::FromTeacher`]). The actions are
 //!   regressed linearly on the states (the part of the modes' motion all modes share), and a
 //!   mixture of as many full-covariance Gaussians as there are experts is fitted to the
 //!   residuals in the student's space (k-means++, then EM; empty components re-seeded at the
-//!   worst-explained sample; the most likely of 4 such fits). Each expert starts as one fitted component: its mean head outputs
-//!   the component's mean plus the shared linear motion (a ridge fit of the output layer on the
-//!   trunk's features), its scale head the component's Cholesky factor; the learned gating
-//!   starts at the fitted weights. [`InitKind::Official`] keeps the official initialisation
-//!   instead.
+//!   worst-explained sample; the most likely of 4 such fits). Each expert starts as one
+//!   fitted component: its mean head outputs the component's mean plus the shared linear
+//!   motion (a ridge fit of the output layer on the trunk's features), its scale head the
+//!   component's Cholesky factor; the learned gating starts at the fitted weights.
+//!   [`InitKind::Official`] keeps the official initialisation instead.
 //! * **Experts and gating that keep components.** Full-covariance experts and a learned
 //!   gating: a uniform gating cannot give a 5 % mode 5 % of the actions, and with twice as many
 //!   experts as modes it must split them evenly. The gating is trained on the teacher's
@@ -37,6 +54,10 @@
 //! * **The rest.** Objectives weighted by the gating (official), 32 states and 32 samples per
 //!   expert per iteration, Adam `10⁻³` decaying linearly to 0 over the run (every schedule
 //!   follows `iterations`), gating Adam `10⁻³`.
+//!
+//! Whether the run then converged is the trainer's verdict ([`Vdd::convergence`], and
+//! [`crate::IterationMetrics::converged`] on the last iteration), from the student's score
+//! mismatch with the teacher measured at eighths of the run.
 //!
 //! ```
 //! use vdd::faer::Mat;
@@ -48,9 +69,11 @@
 //! let means: Vec<Vec<f32>> = (0..8).map(|k| gmm.mean(k).iter().zip([1000.0, -50.0]).map(|(m, o)| m + o).collect()).collect();
 //! let teacher = GmmTeacher::isotropic(&[1.0; 8], &means, 50.0)?;
 //! let data = DistillData::from_states(Mat::zeros(64, 1))?;
-//! let options = AutoOptions { iterations: 100, ..AutoOptions::new(8, 0) };
+//! let options = AutoOptions { iterations: Some(100), ..AutoOptions::new(8, 0) };
 //! let mut vdd = Vdd::auto(teacher, data, &options)?;
 //! vdd.train(|_| {})?;
+//! let verdict = vdd.convergence().expect("the run is finished");
+//! println!("score mismatch {:.4}, converged {}", verdict.mismatch, verdict.converged);
 //! let student = vdd.finish()?;
 //! assert_eq!(student.num_experts(), 8);
 //! # Ok::<(), Box<dyn std::error::Error>>(())
@@ -71,6 +94,51 @@ use crate::config::{ExpertWeighting, VddConfig};
 use crate::error::VddError;
 use crate::trainer::{DistillData, Vdd};
 use fit::Fitted;
+
+/// Iterations [`AutoPlan::inspect`] picks for a teacher that ignores the state (the paper's
+/// toy run).
+pub const BASE_ITERATIONS: usize = 600;
+
+/// Most iterations [`AutoPlan::inspect`] picks: for a teacher whose state decides the
+/// component ([`AutoPlan::state_dependence`] at or above [`FULL_STATE_DEPENDENCE`]).
+pub const MAX_AUTO_ITERATIONS: usize = 2400;
+
+/// The state dependence at which [`AutoPlan::inspect`] picks [`MAX_AUTO_ITERATIONS`].
+pub const FULL_STATE_DEPENDENCE: f32 = 0.15;
+
+/// Iterations over which the noise level is annealed (or 70 % of a shorter run); the rest of
+/// the run trains at the end level.
+pub const ANNEAL_ITERATIONS: usize = 420;
+
+/// The start of the noise anneal, as a fraction of the actions' spread, for experts started
+/// on the teacher's modes ([`InitKind::FromTeacher`]): enough to smooth the teacher's
+/// small-scale bumps, not enough to merge its modes.
+pub const START_NOISE_FROM_TEACHER: f32 = 0.1;
+
+/// The start of the noise anneal for the official initialisation ([`InitKind::Official`]),
+/// whose experts all start near the centre: half the spread, which smooths the teacher
+/// into one basin that the experts then follow apart as the level falls.
+pub const START_NOISE_OFFICIAL: f32 = 0.5;
+
+/// Fewest dataset actions below which [`AutoPlan::notes`] warns that the learned gating
+/// trains on too few actions.
+pub const MIN_GATING_ACTIONS: usize = 1024;
+
+/// The run length [`AutoPlan::inspect`] picks for a teacher of state dependence `dependence`
+/// (see [`AutoPlan::state_dependence`]): from [`BASE_ITERATIONS`] at 0, linearly, to
+/// [`MAX_AUTO_ITERATIONS`] at [`FULL_STATE_DEPENDENCE`] and above, rounded to hundreds.
+///
+/// ```
+/// use vdd::auto::{BASE_ITERATIONS, MAX_AUTO_ITERATIONS, auto_iterations};
+/// assert_eq!(auto_iterations(0.0), BASE_ITERATIONS);
+/// assert_eq!(auto_iterations(1.0), MAX_AUTO_ITERATIONS);
+/// assert_eq!(auto_iterations(0.05), 1200);
+/// ```
+pub fn auto_iterations(dependence: f32) -> usize {
+    let f = f64::from(dependence / FULL_STATE_DEPENDENCE).clamp(0.0, 1.0);
+    let span = (MAX_AUTO_ITERATIONS - BASE_ITERATIONS) as f64;
+    BASE_ITERATIONS + ((f * span / 100.0).round() as usize) * 100
+}
 
 /// Re-initialises a fresh `student` as the official VDD code does ([`InitKind::Official`]):
 /// every linear layer orthogonal with gain 0.01, the mean head's output weights zero (so each
@@ -138,8 +206,10 @@ pub enum SampleSource {
 pub struct AutoOptions {
     /// Number of experts (as many as the teacher has modes, or more).
     pub num_experts: usize,
-    /// Run length; every schedule follows it.
-    pub iterations: usize,
+    /// Run length; every schedule follows it. `None` (the default): the plan picks it from
+    /// the teacher's state dependence ([`AutoPlan::state_dependence`]), from
+    /// [`BASE_ITERATIONS`] for a teacher that ignores the state up to [`MAX_AUTO_ITERATIONS`].
+    pub iterations: Option<usize>,
     /// Root seed of the run (student initialisation included).
     pub seed: u64,
     /// How the networks start.
@@ -150,24 +220,35 @@ pub struct AutoOptions {
     pub gating: GatingKind,
     /// Teacher actions to inspect.
     pub samples: usize,
-    /// Annealing starts at this fraction of the actions' spread.
-    pub start_noise_factor: f32,
+    /// Annealing starts at this fraction of the actions' spread. `None` (the default): picked
+    /// by the initialisation, [`START_NOISE_FROM_TEACHER`] for experts started on the teacher's
+    /// modes, [`START_NOISE_OFFICIAL`] for the official start, which the noise must first carry
+    /// to the modes.
+    pub start_noise_factor: Option<f32>,
 }
 
 impl AutoOptions {
-    /// The defaults for `num_experts` experts and seed `seed`: 600 iterations, initialisation
-    /// from the teacher, full-covariance experts, learned gating, 8192 teacher actions,
-    /// annealing from half the spread.
+    /// The defaults for `num_experts` experts and seed `seed`: the run length picked from the
+    /// teacher, initialisation from the teacher, full-covariance experts, learned gating, 8192
+    /// teacher actions, annealing from the initialisation's start level.
+    ///
+    /// ```
+    /// use vdd::AutoOptions;
+    /// let options = AutoOptions::new(8, 0);
+    /// assert_eq!(options.iterations, None); // picked by the plan
+    /// let fixed = AutoOptions { iterations: Some(300), ..AutoOptions::new(8, 0) };
+    /// assert_eq!(fixed.num_experts, 8);
+    /// ```
     pub fn new(num_experts: usize, seed: u64) -> Self {
         Self {
             num_experts,
-            iterations: 600,
+            iterations: None,
             seed,
             init: InitKind::FromTeacher,
             expert_kind: ExpertKind::Full,
             gating: GatingKind::Learned,
             samples: 8192,
-            start_noise_factor: 0.5,
+            start_noise_factor: None,
         }
     }
 }
@@ -190,9 +271,21 @@ pub struct AutoPlan {
     pub spread: f32,
     /// The teacher's reported noise range.
     pub noise_range: Option<(f32, f32)>,
-    /// Actions for the gating step when the teacher cannot sample and the data has none
-    /// (raw, one per data state).
-    pub gating_actions: Option<Mat<f32>>,
+    /// How much the state decides which component an action belongs to, in `[0, 1]`: the
+    /// share of the variance of the fitted mixture's responsibilities that the state explains
+    /// (the covariance of the responsibilities of two actions at one state over their
+    /// variance). 0: neither the components nor their weights depend on the state beyond the
+    /// shared linear motion; 1: the state decides the component. The run length grows with
+    /// it ([`auto_iterations`]).
+    pub state_dependence: f32,
+    /// (State, action) pairs for the gating step when the teacher cannot sample and the data
+    /// has no actions (raw): every score-sampled action at its state, so that the gating
+    /// learns the weights from as many actions as the plan inspected, not from one per data
+    /// state ([`DistillData::with_gating_pairs`]).
+    pub gating_pairs: Option<(Mat<f32>, Mat<f32>)>,
+    /// What a user should know about this plan (each a sentence), e.g. that the teacher was
+    /// sampled through its score.
+    pub notes: Vec<String>,
     init: InitKind,
     fitted: Fitted,
     /// Shared linear motion `a ≈ c + W s` in the student's space (`d x d_s`, row-major).
@@ -228,12 +321,15 @@ impl<S: ScoreModel> Vdd<S, ExpertFamily> {
         Self::from_plan(&plan, teacher, data)
     }
 
-    /// A run of `plan` (the dataset actions are completed by the plan's sampled ones when the
-    /// teacher cannot sample).
+    /// A run of `plan`. When the teacher cannot sample and the data has neither actions nor
+    /// gating pairs, the gating step learns from the plan's score-sampled pairs
+    /// ([`AutoPlan::gating_pairs`]).
     pub fn from_plan(plan: &AutoPlan, teacher: S, mut data: DistillData) -> Result<Self, VddError> {
         let student = plan.build_student()?;
-        if data.actions.is_none() {
-            data.actions = plan.gating_actions.clone();
+        if data.actions.is_none() && data.gating.is_none() {
+            if let Some((states, actions)) = &plan.gating_pairs {
+                data = data.with_gating_pairs(states.clone(), actions.clone())?;
+            }
         }
         Self::new(plan.vdd.clone(), teacher, student, data)
     }
@@ -282,7 +378,7 @@ impl AutoPlan {
     ) -> Result<Self, VddError> {
         let (ds, d) = (teacher.state_dim(), teacher.action_dim());
         vdd_core::check_len("data state columns", data.states.ncols(), ds)?;
-        if options.num_experts == 0 || options.iterations == 0 || options.samples == 0 {
+        if options.num_experts == 0 || options.iterations == Some(0) || options.samples == 0 {
             return Err(CoreError::Config(
                 "num_experts, iterations and samples must be positive".into(),
             )
@@ -322,10 +418,28 @@ impl AutoPlan {
                 Err(e) => return Err(e.into()),
             };
         check_finite("teacher actions", actions.as_ref())?;
-        let gating_actions = (source == SampleSource::ScoreSampling).then(|| {
-            // One action per data state: the first sample drawn at its (nearest) state.
-            Mat::from_fn(n_data, d, |i, j| actions[((i * n_states / n_data) * per, j)])
-        });
+        let mut notes = Vec::new();
+        let gating_pairs = match source {
+            SampleSource::ScoreSampling => {
+                notes.push(format!(
+                    "the teacher cannot sample (ScoreModel::sample_actions) and the data has no \
+                     actions: {} actions at {n_states} states were drawn by annealed reverse \
+                     diffusion through its score, and the learned gating trains on them; a \
+                     sampler, if the teacher has one, gives the gating fresh actions at every step",
+                    actions.nrows()
+                ));
+                Some((states.clone(), actions.clone()))
+            }
+            SampleSource::Dataset if n_data < MIN_GATING_ACTIONS => {
+                notes.push(format!(
+                    "the learned gating trains on the dataset's {n_data} actions, one per state: \
+                     with so few, its weights can only be near multiples of 1/{n_data}; give more \
+                     states or a teacher that samples"
+                ));
+                None
+            }
+            _ => None,
+        };
 
         // The student's space.
         let state_normalizer = normalizer(data.states.as_ref())?;
@@ -333,24 +447,13 @@ impl AutoPlan {
         let states_n = map_rows(states.as_ref(), &state_normalizer, true);
         let actions_n = map_rows(actions.as_ref(), &action_normalizer, true);
 
-        // The spread in the teacher's space and the noise schedule.
+        // The spread in the teacher's space.
         let t_actions = match &space.actions {
             Some(a) => map_rows(actions.as_ref(), a, true),
             None => actions.clone(),
         };
         let (_, std) = stats(t_actions.as_ref());
         let spread = (std.iter().map(|s| s * s).sum::<f32>() / d as f32).sqrt().max(1e-12);
-        let (noise, anneal) = match teacher.noise_convention() {
-            NoiseConvention::Time => {
-                (NoiseSchedule::Fixed { level: noise_range.map_or(0.0, |r| r.0) }, None)
-            }
-            NoiseConvention::Sigma => {
-                let end = noise_range.map_or(0.0, |r| r.0).max(1e-3 * spread);
-                let start = (options.start_noise_factor * spread).max(end);
-                (NoiseSchedule::Annealed { start, end }, Some(0.7))
-            }
-        };
-
         // The shared linear motion and the mixture of the residuals.
         let n = actions_n.nrows();
         let x: Vec<f64> = (0..n)
@@ -382,6 +485,28 @@ impl AutoPlan {
         let mut fit_rng = seeds.stream("fit");
         let fitted =
             fit::fit_best(&residuals, n, d, options.num_experts, 30, 1e-6, 4, &mut fit_rng);
+        let resp = fit::responsibilities(&residuals, n, d, &fitted);
+        let state_dependence =
+            fit::state_dependence(&resp, options.num_experts, states_n.as_ref()) as f32;
+        let iterations = options.iterations.unwrap_or_else(|| auto_iterations(state_dependence));
+        // The noise schedule: annealed over the first ANNEAL_ITERATIONS (at most 70 % of the
+        // run), so that a longer run refines at the end level rather than drifting longer at
+        // large ones.
+        let (noise, anneal) = match teacher.noise_convention() {
+            NoiseConvention::Time => {
+                (NoiseSchedule::Fixed { level: noise_range.map_or(0.0, |r| r.0) }, None)
+            }
+            NoiseConvention::Sigma => {
+                let end = noise_range.map_or(0.0, |r| r.0).max(1e-3 * spread);
+                let factor = options.start_noise_factor.unwrap_or(match options.init {
+                    InitKind::FromTeacher => START_NOISE_FROM_TEACHER,
+                    InitKind::Official => START_NOISE_OFFICIAL,
+                });
+                let start = (factor * spread).max(end);
+                let until = (ANNEAL_ITERATIONS as f32 / iterations as f32).min(0.7);
+                (NoiseSchedule::Annealed { start, end }, Some(until))
+            }
+        };
 
         let student = MoeConfig {
             expert_kind: options.expert_kind,
@@ -390,7 +515,7 @@ impl AutoPlan {
         };
         let adam = AdamConfig { lr: 1e-3, ..AdamConfig::default() };
         let vdd = VddConfig {
-            iterations: options.iterations,
+            iterations,
             batch_size: 32,
             vi_samples: 32,
             noise,
@@ -411,7 +536,9 @@ impl AutoPlan {
             source,
             spread,
             noise_range,
-            gating_actions,
+            state_dependence,
+            gating_pairs,
+            notes,
             init: options.init,
             fitted,
             motion,
@@ -419,13 +546,16 @@ impl AutoPlan {
         })
     }
 
-    /// What was picked and why, one line each.
+    /// What was picked and why, on one line, then the plan's [`AutoPlan::notes`] one a line.
     pub fn summary(&self) -> String {
-        format!(
-            "actions from {:?}; spread {:.4e} (teacher space); noise {:?} until {:?} of the run \
-             (teacher range {:?}); {} {:?} experts, {:?} gating, init {:?}; fitted weights {:?}",
+        let mut out = format!(
+            "actions from {:?}; spread {:.4e} (teacher space); state dependence {:.3}, {} \
+             iterations; noise {:?} until {:?} of the run (teacher range {:?}); {} {:?} experts, \
+             {:?} gating, init {:?}; fitted weights {:?}",
             self.source,
             self.spread,
+            self.state_dependence,
+            self.vdd.iterations,
             self.vdd.noise,
             self.vdd.noise_anneal_until,
             self.noise_range,
@@ -434,7 +564,12 @@ impl AutoPlan {
             self.student.gating,
             self.init,
             self.fitted.weights.iter().map(|w| (w * 1000.0).round() / 1000.0).collect::<Vec<_>>()
-        )
+        );
+        for note in &self.notes {
+            out.push_str("\nnote: ");
+            out.push_str(note);
+        }
+        out
     }
 
     /// The student: built from the run's seed, normalisers attached, networks initialised as

@@ -221,7 +221,7 @@ impl<S: ScoreModel> crate::Vdd<vdd_core::ClampedDenoiser<S>> {
             return Self::new(vc.clone(), clamped, student, data);
         }
         let options = crate::AutoOptions {
-            iterations: vc.iterations,
+            iterations: Some(vc.iterations),
             expert_kind: mc.expert_kind,
             gating: mc.gating,
             samples: 2048,

@@ -30,7 +30,7 @@ use vdd_core::{
 use vdd_moe::{ExpertKind, GatingKind, Moe, MoeConfig};
 
 use vdd::eval::evaluate_against_mixture_in_regions;
-use vdd::{AutoOptions, DistillData, InitKind, Vdd, VddConfig};
+use vdd::{AutoOptions, Convergence, DistillData, InitKind, Vdd, VddConfig};
 
 /// What runs instead of the library defaults, for comparisons.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
@@ -190,6 +190,7 @@ pub fn paper_toy() -> MixtureProblem {
 /// milliseconds.
 struct Trained {
     student: Moe,
+    convergence: Option<Convergence>,
     iterations: usize,
     ms_per_iter: f64,
     setup_ms: f64,
@@ -209,8 +210,8 @@ fn train<S: ScoreModel>(
         Variant::Default | Variant::Toy => {}
         Variant::UniformGating => options.gating = GatingKind::Uniform,
         Variant::OfficialInit => options.init = InitKind::Official,
-        Variant::NoAnneal => options.start_noise_factor = 0.0,
-        Variant::Long => options.iterations = LONG_ITERATIONS,
+        Variant::NoAnneal => options.start_noise_factor = Some(0.0),
+        Variant::Long => options.iterations = Some(LONG_ITERATIONS),
     }
     let t0 = Instant::now();
     let mut vdd = if variant == Variant::Toy {
@@ -225,14 +226,15 @@ fn train<S: ScoreModel>(
     let iterations = vdd.iterations();
     let ms_per_iter = t1.elapsed().as_secs_f64() * 1e3 / iterations.max(1) as f64;
     let setup_ms = (t1 - t0).as_secs_f64() * 1e3;
-    Ok(Trained { student: vdd.finish()?, iterations, ms_per_iter, setup_ms })
+    let convergence = vdd.convergence();
+    Ok(Trained { student: vdd.finish()?, convergence, iterations, ms_per_iter, setup_ms })
 }
 
 /// Distils problem `p` with `experts` experts and `seed` (through [`ScoreOnly`] when the
 /// problem is served score-only), and evaluates the student with `samples` samples per state:
 /// the run's record (`problem`, `seed`, `experts`, `iterations`, `reverse_kl`, `forward_kl`,
 /// `components`, `components_covered` (regions, for a problem that groups its components),
-/// `ms_per_iter`, `setup_ms`).
+/// `converged` and `score_mismatch` ([`Vdd::convergence`]), `ms_per_iter`, `setup_ms`).
 pub fn run_one(
     p: &MixtureProblem,
     seed: u64,
@@ -261,6 +263,8 @@ pub fn run_one(
         "problem": p.info.name, "seed": seed, "experts": experts, "iterations": t.iterations,
         "reverse_kl": e.reverse_kl, "forward_kl": e.forward_kl,
         "components": e.components, "components_covered": e.components_covered,
+        "converged": t.convergence.as_ref().map(|c| c.converged),
+        "score_mismatch": t.convergence.as_ref().map(|c| c.mismatch),
         "ms_per_iter": t.ms_per_iter, "setup_ms": t.setup_ms,
     }))
 }
@@ -279,9 +283,11 @@ fn load() -> String {
 
 /// Runs the benchmark, reporting progress lines to `log`: `{"summary", "problems", "runs",
 /// "paper_toy"}`. A run that fails is a record with an `error` and counts as not covered; the
-/// summary has the coverage rate (runs covering every component), the median and 90th
-/// percentile reverse KL with as many experts as components and with twice as many, the wall
-/// time, the threads, the load before and after, `quick` and the variant.
+/// summary has the coverage rate (runs covering every component, or every region), the runs
+/// that did not converge ([`Vdd::convergence`]), the median and 90th percentile reverse KL with
+/// each problem's number of experts and with twice as many, the wall time, the threads, the
+/// load before and after, `quick`, the variant, and per extra problem its runs, how many
+/// covered everything and its median reverse KL with each number of experts.
 pub fn robustness(o: &RobustnessOptions, log: impl Fn(String) + Sync) -> crate::Result<Value> {
     let (n, mut seeds): (usize, &[u64]) = if o.quick { (8, &[0]) } else { (24, &[0, 1, 2]) };
     if !o.seeds.is_empty() {
@@ -313,12 +319,14 @@ pub fn robustness(o: &RobustnessOptions, log: impl Fn(String) + Sync) -> crate::
         let k = done.fetch_add(1, Ordering::SeqCst) + 1;
         let f = |key: &str| r[key].as_f64().unwrap_or(f64::NAN);
         log(format!(
-            "[{k}/{}] {name} seed {seed} experts {experts}: reverse KL {:.4} forward KL {:.4} covered {}/{} {:.1} ms/iter {}",
+            "[{k}/{}] {name} seed {seed} experts {experts}: reverse KL {:.4} forward KL {:.4} covered {}/{} {} iterations, converged {} {:.1} ms/iter {}",
             jobs.len(),
             f("reverse_kl"),
             f("forward_kl"),
             r["components_covered"],
             r["components"],
+            r["iterations"],
+            r["converged"],
             f("ms_per_iter"),
             r.get("error").map_or(String::new(), |e| e.to_string()),
         ));
@@ -362,6 +370,7 @@ pub fn robustness(o: &RobustnessOptions, log: impl Fn(String) + Sync) -> crate::
     let summary = json!({
         "runs": runs.len(),
         "coverage_rate": runs.iter().filter(full).count() as f64 / runs.len().max(1) as f64,
+        "not_converged": runs.iter().filter(|r| r["converged"] == false).count(),
         "median_reverse_kl": quantile(kl(1), 0.5), "p90_reverse_kl": quantile(kl(1), 0.9),
         "median_reverse_kl_2x": quantile(kl(2), 0.5), "p90_reverse_kl_2x": quantile(kl(2), 0.9),
         "wall_seconds": t0.elapsed().as_secs_f64(), "threads": o.threads,

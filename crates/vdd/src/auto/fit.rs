@@ -2,6 +2,7 @@
 //! samples (k-means++ seeding, Lloyd steps, EM with re-seeding of empty components), least
 //! squares, and a small dense Cholesky solver, all in `f64`.
 
+use faer::MatRef;
 use rand::Rng as _;
 use vdd_core::Rng;
 
@@ -162,6 +163,110 @@ pub(crate) fn mean_log_likelihood(x: &[f64], n: usize, d: usize, f: &Fitted) -> 
         total += max + lp.iter().map(|v| (v - max).exp()).sum::<f64>().ln();
     }
     total / n.max(1) as f64
+}
+
+/// The responsibilities (`n x z`, row-major) of the samples `x` (`n x d`) under `f`.
+pub(crate) fn responsibilities(x: &[f64], n: usize, d: usize, f: &Fitted) -> Vec<f64> {
+    let z = f.weights.len();
+    let mut work = vec![0.0f64; d];
+    let mut resp = vec![0.0f64; n * z];
+    for i in 0..n {
+        let r = &mut resp[i * z..(i + 1) * z];
+        for c in 0..z {
+            r[c] = f.weights[c].max(1e-300).ln()
+                + log_normal(&x[i * d..(i + 1) * d], &f.means[c], &f.chols[c], &mut work);
+        }
+        let max = r.iter().copied().fold(f64::NEG_INFINITY, f64::max);
+        let mut total = 0.0;
+        for v in r.iter_mut() {
+            *v = (*v - max).exp();
+            total += *v;
+        }
+        for v in r.iter_mut() {
+            *v /= total;
+        }
+    }
+    resp
+}
+
+/// Most samples [`state_dependence`] pairs by nearest states when no two share a state.
+const NEAREST_PAIR_SAMPLES: usize = 2048;
+
+/// How much the state decides the component, in `[0, 1]`: the share of the variance of the
+/// responsibilities `resp` (`n x z`) that is explained by the state (`states`, `n` rows), the
+/// covariance of the responsibilities of two samples at the same state over their variance.
+/// Samples at one state share their component's odds, so for a teacher whose components and
+/// weights do not depend on the state it is 0 up to noise, and it is 1 when the state decides
+/// the component. Pairs are all pairs of samples at equal states; when no two samples share a
+/// state (one dataset action per state), each sample is paired with the one at the nearest
+/// state among at most [`NEAREST_PAIR_SAMPLES`] evenly spaced samples.
+pub(crate) fn state_dependence(resp: &[f64], z: usize, states: MatRef<'_, f32>) -> f64 {
+    let n = states.nrows();
+    if n < 2 || z < 2 {
+        return 0.0;
+    }
+    let mut mean = vec![0.0f64; z];
+    for i in 0..n {
+        for c in 0..z {
+            mean[c] += resp[i * z + c] / n as f64;
+        }
+    }
+    let centred = |i: usize, c: usize| resp[i * z + c] - mean[c];
+    let var: f64 = (0..n).map(|i| (0..z).map(|c| centred(i, c).powi(2)).sum::<f64>()).sum();
+    if var <= 1e-12 * n as f64 {
+        return 0.0;
+    }
+    let row = |i: usize| (0..states.ncols()).map(move |t| states[(i, t)]);
+    // Groups of samples at equal states.
+    let mut order: Vec<usize> = (0..n).collect();
+    order.sort_by(|&a, &b| {
+        row(a).zip(row(b)).map(|(x, y)| x.total_cmp(&y)).find(|o| o.is_ne()).unwrap_or(a.cmp(&b))
+    });
+    let (mut cov, mut pairs) = (0.0f64, 0.0f64);
+    let mut start = 0;
+    while start < n {
+        let mut end = start + 1;
+        while end < n && row(order[start]).eq(row(order[end])) {
+            end += 1;
+        }
+        let m = end - start;
+        if m >= 2 {
+            // Σ_{i≠j} ⟨x_i, x_j⟩ = |Σ x_i|² − Σ |x_i|².
+            for c in 0..z {
+                let (sum, sq) = order[start..end].iter().fold((0.0f64, 0.0f64), |(s, q), &i| {
+                    (s + centred(i, c), q + centred(i, c).powi(2))
+                });
+                cov += sum * sum - sq;
+            }
+            pairs += (m * (m - 1)) as f64;
+        }
+        start = end;
+    }
+    if pairs == 0.0 {
+        // Every state distinct: pair each sample with the one at the nearest state.
+        let stride = n.div_ceil(NEAREST_PAIR_SAMPLES);
+        let rows: Vec<usize> = (0..n).step_by(stride).collect();
+        for &i in &rows {
+            let mut best = (f64::INFINITY, i);
+            for &j in rows.iter().filter(|&&j| j != i) {
+                let d2: f64 = row(i).zip(row(j)).map(|(x, y)| f64::from(x - y).powi(2)).sum();
+                if d2 < best.0 {
+                    best = (d2, j);
+                }
+            }
+            if best.1 != i {
+                cov += (0..z).map(|c| centred(i, c) * centred(best.1, c)).sum::<f64>();
+                pairs += 1.0;
+            }
+        }
+        if pairs == 0.0 {
+            return 0.0;
+        }
+        let sub_var: f64 =
+            rows.iter().map(|&i| (0..z).map(|c| centred(i, c).powi(2)).sum::<f64>()).sum();
+        return (cov / pairs / (sub_var / rows.len() as f64)).clamp(0.0, 1.0);
+    }
+    (cov / pairs / (var / n as f64)).clamp(0.0, 1.0)
 }
 
 /// k-means++ seeding, 10 Lloyd steps and `em_steps` EM steps of a `z`-component
