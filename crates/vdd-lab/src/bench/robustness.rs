@@ -234,7 +234,8 @@ fn train<S: ScoreModel>(
 /// problem is served score-only), and evaluates the student with `samples` samples per state:
 /// the run's record (`problem`, `seed`, `experts`, `iterations`, `reverse_kl`, `forward_kl`,
 /// `components`, `components_covered` (regions, for a problem that groups its components),
-/// `converged` and `score_mismatch` ([`Vdd::convergence`]), `ms_per_iter`, `setup_ms`).
+/// `converged`, `score_mismatch` and the measurements it came from, `score_mismatches`
+/// ([`Vdd::convergence`]), `ms_per_iter`, `setup_ms`).
 pub fn run_one(
     p: &MixtureProblem,
     seed: u64,
@@ -265,6 +266,7 @@ pub fn run_one(
         "components": e.components, "components_covered": e.components_covered,
         "converged": t.convergence.as_ref().map(|c| c.converged),
         "score_mismatch": t.convergence.as_ref().map(|c| c.mismatch),
+        "score_mismatches": t.convergence.as_ref().map(|c| &c.mismatches),
         "ms_per_iter": t.ms_per_iter, "setup_ms": t.setup_ms,
     }))
 }
