@@ -17,6 +17,26 @@ pub enum ExpertWeighting {
     Uniform,
 }
 
+/// Where the expert step takes the teacher's score (vdd-method.md, "Beyond the paper").
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, Default)]
+#[serde(rename_all = "snake_case")]
+pub enum ScoreAt {
+    /// At the student's clean sample, at the drawn noise level (the paper). The expert step's
+    /// fixed point is the teacher blurred at that level, `π_σ`.
+    #[default]
+    CleanSample,
+    /// Noise on both sides: at the student's sample noised as the teacher's process noises
+    /// actions at that level, against the student's exact noised density
+    /// ([`crate::both_sides`]). The fixed point is the teacher itself, whatever the levels.
+    NoisedSample,
+}
+
+impl ScoreAt {
+    fn is_clean_sample(&self) -> bool {
+        *self == ScoreAt::CleanSample
+    }
+}
+
 /// Hyper-parameters of [`crate::Vdd`]. [`VddConfig::toy`] gives the paper's toy defaults.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct VddConfig {
@@ -32,6 +52,10 @@ pub struct VddConfig {
     /// level goes from `start` to `end`; it then stays at `end`. `None`: the whole run.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub noise_anneal_until: Option<f32>,
+    /// Where the expert step takes the teacher's score: at the clean sample (the paper, the
+    /// default) or with noise on both sides.
+    #[serde(default, skip_serializing_if = "ScoreAt::is_clean_sample")]
+    pub score_at: ScoreAt,
     /// Weighting of the experts' objectives.
     pub expert_weighting: ExpertWeighting,
     /// Expert updates per iteration (all against the same E-step snapshot).
@@ -88,6 +112,7 @@ impl VddConfig {
             vi_samples: 64,
             noise: NoiseSchedule::Fixed { level: 0.0 },
             noise_anneal_until: None,
+            score_at: ScoreAt::CleanSample,
             expert_weighting: ExpertWeighting::Gating,
             expert_steps_per_iter: 1,
             gating_steps_per_iter: 1,

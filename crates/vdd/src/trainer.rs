@@ -9,10 +9,11 @@ use vdd_moe::{ExpertFamily, Moe, MoeConfig, MoeOutput};
 use vdd_nn::parallel::Workers;
 use vdd_nn::{Adam, Ema, Parameters};
 
-use crate::config::{ExpertWeighting, VddConfig};
+use crate::both_sides::BothSides;
+use crate::config::{ExpertWeighting, ScoreAt, VddConfig};
 use crate::error::VddError;
 use crate::expert_step::{
-    ExpertStepBuffers, ExpertStepStats, corrected_score_moments, raw_gradients,
+    ExpertStepBuffers, ExpertStepStats, draw_sample_noise, moments_from_noise, raw_gradients,
 };
 pub use resumable::{Resumable, ResumableOutcome};
 
@@ -141,6 +142,8 @@ pub struct Vdd<S: ScoreModel, E: Expert = ExpertFamily> {
     iteration: usize,
     seeds: Seeds,
     buf: ExpertStepBuffers,
+    /// The noising of the expert step's samples with [`crate::ScoreAt::NoisedSample`].
+    both: BothSides,
     batch: Mat<f32>,
     snapshot: MoeOutput,
     weights: Vec<f32>,
@@ -276,6 +279,7 @@ impl<S: ScoreModel, E: Expert> Vdd<S, E> {
             iteration: 0,
             seeds: Seeds::new(config.seed),
             buf: ExpertStepBuffers::default(),
+            both: BothSides::default(),
             batch: Mat::zeros(config.batch_size, mc.state_dim),
             snapshot: MoeOutput::default(),
             weights: vec![0.0; config.batch_size * z],
@@ -434,20 +438,23 @@ impl<S: ScoreModel, E: Expert> Vdd<S, E> {
             if k > 0 {
                 self.student.forward_experts(self.batch.as_ref())?;
             }
+            let noised = self.draw_noise(progress, &mut rng).map_err(at_iteration(it))?;
             // The teacher sees the states (and, through the map, the actions) in its space.
             let states = match &self.teacher_states {
                 Some(_) => self.teacher_batch.as_ref(),
                 None => self.batch.as_ref(),
             };
-            let (c, snapshot, v) = (&self.config, &self.snapshot, self.config.vi_samples);
+            let (snapshot, v) = (&self.snapshot, self.config.vi_samples);
+            let per_state = self.student.num_experts() * v;
+            let d = self.student.config().action_dim;
+            let both = noised.then(|| self.both.view(0..self.config.batch_size, per_state, d));
             let (out, buf) = (self.student.output(), &mut self.buf);
             let map = self.action_map.as_ref();
-            let moments = with_map(&mut self.teacher, map, &mut self.map_scratch, |teacher| {
-                corrected_score_moments(
-                    teacher, out, snapshot, states, &c.noise, progress, v, &mut rng, buf,
-                )
+            let sums = with_map(&mut self.teacher, map, &mut self.map_scratch, |teacher| {
+                moments_from_noise(teacher, out, snapshot, states, v, both, buf)
             });
-            stats = moments.map_err(at_iteration(it))?;
+            let pairs = self.config.batch_size * self.student.num_experts();
+            stats = sums.map_err(at_iteration(it))?.stats(&self.buf.noise_levels, pairs);
             raw_gradients(
                 self.student.expert(),
                 self.student.output(),
@@ -464,6 +471,28 @@ impl<S: ScoreModel, E: Expert> Vdd<S, E> {
         }
 
         Ok((stats, gating_entropy, expert_lr))
+    }
+
+    /// Draws the randomness of one expert step on the whole batch: `ε` and the noise levels
+    /// into `self.buf` ([`draw_sample_noise`]), then, with noise on both sides, the noising
+    /// into `self.both` ([`BothSides::prepare`]). Returns whether the samples are noised.
+    fn draw_noise(
+        &mut self,
+        progress: f32,
+        rng: &mut dyn rand::RngCore,
+    ) -> Result<bool, CoreError> {
+        let (b_n, z_n, v_n) =
+            (self.config.batch_size, self.student.num_experts(), self.config.vi_samples);
+        let d = self.student.config().action_dim;
+        let noise = &self.config.noise;
+        let (eps, levels) = (&mut self.buf.eps, &mut self.buf.noise_levels);
+        draw_sample_noise(&self.teacher, noise, progress, rng, b_n * z_n * v_n, d, eps, levels);
+        if self.config.score_at == ScoreAt::CleanSample {
+            return Ok(false);
+        }
+        let map = self.action_map.as_ref();
+        self.both.prepare(&self.teacher, map, levels, z_n * v_n, d, rng)?;
+        Ok(true)
     }
 
     /// The experts' update after their gradient is in place: the gradient clipped (or the
