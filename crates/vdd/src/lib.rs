@@ -74,7 +74,7 @@ mod test_support;
 pub use auto::{AutoOptions, AutoPlan, InitKind, SampleSource, init_official};
 pub use config::{
     ExpertWeighting, MAX_BATCH_SIZE, MAX_ITERATIONS, MAX_SAMPLES_PER_EXPERT, MAX_SAMPLES_PER_STEP,
-    MAX_STEPS_PER_ITER, MAX_VI_SAMPLES, ScoreAt, VddConfig,
+    MAX_STEPS_PER_ITER, MAX_VI_SAMPLES, ScoreAt, StateNoise, VddConfig,
 };
 pub use error::VddError;
 pub use spaces::TeacherSpace;

@@ -157,6 +157,9 @@ pub struct Vdd<S: ScoreModel, E: Expert = ExpertFamily> {
     teacher_states: Option<Mat<f32>>,
     /// The student → teacher action map, when not the identity.
     action_map: Option<ActionMap>,
+    /// Per state dimension, the teacher's units per student unit (with `teacher_states`), so
+    /// that perturbed states ([`VddConfig::state_noise`]) move alike in both spaces.
+    state_ratio: Vec<f32>,
     /// The state batches in the teacher's space (with `teacher_states`).
     teacher_batch: Mat<f32>,
     teacher_gating_states: Mat<f32>,
@@ -235,6 +238,12 @@ impl<S: ScoreModel, E: Expert> Vdd<S, E> {
             }
             t
         });
+        let state_ratio: Vec<f32> = (0..ds)
+            .map(|j| {
+                let student = obs_norm.map_or(1.0, |m| m.scale[j]);
+                student / space.states.as_ref().map_or(1.0, |m| m.scale[j])
+            })
+            .collect();
         let action_map = ActionMap::between(act_norm, space.actions.as_ref(), d)?;
         if let Some(m) = obs_norm {
             normalize_rows(&mut data.states, m);
@@ -298,6 +307,7 @@ impl<S: ScoreModel, E: Expert> Vdd<S, E> {
                 ds,
             ),
             teacher_states,
+            state_ratio,
             action_map,
             map_scratch: Vec::new(),
             config,
@@ -378,6 +388,9 @@ impl<S: ScoreModel, E: Expert> Vdd<S, E> {
                     self.teacher_batch[(b, j)] = t[(idx, j)];
                 }
             }
+        }
+        if let Some(noise) = self.config.state_noise {
+            self.perturb_states(it, noise);
         }
 
         let (stats, gating_entropy, expert_lr) = match self.chunks.is_empty() {
@@ -471,6 +484,24 @@ impl<S: ScoreModel, E: Expert> Vdd<S, E> {
         }
 
         Ok((stats, gating_entropy, expert_lr))
+    }
+
+    /// Perturbs a share of the state batch ([`VddConfig::state_noise`]), from its own stream,
+    /// in the student's space and by the same amount in the teacher's.
+    fn perturb_states(&mut self, it: usize, noise: crate::config::StateNoise) {
+        let mut rng = self.seeds.stream_indexed("state-noise", it as u64);
+        for b in 0..self.config.batch_size {
+            if rng.random::<f32>() >= noise.share {
+                continue;
+            }
+            for j in 0..self.batch.ncols() {
+                let delta = noise.std * vdd_core::standard_normal(&mut rng);
+                self.batch[(b, j)] += delta;
+                if self.teacher_states.is_some() {
+                    self.teacher_batch[(b, j)] += delta * self.state_ratio[j];
+                }
+            }
+        }
     }
 
     /// Draws the randomness of one expert step on the whole batch: `ε` and the noise levels
