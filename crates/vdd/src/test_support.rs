@@ -140,6 +140,14 @@ impl ScoreModel for VpGmm {
     fn denoiser_form(&self, t: f32) -> Option<DenoiserForm> {
         Some(Self::form(t))
     }
+    fn sample_actions(
+        &mut self,
+        states: MatRef<'_, f32>,
+        rng: &mut dyn rand::RngCore,
+        out: MatMut<'_, f32>,
+    ) -> Result<(), CoreError> {
+        self.0.sample_actions(states, rng, out)
+    }
     fn score(
         &mut self,
         a: MatRef<'_, f32>,

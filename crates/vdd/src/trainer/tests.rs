@@ -72,6 +72,23 @@ fn noise_on_both_sides_recovers_the_mixture_not_its_blur() {
 }
 
 #[test]
+fn noise_on_both_sides_recovers_the_mixture_from_a_vp_teacher() {
+    // The same modes behind a variance-preserving process (ᾱ = e^(−t)), queried only at
+    // t in [0.2, 0.6]: the noised student is √ᾱ a + √(1 − ᾱ) η, and the experts find the
+    // modes themselves.
+    let teacher = crate::test_support::VpGmm(IsoGmm::circle(4, 2.0, 0.15));
+    let (mut config, _, student, data) = small_run(300);
+    config.noise = NoiseSchedule::Uniform { min: 0.2, max: 0.6 };
+    config.score_at = ScoreAt::NoisedSample;
+    let mut vdd = Vdd::new(config, teacher.clone(), student, data).unwrap();
+    vdd.train(|_| {}).unwrap();
+    let mut student = vdd.into_student();
+    let covered = modes_covered(&mut student, &[0.0], &teacher.0.means, 0.3, 0.05).unwrap();
+    let std = mean_expert_std(&mut student);
+    assert!((std - 0.15).abs() < 0.03 && covered == 4, "std {std}, {covered} modes");
+}
+
+#[test]
 fn resuming_from_a_checkpoint_reproduces_an_uninterrupted_run() {
     let dir = std::env::temp_dir().join(format!("vdd-resume-{}", std::process::id()));
     let (mut config, teacher, student, data) = small_run(12);
