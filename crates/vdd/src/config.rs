@@ -31,12 +31,6 @@ pub enum ScoreAt {
     NoisedSample,
 }
 
-impl ScoreAt {
-    fn is_clean_sample(&self) -> bool {
-        *self == ScoreAt::CleanSample
-    }
-}
-
 /// States beyond the data for the expert step: a share of each state batch perturbed by
 /// Gaussian noise, where the teacher's score labels the student as anywhere else (issue 33,
 /// "states beyond the demonstrations"). The gating step keeps the data's states.
@@ -67,7 +61,7 @@ pub struct VddConfig {
     pub noise_anneal_until: Option<f32>,
     /// Where the expert step takes the teacher's score: at the clean sample (the paper, the
     /// default) or with noise on both sides.
-    #[serde(default, skip_serializing_if = "ScoreAt::is_clean_sample")]
+    #[serde(default)]
     pub score_at: ScoreAt,
     /// Perturbed states in the expert step's batches (`None`, the default: the data's states
     /// only).
