@@ -21,7 +21,8 @@ use crate::progress;
 /// Options of `cargo xtask fuzz`.
 #[derive(Debug, Clone, clap::Args)]
 pub struct Args {
-    /// npy, npz, safetensors, moe, teacher, checkpoint, recipe, lerobot, or all.
+    /// npy, npz, safetensors, moe, teacher, checkpoint, recipe, lerobot, diffusion-policy, beso,
+    /// or all.
     pub target: String,
     /// Cases per target.
     #[arg(long, default_value_t = 1000)]

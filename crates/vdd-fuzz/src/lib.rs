@@ -2,15 +2,16 @@
 //! ([`runner`]: each case in a child process with memory and time limits).
 //!
 //! A [`Target`] is one family of files a loader reads (`npy`, `npz`, `safetensors`, `moe`,
-//! `teacher`, `checkpoint`, `recipe`, `lerobot`). For each the crate writes valid seed inputs
+//! `teacher`, `checkpoint`, `recipe`, and the importers `lerobot`, `diffusion-policy`, `beso`). For each the crate writes valid seed inputs
 //! ([`write_seeds`]), derives a mutated case from them with a stream of the campaign's seed
 //! indexed by the case number ([`prepare_case`]: bit flips, interesting bytes and floats,
 //! truncation, extension, header and JSON/TOML field edits with huge, negative, non-finite and
-//! `1e39` values, shape and dtype edits; a checkpoint's `LATEST` and `LOCK`; an input replaced
-//! by a FIFO or a symlink to `/dev/zero` or a directory), and runs a case: load the input, use it (act, score,
-//! forward, a training step) and check every output is finite ([`run_case`]). The child's
-//! exit code gives the case's [`Outcome`] (a file a writer committed that its loader refuses
-//! is [`Outcome::Unreadable`]); [`Report`] holds the counts and writes `fuzz.json`.
+//! `1e39` values, shape and dtype edits; YAML values, alias bombs and JSON/YAML nested 100,000
+//! deep; a checkpoint's `LATEST` and `LOCK`; an input replaced by a FIFO or a symlink to
+//! `/dev/zero` or a directory), and runs a case: load the input, use it (act, score, forward, a
+//! training step) and check every output is finite ([`run_case`]). The child's exit code gives
+//! the case's [`Outcome`] (a file a writer committed that its loader refuses is
+//! [`Outcome::Unreadable`]); [`Report`] holds the counts and writes `fuzz.json`.
 //! The crate never prints.
 //!
 //! ```
@@ -53,7 +54,8 @@ pub type BoxError = Box<dyn std::error::Error>;
 pub enum Error {
     /// A target name that is none of [`Target::ALL`].
     #[error(
-        "unknown fuzz target `{0}` (npy, npz, safetensors, moe, teacher, checkpoint, recipe, lerobot)"
+        "unknown fuzz target `{0}` (npy, npz, safetensors, moe, teacher, checkpoint, recipe, \
+         lerobot, diffusion-policy, beso)"
     )]
     UnknownTarget(String),
     /// Writing seeds, mutating or running a case of `target` failed (for a case: the loader
@@ -102,11 +104,19 @@ pub enum Target {
     /// A LeRobot diffusion policy directory (`vdd_import::import_lerobot`), then the round
     /// trip of the importer's output: `save_unet_teacher`, `load_teacher`, a score.
     Lerobot,
+    /// A converted diffusion_policy checkpoint directory (`config.json`, `model.safetensors`;
+    /// `vdd_import::import_diffusion_policy`), then the round trip of the importer's output as
+    /// for [`Target::Lerobot`].
+    DiffusionPolicy,
+    /// A BESO/D3IL run directory (hydra `config.yaml`, the converted state dict, and
+    /// `scaler.json` in some seeds; `vdd_import::import_beso_run`), then the round trip:
+    /// `BesoTeacher::save`, `BesoTeacher::load`, a score and a sample.
+    Beso,
 }
 
 impl Target {
     /// Every target, in the order `all` runs them.
-    pub const ALL: [Target; 8] = [
+    pub const ALL: [Target; 10] = [
         Target::Npy,
         Target::Npz,
         Target::Safetensors,
@@ -115,6 +125,8 @@ impl Target {
         Target::Checkpoint,
         Target::Recipe,
         Target::Lerobot,
+        Target::DiffusionPolicy,
+        Target::Beso,
     ];
 
     /// The target's name on the command line and in `fuzz.json`.
@@ -128,6 +140,8 @@ impl Target {
             Target::Checkpoint => "checkpoint",
             Target::Recipe => "recipe",
             Target::Lerobot => "lerobot",
+            Target::DiffusionPolicy => "diffusion-policy",
+            Target::Beso => "beso",
         }
     }
 }

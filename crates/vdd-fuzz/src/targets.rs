@@ -134,9 +134,83 @@ pub(crate) fn write_seeds(target: Target, dir: &Path) -> Result<Vec<PathBuf>> {
             }
             out.push(d);
         }
+        Target::DiffusionPolicy => {
+            let d = seed_dir(0)?;
+            for (name, bytes) in DP_FILES {
+                std::fs::write(d.join(name), bytes)?;
+            }
+            out.push(d);
+        }
+        Target::Beso => {
+            // Each fixture as a run directory; two of them again with `scale_data: true` and a
+            // `scaler.json` of their widths.
+            for (k, (yaml, weights)) in BESO_RUNS.iter().enumerate() {
+                let d = seed_dir(k)?;
+                std::fs::write(d.join(BESO_CONFIG), yaml)?;
+                std::fs::write(d.join(vdd_import::BESO_WEIGHTS_FILE), weights)?;
+                out.push(d);
+            }
+            for (k, &(yaml, weights)) in [BESO_RUNS[0], BESO_RUNS[3]].iter().enumerate() {
+                let d = seed_dir(BESO_RUNS.len() + k)?;
+                std::fs::write(
+                    d.join(BESO_CONFIG),
+                    yaml.replace("scale_data: false", "scale_data: true"),
+                )?;
+                std::fs::write(d.join(vdd_import::BESO_WEIGHTS_FILE), weights)?;
+                let cfg = vdd_import::beso_config_from_yaml(&d.join(BESO_CONFIG), yaml, None)?;
+                let (od, ad) = (cfg.obs_dim(), cfg.action_dim());
+                let row = |n: usize, x: f64| (0..n).map(|i| x + 0.1 * i as f64).collect::<Vec<_>>();
+                let scaler = serde_json::json!({
+                    "scale_data": true,
+                    "x_mean": row(od, -0.2),
+                    "x_std": row(od, 0.5),
+                    "y_mean": row(ad, 0.1),
+                    "y_std": row(ad, 0.8),
+                    "y_bounds": [row(ad, -3.0), row(ad, 3.0)],
+                });
+                std::fs::write(d.join(vdd_import::BESO_SCALER_FILE), scaler.to_string())?;
+                out.push(d);
+            }
+        }
     }
     Ok(out)
 }
+
+/// The hydra config of a BESO seed run.
+const BESO_CONFIG: &str = "config.yaml";
+
+/// The BESO/D3IL seed runs: each fixture's hydra config and converted state dict
+/// (`tests/fixtures/import/beso_*`).
+const BESO_RUNS: [(&str, &[u8]); 4] = {
+    macro_rules! fixture {
+        ($name:literal) => {
+            (
+                include_str!(concat!("../../../tests/fixtures/import/", $name, ".yaml")),
+                include_bytes!(concat!("../../../tests/fixtures/import/", $name, ".safetensors"))
+                    as &[u8],
+            )
+        };
+    }
+    [
+        fixture!("beso_gpt"),
+        fixture!("beso_gpt_goal"),
+        fixture!("beso_resmlp"),
+        fixture!("beso_resmlp_sin"),
+    ]
+};
+
+/// The diffusion_policy seed: `tests/fixtures/import/diffusion_policy_unet` as
+/// `scripts/import/diffusion_policy_ckpt.py` writes it (a DDPM 1-D U-Net).
+const DP_FILES: [(&str, &[u8]); 2] = [
+    (
+        "config.json",
+        include_bytes!("../../../tests/fixtures/import/diffusion_policy_unet/config.json"),
+    ),
+    (
+        "model.safetensors",
+        include_bytes!("../../../tests/fixtures/import/diffusion_policy_unet/model.safetensors"),
+    ),
+];
 
 /// The LeRobot seed policy: the files of `tests/fixtures/import/lerobot_unet_ddpm` the
 /// importer reads (a DDPM 1-D U-Net, its config and its processors' JSON and statistics).
@@ -304,6 +378,25 @@ fn mutate_case(target: Target, case: &Path, rng: &mut Rng) -> Result {
                 edit(name, &mut |b| mutate::safetensors(rng, b))
             }
         }
+        Target::DiffusionPolicy => match rng.random_range(0..10) {
+            0 => edit("config.json", &mut |b| mutate::json_deep(rng, b)),
+            1..=6 => edit("config.json", &mut |b| mutate::json_file(rng, b)),
+            _ => edit("model.safetensors", &mut |b| mutate::safetensors(rng, b)),
+        },
+        Target::Beso => {
+            let scaler = vdd_import::BESO_SCALER_FILE;
+            let has_scaler = case.join(scaler).is_file();
+            match rng.random_range(0..10) {
+                0 if has_scaler && rng.random() => edit(scaler, &mut |b| mutate::json_deep(rng, b)),
+                0 => edit(BESO_CONFIG, &mut |b| mutate::yaml_deep(rng, b)),
+                1..=2 if has_scaler => edit(scaler, &mut |b| mutate::json_file(rng, b)),
+                1..=6 => edit(BESO_CONFIG, &mut |b| mutate::yaml_file(rng, b)),
+                _ => {
+                    let weights = vdd_import::BESO_WEIGHTS_FILE;
+                    edit(weights, &mut |b| mutate::safetensors(rng, b))
+                }
+            }
+        }
     }
 }
 
@@ -454,8 +547,11 @@ pub(crate) fn run_case(
             outputs.extend(student.act(&[0.0])?);
         }
         Target::Recipe => check_recipe(&case.join("recipe.toml"))?,
-        Target::Lerobot => {
-            let imported = vdd_import::import_lerobot(case)?;
+        Target::Lerobot | Target::DiffusionPolicy => {
+            let imported = match target {
+                Target::Lerobot => vdd_import::import_lerobot(case)?,
+                _ => vdd_import::import_diffusion_policy(case)?,
+            };
             // The round trip: whatever the importer's output the writer commits, the loader
             // accepts (a refusal is no clean error but a broken file).
             let file = case.join("teacher.safetensors");
@@ -464,20 +560,41 @@ pub(crate) fn run_case(
                 Ok(t) => t,
                 Err(e) => return Ok(Loaded::Unreadable(format!("{}: {e}", file.display()))),
             };
-            let (ds, da) = (ScoreModel::state_dim(&t), ScoreModel::action_dim(&t));
-            let n = 2;
-            let mut levels = vec![0.0; n];
-            let mut rng = Seeds::new(0).stream("levels");
-            t.draw_noise_levels(&NoiseSchedule::Fixed { level: 0.5 }, 0.5, &mut rng, &mut levels);
-            let a = Mat::from_fn(n, da, |i, j| (i + j) as f32 * 0.02 - 0.3);
-            let s = Mat::from_fn(n, ds, |i, j| (i * j) as f32 * 0.01);
-            let mut out = Mat::zeros(n, da);
-            t.score(a.as_ref(), s.as_ref(), &levels, out.as_mut())?;
-            outputs.extend((0..n).flat_map(|i| (0..da).map(move |j| (i, j))).map(|ij| out[ij]));
+            score_outputs(&mut t, &mut outputs)?;
+        }
+        Target::Beso => {
+            let imported = vdd_import::import_beso_run(case)?;
+            let file = case.join("teacher.safetensors");
+            imported.save(&file)?;
+            let mut t = match vdd_import::BesoTeacher::load(&file) {
+                Ok(t) => t,
+                Err(e) => return Ok(Loaded::Unreadable(format!("{}: {e}", file.display()))),
+            };
+            score_outputs(&mut t, &mut outputs)?;
+            let s = Mat::from_fn(2, ScoreModel::state_dim(&t), |i, j| (i + j) as f32 * 0.1 - 0.2);
+            let mut a = Mat::zeros(2, ScoreModel::action_dim(&t));
+            t.sample_actions(s.as_ref(), &mut Seeds::new(0).stream("sample"), a.as_mut())?;
+            outputs
+                .extend((0..2).flat_map(|i| (0..a.ncols()).map(move |j| (i, j))).map(|ij| a[ij]));
         }
     }
     Ok(match outputs.iter().position(|v| !v.is_finite()) {
         Some(i) => Loaded::NonFinite(format!("output {i} is {}", outputs[i])),
         None => Loaded::Finite,
     })
+}
+
+/// Scores two rows of an imported teacher at a noise level it draws, into `outputs`.
+fn score_outputs(t: &mut dyn ScoreModel, outputs: &mut Vec<f32>) -> Result {
+    let (ds, da) = (t.state_dim(), t.action_dim());
+    let n = 2;
+    let mut levels = vec![0.0; n];
+    let mut rng = Seeds::new(0).stream("levels");
+    t.draw_noise_levels(&NoiseSchedule::Fixed { level: 0.5 }, 0.5, &mut rng, &mut levels);
+    let a = Mat::from_fn(n, da, |i, j| (i + j) as f32 * 0.02 - 0.3);
+    let s = Mat::from_fn(n, ds, |i, j| (i * j) as f32 * 0.01);
+    let mut out = Mat::zeros(n, da);
+    t.score(a.as_ref(), s.as_ref(), &levels, out.as_mut())?;
+    outputs.extend((0..n).flat_map(|i| (0..da).map(move |j| (i, j))).map(|ij| out[ij]));
+    Ok(())
 }

@@ -27,7 +27,7 @@ fn files(dir: &Path) -> Vec<(std::ffi::OsString, Vec<u8>)> {
 #[test]
 fn mutations_are_deterministic_for_a_seed() {
     let dir = scratch("determinism");
-    for target in [Target::Npz, Target::Moe, Target::Recipe, Target::Lerobot] {
+    for target in [Target::Npz, Target::Moe, Target::Recipe, Target::Lerobot, Target::Beso] {
         let seeds = crate::write_seeds(target, &dir.join(target.name())).unwrap();
         let original: Vec<_> = seeds.iter().map(|s| files(s)).collect();
         let case = |seed, k| {
@@ -139,5 +139,37 @@ fn a_fifo_or_a_symlink_to_dev_zero_or_a_directory_is_a_clean_error() {
         }
     }
     assert_eq!(seen, [true; 3], "FIFO, /dev/zero, directory");
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+#[test]
+fn importer_configs_nested_100000_deep_are_clean_errors() {
+    let dir = scratch("deep");
+    let deep_json = ["[".repeat(100_000), "{\"a\": ".repeat(100_000) + "1"];
+    let dp = crate::write_seeds(Target::DiffusionPolicy, &dir.join("dp")).unwrap();
+    for text in &deep_json {
+        std::fs::write(dp[0].join("config.json"), text).unwrap();
+        let e = crate::run_case(Target::DiffusionPolicy, &dp[0], |_| Ok(())).unwrap_err();
+        assert!(format!("{e:?}").contains("nesting"), "{e:?}");
+    }
+    let beso = crate::write_seeds(Target::Beso, &dir.join("beso")).unwrap();
+    let with_scaler = beso.iter().find(|s| s.join(vdd_import::BESO_SCALER_FILE).is_file()).unwrap();
+    let yaml = std::fs::read_to_string(with_scaler.join("config.yaml")).unwrap();
+    let deep_yaml = [
+        format!("deep: {}1{}\n{yaml}", "[".repeat(100_000), "]".repeat(100_000)),
+        format!("{}x\n", "- ".repeat(100_000)),
+        yaml.replace("sigma_data: 0.5", &format!("sigma_data: {}", "{a: ".repeat(100_000))),
+    ];
+    for text in &deep_yaml {
+        std::fs::write(with_scaler.join("config.yaml"), text).unwrap();
+        let e = crate::run_case(Target::Beso, with_scaler, |_| Ok(())).unwrap_err();
+        assert!(format!("{e:?}").contains("nesting"), "{e:?}");
+    }
+    std::fs::write(with_scaler.join("config.yaml"), &yaml).unwrap();
+    for text in &deep_json {
+        std::fs::write(with_scaler.join(vdd_import::BESO_SCALER_FILE), text).unwrap();
+        let e = crate::run_case(Target::Beso, with_scaler, |_| Ok(())).unwrap_err();
+        assert!(format!("{e:?}").contains("nesting"), "{e:?}");
+    }
     let _ = std::fs::remove_dir_all(&dir);
 }
