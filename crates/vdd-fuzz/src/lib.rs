@@ -2,7 +2,8 @@
 //! ([`runner`]: each case in a child process with memory and time limits).
 //!
 //! A [`Target`] is one family of files a loader reads (`npy`, `npz`, `safetensors`, `moe`,
-//! `teacher`, `checkpoint`, `recipe`, and the importers `lerobot`, `diffusion-policy`, `beso`). For each the crate writes valid seed inputs
+//! `teacher`, `checkpoint`, `recipe`, and the importers `lerobot`, `diffusion-policy`, `beso`),
+//! or the checkpoint lock (`lock`: two processes opening one directory at the same instant). For each the crate writes valid seed inputs
 //! ([`write_seeds`]), derives a mutated case from them with a stream of the campaign's seed
 //! indexed by the case number ([`prepare_case`]: bit flips, interesting bytes and floats,
 //! truncation, extension, header and JSON/TOML field edits with huge, negative, non-finite and
@@ -11,7 +12,8 @@
 //! `/dev/zero` or a directory), and runs a case: load the input, use it (act, score, forward, a
 //! training step) and check every output is finite ([`run_case`]). The child's exit code gives
 //! the case's [`Outcome`] (a file a writer committed that its loader refuses is
-//! [`Outcome::Unreadable`]); [`Report`] holds the counts and writes `fuzz.json`.
+//! [`Outcome::Unreadable`]; a lock race with two holders, [`Outcome::LockHolders`]);
+//! [`Report`] holds the counts and writes `fuzz.json`.
 //! The crate never prints.
 //!
 //! ```
@@ -55,7 +57,7 @@ pub enum Error {
     /// A target name that is none of [`Target::ALL`].
     #[error(
         "unknown fuzz target `{0}` (npy, npz, safetensors, moe, teacher, checkpoint, recipe, \
-         lerobot, diffusion-policy, beso)"
+         lerobot, diffusion-policy, beso, lock)"
     )]
     UnknownTarget(String),
     /// Writing seeds, mutating or running a case of `target` failed (for a case: the loader
@@ -112,11 +114,16 @@ pub enum Target {
     /// `scaler.json` in some seeds; `vdd_import::import_beso_run`), then the round trip:
     /// `BesoTeacher::save`, `BesoTeacher::load`, a score and a sample.
     Beso,
+    /// The checkpoint lock: two processes opening one checkpoint directory at the same instant
+    /// (`vdd_nn::checkpoint::race_open`), on a fresh directory, over a stale or edited `LOCK`,
+    /// or while a third writer holds it. Two holders, a live writer's lock taken, or no holder
+    /// of a free lock is [`Outcome::LockHolders`].
+    Lock,
 }
 
 impl Target {
     /// Every target, in the order `all` runs them.
-    pub const ALL: [Target; 10] = [
+    pub const ALL: [Target; 11] = [
         Target::Npy,
         Target::Npz,
         Target::Safetensors,
@@ -127,6 +134,7 @@ impl Target {
         Target::Lerobot,
         Target::DiffusionPolicy,
         Target::Beso,
+        Target::Lock,
     ];
 
     /// The target's name on the command line and in `fuzz.json`.
@@ -142,6 +150,7 @@ impl Target {
             Target::Lerobot => "lerobot",
             Target::DiffusionPolicy => "diffusion-policy",
             Target::Beso => "beso",
+            Target::Lock => "lock",
         }
     }
 }

@@ -26,16 +26,20 @@ pub enum Loaded {
     NonFinite(String),
     /// Loaded, and a file the case's writer then committed was refused by its own loader.
     Unreadable(String),
+    /// A lock race ended with the wrong number of holders (what each racer got).
+    LockHolders(String),
 }
 
 impl Loaded {
-    /// The exit code of a child whose case ended so (0 finite, 3 non-finite, 4 unreadable; see
+    /// The exit code of a child whose case ended so (0 finite, 3 non-finite, 4 unreadable, 5 the
+    /// wrong lock holders; see
     /// [`Outcome::from_exit_code`](crate::Outcome::from_exit_code)).
     pub fn exit_code(&self) -> i32 {
         match self {
             Loaded::Finite => 0,
             Loaded::NonFinite(_) => crate::report::EXIT_NONFINITE,
             Loaded::Unreadable(_) => crate::report::EXIT_UNREADABLE,
+            Loaded::LockHolders(_) => crate::report::EXIT_LOCK_HOLDERS,
         }
     }
 }
@@ -172,9 +176,23 @@ pub(crate) fn write_seeds(target: Target, dir: &Path) -> Result<Vec<PathBuf>> {
                 out.push(d);
             }
         }
+        Target::Lock => {
+            // A fresh directory (created by the racers), and one with a stale `LOCK` left by a
+            // writer that is gone.
+            out.push(seed_dir(0)?);
+            let d = seed_dir(1)?;
+            std::fs::create_dir_all(d.join(LOCK_ROOT))?;
+            std::fs::write(d.join(LOCK_ROOT).join("LOCK"), format!("{} 1\n", u32::MAX - 1))?;
+            out.push(d);
+        }
     }
     Ok(out)
 }
+
+/// The checkpoint directory the racers of a [`Target::Lock`] case open.
+const LOCK_ROOT: &str = "ck";
+/// A file in a [`Target::Lock`] case: the case holds the lock itself while the racers race.
+const LOCK_HELD: &str = "HELD";
 
 /// The hydra config of a BESO seed run.
 const BESO_CONFIG: &str = "config.yaml";
@@ -363,6 +381,7 @@ fn mutate_case(target: Target, case: &Path, rng: &mut Rng) -> Result {
         Target::Moe => edit("policy.safetensors", &mut |b| mutate::safetensors(rng, b)),
         Target::Teacher => edit("teacher.safetensors", &mut |b| mutate::safetensors(rng, b)),
         Target::Checkpoint if case.join(LATEST).is_file() => pointer_or_lock(case, rng),
+        Target::Lock => lock_edit(case, rng),
         Target::Checkpoint if rng.random() => {
             edit("trainer.json", &mut |b| mutate::json_file(rng, b))
         }
@@ -431,6 +450,48 @@ fn pointer_or_lock(case: &Path, rng: &mut Rng) -> Result {
         }
         7 => std::fs::write(&lock, format!("{} 1\n", u32::MAX - 1))?,
         _ => std::fs::File::create(&lock)?.set_len(1 << 28)?,
+    }
+    Ok(())
+}
+
+/// Edits the directory a lock race opens: as the seed, a garbage, empty, huge or live-looking
+/// `LOCK`, a `LOCK` that is a directory or a symlink, the directory a file, or the lock held
+/// by the case itself ([`LOCK_HELD`]).
+fn lock_edit(case: &Path, rng: &mut Rng) -> Result {
+    let root = case.join(LOCK_ROOT);
+    let lock = root.join("LOCK");
+    let dir = || std::fs::create_dir_all(&root);
+    match rng.random_range(0..10) {
+        0..=2 => {}
+        3 => {
+            dir()?;
+            let mut b: Vec<u8> = (0..rng.random_range(0..64)).map(|_| rng.random()).collect();
+            mutate::bytes(rng, &mut b);
+            std::fs::write(&lock, b)?
+        }
+        // An owner that is alive (pid 1) but holds no lock.
+        4 => {
+            dir()?;
+            std::fs::write(&lock, "1 1\n")?
+        }
+        5 => {
+            dir()?;
+            std::fs::File::create(&lock)?.set_len(1 << 28)?
+        }
+        6 | 7 => std::fs::write(case.join(LOCK_HELD), "")?,
+        8 => {
+            dir()?;
+            let _ = std::fs::remove_file(&lock);
+            match rng.random_range(0..3) {
+                0 => std::fs::create_dir(&lock)?,
+                1 => std::os::unix::fs::symlink(case.join("elsewhere"), &lock)?,
+                _ => std::os::unix::fs::symlink(&root, &lock)?,
+            }
+        }
+        _ => {
+            let _ = std::fs::remove_dir_all(&root);
+            std::fs::write(&root, "not a directory")?
+        }
     }
     Ok(())
 }
@@ -547,6 +608,7 @@ pub(crate) fn run_case(
             outputs.extend(student.act(&[0.0])?);
         }
         Target::Recipe => check_recipe(&case.join("recipe.toml"))?,
+        Target::Lock => return race(case),
         Target::Lerobot | Target::DiffusionPolicy => {
             let imported = match target {
                 Target::Lerobot => vdd_import::import_lerobot(case)?,
@@ -582,6 +644,43 @@ pub(crate) fn run_case(
         Some(i) => Loaded::NonFinite(format!("output {i} is {}", outputs[i])),
         None => Loaded::Finite,
     })
+}
+
+/// One lock race in the case directory `case` (see [`Target::Lock`]): two processes open its
+/// checkpoint directory at the same instant, while the case holds the lock when it says so.
+fn race(case: &Path) -> Result<Loaded> {
+    use vdd_nn::checkpoint::{CheckpointDir, RaceResult, Racers};
+    let root = case.join(LOCK_ROOT);
+    let holder = match case.join(LOCK_HELD).exists() {
+        true => Some(CheckpointDir::open(&root)?),
+        false => None,
+    };
+    // Whether the lock can be had: the directory new or a directory, its `LOCK` absent or a
+    // regular file (never followed if a symlink).
+    let kind = |p: &Path| std::fs::symlink_metadata(p).map(|m| m.file_type());
+    let usable = kind(&root).map_or(true, |t| t.is_dir())
+        && kind(&root.join("LOCK")).map_or(true, |t| t.is_file());
+    let got = vdd_nn::checkpoint::race_open(&root, Racers::Processes)?;
+    let held = got.iter().filter(|r| **r == RaceResult::Held).count();
+    let locked = got.iter().filter(|r| **r == RaceResult::Locked).count();
+    let wrong = match (usable, &holder) {
+        _ if held > 1 => Some("both writers held the lock"),
+        (false, _) if held > 0 => Some("a writer took a lock that is no regular file"),
+        (true, Some(_)) if locked < 2 => Some("a writer did not find the live writer's lock"),
+        (true, None) if (held, locked) != (1, 1) => Some("not one holder of a free lock"),
+        _ => None,
+    };
+    if let Some(what) = wrong {
+        return Ok(Loaded::LockHolders(format!("{what}: {got:?}")));
+    }
+    drop(holder);
+    match got.iter().find_map(|r| match r {
+        RaceResult::Failed(e) => Some(e.clone()),
+        _ => None,
+    }) {
+        Some(e) => Err(e.into()),
+        None => Ok(Loaded::Finite),
+    }
 }
 
 /// Scores two rows of an imported teacher at a noise level it draws, into `outputs`.

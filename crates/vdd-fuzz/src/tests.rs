@@ -88,6 +88,9 @@ fn names_parse_and_exit_codes_classify() {
     let unreadable = Loaded::Unreadable("teacher.safetensors: bad spec".into()).exit_code();
     assert_eq!(Outcome::from_exit_code(Some(unreadable)), Outcome::Unreadable);
     assert!(Outcome::Unreadable.is_failure());
+    let holders = Loaded::LockHolders("both writers held the lock".into()).exit_code();
+    assert_eq!(Outcome::from_exit_code(Some(holders)), Outcome::LockHolders);
+    assert!(Outcome::LockHolders.is_failure());
     assert_eq!(Outcome::from_exit_code(None), Outcome::Abort);
     let mut c = crate::Counts::default();
     for o in [Outcome::Ok, Outcome::Err, Outcome::Hang] {
@@ -171,5 +174,26 @@ fn importer_configs_nested_100000_deep_are_clean_errors() {
         let e = crate::run_case(Target::Beso, with_scaler, |_| Ok(())).unwrap_err();
         assert!(format!("{e:?}").contains("nesting"), "{e:?}");
     }
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+#[test]
+fn a_lock_race_has_one_holder_none_under_a_live_writer_and_refuses_a_bad_lock() {
+    let dir = scratch("lock");
+    let seeds = crate::write_seeds(Target::Lock, &dir).unwrap();
+    for s in &seeds {
+        for _ in 0..3 {
+            assert_eq!(crate::run_case(Target::Lock, s, |_| Ok(())).unwrap(), Loaded::Finite);
+        }
+        std::fs::write(s.join("HELD"), "").unwrap();
+        assert_eq!(crate::run_case(Target::Lock, s, |_| Ok(())).unwrap(), Loaded::Finite);
+        std::fs::remove_file(s.join("HELD")).unwrap();
+    }
+    // The holder removed the stale `LOCK` as it let go; a directory in its place.
+    let lock = seeds[1].join("ck").join("LOCK");
+    assert!(!lock.exists());
+    std::fs::create_dir(&lock).unwrap();
+    let e = crate::run_case(Target::Lock, &seeds[1], |_| Ok(())).unwrap_err();
+    assert!(format!("{e:?}").contains("LOCK"), "{e:?}");
     let _ = std::fs::remove_dir_all(&dir);
 }
