@@ -197,3 +197,19 @@ fn a_lock_race_has_one_holder_none_under_a_live_writer_and_refuses_a_bad_lock() 
     assert!(format!("{e:?}").contains("LOCK"), "{e:?}");
     let _ = std::fs::remove_dir_all(&dir);
 }
+
+/// Cases of the acceptance campaign (`fuzz all --cases 20000 --seed 7`) that once failed,
+/// replayed: each is now a clean error.
+#[test]
+fn cases_the_acceptance_campaign_found_are_clean_errors() {
+    let dir = scratch("found");
+    // A BESO `sigma_data` of 2^64 − 1: σ_d² overflowed f32 and every score was NaN.
+    let seeds = crate::write_seeds(Target::Beso, &dir.join("beso")).unwrap();
+    for case in [1084, 2379, 19183] {
+        let d = dir.join(format!("beso-{case}"));
+        crate::prepare_case(Target::Beso, &seeds, 7, case, &d).unwrap();
+        let e = crate::run_case(Target::Beso, &d, |_| Ok(())).unwrap_err();
+        assert!(format!("{e:?}").contains("sigma_data"), "case {case}: {e:?}");
+    }
+    let _ = std::fs::remove_dir_all(&dir);
+}
