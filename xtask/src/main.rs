@@ -253,6 +253,10 @@ mod tests {
         );
         let r = parse(&words("bench robustness --quick --out /tmp/r")).unwrap();
         assert!(matches!(r, Cli::Bench(Bench::Robustness(a)) if a.quick && a.threads == 2));
+        let r =
+            parse(&words("bench robustness --out /tmp/r --seeds 0,3 --only 100 --variant long"));
+        assert!(matches!(r.unwrap(), Cli::Bench(Bench::Robustness(a))
+            if a.seeds == [0, 3] && a.only == [100] && a.variant.name() == "long"));
         let d = parse(&words("demos avoiding --n 5 --seed 2 --out /tmp/d")).unwrap();
         assert!(matches!(d, Cli::Demos(Demos::Avoiding(a)) if a.n == 5 && a.seed == 2));
         // Help is not an error; bad input is.

@@ -6,7 +6,7 @@
 //! their most likely component).
 
 mod mixture;
-pub use mixture::{MixtureEval, evaluate_against_mixture};
+pub use mixture::{MixtureEval, evaluate_against_mixture, evaluate_against_mixture_in_regions};
 
 use std::cell::RefCell;
 

@@ -9,7 +9,9 @@
 //! norm up to 50. Odd problems are state-conditioned: at state `s ∈ R²` component `k` sits at
 //! `μ_k + B s + C_k s` (a shared motion `B` and a smaller one `C_k` of its own), so the modes
 //! move with the state. The ranges are swept deterministically over the first 24 problems so
-//! that every extreme occurs.
+//! that every extreme occurs. [`robustness_extras`] adds shapes the random draw does not make:
+//! weights that depend on the state, teachers served through their score alone, and a curved
+//! target that fewer experts than components must cover.
 //!
 //! ```
 //! use vdd_core::ScoreModel;
@@ -27,6 +29,9 @@ use serde::{Deserialize, Serialize};
 
 use super::{Gmm, GmmTeacher};
 use crate::{Result, Rng, Seeds, gaussian, standard_normal};
+
+mod extras;
+pub use extras::{FIRST_EXTRA, robustness_extras};
 
 /// Minimum distance between two component means in unit space (component stds are ≤ 1).
 pub const MIN_SEPARATION: f32 = 3.5;
@@ -55,6 +60,16 @@ pub struct ProblemInfo {
     pub condition: f32,
     /// Smallest component weight.
     pub min_weight: f32,
+    /// Served to the student through its score alone (a teacher without `sample_actions`).
+    #[serde(default)]
+    pub score_only: bool,
+    /// Experts the benchmark distils it into (and twice as many): its number of components,
+    /// or fewer for a target made of many small components along a curve.
+    #[serde(default)]
+    pub experts: usize,
+    /// Regions its coverage counts (groups of components, [`MixtureProblem::regions`]).
+    #[serde(default)]
+    pub regions: usize,
 }
 
 /// One problem: the teacher, the states to distil on and the states to evaluate at.
@@ -68,6 +83,8 @@ pub struct MixtureProblem {
     pub train_states: Mat<f32>,
     /// States to evaluate at: 4 for a conditional problem, 1 otherwise.
     pub eval_states: Mat<f32>,
+    /// Region of each component for coverage (each its own for the random family).
+    pub regions: Vec<usize>,
 }
 
 /// The first `n` problems of the family of root seed `seed`.
@@ -181,10 +198,14 @@ pub fn robustness_problem(i: usize, seed: u64) -> Result<MixtureProblem> {
             offset_norm,
             condition,
             min_weight,
+            score_only: false,
+            experts: k,
+            regions: k,
         },
         teacher,
         train_states,
         eval_states,
+        regions: (0..k).collect(),
     })
 }
 

@@ -1,27 +1,35 @@
 //! The robustness benchmark: VDD with library defaults only ([`Vdd::auto`]) on the seeded
-//! family of exact-mixture teachers ([`vdd_core::gmm::family`]), each student evaluated by
-//! [`evaluate_against_mixture`] (the trainer's evaluation, `vdd::eval`) ([`robustness`]).
+//! family of exact-mixture teachers ([`vdd_core::gmm::family`]) and its extra problems
+//! ([`robustness_extras`]: state-conditioned weights, teachers served through their score
+//! alone, a curved target), each student evaluated by [`evaluate_against_mixture_in_regions`]
+//! (the trainer's evaluation, `vdd::eval`) ([`robustness`]).
 //!
-//! Every problem is distilled once with as many experts as it has components and once with
-//! twice as many, on 8 problems and seed 0 ([`RobustnessOptions::quick`]) or 24 problems and
-//! seeds 0–2. Independent runs go to [`RobustnessOptions::threads`] workers; every run is
-//! seeded, so the records do not depend on the scheduling. The paper's 2-D toy
-//! ([`paper_toy`]) runs first, one run at a time (its ms/iteration is a single-threaded
-//! figure). `cargo xtask bench robustness` writes the document this returns.
+//! Every problem is distilled once with its number of experts (as many as it has components,
+//! or the extra problem's own) and once with twice as many, on 8 random problems and the
+//! extras with seed 0 ([`RobustnessOptions::quick`]) or 24 random problems and the extras with
+//! seeds 0–2 ([`RobustnessOptions::seeds`] overrides them). A problem served score-only
+//! reaches the trainer through [`ScoreOnly`]. Independent runs go to
+//! [`RobustnessOptions::threads`] workers; every run is seeded, so the records do not depend on
+//! the scheduling. The paper's 2-D toy ([`paper_toy`]) runs first, one run at a time (its
+//! ms/iteration is a single-threaded figure). `cargo xtask bench robustness` writes the
+//! document this returns.
 
 use std::convert::Infallible;
 use std::sync::atomic::{AtomicUsize, Ordering};
 use std::time::Instant;
 
-use faer::Mat;
+use faer::{Mat, MatMut, MatRef};
+use rand::RngCore;
 use serde_json::{Value, json};
 use vdd_core::gmm::GmmTeacher;
-use vdd_core::gmm::family::{MixtureProblem, ProblemInfo, robustness_family};
+use vdd_core::gmm::family::{MixtureProblem, ProblemInfo, robustness_extras, robustness_family};
 use vdd_core::parallel::parallel_map;
-use vdd_core::{Seeds, Trainer as _};
-use vdd_moe::{ExpertKind, GatingKind, MoeConfig};
+use vdd_core::{
+    CoreError, DenoiserForm, NoiseConvention, NoiseSchedule, ScoreModel, Seeds, Trainer as _,
+};
+use vdd_moe::{ExpertKind, GatingKind, Moe, MoeConfig};
 
-use vdd::eval::evaluate_against_mixture;
+use vdd::eval::evaluate_against_mixture_in_regions;
 use vdd::{AutoOptions, DistillData, InitKind, Vdd, VddConfig};
 
 /// What runs instead of the library defaults, for comparisons.
@@ -38,14 +46,25 @@ pub enum Variant {
     OfficialInit,
     /// The defaults without noise annealing.
     NoAnneal,
+    /// The defaults run four times as long as the paper's toy run ([`LONG_ITERATIONS`]).
+    Long,
 }
+
+/// Iterations of [`Variant::Long`].
+pub const LONG_ITERATIONS: usize = 2400;
 
 impl Variant {
     /// Every variant.
-    pub const ALL: [Variant; 5] =
-        [Self::Default, Self::Toy, Self::UniformGating, Self::OfficialInit, Self::NoAnneal];
+    pub const ALL: [Variant; 6] = [
+        Self::Default,
+        Self::Toy,
+        Self::UniformGating,
+        Self::OfficialInit,
+        Self::NoAnneal,
+        Self::Long,
+    ];
 
-    /// `default`, `toy`, `uniform-gating`, `official-init` or `no-anneal`.
+    /// `default`, `toy`, `uniform-gating`, `official-init`, `no-anneal` or `long`.
     pub fn name(self) -> &'static str {
         match self {
             Self::Default => "default",
@@ -53,7 +72,66 @@ impl Variant {
             Self::UniformGating => "uniform-gating",
             Self::OfficialInit => "official-init",
             Self::NoAnneal => "no-anneal",
+            Self::Long => "long",
         }
+    }
+}
+
+/// A teacher seen through its score alone: every [`ScoreModel`] method is forwarded except
+/// [`ScoreModel::sample_actions`], which keeps the trait's default (unsupported), as for a
+/// teacher behind a score function. The benchmark serves the problems marked
+/// [`ProblemInfo::score_only`] through it.
+///
+/// ```
+/// use faer::Mat;
+/// use vdd_core::ScoreModel;
+/// use vdd_core::gmm::GmmTeacher;
+/// use vdd_lab::bench::robustness::ScoreOnly;
+/// let mut t = ScoreOnly(GmmTeacher::circle_toy());
+/// let (s, mut out) = (Mat::<f32>::zeros(1, 1), Mat::<f32>::zeros(1, 2));
+/// let mut rng = vdd_core::Seeds::new(0).stream("x");
+/// assert!(t.sample_actions(s.as_ref(), &mut rng, out.as_mut()).is_err());
+/// assert!(t.score(Mat::zeros(1, 2).as_ref(), s.as_ref(), &[0.1], out.as_mut()).is_ok());
+/// ```
+#[derive(Debug, Clone)]
+pub struct ScoreOnly<S>(pub S);
+
+impl<S: ScoreModel> ScoreModel for ScoreOnly<S> {
+    fn action_dim(&self) -> usize {
+        self.0.action_dim()
+    }
+    fn state_dim(&self) -> usize {
+        self.0.state_dim()
+    }
+    fn noise_convention(&self) -> NoiseConvention {
+        self.0.noise_convention()
+    }
+    fn score(
+        &mut self,
+        actions: MatRef<'_, f32>,
+        states: MatRef<'_, f32>,
+        noise_levels: &[f32],
+        out: MatMut<'_, f32>,
+    ) -> Result<(), CoreError> {
+        self.0.score(actions, states, noise_levels, out)
+    }
+    fn draw_noise_levels(
+        &self,
+        schedule: &NoiseSchedule,
+        progress: f32,
+        rng: &mut dyn RngCore,
+        out: &mut [f32],
+    ) {
+        self.0.draw_noise_levels(schedule, progress, rng, out)
+    }
+    fn denoiser_form(&self, level: f32) -> Option<DenoiserForm> {
+        self.0.denoiser_form(level)
+    }
+    fn noise_range(&self) -> Option<(f32, f32)> {
+        self.0.noise_range()
+    }
+    fn fork(&self) -> Option<Box<dyn ScoreModel + Send>> {
+        None
     }
 }
 
@@ -70,7 +148,7 @@ impl std::str::FromStr for Variant {
 /// The settings of [`robustness`].
 #[derive(Debug, Clone, PartialEq)]
 pub struct RobustnessOptions {
-    /// 8 problems and one seed instead of 24 problems and three.
+    /// 8 random problems (and the extras) and one seed instead of 24 and three.
     pub quick: bool,
     /// Parallel runs.
     pub threads: usize,
@@ -80,8 +158,10 @@ pub struct RobustnessOptions {
     pub samples: usize,
     /// What to run.
     pub variant: Variant,
-    /// Only these problem indices (all when empty).
+    /// Only these problem indices ([`ProblemInfo::index`]; all when empty).
     pub only: Vec<usize>,
+    /// These seeds instead of `quick`'s (0) or the full run's (0, 1, 2), when not empty.
+    pub seeds: Vec<u64>,
 }
 
 /// The paper's 2-D toy (8 modes on a circle of radius 2, std 0.5, 5000 zero states) as a
@@ -98,21 +178,31 @@ pub fn paper_toy() -> MixtureProblem {
         offset_norm: 0.0,
         condition: 1.0,
         min_weight: 0.125,
+        score_only: false,
+        experts: 8,
+        regions: 8,
     };
     let (train_states, eval_states) = (Mat::zeros(5000, 1), Mat::zeros(1, 1));
-    MixtureProblem { info, teacher, train_states, eval_states }
+    MixtureProblem { info, teacher, train_states, eval_states, regions: (0..8).collect() }
 }
 
-/// Distils problem `p` with `experts` experts and `seed`, and evaluates the student with
-/// `samples` samples per state: the run's record (`problem`, `seed`, `experts`, `reverse_kl`,
-/// `forward_kl`, `components`, `components_covered`, `ms_per_iter`, `setup_ms`).
-pub fn run_one(
+/// What [`train`] returns: the student, its iterations, and the training's and the set-up's
+/// milliseconds.
+struct Trained {
+    student: Moe,
+    iterations: usize,
+    ms_per_iter: f64,
+    setup_ms: f64,
+}
+
+/// Sets up and trains the run of `variant` on `teacher`.
+fn train<S: ScoreModel>(
     p: &MixtureProblem,
+    teacher: S,
     seed: u64,
     experts: usize,
-    samples: usize,
     variant: Variant,
-) -> crate::Result<Value> {
+) -> crate::Result<Trained> {
     let data = DistillData::from_states(p.train_states.clone())?;
     let mut options = AutoOptions::new(experts, seed);
     match variant {
@@ -120,29 +210,58 @@ pub fn run_one(
         Variant::UniformGating => options.gating = GatingKind::Uniform,
         Variant::OfficialInit => options.init = InitKind::Official,
         Variant::NoAnneal => options.start_noise_factor = 0.0,
+        Variant::Long => options.iterations = LONG_ITERATIONS,
     }
     let t0 = Instant::now();
     let mut vdd = if variant == Variant::Toy {
         let (ds, d) = (p.train_states.ncols(), p.info.action_dim);
         let mc = MoeConfig { expert_kind: ExpertKind::Full, ..MoeConfig::toy(ds, d, experts) };
-        Vdd::from_config(VddConfig { seed, ..VddConfig::toy() }, p.teacher.clone(), mc, data)?
+        Vdd::from_config(VddConfig { seed, ..VddConfig::toy() }, teacher, mc, data)?
     } else {
-        Vdd::auto(p.teacher.clone(), data, &options)?
+        Vdd::auto(teacher, data, &options)?
     };
     let t1 = Instant::now();
     vdd.train(|_| {})?;
-    let ms_per_iter = t1.elapsed().as_secs_f64() * 1e3 / vdd.iterations().max(1) as f64;
+    let iterations = vdd.iterations();
+    let ms_per_iter = t1.elapsed().as_secs_f64() * 1e3 / iterations.max(1) as f64;
     let setup_ms = (t1 - t0).as_secs_f64() * 1e3;
-    let mut student = vdd.finish()?;
+    Ok(Trained { student: vdd.finish()?, iterations, ms_per_iter, setup_ms })
+}
+
+/// Distils problem `p` with `experts` experts and `seed` (through [`ScoreOnly`] when the
+/// problem is served score-only), and evaluates the student with `samples` samples per state:
+/// the run's record (`problem`, `seed`, `experts`, `iterations`, `reverse_kl`, `forward_kl`,
+/// `components`, `components_covered` (regions, for a problem that groups its components),
+/// `ms_per_iter`, `setup_ms`).
+pub fn run_one(
+    p: &MixtureProblem,
+    seed: u64,
+    experts: usize,
+    samples: usize,
+    variant: Variant,
+) -> crate::Result<Value> {
+    let t = match p.info.score_only {
+        true => train(p, ScoreOnly(p.teacher.clone()), seed, experts, variant)?,
+        false => train(p, p.teacher.clone(), seed, experts, variant)?,
+    };
+    let mut student = t.student;
     let mut rng = Seeds::new(seed).stream("robustness-eval");
     let mut teacher = p.teacher.clone();
-    let states = p.eval_states.as_ref();
-    let e = evaluate_against_mixture(&mut student, &mut teacher, states, samples, 0.01, &mut rng)?;
+    let (states, regions) = (p.eval_states.as_ref(), Some(&p.regions[..]));
+    let e = evaluate_against_mixture_in_regions(
+        &mut student,
+        &mut teacher,
+        states,
+        samples,
+        0.01,
+        regions,
+        &mut rng,
+    )?;
     Ok(json!({
-        "problem": p.info.name, "seed": seed, "experts": experts,
+        "problem": p.info.name, "seed": seed, "experts": experts, "iterations": t.iterations,
         "reverse_kl": e.reverse_kl, "forward_kl": e.forward_kl,
         "components": e.components, "components_covered": e.components_covered,
-        "ms_per_iter": ms_per_iter, "setup_ms": setup_ms,
+        "ms_per_iter": t.ms_per_iter, "setup_ms": t.setup_ms,
     }))
 }
 
@@ -164,12 +283,16 @@ fn load() -> String {
 /// percentile reverse KL with as many experts as components and with twice as many, the wall
 /// time, the threads, the load before and after, `quick` and the variant.
 pub fn robustness(o: &RobustnessOptions, log: impl Fn(String) + Sync) -> crate::Result<Value> {
-    let (n, seeds): (usize, &[u64]) = if o.quick { (8, &[0]) } else { (24, &[0, 1, 2]) };
-    let problems = robustness_family(n, 0)?;
-    let jobs: Vec<(usize, u64, usize)> = (0..n)
-        .filter(|p| o.only.is_empty() || o.only.contains(p))
+    let (n, mut seeds): (usize, &[u64]) = if o.quick { (8, &[0]) } else { (24, &[0, 1, 2]) };
+    if !o.seeds.is_empty() {
+        seeds = &o.seeds;
+    }
+    let mut problems = robustness_family(n, 0)?;
+    problems.extend(robustness_extras(0)?);
+    let jobs: Vec<(usize, u64, usize)> = (0..problems.len())
+        .filter(|&p| o.only.is_empty() || o.only.contains(&problems[p].info.index))
         .flat_map(|p| seeds.iter().flat_map(move |&s| [1, 2].map(|m| (p, s, m))))
-        .map(|(p, s, m)| (p, s, m * problems[p].info.components))
+        .map(|(p, s, m)| (p, s, m * problems[p].info.experts))
         .collect();
     let load_start = load();
     log(format!("{} runs on {} threads; load {load_start}", jobs.len(), o.threads));
@@ -209,10 +332,33 @@ pub fn robustness(o: &RobustnessOptions, log: impl Fn(String) + Sync) -> crate::
     let kl = |mult: usize| -> Vec<f64> {
         runs.iter()
             .zip(&jobs)
-            .filter(|(_, j)| j.2 == mult * problems[j.0].info.components)
+            .filter(|(_, j)| j.2 == mult * problems[j.0].info.experts)
             .map(|(r, _)| r["reverse_kl"].as_f64().unwrap_or(f64::INFINITY))
             .collect()
     };
+    // Per extra problem: its runs' median reverse KL (each expert count) and coverage.
+    let extras: Vec<Value> = problems
+        .iter()
+        .enumerate()
+        .filter(|(_, p)| p.info.index >= vdd_core::gmm::family::FIRST_EXTRA)
+        .filter_map(|(k, p)| {
+            let mine: Vec<(&Value, &(usize, u64, usize))> =
+                runs.iter().zip(&jobs).filter(|(_, j)| j.0 == k).collect();
+            let median = |mult: usize| {
+                let v = mine
+                    .iter()
+                    .filter(|(_, j)| j.2 == mult * p.info.experts)
+                    .map(|(r, _)| r["reverse_kl"].as_f64().unwrap_or(f64::INFINITY))
+                    .collect();
+                quantile(v, 0.5)
+            };
+            let covered = mine.iter().filter(|(r, _)| full(r)).count();
+            (!mine.is_empty()).then(|| {
+                json!({"problem": p.info.name, "runs": mine.len(), "covered": covered,
+                       "median_reverse_kl": median(1), "median_reverse_kl_2x": median(2)})
+            })
+        })
+        .collect();
     let summary = json!({
         "runs": runs.len(),
         "coverage_rate": runs.iter().filter(full).count() as f64 / runs.len().max(1) as f64,
@@ -220,7 +366,7 @@ pub fn robustness(o: &RobustnessOptions, log: impl Fn(String) + Sync) -> crate::
         "median_reverse_kl_2x": quantile(kl(2), 0.5), "p90_reverse_kl_2x": quantile(kl(2), 0.9),
         "wall_seconds": t0.elapsed().as_secs_f64(), "threads": o.threads,
         "load_start": load_start, "load_end": load(), "quick": o.quick,
-        "variant": o.variant.name(),
+        "variant": o.variant.name(), "extras": extras,
     });
     let problems_info: Vec<_> = problems.iter().map(|p| &p.info).collect();
     Ok(json!({"summary": summary, "problems": problems_info, "runs": runs, "paper_toy": toy_runs}))

@@ -16,10 +16,11 @@ pub struct MixtureEval {
     pub reverse_kl: f64,
     /// `E_p[log p − log q]` in nats, by Monte Carlo, mean over the states.
     pub forward_kl: f64,
-    /// Components of the teacher (at the first state).
+    /// Components of the teacher (at the first state), or regions of components
+    /// ([`evaluate_against_mixture_in_regions`]).
     pub components: usize,
-    /// Components covered at every state: at least `min_share` of the student's samples have
-    /// the component as their most likely one.
+    /// Components (or regions) covered at every state: at least `min_share` of the student's
+    /// samples have the component (a component of the region) as their most likely one.
     pub components_covered: usize,
 }
 
@@ -49,6 +50,41 @@ pub fn evaluate_against_mixture<E: Expert>(
     min_share: f32,
     rng: &mut Rng,
 ) -> Result<MixtureEval, VddError> {
+    evaluate_against_mixture_in_regions(student, teacher, states, samples, min_share, None, rng)
+}
+
+/// [`evaluate_against_mixture`] with coverage counted by regions: `regions[k]` is the region
+/// of the teacher's component `k` (`None`: every component its own region), and a region is
+/// covered when at least `min_share` of the student's samples have one of its components as
+/// their most likely one. For a teacher that is a curve or a surface approximated by many
+/// small components, fewer experts than components can cover every region.
+///
+/// ```
+/// use faer::Mat;
+/// use vdd::eval::evaluate_against_mixture_in_regions;
+/// use vdd::gmm::GmmTeacher;
+/// use vdd::{Moe, MoeConfig, Seeds};
+///
+/// let mut teacher = GmmTeacher::circle_toy();
+/// let mut student = Moe::from_config(MoeConfig::toy(1, 2, 8), 0)?;
+/// let halves = [0, 0, 0, 0, 1, 1, 1, 1]; // the circle's two halves
+/// let mut rng = Seeds::new(0).stream("eval");
+/// let states = Mat::zeros(1, 1);
+/// let e = evaluate_against_mixture_in_regions(
+///     &mut student, &mut teacher, states.as_ref(), 2000, 0.01, Some(&halves), &mut rng,
+/// )?;
+/// assert_eq!(e.components, 2);
+/// # Ok::<(), Box<dyn std::error::Error>>(())
+/// ```
+pub fn evaluate_against_mixture_in_regions<E: Expert>(
+    student: &mut Moe<E>,
+    teacher: &mut GmmTeacher,
+    states: MatRef<'_, f32>,
+    samples: usize,
+    min_share: f32,
+    regions: Option<&[usize]>,
+    rng: &mut Rng,
+) -> Result<MixtureEval, VddError> {
     let n_states = states.nrows();
     if n_states == 0 || samples == 0 {
         return Err(
@@ -71,8 +107,13 @@ pub fn evaluate_against_mixture<E: Expert>(
         }
         let gmm = teacher.mixture_at(&raw_state)?;
         let k = gmm.num_components();
+        let region_of = |c: usize| regions.map_or(c, |r| r[c]);
+        if let Some(r) = regions {
+            vdd_core::check_len("regions (one per component)", r.len(), k)?;
+        }
+        let n_regions = (0..k).map(region_of).max().map_or(0, |m| m + 1);
         if s == 0 {
-            components = k;
+            components = n_regions;
         }
         // Student samples, raw.
         let mut x = super::sample_student(student, &state, samples, rng)?;
@@ -99,7 +140,7 @@ pub fn evaluate_against_mixture<E: Expert>(
                 l
             })
             .collect();
-        let mut counts = vec![0usize; k];
+        let mut counts = vec![0usize; n_regions];
         let (mut a, mut work) = (vec![0.0f32; d], vec![0.0f32; d]);
         for i in 0..samples {
             for j in 0..d {
@@ -113,7 +154,7 @@ pub fn evaluate_against_mixture<E: Expert>(
                 .enumerate()
                 .fold((0, f32::NEG_INFINITY), |b, (c, v)| if v > b.1 { (c, v) } else { b })
                 .0;
-            counts[best] += 1;
+            counts[region_of(best)] += 1;
         }
         let here: Vec<bool> =
             counts.iter().map(|&c| c as f32 >= min_share * samples as f32).collect();
