@@ -179,6 +179,3 @@ pub(crate) fn fold_into_moments(
     }
     Ok(())
 }
-
-#[cfg(test)]
-mod tests;

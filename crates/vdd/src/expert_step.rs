@@ -566,6 +566,9 @@ pub fn raw_gradients_of_chunk<E: Expert>(
 }
 
 #[cfg(test)]
+mod tests_both_sides;
+
+#[cfg(test)]
 mod tests {
     use super::*;
     use crate::test_support::{IsoGmm, output};

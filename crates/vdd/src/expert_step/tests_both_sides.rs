@@ -1,10 +1,14 @@
+//! Noise on both sides ([`crate::both_sides`]): the folded gradients against finite differences
+//! (here, beside the kernel they run through, so that `both_sides` does not depend on this module).
+
 use approx::assert_relative_eq;
 use faer::Mat;
 use vdd_core::{Affine, Expert, ScoreModel, gaussian};
 use vdd_moe::{DiagonalExpert, FullExpert, MoeOutput};
 
-use super::*;
+use crate::both_sides::*;
 use crate::expert_step::{ExpertStepBuffers, moments_from_noise};
+use crate::spaces::ActionMap;
 use crate::spaces::with_map;
 use crate::test_support::{IsoGmm, VpGmm, output};
 
