@@ -21,7 +21,8 @@ use crate::progress;
 /// Options of `cargo xtask fuzz`.
 #[derive(Debug, Clone, clap::Args)]
 pub struct Args {
-    /// npy, npz, safetensors, moe, teacher, checkpoint, recipe, lerobot, or all.
+    /// npy, npz, safetensors, moe, teacher, checkpoint, recipe, lerobot, diffusion-policy, beso,
+    /// lock, or all.
     pub target: String,
     /// Cases per target.
     #[arg(long, default_value_t = 1000)]
@@ -59,7 +60,7 @@ pub struct CaseArgs {
 }
 
 /// Runs one case in this process and exits with its outcome's code (0 ok, 1 err, 3
-/// ok_nonfinite, 4 unreadable; a panic exits 101).
+/// ok_nonfinite, 4 unreadable, 5 lock_holders; a panic exits 101).
 pub fn case(a: &CaseArgs) -> ! {
     set_limits(a.memory_mib, a.cpu_seconds);
     let check_recipe = |path: &Path| -> XResult {
@@ -71,6 +72,7 @@ pub fn case(a: &CaseArgs) -> ! {
             match &loaded {
                 vdd_fuzz::Loaded::NonFinite(what) => eprintln!("non-finite output: {what}"),
                 vdd_fuzz::Loaded::Unreadable(what) => eprintln!("committed but unreadable: {what}"),
+                vdd_fuzz::Loaded::LockHolders(what) => eprintln!("lock race: {what}"),
                 vdd_fuzz::Loaded::Finite => {}
             }
             std::process::exit(loaded.exit_code())

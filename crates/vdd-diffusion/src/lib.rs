@@ -83,8 +83,8 @@ pub use net::{DenoiserNet, NetConfig, NoiseEmbedding, RowCoefficients};
 pub use normalize::{NormalizerKind, fit_normalizer};
 pub use sampling::{KarrasSampler, SamplerBuffers, VpSampler, heun_step, sample_karras, sample_vp};
 pub use schedule::{
-    BetaSchedule, MAX_DIFFUSION_STEPS, MAX_SAMPLING_STEPS, Preconditioning, VpSchedule,
-    karras_sigmas, karras_sigmas_into,
+    BetaSchedule, MAX_DIFFUSION_STEPS, MAX_SAMPLING_STEPS, MAX_SIGMA, MIN_SIGMA, Preconditioning,
+    VpSchedule, check_sigma_range, karras_sigmas, karras_sigmas_into,
 };
 pub use teacher::{DiffusionTeacher, TeacherKind};
 pub use train::{TrainConfig, TrainProgress};

@@ -274,11 +274,30 @@ pub fn karras_sigmas_into(
     Ok(())
 }
 
-pub(crate) fn check_sigma_range(sigma_min: f32, sigma_max: f32) -> Result<()> {
-    if !(sigma_min.is_finite() && sigma_max.is_finite() && sigma_min > 0.0 && sigma_max > sigma_min)
-    {
+/// Smallest noise level σ (and data standard deviation σ_d) a Karras/EDM configuration may
+/// state: `1/σ²` (the score's scale) stays far below `f32::MAX`.
+pub const MIN_SIGMA: f32 = 1e-6;
+/// Largest noise level σ (and data standard deviation σ_d) a Karras/EDM configuration may
+/// state: `σ² + σ_d²` (the preconditioning's denominator) and `σ⁴` (the ancestral step) stay
+/// far below `f32::MAX`. At `σ_d` of 1.8e19, `σ_d²` overflows and the denoiser is NaN.
+pub const MAX_SIGMA: f32 = 1e6;
+
+/// Checks a Karras/EDM noise range: `MIN_SIGMA ≤ sigma_min < sigma_max ≤ MAX_SIGMA`
+/// ([`MIN_SIGMA`], [`MAX_SIGMA`]).
+///
+/// ```
+/// use vdd_diffusion::check_sigma_range;
+/// assert!(check_sigma_range(0.002, 80.0).is_ok());
+/// assert!(check_sigma_range(80.0, 0.002).is_err());
+/// assert!(check_sigma_range(1e-45, 1.0).is_err()); // σ² is 0 in f32
+/// assert!(check_sigma_range(0.1, 1.8e19).is_err()); // σ² overflows
+/// ```
+pub fn check_sigma_range(sigma_min: f32, sigma_max: f32) -> Result<()> {
+    let in_range = |s: f32| (MIN_SIGMA..=MAX_SIGMA).contains(&s);
+    if !(in_range(sigma_min) && in_range(sigma_max) && sigma_max > sigma_min) {
         return Err(DiffusionError::Config(format!(
-            "need 0 < sigma_min < sigma_max, got {sigma_min}, {sigma_max}"
+            "need {MIN_SIGMA} <= sigma_min < sigma_max <= {MAX_SIGMA}, got {sigma_min}, \
+             {sigma_max}"
         )));
     }
     Ok(())
@@ -308,11 +327,12 @@ pub struct Preconditioning {
 }
 
 impl Preconditioning {
-    /// Preconditioning for data of standard deviation `sigma_data > 0`.
+    /// Preconditioning for data of standard deviation `sigma_data` in
+    /// `[MIN_SIGMA, MAX_SIGMA]` ([`MIN_SIGMA`], [`MAX_SIGMA`]).
     pub fn new(sigma_data: f32) -> Result<Self> {
-        if !(sigma_data.is_finite() && sigma_data > 0.0) {
+        if !(MIN_SIGMA..=MAX_SIGMA).contains(&sigma_data) {
             return Err(DiffusionError::Config(format!(
-                "sigma_data must be positive, got {sigma_data}"
+                "sigma_data must lie in [{MIN_SIGMA}, {MAX_SIGMA}], got {sigma_data}"
             )));
         }
         Ok(Self { sigma_data })
@@ -485,5 +505,9 @@ mod tests {
         assert_eq!(p.c_skip(0.0), 1.0);
         assert_eq!(p.c_out(0.0), 0.0);
         assert!(Preconditioning::new(0.0).is_err());
+        // σ_d² overflows f32 (a fuzzed BESO config's 18446744073709551615): refused, not NaN.
+        assert!(Preconditioning::new(18446744073709551615.0).is_err());
+        assert!(Preconditioning::new(1e-45).is_err());
+        assert!(Preconditioning::new(MAX_SIGMA).is_ok() && Preconditioning::new(MIN_SIGMA).is_ok());
     }
 }

@@ -2,15 +2,18 @@
 //! ([`runner`]: each case in a child process with memory and time limits).
 //!
 //! A [`Target`] is one family of files a loader reads (`npy`, `npz`, `safetensors`, `moe`,
-//! `teacher`, `checkpoint`, `recipe`, `lerobot`). For each the crate writes valid seed inputs
+//! `teacher`, `checkpoint`, `recipe`, and the importers `lerobot`, `diffusion-policy`, `beso`),
+//! or the checkpoint lock (`lock`: two processes opening one directory at the same instant). For each the crate writes valid seed inputs
 //! ([`write_seeds`]), derives a mutated case from them with a stream of the campaign's seed
 //! indexed by the case number ([`prepare_case`]: bit flips, interesting bytes and floats,
 //! truncation, extension, header and JSON/TOML field edits with huge, negative, non-finite and
-//! `1e39` values, shape and dtype edits; a checkpoint's `LATEST` and `LOCK`; an input replaced
-//! by a FIFO or a symlink to `/dev/zero` or a directory), and runs a case: load the input, use it (act, score,
-//! forward, a training step) and check every output is finite ([`run_case`]). The child's
-//! exit code gives the case's [`Outcome`] (a file a writer committed that its loader refuses
-//! is [`Outcome::Unreadable`]); [`Report`] holds the counts and writes `fuzz.json`.
+//! `1e39` values, shape and dtype edits; YAML values, alias bombs and JSON/YAML nested 100,000
+//! deep; a checkpoint's `LATEST` and `LOCK`; an input replaced by a FIFO or a symlink to
+//! `/dev/zero` or a directory), and runs a case: load the input, use it (act, score, forward, a
+//! training step) and check every output is finite ([`run_case`]). The child's exit code gives
+//! the case's [`Outcome`] (a file a writer committed that its loader refuses is
+//! [`Outcome::Unreadable`]; a lock race with two holders, [`Outcome::LockHolders`]);
+//! [`Report`] holds the counts and writes `fuzz.json`.
 //! The crate never prints.
 //!
 //! ```
@@ -53,7 +56,8 @@ pub type BoxError = Box<dyn std::error::Error>;
 pub enum Error {
     /// A target name that is none of [`Target::ALL`].
     #[error(
-        "unknown fuzz target `{0}` (npy, npz, safetensors, moe, teacher, checkpoint, recipe, lerobot)"
+        "unknown fuzz target `{0}` (npy, npz, safetensors, moe, teacher, checkpoint, recipe, \
+         lerobot, diffusion-policy, beso, lock)"
     )]
     UnknownTarget(String),
     /// Writing seeds, mutating or running a case of `target` failed (for a case: the loader
@@ -102,11 +106,24 @@ pub enum Target {
     /// A LeRobot diffusion policy directory (`vdd_import::import_lerobot`), then the round
     /// trip of the importer's output: `save_unet_teacher`, `load_teacher`, a score.
     Lerobot,
+    /// A converted diffusion_policy checkpoint directory (`config.json`, `model.safetensors`;
+    /// `vdd_import::import_diffusion_policy`), then the round trip of the importer's output as
+    /// for [`Target::Lerobot`].
+    DiffusionPolicy,
+    /// A BESO/D3IL run directory (hydra `config.yaml`, the converted state dict, and
+    /// `scaler.json` in some seeds; `vdd_import::import_beso_run`), then the round trip:
+    /// `BesoTeacher::save`, `BesoTeacher::load`, a score and a sample.
+    Beso,
+    /// The checkpoint lock: two processes opening one checkpoint directory at the same instant
+    /// (`vdd_nn::checkpoint::race_open`), on a fresh directory, over a stale or edited `LOCK`,
+    /// or while a third writer holds it. Two holders, a live writer's lock taken, or no holder
+    /// of a free lock is [`Outcome::LockHolders`].
+    Lock,
 }
 
 impl Target {
     /// Every target, in the order `all` runs them.
-    pub const ALL: [Target; 8] = [
+    pub const ALL: [Target; 11] = [
         Target::Npy,
         Target::Npz,
         Target::Safetensors,
@@ -115,6 +132,9 @@ impl Target {
         Target::Checkpoint,
         Target::Recipe,
         Target::Lerobot,
+        Target::DiffusionPolicy,
+        Target::Beso,
+        Target::Lock,
     ];
 
     /// The target's name on the command line and in `fuzz.json`.
@@ -128,6 +148,9 @@ impl Target {
             Target::Checkpoint => "checkpoint",
             Target::Recipe => "recipe",
             Target::Lerobot => "lerobot",
+            Target::DiffusionPolicy => "diffusion-policy",
+            Target::Beso => "beso",
+            Target::Lock => "lock",
         }
     }
 }

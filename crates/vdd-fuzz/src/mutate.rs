@@ -324,3 +324,151 @@ pub fn toml_file(rng: &mut Rng, data: &mut Vec<u8>, keys: &[&str]) {
     };
     *data = out.into_bytes();
 }
+
+/// Interesting YAML values for a `key: value` line: numbers, YAML's own spellings of null,
+/// booleans and non-finite floats, empty and flow collections, OmegaConf interpolations
+/// (missing, cyclic, to a mapping), aliases and tags.
+const YAML_VALUES: &[&str] = &[
+    "null",
+    "~",
+    "''",
+    "[]",
+    "{}",
+    "true",
+    "no",
+    ".inf",
+    "-.inf",
+    ".nan",
+    "0x10",
+    "1_000",
+    "-5",
+    "[1, 2]",
+    "{a: 1}",
+    "${obs_dim}",
+    "${agents}",
+    "${missing.key}",
+    "${agents.model.inner_model._target_}",
+    "\"${window_size}\"",
+    "${agents.window_size}",
+    "*undefined",
+    "&anchor 3",
+    "!!binary AAAA",
+    "!!float 1e39",
+    "|\n  block",
+];
+
+/// Mutates a YAML file as text: the value of a `key: value` line replaced by an interesting
+/// one, a number replaced, a line dropped or repeated, a billion-laughs alias bomb prepended,
+/// or its bytes.
+pub fn yaml_file(rng: &mut Rng, data: &mut Vec<u8>) {
+    let text = String::from_utf8_lossy(data).into_owned();
+    let mut lines: Vec<String> = text.lines().map(str::to_owned).collect();
+    let valued: Vec<usize> = (0..lines.len()).filter(|&i| key_value(&lines[i]).is_some()).collect();
+    match rng.random_range(0..10) {
+        0..=3 if !valued.is_empty() => {
+            let i = valued[rng.random_range(0..valued.len())];
+            let at = key_value(&lines[i]).unwrap_or(lines[i].len());
+            let value = if rng.random_bool(0.4) {
+                NUMBERS.choose(rng).copied().unwrap_or("0")
+            } else {
+                YAML_VALUES.choose(rng).copied().unwrap_or("null")
+            };
+            lines[i] = format!("{}{value}", &lines[i][..at]);
+        }
+        4 | 5 => {
+            *data = text_number(rng, &text).into_bytes();
+            return;
+        }
+        6 if !lines.is_empty() => {
+            lines.remove(rng.random_range(0..lines.len()));
+        }
+        7 if !lines.is_empty() => {
+            let i = rng.random_range(0..lines.len());
+            let line = lines[i].clone();
+            lines.insert(i, line);
+        }
+        8 => {
+            // Nine levels of nine aliases each: 9^9 nodes if expanded.
+            let mut bomb = vec!["l0: &l0 [x, x, x, x, x, x, x, x, x]".to_owned()];
+            for k in 1..9 {
+                let refs = vec![format!("*l{}", k - 1); 9].join(", ");
+                bomb.push(format!("l{k}: &l{k} [{refs}]"));
+            }
+            lines.splice(0..0, bomb);
+        }
+        _ => {
+            bytes(rng, data);
+            return;
+        }
+    }
+    *data = (lines.join("\n") + "\n").into_bytes();
+}
+
+/// Where the value of a `key: value` line starts (after `": "`), if the line has one.
+fn key_value(line: &str) -> Option<usize> {
+    let t = line.trim_start();
+    let colon = t.find(": ")?;
+    let key = &t[..colon];
+    let plain = !key.is_empty() && key.bytes().all(|b| b.is_ascii_alphanumeric() || b == b'_');
+    (plain && !t[colon + 2..].trim().is_empty()).then(|| line.len() - t.len() + colon + 2)
+}
+
+/// Text nested deeply: `[`/`{` (or YAML's compact `- ` sequences) 65, 1,000 or 100,000 levels
+/// deep, closed or left open, in JSON's spelling or YAML's flow or block style.
+pub fn deep_text(rng: &mut Rng, yaml: bool) -> String {
+    let depth = [65usize, 1000, 100_000].choose(rng).copied().unwrap_or(100_000);
+    let closed = rng.random_bool(0.7);
+    let (open, close) = match rng.random_range(0..4) {
+        0 => ("[", "]"),
+        1 => ("[1, ", "]"),
+        2 if yaml => ("{a: ", "}"),
+        2 => ("{\"a\": ", "}"),
+        _ if yaml => return format!("{}x", "- ".repeat(depth)),
+        _ => ("[[], ", "]"),
+    };
+    let mut s = open.repeat(depth);
+    s.push('1');
+    if closed {
+        s.push_str(&close.repeat(depth));
+    }
+    s
+}
+
+/// Marks where [`json_deep`] splices the deep text into a serialised document.
+const DEEP_MARK: &str = "@@vdd-fuzz-deep@@";
+
+/// A JSON file with a random value (or the whole document) replaced by [`deep_text`].
+pub fn json_deep(rng: &mut Rng, data: &mut Vec<u8>) {
+    let deep = deep_text(rng, false);
+    let Ok(mut v) = serde_json::from_slice::<Value>(data) else {
+        *data = deep.into_bytes();
+        return;
+    };
+    let mut paths = Vec::new();
+    collect(&v, &mut Vec::new(), &mut paths);
+    let path = paths.choose(rng).cloned().unwrap_or_default();
+    if let Some(target) = pointer(&mut v, &path) {
+        *target = Value::String(DEEP_MARK.to_owned());
+    }
+    let text = v.to_string().replacen(&format!("\"{DEEP_MARK}\""), &deep, 1);
+    *data = text.into_bytes();
+}
+
+/// A YAML file with the value of a `key: value` line replaced by deep flow text, a deep key
+/// added at the top, or the whole document replaced ([`deep_text`]).
+pub fn yaml_deep(rng: &mut Rng, data: &mut Vec<u8>) {
+    let deep = deep_text(rng, true);
+    let text = String::from_utf8_lossy(data).into_owned();
+    let mut lines: Vec<String> = text.lines().map(str::to_owned).collect();
+    let valued: Vec<usize> = (0..lines.len()).filter(|&i| key_value(&lines[i]).is_some()).collect();
+    match rng.random_range(0..3) {
+        0 if !valued.is_empty() && !deep.starts_with('-') => {
+            let i = valued[rng.random_range(0..valued.len())];
+            let at = key_value(&lines[i]).unwrap_or(lines[i].len());
+            lines[i] = format!("{}{deep}", &lines[i][..at]);
+        }
+        0 | 1 => lines.insert(0, format!("deep:\n  {deep}")),
+        _ => lines = vec![deep],
+    }
+    *data = (lines.join("\n") + "\n").into_bytes();
+}

@@ -10,6 +10,8 @@ use crate::Target;
 pub(crate) const EXIT_NONFINITE: i32 = 3;
 /// Exit code of a case whose writer committed a file its own loader then refused.
 pub(crate) const EXIT_UNREADABLE: i32 = 4;
+/// Exit code of a lock race with the wrong number of holders.
+pub(crate) const EXIT_LOCK_HOLDERS: i32 = 5;
 
 /// How one case ended.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord, Hash)]
@@ -29,11 +31,15 @@ pub enum Outcome {
     /// A writer committed a file (e.g. an importer's teacher) that its loader refused: the
     /// round trip "whatever a writer commits, its loader accepts" broken (exit 4).
     Unreadable,
+    /// A lock race ([`Target::Lock`](crate::Target::Lock)) with the wrong number of holders:
+    /// two writers held one checkpoint lock at once, a writer took a live writer's lock, or
+    /// neither of two writers got a free lock (exit 5).
+    LockHolders,
 }
 
 impl Outcome {
     /// Every outcome, in report order.
-    pub const ALL: [Outcome; 7] = [
+    pub const ALL: [Outcome; 8] = [
         Outcome::Ok,
         Outcome::Err,
         Outcome::Panic,
@@ -41,6 +47,7 @@ impl Outcome {
         Outcome::Hang,
         Outcome::OkNonfinite,
         Outcome::Unreadable,
+        Outcome::LockHolders,
     ];
 
     /// The outcome's name in `fuzz.json`.
@@ -53,6 +60,7 @@ impl Outcome {
             Outcome::Hang => "hang",
             Outcome::OkNonfinite => "ok_nonfinite",
             Outcome::Unreadable => "unreadable",
+            Outcome::LockHolders => "lock_holders",
         }
     }
 
@@ -63,6 +71,7 @@ impl Outcome {
             Some(1) => Outcome::Err,
             Some(EXIT_NONFINITE) => Outcome::OkNonfinite,
             Some(EXIT_UNREADABLE) => Outcome::Unreadable,
+            Some(EXIT_LOCK_HOLDERS) => Outcome::LockHolders,
             Some(101) => Outcome::Panic,
             _ => Outcome::Abort,
         }
@@ -76,7 +85,7 @@ impl Outcome {
 
 /// Cases per outcome.
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
-pub struct Counts([usize; 7]);
+pub struct Counts([usize; 8]);
 
 impl Counts {
     /// Counts one case.

@@ -26,16 +26,20 @@ pub enum Loaded {
     NonFinite(String),
     /// Loaded, and a file the case's writer then committed was refused by its own loader.
     Unreadable(String),
+    /// A lock race ended with the wrong number of holders (what each racer got).
+    LockHolders(String),
 }
 
 impl Loaded {
-    /// The exit code of a child whose case ended so (0 finite, 3 non-finite, 4 unreadable; see
+    /// The exit code of a child whose case ended so (0 finite, 3 non-finite, 4 unreadable, 5 the
+    /// wrong lock holders; see
     /// [`Outcome::from_exit_code`](crate::Outcome::from_exit_code)).
     pub fn exit_code(&self) -> i32 {
         match self {
             Loaded::Finite => 0,
             Loaded::NonFinite(_) => crate::report::EXIT_NONFINITE,
             Loaded::Unreadable(_) => crate::report::EXIT_UNREADABLE,
+            Loaded::LockHolders(_) => crate::report::EXIT_LOCK_HOLDERS,
         }
     }
 }
@@ -134,9 +138,97 @@ pub(crate) fn write_seeds(target: Target, dir: &Path) -> Result<Vec<PathBuf>> {
             }
             out.push(d);
         }
+        Target::DiffusionPolicy => {
+            let d = seed_dir(0)?;
+            for (name, bytes) in DP_FILES {
+                std::fs::write(d.join(name), bytes)?;
+            }
+            out.push(d);
+        }
+        Target::Beso => {
+            // Each fixture as a run directory; two of them again with `scale_data: true` and a
+            // `scaler.json` of their widths.
+            for (k, (yaml, weights)) in BESO_RUNS.iter().enumerate() {
+                let d = seed_dir(k)?;
+                std::fs::write(d.join(BESO_CONFIG), yaml)?;
+                std::fs::write(d.join(vdd_import::BESO_WEIGHTS_FILE), weights)?;
+                out.push(d);
+            }
+            for (k, &(yaml, weights)) in [BESO_RUNS[0], BESO_RUNS[3]].iter().enumerate() {
+                let d = seed_dir(BESO_RUNS.len() + k)?;
+                std::fs::write(
+                    d.join(BESO_CONFIG),
+                    yaml.replace("scale_data: false", "scale_data: true"),
+                )?;
+                std::fs::write(d.join(vdd_import::BESO_WEIGHTS_FILE), weights)?;
+                let cfg = vdd_import::beso_config_from_yaml(&d.join(BESO_CONFIG), yaml, None)?;
+                let (od, ad) = (cfg.obs_dim(), cfg.action_dim());
+                let row = |n: usize, x: f64| (0..n).map(|i| x + 0.1 * i as f64).collect::<Vec<_>>();
+                let scaler = serde_json::json!({
+                    "scale_data": true,
+                    "x_mean": row(od, -0.2),
+                    "x_std": row(od, 0.5),
+                    "y_mean": row(ad, 0.1),
+                    "y_std": row(ad, 0.8),
+                    "y_bounds": [row(ad, -3.0), row(ad, 3.0)],
+                });
+                std::fs::write(d.join(vdd_import::BESO_SCALER_FILE), scaler.to_string())?;
+                out.push(d);
+            }
+        }
+        Target::Lock => {
+            // A fresh directory (created by the racers), and one with a stale `LOCK` left by a
+            // writer that is gone.
+            out.push(seed_dir(0)?);
+            let d = seed_dir(1)?;
+            std::fs::create_dir_all(d.join(LOCK_ROOT))?;
+            std::fs::write(d.join(LOCK_ROOT).join("LOCK"), format!("{} 1\n", u32::MAX - 1))?;
+            out.push(d);
+        }
     }
     Ok(out)
 }
+
+/// The checkpoint directory the racers of a [`Target::Lock`] case open.
+const LOCK_ROOT: &str = "ck";
+/// A file in a [`Target::Lock`] case: the case holds the lock itself while the racers race.
+const LOCK_HELD: &str = "HELD";
+
+/// The hydra config of a BESO seed run.
+const BESO_CONFIG: &str = "config.yaml";
+
+/// The BESO/D3IL seed runs: each fixture's hydra config and converted state dict
+/// (`tests/fixtures/import/beso_*`).
+const BESO_RUNS: [(&str, &[u8]); 4] = {
+    macro_rules! fixture {
+        ($name:literal) => {
+            (
+                include_str!(concat!("../../../tests/fixtures/import/", $name, ".yaml")),
+                include_bytes!(concat!("../../../tests/fixtures/import/", $name, ".safetensors"))
+                    as &[u8],
+            )
+        };
+    }
+    [
+        fixture!("beso_gpt"),
+        fixture!("beso_gpt_goal"),
+        fixture!("beso_resmlp"),
+        fixture!("beso_resmlp_sin"),
+    ]
+};
+
+/// The diffusion_policy seed: `tests/fixtures/import/diffusion_policy_unet` as
+/// `scripts/import/diffusion_policy_ckpt.py` writes it (a DDPM 1-D U-Net).
+const DP_FILES: [(&str, &[u8]); 2] = [
+    (
+        "config.json",
+        include_bytes!("../../../tests/fixtures/import/diffusion_policy_unet/config.json"),
+    ),
+    (
+        "model.safetensors",
+        include_bytes!("../../../tests/fixtures/import/diffusion_policy_unet/model.safetensors"),
+    ),
+];
 
 /// The LeRobot seed policy: the files of `tests/fixtures/import/lerobot_unet_ddpm` the
 /// importer reads (a DDPM 1-D U-Net, its config and its processors' JSON and statistics).
@@ -289,6 +381,7 @@ fn mutate_case(target: Target, case: &Path, rng: &mut Rng) -> Result {
         Target::Moe => edit("policy.safetensors", &mut |b| mutate::safetensors(rng, b)),
         Target::Teacher => edit("teacher.safetensors", &mut |b| mutate::safetensors(rng, b)),
         Target::Checkpoint if case.join(LATEST).is_file() => pointer_or_lock(case, rng),
+        Target::Lock => lock_edit(case, rng),
         Target::Checkpoint if rng.random() => {
             edit("trainer.json", &mut |b| mutate::json_file(rng, b))
         }
@@ -302,6 +395,25 @@ fn mutate_case(target: Target, case: &Path, rng: &mut Rng) -> Result {
                 edit(name, &mut |b| mutate::json_file(rng, b))
             } else {
                 edit(name, &mut |b| mutate::safetensors(rng, b))
+            }
+        }
+        Target::DiffusionPolicy => match rng.random_range(0..10) {
+            0 => edit("config.json", &mut |b| mutate::json_deep(rng, b)),
+            1..=6 => edit("config.json", &mut |b| mutate::json_file(rng, b)),
+            _ => edit("model.safetensors", &mut |b| mutate::safetensors(rng, b)),
+        },
+        Target::Beso => {
+            let scaler = vdd_import::BESO_SCALER_FILE;
+            let has_scaler = case.join(scaler).is_file();
+            match rng.random_range(0..10) {
+                0 if has_scaler && rng.random() => edit(scaler, &mut |b| mutate::json_deep(rng, b)),
+                0 => edit(BESO_CONFIG, &mut |b| mutate::yaml_deep(rng, b)),
+                1..=2 if has_scaler => edit(scaler, &mut |b| mutate::json_file(rng, b)),
+                1..=6 => edit(BESO_CONFIG, &mut |b| mutate::yaml_file(rng, b)),
+                _ => {
+                    let weights = vdd_import::BESO_WEIGHTS_FILE;
+                    edit(weights, &mut |b| mutate::safetensors(rng, b))
+                }
             }
         }
     }
@@ -338,6 +450,48 @@ fn pointer_or_lock(case: &Path, rng: &mut Rng) -> Result {
         }
         7 => std::fs::write(&lock, format!("{} 1\n", u32::MAX - 1))?,
         _ => std::fs::File::create(&lock)?.set_len(1 << 28)?,
+    }
+    Ok(())
+}
+
+/// Edits the directory a lock race opens: as the seed, a garbage, empty, huge or live-looking
+/// `LOCK`, a `LOCK` that is a directory or a symlink, the directory a file, or the lock held
+/// by the case itself ([`LOCK_HELD`]).
+fn lock_edit(case: &Path, rng: &mut Rng) -> Result {
+    let root = case.join(LOCK_ROOT);
+    let lock = root.join("LOCK");
+    let dir = || std::fs::create_dir_all(&root);
+    match rng.random_range(0..10) {
+        0..=2 => {}
+        3 => {
+            dir()?;
+            let mut b: Vec<u8> = (0..rng.random_range(0..64)).map(|_| rng.random()).collect();
+            mutate::bytes(rng, &mut b);
+            std::fs::write(&lock, b)?
+        }
+        // An owner that is alive (pid 1) but holds no lock.
+        4 => {
+            dir()?;
+            std::fs::write(&lock, "1 1\n")?
+        }
+        5 => {
+            dir()?;
+            std::fs::File::create(&lock)?.set_len(1 << 28)?
+        }
+        6 | 7 => std::fs::write(case.join(LOCK_HELD), "")?,
+        8 => {
+            dir()?;
+            let _ = std::fs::remove_file(&lock);
+            match rng.random_range(0..3) {
+                0 => std::fs::create_dir(&lock)?,
+                1 => std::os::unix::fs::symlink(case.join("elsewhere"), &lock)?,
+                _ => std::os::unix::fs::symlink(&root, &lock)?,
+            }
+        }
+        _ => {
+            let _ = std::fs::remove_dir_all(&root);
+            std::fs::write(&root, "not a directory")?
+        }
     }
     Ok(())
 }
@@ -454,8 +608,12 @@ pub(crate) fn run_case(
             outputs.extend(student.act(&[0.0])?);
         }
         Target::Recipe => check_recipe(&case.join("recipe.toml"))?,
-        Target::Lerobot => {
-            let imported = vdd_import::import_lerobot(case)?;
+        Target::Lock => return race(case),
+        Target::Lerobot | Target::DiffusionPolicy => {
+            let imported = match target {
+                Target::Lerobot => vdd_import::import_lerobot(case)?,
+                _ => vdd_import::import_diffusion_policy(case)?,
+            };
             // The round trip: whatever the importer's output the writer commits, the loader
             // accepts (a refusal is no clean error but a broken file).
             let file = case.join("teacher.safetensors");
@@ -464,20 +622,78 @@ pub(crate) fn run_case(
                 Ok(t) => t,
                 Err(e) => return Ok(Loaded::Unreadable(format!("{}: {e}", file.display()))),
             };
-            let (ds, da) = (ScoreModel::state_dim(&t), ScoreModel::action_dim(&t));
-            let n = 2;
-            let mut levels = vec![0.0; n];
-            let mut rng = Seeds::new(0).stream("levels");
-            t.draw_noise_levels(&NoiseSchedule::Fixed { level: 0.5 }, 0.5, &mut rng, &mut levels);
-            let a = Mat::from_fn(n, da, |i, j| (i + j) as f32 * 0.02 - 0.3);
-            let s = Mat::from_fn(n, ds, |i, j| (i * j) as f32 * 0.01);
-            let mut out = Mat::zeros(n, da);
-            t.score(a.as_ref(), s.as_ref(), &levels, out.as_mut())?;
-            outputs.extend((0..n).flat_map(|i| (0..da).map(move |j| (i, j))).map(|ij| out[ij]));
+            score_outputs(&mut t, &mut outputs)?;
+        }
+        Target::Beso => {
+            let imported = vdd_import::import_beso_run(case)?;
+            let file = case.join("teacher.safetensors");
+            imported.save(&file)?;
+            let mut t = match vdd_import::BesoTeacher::load(&file) {
+                Ok(t) => t,
+                Err(e) => return Ok(Loaded::Unreadable(format!("{}: {e}", file.display()))),
+            };
+            score_outputs(&mut t, &mut outputs)?;
+            let s = Mat::from_fn(2, ScoreModel::state_dim(&t), |i, j| (i + j) as f32 * 0.1 - 0.2);
+            let mut a = Mat::zeros(2, ScoreModel::action_dim(&t));
+            t.sample_actions(s.as_ref(), &mut Seeds::new(0).stream("sample"), a.as_mut())?;
+            outputs
+                .extend((0..2).flat_map(|i| (0..a.ncols()).map(move |j| (i, j))).map(|ij| a[ij]));
         }
     }
     Ok(match outputs.iter().position(|v| !v.is_finite()) {
         Some(i) => Loaded::NonFinite(format!("output {i} is {}", outputs[i])),
         None => Loaded::Finite,
     })
+}
+
+/// One lock race in the case directory `case` (see [`Target::Lock`]): two processes open its
+/// checkpoint directory at the same instant, while the case holds the lock when it says so.
+fn race(case: &Path) -> Result<Loaded> {
+    use vdd_nn::checkpoint::{CheckpointDir, RaceResult, Racers};
+    let root = case.join(LOCK_ROOT);
+    let holder = match case.join(LOCK_HELD).exists() {
+        true => Some(CheckpointDir::open(&root)?),
+        false => None,
+    };
+    // Whether the lock can be had: the directory new or a directory, its `LOCK` absent or a
+    // regular file (never followed if a symlink).
+    let kind = |p: &Path| std::fs::symlink_metadata(p).map(|m| m.file_type());
+    let usable = kind(&root).map_or(true, |t| t.is_dir())
+        && kind(&root.join("LOCK")).map_or(true, |t| t.is_file());
+    let got = vdd_nn::checkpoint::race_open(&root, Racers::Processes)?;
+    let held = got.iter().filter(|r| **r == RaceResult::Held).count();
+    let locked = got.iter().filter(|r| **r == RaceResult::Locked).count();
+    let wrong = match (usable, &holder) {
+        _ if held > 1 => Some("both writers held the lock"),
+        (false, _) if held > 0 => Some("a writer took a lock that is no regular file"),
+        (true, Some(_)) if locked < 2 => Some("a writer did not find the live writer's lock"),
+        (true, None) if (held, locked) != (1, 1) => Some("not one holder of a free lock"),
+        _ => None,
+    };
+    if let Some(what) = wrong {
+        return Ok(Loaded::LockHolders(format!("{what}: {got:?}")));
+    }
+    drop(holder);
+    match got.iter().find_map(|r| match r {
+        RaceResult::Failed(e) => Some(e.clone()),
+        _ => None,
+    }) {
+        Some(e) => Err(e.into()),
+        None => Ok(Loaded::Finite),
+    }
+}
+
+/// Scores two rows of an imported teacher at a noise level it draws, into `outputs`.
+fn score_outputs(t: &mut dyn ScoreModel, outputs: &mut Vec<f32>) -> Result {
+    let (ds, da) = (t.state_dim(), t.action_dim());
+    let n = 2;
+    let mut levels = vec![0.0; n];
+    let mut rng = Seeds::new(0).stream("levels");
+    t.draw_noise_levels(&NoiseSchedule::Fixed { level: 0.5 }, 0.5, &mut rng, &mut levels);
+    let a = Mat::from_fn(n, da, |i, j| (i + j) as f32 * 0.02 - 0.3);
+    let s = Mat::from_fn(n, ds, |i, j| (i * j) as f32 * 0.01);
+    let mut out = Mat::zeros(n, da);
+    t.score(a.as_ref(), s.as_ref(), &levels, out.as_mut())?;
+    outputs.extend((0..n).flat_map(|i| (0..da).map(move |j| (i, j))).map(|ij| out[ij]));
+    Ok(())
 }

@@ -27,7 +27,7 @@ fn files(dir: &Path) -> Vec<(std::ffi::OsString, Vec<u8>)> {
 #[test]
 fn mutations_are_deterministic_for_a_seed() {
     let dir = scratch("determinism");
-    for target in [Target::Npz, Target::Moe, Target::Recipe, Target::Lerobot] {
+    for target in [Target::Npz, Target::Moe, Target::Recipe, Target::Lerobot, Target::Beso] {
         let seeds = crate::write_seeds(target, &dir.join(target.name())).unwrap();
         let original: Vec<_> = seeds.iter().map(|s| files(s)).collect();
         let case = |seed, k| {
@@ -88,6 +88,9 @@ fn names_parse_and_exit_codes_classify() {
     let unreadable = Loaded::Unreadable("teacher.safetensors: bad spec".into()).exit_code();
     assert_eq!(Outcome::from_exit_code(Some(unreadable)), Outcome::Unreadable);
     assert!(Outcome::Unreadable.is_failure());
+    let holders = Loaded::LockHolders("both writers held the lock".into()).exit_code();
+    assert_eq!(Outcome::from_exit_code(Some(holders)), Outcome::LockHolders);
+    assert!(Outcome::LockHolders.is_failure());
     assert_eq!(Outcome::from_exit_code(None), Outcome::Abort);
     let mut c = crate::Counts::default();
     for o in [Outcome::Ok, Outcome::Err, Outcome::Hang] {
@@ -139,5 +142,74 @@ fn a_fifo_or_a_symlink_to_dev_zero_or_a_directory_is_a_clean_error() {
         }
     }
     assert_eq!(seen, [true; 3], "FIFO, /dev/zero, directory");
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+#[test]
+fn importer_configs_nested_100000_deep_are_clean_errors() {
+    let dir = scratch("deep");
+    let deep_json = ["[".repeat(100_000), "{\"a\": ".repeat(100_000) + "1"];
+    let dp = crate::write_seeds(Target::DiffusionPolicy, &dir.join("dp")).unwrap();
+    for text in &deep_json {
+        std::fs::write(dp[0].join("config.json"), text).unwrap();
+        let e = crate::run_case(Target::DiffusionPolicy, &dp[0], |_| Ok(())).unwrap_err();
+        assert!(format!("{e:?}").contains("nesting"), "{e:?}");
+    }
+    let beso = crate::write_seeds(Target::Beso, &dir.join("beso")).unwrap();
+    let with_scaler = beso.iter().find(|s| s.join(vdd_import::BESO_SCALER_FILE).is_file()).unwrap();
+    let yaml = std::fs::read_to_string(with_scaler.join("config.yaml")).unwrap();
+    let deep_yaml = [
+        format!("deep: {}1{}\n{yaml}", "[".repeat(100_000), "]".repeat(100_000)),
+        format!("{}x\n", "- ".repeat(100_000)),
+        yaml.replace("sigma_data: 0.5", &format!("sigma_data: {}", "{a: ".repeat(100_000))),
+    ];
+    for text in &deep_yaml {
+        std::fs::write(with_scaler.join("config.yaml"), text).unwrap();
+        let e = crate::run_case(Target::Beso, with_scaler, |_| Ok(())).unwrap_err();
+        assert!(format!("{e:?}").contains("nesting"), "{e:?}");
+    }
+    std::fs::write(with_scaler.join("config.yaml"), &yaml).unwrap();
+    for text in &deep_json {
+        std::fs::write(with_scaler.join(vdd_import::BESO_SCALER_FILE), text).unwrap();
+        let e = crate::run_case(Target::Beso, with_scaler, |_| Ok(())).unwrap_err();
+        assert!(format!("{e:?}").contains("nesting"), "{e:?}");
+    }
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+#[test]
+fn a_lock_race_has_one_holder_none_under_a_live_writer_and_refuses_a_bad_lock() {
+    let dir = scratch("lock");
+    let seeds = crate::write_seeds(Target::Lock, &dir).unwrap();
+    for s in &seeds {
+        for _ in 0..3 {
+            assert_eq!(crate::run_case(Target::Lock, s, |_| Ok(())).unwrap(), Loaded::Finite);
+        }
+        std::fs::write(s.join("HELD"), "").unwrap();
+        assert_eq!(crate::run_case(Target::Lock, s, |_| Ok(())).unwrap(), Loaded::Finite);
+        std::fs::remove_file(s.join("HELD")).unwrap();
+    }
+    // The holder removed the stale `LOCK` as it let go; a directory in its place.
+    let lock = seeds[1].join("ck").join("LOCK");
+    assert!(!lock.exists());
+    std::fs::create_dir(&lock).unwrap();
+    let e = crate::run_case(Target::Lock, &seeds[1], |_| Ok(())).unwrap_err();
+    assert!(format!("{e:?}").contains("LOCK"), "{e:?}");
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+/// Cases of the acceptance campaign (`fuzz all --cases 20000 --seed 7`) that once failed,
+/// replayed: each is now a clean error.
+#[test]
+fn cases_the_acceptance_campaign_found_are_clean_errors() {
+    let dir = scratch("found");
+    // A BESO `sigma_data` of 2^64 − 1: σ_d² overflowed f32 and every score was NaN.
+    let seeds = crate::write_seeds(Target::Beso, &dir.join("beso")).unwrap();
+    for case in [1084, 2379, 19183] {
+        let d = dir.join(format!("beso-{case}"));
+        crate::prepare_case(Target::Beso, &seeds, 7, case, &d).unwrap();
+        let e = crate::run_case(Target::Beso, &d, |_| Ok(())).unwrap_err();
+        assert!(format!("{e:?}").contains("sigma_data"), "case {case}: {e:?}");
+    }
     let _ = std::fs::remove_dir_all(&dir);
 }

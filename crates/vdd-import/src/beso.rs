@@ -96,11 +96,13 @@ impl BesoTeacherConfig {
         if let Err(r) = sizes {
             return bad(format!("network `{}` = {}: {}", r.key, r.value, r.reason));
         }
-        let finite_pos = |x: f32| x.is_finite() && x > 0.0;
-        let ordered = self.sigma_max.is_finite() && self.sigma_max > self.sigma_min;
-        if !(finite_pos(self.sigma_data) && finite_pos(self.sigma_min) && ordered) {
+        // The bounds of the preconditioning and of the noise range keep σ², σ_d² and 1/σ²
+        // finite in f32: a σ_d of 1.8e19 would make every score NaN.
+        let noise = Preconditioning::new(self.sigma_data)
+            .and_then(|_| vdd_diffusion::check_sigma_range(self.sigma_min, self.sigma_max));
+        if let Err(e) = noise {
             return bad(format!(
-                "sigma_data {}, sigma_min {}, sigma_max {} must be positive and ordered",
+                "sigma_data {}, sigma_min {}, sigma_max {}: {e}",
                 self.sigma_data, self.sigma_min, self.sigma_max
             ));
         }

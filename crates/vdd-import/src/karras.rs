@@ -46,10 +46,13 @@ impl SigmaSchedule {
     /// assert!((s[1] - 0.7).abs() < 1e-6 && s[4] == 0.0);
     /// ```
     pub fn sigmas(self, n: usize, sigma_min: f32, sigma_max: f32) -> Result<Vec<f32>, BesoError> {
-        let ok = n > 0 && n <= 100_000 && sigma_min > 0.0 && sigma_min < sigma_max;
-        if !(ok && sigma_max.is_finite()) {
+        let range = vdd_diffusion::check_sigma_range(sigma_min, sigma_max);
+        if n == 0 || n > 100_000 || range.is_err() {
             return Err(BesoError::Core(vdd_core::CoreError::Config(format!(
-                "σ schedule needs n > 0 and 0 < σ_min < σ_max, got n = {n}, [{sigma_min}, {sigma_max}]"
+                "σ schedule needs n > 0 and {} ≤ σ_min < σ_max ≤ {}, got n = {n}, \
+                 [{sigma_min}, {sigma_max}]",
+                vdd_diffusion::MIN_SIGMA,
+                vdd_diffusion::MAX_SIGMA
             ))));
         }
         let mut s = match self {

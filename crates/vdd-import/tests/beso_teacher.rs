@@ -92,6 +92,16 @@ fn malformed_configs_are_refused_naming_the_key() {
     assert!(e.contains("scaler.json"), "{e}");
     let e = config_error("agents: [1, 2");
     assert!(e.contains("malformed YAML"), "{e}");
+    // Noise scales whose squares leave f32 (found by the fuzzer: σ_d = 2^64 − 1 imported, and
+    // every score was NaN): refused, naming the value.
+    for (from, to, key) in [
+        ("sigma_data: 0.5\n    inner", "sigma_data: 18446744073709551615\n    inner", "sigma_data"),
+        ("sigma_min: 0.1", "sigma_min: 1e-45", "sigma_min"),
+        ("sigma_max: 1.0", "sigma_max: 1e25", "sigma_max"),
+    ] {
+        let e = config_error(&y.replacen(from, to, 1));
+        assert!(e.contains(&format!("{key} must lie in")) || e.contains("<= sigma_min <"), "{e}");
+    }
 }
 
 #[test]

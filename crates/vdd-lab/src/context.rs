@@ -100,9 +100,10 @@ const MAX_RESOLVED_BYTES: u64 = 16 << 20;
 /// Checks, before anything is written, that `dir` may receive a run of recipe `recipe`: it
 /// must not exist yet, be an empty directory, or be a previous run of the same recipe (a
 /// directory whose `resolved.toml` starts with [`run::resolved_header`]'s line for `recipe`).
-/// Anything else is refused with an error naming it: a symlink (whatever it points to; the
-/// path itself is checked with [`std::fs::symlink_metadata`]), a file, a special file, a
-/// non-empty directory that is not a run of this recipe.
+/// Anything else is refused with an error naming it: a path through a symlink (the directory
+/// itself or any component of `dir` as given, whatever it points to; each is checked with
+/// [`std::fs::symlink_metadata`], so `LINK/run` with `LINK -> /` is refused as `LINK` is), a
+/// file, a special file, a non-empty directory that is not a run of this recipe.
 ///
 /// ```
 /// let dir = std::env::temp_dir().join(format!("vdd-lab-run-dir-doc-{}", std::process::id()));
@@ -127,14 +128,33 @@ pub fn check_run_dir(dir: &Path, recipe: &str) -> crate::Result {
         context: format!("checking the run directory {}", dir.display()),
         source: Box::new(source.into()),
     };
+    // Every component of the path as given, from its first: none may be a symbolic link, or
+    // the run would land wherever the link points (`LINK/run` with LINK -> /).
+    let mut prefix = PathBuf::new();
+    for component in dir.components() {
+        prefix.push(component);
+        match std::fs::symlink_metadata(&prefix) {
+            Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(()),
+            Err(e) => return Err(context(e)),
+            Ok(m) if m.file_type().is_symlink() && prefix.as_path() == dir => {
+                return refuse("it is a symbolic link");
+            }
+            Ok(m) if m.file_type().is_symlink() => {
+                let to = std::fs::read_link(&prefix).map(|t| t.display().to_string());
+                return refuse(&format!(
+                    "{} on its path is a symbolic link (to {}); give the path without links",
+                    prefix.display(),
+                    to.unwrap_or_else(|e| e.to_string())
+                ));
+            }
+            Ok(_) => {}
+        }
+    }
     let meta = match std::fs::symlink_metadata(dir) {
         Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(()),
         Err(e) => return Err(context(e)),
         Ok(m) => m,
     };
-    if meta.file_type().is_symlink() {
-        return refuse("it is a symbolic link");
-    }
     if !meta.is_dir() {
         return refuse("it is not a directory");
     }

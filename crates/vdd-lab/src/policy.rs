@@ -19,6 +19,48 @@ pub enum TrainedPolicy {
     Consistency(Box<ConsistencyModel>),
     /// A consistency trajectory model (CTM).
     Trajectory(Box<TrajectoryModel>),
+    /// Any other policy: a method of its own (in this crate or outside it) returns its policy
+    /// type here without a new variant ([`AnyPolicy`]).
+    Other(Box<dyn AnyPolicy>),
+}
+
+/// A policy that [`TrainedPolicy::Other`] can hold: every [`Policy`] that is `Clone`,
+/// `Debug`, `Send` and `'static` is one.
+///
+/// ```
+/// use vdd_lab::policy::TrainedPolicy;
+/// use vdd_core::Policy;
+///
+/// #[derive(Debug, Clone)]
+/// struct Still;
+/// impl Policy for Still {
+///     fn obs_dim(&self) -> usize { 2 }
+///     fn action_dim(&self) -> usize { 2 }
+///     fn act_into(&mut self, _obs: &[f32], a: &mut [f32]) -> vdd_core::Result<()> {
+///         a.fill(0.0);
+///         Ok(())
+///     }
+/// }
+/// let mut p = TrainedPolicy::Other(Box::new(Still));
+/// assert_eq!(p.clone().act(&[0.5, 0.5])?, vec![0.0, 0.0]);
+/// # Ok::<(), vdd_core::CoreError>(())
+/// ```
+pub trait AnyPolicy: Policy + std::fmt::Debug + Send {
+    /// A boxed copy.
+    fn clone_box(&self) -> Box<dyn AnyPolicy>;
+}
+
+impl<T: Policy + std::fmt::Debug + Clone + Send + 'static> AnyPolicy for T {
+    fn clone_box(&self) -> Box<dyn AnyPolicy> {
+        Box::new(self.clone())
+    }
+}
+
+impl Clone for Box<dyn AnyPolicy> {
+    fn clone(&self) -> Self {
+        // On the policy inside: the box is itself an `AnyPolicy`.
+        (**self).clone_box()
+    }
 }
 
 macro_rules! each {
@@ -28,6 +70,7 @@ macro_rules! each {
             TrainedPolicy::Moe($p) => $e,
             TrainedPolicy::Consistency($p) => $e,
             TrainedPolicy::Trajectory($p) => $e,
+            TrainedPolicy::Other($p) => $e,
         }
     };
 }

@@ -49,6 +49,30 @@ fn a_symlinked_out_is_refused_before_anything_is_written() {
     std::fs::remove_dir_all(root).unwrap();
 }
 
+/// `--out LINK/run` with LINK a symlink to `/` (here a stand-in): the link is a parent of the
+/// run directory, which does not exist yet. Before, the check looked at the last component
+/// only, found nothing there, and the run was written through the link.
+#[test]
+fn an_out_through_a_symlinked_parent_is_refused_naming_the_link() {
+    let root = temp_dir("parent-link");
+    let target = root.join("target"); // stands for `/`
+    std::fs::create_dir_all(&target).unwrap();
+    let link = root.join("LINK");
+    std::os::unix::fs::symlink(&target, &link).unwrap();
+    for out in [link.join("run"), link.join("deeper").join("run"), link.join("..").join("run")] {
+        let e = run_into(&root, &out).unwrap_err().to_string();
+        assert!(e.contains(&link.display().to_string()) && e.contains("symbolic link"), "{e}");
+        assert!(e.contains(&out.display().to_string()), "{e}");
+        assert_eq!(entries(&target), 0, "nothing written through the link");
+    }
+    // A trailing slash does not hide the link either.
+    let slash = std::path::PathBuf::from(format!("{}/", link.display()));
+    assert!(check_run_dir(&slash, "toy-gmm").is_err());
+    // Below a real directory, a new run directory is fine.
+    assert!(check_run_dir(&target.join("run"), "toy-gmm").is_ok());
+    std::fs::remove_dir_all(root).unwrap();
+}
+
 #[test]
 fn a_foreign_non_empty_directory_or_a_file_is_refused() {
     let root = temp_dir("foreign");

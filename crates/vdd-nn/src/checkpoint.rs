@@ -191,6 +191,199 @@ impl Drop for CheckpointDir {
     }
 }
 
+/// How the two writers of [`race_open`] run.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Racers {
+    /// Two threads of this process, each opening the directory itself: an `flock` belongs to
+    /// an open file description, so two opens compete as two processes do.
+    Threads,
+    /// Two processes forked from this one (Unix only).
+    Processes,
+}
+
+/// What one writer of [`race_open`] got from [`CheckpointDir::open`].
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub enum RaceResult {
+    /// It held the lock (kept until both writers had tried).
+    Held,
+    /// It was refused because another writer holds the lock ([`NnError::Locked`]).
+    Locked,
+    /// Any other error, as its message (a `LOCK` that is not a regular file, a racer process
+    /// that died).
+    Failed(String),
+}
+
+impl RaceResult {
+    fn of(r: &Result<CheckpointDir, NnError>) -> Self {
+        match r {
+            Ok(_) => RaceResult::Held,
+            Err(NnError::Locked { .. }) => RaceResult::Locked,
+            Err(e) => RaceResult::Failed(e.to_string()),
+        }
+    }
+}
+
+/// Two writers calling [`CheckpointDir::open`] on `root` at the same instant (released
+/// together: from one barrier as threads, by one pipe closed under both as processes), each
+/// keeping what it got until both have tried; returns what each got. On any directory at most
+/// one of them may hold the lock, and on a directory nobody else holds one of them must.
+///
+/// The error is the race's own (a thread or a process could not be started). Process races
+/// run one at a time in a process (a lock serialises them).
+///
+/// ```
+/// use vdd_nn::checkpoint::{RaceResult, Racers, race_open};
+/// let root = std::env::temp_dir().join(format!("vdd-ck-race-doc-{}", std::process::id()));
+/// let got = race_open(&root, Racers::Threads)?;
+/// assert_eq!(got.iter().filter(|r| **r == RaceResult::Held).count(), 1);
+/// assert!(got.contains(&RaceResult::Locked));
+/// std::fs::remove_dir_all(&root)?;
+/// # Ok::<(), Box<dyn std::error::Error>>(())
+/// ```
+pub fn race_open(root: &Path, racers: Racers) -> Result<[RaceResult; 2], NnError> {
+    match racers {
+        Racers::Threads => race_threads(root),
+        Racers::Processes => race_processes(root),
+    }
+}
+
+fn race_threads(root: &Path) -> Result<[RaceResult; 2], NnError> {
+    use std::sync::Barrier;
+    let (start, done) = (Barrier::new(2), Barrier::new(2));
+    let racer = || {
+        start.wait();
+        let held = CheckpointDir::open(root);
+        let got = RaceResult::of(&held);
+        // Hold it until both have tried.
+        done.wait();
+        got
+    };
+    std::thread::scope(|s| {
+        // One racer on a thread of its own, the other on this one: a racer that could not be
+        // started never leaves the other waiting at the barrier.
+        let a = std::thread::Builder::new().name("racer".into());
+        let a = a.spawn_scoped(s, racer).map_err(io(root))?;
+        let b = racer();
+        let a = a.join().unwrap_or_else(|_| RaceResult::Failed("the racer thread panicked".into()));
+        Ok([a, b])
+    })
+}
+
+#[cfg(unix)]
+fn race_processes(root: &Path) -> Result<[RaceResult; 2], NnError> {
+    use std::os::fd::{AsRawFd, FromRawFd, OwnedFd};
+    static ONE_AT_A_TIME: std::sync::Mutex<()> = std::sync::Mutex::new(());
+    let _one = ONE_AT_A_TIME.lock().unwrap_or_else(|e| e.into_inner());
+    let pipe = || -> Result<(File, File), NnError> {
+        let mut fds = [0; 2];
+        // SAFETY: pipe2 writes two new descriptors into `fds`, which we then own.
+        if unsafe { libc::pipe2(fds.as_mut_ptr(), libc::O_CLOEXEC) } != 0 {
+            return Err(io(root)(std::io::Error::last_os_error()));
+        }
+        // SAFETY: both descriptors are open and owned by nothing else.
+        Ok(unsafe {
+            (File::from(OwnedFd::from_raw_fd(fds[0])), File::from(OwnedFd::from_raw_fd(fds[1])))
+        })
+    };
+    // `go` starts both racers (its write end closed), `done` releases them after both have
+    // reported through their own `report` pipe.
+    let (go, done) = (pipe()?, pipe()?);
+    let reports = [pipe()?, pipe()?];
+    let mut pids = Vec::new();
+    for k in 0..2 {
+        // SAFETY: the child only closes descriptors, reads and writes pipes, opens the
+        // directory and leaves with `_exit`; it never returns into the caller.
+        match unsafe { libc::fork() } {
+            -1 => {
+                let e = std::io::Error::last_os_error();
+                drop((go, done));
+                for pid in pids {
+                    wait_child(pid);
+                }
+                return Err(io(root)(e));
+            }
+            0 => {
+                let code = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
+                    let fd = |f: &File| f.as_raw_fd();
+                    // Only this racer's report end stays open in it, or the parent would wait
+                    // for the other racer's end to close.
+                    for f in [&go.1, &done.1, &reports[0].0, &reports[1].0, &reports[1 - k].1] {
+                        // SAFETY: closing this process's copy of a descriptor it never uses
+                        // again (the `File`s are never dropped here: the process `_exit`s).
+                        unsafe { libc::close(fd(f)) };
+                    }
+                    let _ = (&go.0).read(&mut [0]);
+                    let held = CheckpointDir::open(root);
+                    let report = match RaceResult::of(&held) {
+                        RaceResult::Held => "H".to_owned(),
+                        RaceResult::Locked => "L".to_owned(),
+                        RaceResult::Failed(e) => format!("F{e}"),
+                    };
+                    let _ = (&reports[k].1).write_all(report.as_bytes());
+                    // SAFETY: as above; the parent reads the report to its end.
+                    unsafe { libc::close(fd(&reports[k].1)) };
+                    let _ = (&done.0).read(&mut [0]);
+                    drop(held);
+                }));
+                // SAFETY: leaves the forked process at once, running no destructor or handler
+                // of the state it copied from its parent.
+                unsafe { libc::_exit(if code.is_ok() { 0 } else { 101 }) }
+            }
+            pid => pids.push(pid),
+        }
+    }
+    let [(r0, w0), (r1, w1)] = reports;
+    drop((go.0, done.0, w0, w1));
+    drop(go.1);
+    let mut got = [r0, r1].map(|mut r| {
+        let mut text = String::new();
+        match r.read_to_string(&mut text) {
+            Ok(_) => match text.split_at_checked(1) {
+                Some(("H", _)) => RaceResult::Held,
+                Some(("L", _)) => RaceResult::Locked,
+                Some(("F", e)) => RaceResult::Failed(e.to_owned()),
+                _ => RaceResult::Failed("the racer process reported nothing".into()),
+            },
+            Err(e) => RaceResult::Failed(format!("reading the racer's report: {e}")),
+        }
+    });
+    drop(done.1);
+    for (k, pid) in pids.into_iter().enumerate() {
+        if let Some(status) = wait_child(pid).filter(|&s| s != 0) {
+            if !matches!(got[k], RaceResult::Failed(_)) {
+                got[k] =
+                    RaceResult::Failed(format!("the racer process ended with status {status}"));
+            }
+        }
+    }
+    Ok(got)
+}
+
+/// Waits for the child `pid`: its wait status, `None` when it could not be collected.
+#[cfg(unix)]
+fn wait_child(pid: libc::pid_t) -> Option<i32> {
+    let mut status = 0;
+    loop {
+        // SAFETY: waits for our own child and writes its status into `status`.
+        let r = unsafe { libc::waitpid(pid, &mut status, 0) };
+        if r == pid {
+            return Some(status);
+        }
+        if r == -1 && std::io::Error::last_os_error().raw_os_error() == Some(libc::EINTR) {
+            continue;
+        }
+        return None;
+    }
+}
+
+#[cfg(not(unix))]
+fn race_processes(root: &Path) -> Result<[RaceResult; 2], NnError> {
+    Err(io(root)(std::io::Error::new(
+        std::io::ErrorKind::Unsupported,
+        "racing writer processes are forked, which needs a Unix platform",
+    )))
+}
+
 /// Opens (creating it if needed) the lock file: never following a symlink, never blocking on a
 /// FIFO, and only a regular file.
 fn open_lock_file(lock: &Path) -> Result<File, NnError> {
@@ -393,43 +586,31 @@ mod tests {
         fs::remove_dir_all(&root).unwrap();
     }
 
-    /// Two writers opening one directory at the same instant: never both hold it, on a fresh
-    /// directory and over a stale `LOCK` file. Before, both held it in about one trial in seven
-    /// (a window between `create_new` and writing the owner, a takeover renaming whatever
-    /// `LOCK` was there, and `Drop` removing the lock by path).
+    /// Two writers opening one directory at the same instant ([`race_open`]), as threads and
+    /// as processes: never both hold it, on a fresh directory and over a stale `LOCK` file.
+    /// Before, both held it in about one trial in seven (a window between `create_new` and
+    /// writing the owner, a takeover renaming whatever `LOCK` was there, and `Drop` removing
+    /// the lock by path).
     #[test]
     fn two_writers_racing_never_both_hold_the_lock() {
-        use std::sync::{Arc, Barrier};
         let root = temp("race");
-        // 200 trials each in the test suite; the acceptance campaign sets 1000.
+        // 100 trials of each kind in the test suite (each commits an fsync'ed lock); the
+        // acceptance campaign sets 1000.
         let trials = std::env::var("VDD_LOCK_RACE_TRIALS").ok().and_then(|v| v.parse().ok());
-        for stale in [false, true] {
-            for trial in 0..trials.unwrap_or(200usize) {
-                if stale {
-                    fs::create_dir_all(&root).unwrap();
-                    fs::write(root.join(LOCK), format!("{} 1\n", u32::MAX - 1)).unwrap();
+        for racers in [Racers::Threads, Racers::Processes] {
+            for stale in [false, true] {
+                for trial in 0..trials.unwrap_or(100usize) {
+                    let _ = fs::remove_dir_all(&root);
+                    if stale {
+                        fs::create_dir_all(&root).unwrap();
+                        fs::write(root.join(LOCK), format!("{} 1\n", u32::MAX - 1)).unwrap();
+                    }
+                    let got = race_open(&root, racers).unwrap();
+                    let held = got.iter().filter(|r| **r == RaceResult::Held).count();
+                    let what = format!("trial {trial} ({racers:?}, stale lock: {stale}): {got:?}");
+                    assert_eq!(held, 1, "{what}");
+                    assert!(got.contains(&RaceResult::Locked), "{what}");
                 }
-                let start = Arc::new(Barrier::new(2));
-                let done = Arc::new(Barrier::new(2));
-                let racers: Vec<_> = (0..2)
-                    .map(|_| {
-                        let (root, start, done) = (root.clone(), start.clone(), done.clone());
-                        std::thread::spawn(move || {
-                            start.wait();
-                            let held = CheckpointDir::open(&root);
-                            // Hold it until both have tried.
-                            done.wait();
-                            match held {
-                                Ok(_) => true,
-                                Err(NnError::Locked { .. }) => false,
-                                Err(e) => panic!("{e}"),
-                            }
-                        })
-                    })
-                    .collect();
-                let holders =
-                    racers.into_iter().map(|r| r.join().unwrap()).filter(|&held| held).count();
-                assert_eq!(holders, 1, "trial {trial} (stale lock: {stale})");
             }
         }
         fs::remove_dir_all(&root).unwrap();

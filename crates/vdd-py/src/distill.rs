@@ -192,7 +192,12 @@ pub fn apply_settings(
     let mut v = serde_json::to_value(&*vdd).map_err(|e| e.to_string())?;
     let mut m = serde_json::to_value(&*moe).map_err(|e| e.to_string())?;
     // Every trainer field, those left out of the serialised form when unset included.
-    let probe = VddConfig { noise_anneal_until: Some(0.0), ..vdd.clone() };
+    let probe = VddConfig {
+        noise_anneal_until: Some(0.0),
+        score_at: vdd::ScoreAt::NoisedSample,
+        state_noise: Some(vdd::StateNoise { share: 1.0, std: 1.0 }),
+        ..vdd.clone()
+    };
     let trainer_fields = serde_json::to_value(&probe).map_err(|e| e.to_string())?;
     for (key, value) in settings {
         if let Some((_, instead)) = RESERVED.iter().find(|(k, _)| k == key) {

@@ -17,6 +17,33 @@ pub enum ExpertWeighting {
     Uniform,
 }
 
+/// Where the expert step takes the teacher's score (vdd-method.md, "Beyond the paper").
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, Default)]
+#[serde(rename_all = "snake_case")]
+pub enum ScoreAt {
+    /// At the student's clean sample, at the drawn noise level (the paper). The expert step's
+    /// fixed point is the teacher blurred at that level, `π_σ`.
+    #[default]
+    CleanSample,
+    /// Noise on both sides: at the student's sample noised as the teacher's process noises
+    /// actions at that level, against the student's exact noised density
+    /// ([`crate::both_sides`]). The fixed point is the teacher itself, whatever the levels.
+    NoisedSample,
+}
+
+/// States beyond the data for the expert step: a share of each state batch perturbed by
+/// Gaussian noise, where the teacher's score labels the student as anywhere else (issue 33,
+/// "states beyond the demonstrations"). The gating step keeps the data's states.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct StateNoise {
+    /// Fraction of the batch's states perturbed, in `(0, 1]`; each state independently.
+    pub share: f32,
+    /// Standard deviation of the perturbation in the student's (normalised) state units,
+    /// finite and positive.
+    pub std: f32,
+}
+
 /// Hyper-parameters of [`crate::Vdd`]. [`VddConfig::toy`] gives the paper's toy defaults.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct VddConfig {
@@ -32,6 +59,14 @@ pub struct VddConfig {
     /// level goes from `start` to `end`; it then stays at `end`. `None`: the whole run.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub noise_anneal_until: Option<f32>,
+    /// Where the expert step takes the teacher's score: at the clean sample (the paper, the
+    /// default) or with noise on both sides.
+    #[serde(default)]
+    pub score_at: ScoreAt,
+    /// Perturbed states in the expert step's batches (`None`, the default: the data's states
+    /// only).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub state_noise: Option<StateNoise>,
     /// Weighting of the experts' objectives.
     pub expert_weighting: ExpertWeighting,
     /// Expert updates per iteration (all against the same E-step snapshot).
@@ -88,6 +123,8 @@ impl VddConfig {
             vi_samples: 64,
             noise: NoiseSchedule::Fixed { level: 0.0 },
             noise_anneal_until: None,
+            score_at: ScoreAt::CleanSample,
+            state_noise: None,
             expert_weighting: ExpertWeighting::Gating,
             expert_steps_per_iter: 1,
             gating_steps_per_iter: 1,
@@ -184,6 +221,15 @@ impl VddConfig {
             if !(f > 0.0 && f <= 1.0) {
                 return Err(CoreError::Config(format!(
                     "noise_anneal_until must be in (0, 1], got {f}"
+                )));
+            }
+        }
+        if let Some(n) = self.state_noise {
+            if !(n.share > 0.0 && n.share <= 1.0 && n.std.is_finite() && n.std > 0.0) {
+                return Err(CoreError::Config(format!(
+                    "state_noise needs share in (0, 1] and a finite std > 0, got share {} and \
+                     std {}",
+                    n.share, n.std
                 )));
             }
         }

@@ -21,6 +21,8 @@ use vdd_core::lanes::{
 use vdd_core::{CoreError, Expert, NoiseSchedule, ScoreModel};
 use vdd_moe::MoeOutput;
 
+use crate::both_sides::{BothSidesView, fold_into_moments, noised_cholesky};
+
 /// Buffers reused across expert steps (no allocation in the steady state).
 #[derive(Debug, Default, Clone)]
 pub struct ExpertStepBuffers {
@@ -47,6 +49,9 @@ pub struct ExpertStepBuffers {
     snap_log_norm: Vec<f32>,
     snap_means: Vec<f32>,
     diff_dd: Vec<f32>,
+    /// Scratch of the noised covariances ([`crate::both_sides`]): a Cholesky factor, a column.
+    chol_dd: Vec<f32>,
+    col_d: Vec<f32>,
     lanes: LaneScratch,
 }
 
@@ -289,7 +294,7 @@ pub fn corrected_score_moments<S: ScoreModel + ?Sized>(
     let n = current.n * current.num_experts * vi_samples;
     let (eps, levels) = (&mut buf.eps, &mut buf.noise_levels);
     draw_sample_noise(&*teacher, noise, progress, rng, n, current.action_dim, eps, levels);
-    let sums = moments_from_noise(teacher, current, snapshot, states, vi_samples, buf)?;
+    let sums = moments_from_noise(teacher, current, snapshot, states, vi_samples, None, buf)?;
     Ok(sums.stats(&buf.noise_levels, current.n * current.num_experts))
 }
 
@@ -351,12 +356,18 @@ impl MomentSums {
 /// `buf.noise_levels` (`B·Z·V · d` and `B·Z·V`, as [`draw_sample_noise`] writes them): the
 /// samples, one batched teacher call, and the moments into `buf.mean_g` and
 /// `buf.mean_g_eps`. Returns the sums of the step's statistics.
+///
+/// With `both` (noise on both sides, [`crate::both_sides`]), the samples are noised, the
+/// snapshot's responsibilities are those of the noised snapshot, and the moments are folded
+/// so that [`Expert::expert_step_grad`] gives the gradient of the noised objective.
+#[allow(clippy::too_many_arguments)]
 pub fn moments_from_noise<S: ScoreModel + ?Sized>(
     teacher: &mut S,
     current: &MoeOutput,
     snapshot: &MoeOutput,
     states: MatRef<'_, f32>,
     vi_samples: usize,
+    both: Option<BothSidesView<'_>>,
     buf: &mut ExpertStepBuffers,
 ) -> Result<MomentSums, CoreError> {
     let (b_n, z_n, d, v_n) = (current.n, current.num_experts, current.action_dim, vi_samples);
@@ -373,8 +384,14 @@ pub fn moments_from_noise<S: ScoreModel + ?Sized>(
     buf.snap_log_norm.resize(z_n, 0.0);
     buf.lanes.resize(d, z_n, experts_per_pass(v_n, z_n) * v_n);
     buf.diff_dd.resize(d * d, 0.0);
+    buf.chol_dd.resize(d * d, 0.0);
+    buf.col_d.resize(d, 0.0);
+    if let Some(both) = &both {
+        vdd_core::check_len("noised states", both.scale.len(), b_n)?;
+        vdd_core::check_len("noise on both sides", both.eta.len(), n * d)?;
+    }
 
-    // Reparameterised samples a = μ_z(s) + L_z(s) ε and their states.
+    // Reparameterised samples a = μ_z(s) + L_z(s) ε (noised: k a + β + γ ⊙ η) and their states.
     for b in 0..b_n {
         for z in 0..z_n {
             let (mu, l) = (current.mean(b, z), current.scale(b, z));
@@ -386,6 +403,14 @@ pub fn moments_from_noise<S: ScoreModel + ?Sized>(
                     &buf.eps[i * d..(i + 1) * d],
                     &mut buf.actions[i * d..(i + 1) * d],
                 );
+                if let Some(both) = &both {
+                    let (k, row) = (both.scale[b], b * d..(b + 1) * d);
+                    let (shift, std) = (&both.shift[row.clone()], &both.std[row]);
+                    let eta = &both.eta[i * d..(i + 1) * d];
+                    for (j, x) in buf.actions[i * d..(i + 1) * d].iter_mut().enumerate() {
+                        *x = k * *x + shift[j] + std[j] * eta[j];
+                    }
+                }
                 for j in 0..ds {
                     buf.states[i * ds + j] = states[(b, j)];
                 }
@@ -416,15 +441,31 @@ pub fn moments_from_noise<S: ScoreModel + ?Sized>(
         let snap_lg = snapshot.log_gating_row(b);
         // Structure-of-arrays layout (expert index innermost) so the per-sample loops over the
         // Z frozen experts vectorise.
+        // Noised: N(k μ̃_k + β, k² Σ̃_k + diag(γ²)).
+        let noised = both.as_ref().map(|s| {
+            let row = b * d..(b + 1) * d;
+            (s.scale[b], &s.shift[row.clone()], &s.std[row])
+        });
         for k in 0..z_n {
-            let l = snapshot.scale(b, k);
+            let l = match noised {
+                None => snapshot.scale(b, k),
+                Some((scale, _, std)) => {
+                    if !noised_cholesky(snapshot.scale(b, k), scale, std, d, &mut buf.chol_dd) {
+                        return Err(CoreError::NonFinite { what: "noised snapshot covariance" });
+                    }
+                    &buf.chol_dd
+                }
+            };
             gaussian::invert_lower(l, d, &mut buf.diff_dd);
             for rc in 0..d * d {
                 buf.snap_linv[rc * z_n + k] = buf.diff_dd[rc];
             }
             buf.snap_log_norm[k] = snap_lg[k] - gaussian::half_log_det(l, d) - half_d_ln_2pi;
             for (j, m) in snapshot.mean(b, k).iter().enumerate() {
-                buf.snap_means[j * z_n + k] = *m;
+                buf.snap_means[j * z_n + k] = match noised {
+                    None => *m,
+                    Some((scale, shift, _)) => scale * *m + shift[j],
+                };
             }
         }
         let rows = b * z_n * v_n..(b + 1) * z_n * v_n;
@@ -461,6 +502,21 @@ pub fn moments_from_noise<S: ScoreModel + ?Sized>(
         };
         sum_log_resp += lr;
         sum_g2 += g2;
+        if let Some((scale, _, std)) = noised {
+            for z in 0..z_n {
+                let bz = b * z_n + z;
+                fold_into_moments(
+                    current.scale(b, z),
+                    scale,
+                    std,
+                    d,
+                    &mut buf.mean_g[bz * d..(bz + 1) * d],
+                    &mut buf.mean_g_eps[bz * d * d..(bz + 1) * d * d],
+                    &mut buf.chol_dd,
+                    &mut buf.col_d,
+                )?;
+            }
+        }
     }
     let entropy: f32 =
         (0..b_n * z_n).map(|k| gaussian::entropy(current.scale(k / z_n, k % z_n), d)).sum::<f32>();
@@ -510,33 +566,14 @@ pub fn raw_gradients_of_chunk<E: Expert>(
 }
 
 #[cfg(test)]
+mod tests_both_sides;
+
+#[cfg(test)]
 mod tests {
     use super::*;
-    use crate::test_support::IsoGmm;
+    use crate::test_support::{IsoGmm, output};
     use approx::assert_relative_eq;
     use vdd_moe::{DiagonalExpert, FullExpert};
-
-    /// A one-state, two-expert mixture output from raw rows.
-    fn output<E: Expert>(expert: &E, raws: &[Vec<f32>], log_gating: [f32; 2]) -> MoeOutput {
-        let d = expert.action_dim();
-        let mut out = MoeOutput {
-            n: 1,
-            num_experts: 2,
-            action_dim: d,
-            raw: raws.concat(),
-            means: vec![0.0; 2 * d],
-            scales: vec![0.0; 2 * d * d],
-            log_gating: log_gating.to_vec(),
-        };
-        for z in 0..2 {
-            expert.decode(
-                &raws[z],
-                &mut out.means[z * d..(z + 1) * d],
-                &mut out.scales[z * d * d..(z + 1) * d * d],
-            );
-        }
-        out
-    }
 
     /// Monte-Carlo `Ĵ_z` with fixed ε: mean of `log π(a) + log q̃(z|a)` plus the entropy.
     fn objective<E: Expert>(

@@ -65,6 +65,7 @@
 #![warn(missing_docs)]
 
 pub mod auto;
+pub mod both_sides;
 pub mod config;
 mod error;
 pub mod eval;
@@ -78,7 +79,7 @@ mod test_support;
 pub use auto::{AutoOptions, AutoPlan, InitKind, SampleSource, init_official};
 pub use config::{
     ExpertWeighting, MAX_BATCH_SIZE, MAX_ITERATIONS, MAX_SAMPLES_PER_EXPERT, MAX_SAMPLES_PER_STEP,
-    MAX_STEPS_PER_ITER, MAX_VI_SAMPLES, VddConfig,
+    MAX_STEPS_PER_ITER, MAX_VI_SAMPLES, ScoreAt, StateNoise, VddConfig,
 };
 pub use error::VddError;
 pub use spaces::TeacherSpace;

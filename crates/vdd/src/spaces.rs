@@ -93,6 +93,11 @@ impl ActionMap {
         }
         Ok(Some(Self { scale, offset }))
     }
+
+    /// `(scale, offset)` of dimension `j`: the teacher's action is `x · scale + offset`.
+    pub(crate) fn coefficients(&self, j: usize) -> (f32, f32) {
+        (self.scale[j], self.offset[j])
+    }
 }
 
 /// Calls `f` with the teacher as the student's space sees it: through `map` (a

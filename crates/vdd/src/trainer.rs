@@ -9,10 +9,11 @@ use vdd_moe::{ExpertFamily, Moe, MoeConfig, MoeOutput};
 use vdd_nn::parallel::Workers;
 use vdd_nn::{Adam, Ema, Parameters};
 
-use crate::config::{ExpertWeighting, VddConfig};
+use crate::both_sides::BothSides;
+use crate::config::{ExpertWeighting, ScoreAt, VddConfig};
 use crate::error::VddError;
 use crate::expert_step::{
-    ExpertStepBuffers, ExpertStepStats, corrected_score_moments, raw_gradients,
+    ExpertStepBuffers, ExpertStepStats, draw_sample_noise, moments_from_noise, raw_gradients,
 };
 pub use convergence::{
     CONVERGED_MISMATCH, Convergence, LATE_SHARE, PROBE_ACTIONS, PROBE_STATES, PROBES, RISE,
@@ -192,6 +193,8 @@ pub struct Vdd<S: ScoreModel, E: Expert = ExpertFamily> {
     iteration: usize,
     seeds: Seeds,
     buf: ExpertStepBuffers,
+    /// The noising of the expert step's samples with [`crate::ScoreAt::NoisedSample`].
+    both: BothSides,
     batch: Mat<f32>,
     snapshot: MoeOutput,
     weights: Vec<f32>,
@@ -205,6 +208,9 @@ pub struct Vdd<S: ScoreModel, E: Expert = ExpertFamily> {
     teacher_states: Option<Mat<f32>>,
     /// The student → teacher action map, when not the identity.
     action_map: Option<ActionMap>,
+    /// Per state dimension, the teacher's units per student unit (with `teacher_states`), so
+    /// that perturbed states ([`VddConfig::state_noise`]) move alike in both spaces.
+    state_ratio: Vec<f32>,
     /// The state batches in the teacher's space (with `teacher_states`).
     teacher_batch: Mat<f32>,
     teacher_gating_states: Mat<f32>,
@@ -288,6 +294,12 @@ impl<S: ScoreModel, E: Expert> Vdd<S, E> {
             }
             t
         });
+        let state_ratio: Vec<f32> = (0..ds)
+            .map(|j| {
+                let student = obs_norm.map_or(1.0, |m| m.scale[j]);
+                student / space.states.as_ref().map_or(1.0, |m| m.scale[j])
+            })
+            .collect();
         let action_map = ActionMap::between(act_norm, space.actions.as_ref(), d)?;
         if let Some(m) = obs_norm {
             normalize_rows(&mut data.states, m);
@@ -343,6 +355,7 @@ impl<S: ScoreModel, E: Expert> Vdd<S, E> {
             iteration: 0,
             seeds: Seeds::new(config.seed),
             buf: ExpertStepBuffers::default(),
+            both: BothSides::default(),
             batch: Mat::zeros(config.batch_size, mc.state_dim),
             snapshot: MoeOutput::default(),
             weights: vec![0.0; config.batch_size * z],
@@ -361,6 +374,7 @@ impl<S: ScoreModel, E: Expert> Vdd<S, E> {
                 ds,
             ),
             teacher_states,
+            state_ratio,
             action_map,
             map_scratch: Vec::new(),
             config,
@@ -442,6 +456,9 @@ impl<S: ScoreModel, E: Expert> Vdd<S, E> {
                 }
             }
         }
+        if let Some(noise) = self.config.state_noise {
+            self.perturb_states(it, noise);
+        }
 
         let (stats, gating_entropy, expert_lr) = match self.chunks.is_empty() {
             true => self.expert_steps(it, progress)?,
@@ -505,20 +522,23 @@ impl<S: ScoreModel, E: Expert> Vdd<S, E> {
             if k > 0 {
                 self.student.forward_experts(self.batch.as_ref())?;
             }
+            let noised = self.draw_noise(progress, &mut rng).map_err(at_iteration(it))?;
             // The teacher sees the states (and, through the map, the actions) in its space.
             let states = match &self.teacher_states {
                 Some(_) => self.teacher_batch.as_ref(),
                 None => self.batch.as_ref(),
             };
-            let (c, snapshot, v) = (&self.config, &self.snapshot, self.config.vi_samples);
+            let (snapshot, v) = (&self.snapshot, self.config.vi_samples);
+            let per_state = self.student.num_experts() * v;
+            let d = self.student.config().action_dim;
+            let both = noised.then(|| self.both.view(0..self.config.batch_size, per_state, d));
             let (out, buf) = (self.student.output(), &mut self.buf);
             let map = self.action_map.as_ref();
-            let moments = with_map(&mut self.teacher, map, &mut self.map_scratch, |teacher| {
-                corrected_score_moments(
-                    teacher, out, snapshot, states, &c.noise, progress, v, &mut rng, buf,
-                )
+            let sums = with_map(&mut self.teacher, map, &mut self.map_scratch, |teacher| {
+                moments_from_noise(teacher, out, snapshot, states, v, both, buf)
             });
-            stats = moments.map_err(at_iteration(it))?;
+            let pairs = self.config.batch_size * self.student.num_experts();
+            stats = sums.map_err(at_iteration(it))?.stats(&self.buf.noise_levels, pairs);
             raw_gradients(
                 self.student.expert(),
                 self.student.output(),
@@ -535,6 +555,46 @@ impl<S: ScoreModel, E: Expert> Vdd<S, E> {
         }
 
         Ok((stats, gating_entropy, expert_lr))
+    }
+
+    /// Perturbs a share of the state batch ([`VddConfig::state_noise`]), from its own stream,
+    /// in the student's space and by the same amount in the teacher's.
+    fn perturb_states(&mut self, it: usize, noise: crate::config::StateNoise) {
+        let mut rng = self.seeds.stream_indexed("state-noise", it as u64);
+        for b in 0..self.config.batch_size {
+            if rng.random::<f32>() >= noise.share {
+                continue;
+            }
+            for j in 0..self.batch.ncols() {
+                let delta = noise.std * vdd_core::standard_normal(&mut rng);
+                self.batch[(b, j)] += delta;
+                if self.teacher_states.is_some() {
+                    self.teacher_batch[(b, j)] += delta * self.state_ratio[j];
+                }
+            }
+        }
+    }
+
+    /// Draws the randomness of one expert step on the whole batch: `ε` and the noise levels
+    /// into `self.buf` ([`draw_sample_noise`]), then, with noise on both sides, the noising
+    /// into `self.both` ([`BothSides::prepare`]). Returns whether the samples are noised.
+    fn draw_noise(
+        &mut self,
+        progress: f32,
+        rng: &mut dyn rand::RngCore,
+    ) -> Result<bool, CoreError> {
+        let (b_n, z_n, v_n) =
+            (self.config.batch_size, self.student.num_experts(), self.config.vi_samples);
+        let d = self.student.config().action_dim;
+        let noise = &self.config.noise;
+        let (eps, levels) = (&mut self.buf.eps, &mut self.buf.noise_levels);
+        draw_sample_noise(&self.teacher, noise, progress, rng, b_n * z_n * v_n, d, eps, levels);
+        if self.config.score_at == ScoreAt::CleanSample {
+            return Ok(false);
+        }
+        let map = self.action_map.as_ref();
+        self.both.prepare(&self.teacher, map, levels, z_n * v_n, d, rng)?;
+        Ok(true)
     }
 
     /// The experts' update after their gradient is in place: the gradient clipped (or the

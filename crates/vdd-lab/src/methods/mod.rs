@@ -21,6 +21,7 @@ mod imc;
 mod teacher;
 mod vdd;
 mod vdd_learned;
+mod vdd_oracle;
 
 /// Every method, in the paper's table order, then the paper's own configurations beside ours
 /// (D3IL's BESO teacher and its rows, VDD-BESO with a learned gating, the authors' IMC).
@@ -41,6 +42,7 @@ pub static BUILTIN: &[&dyn Method] = &[
     &vdd_learned::VddBesoLearned,
     &beso_d3il::VDD_BESO_D3IL,
     &imc::IMC_AUTHORS,
+    &vdd_oracle::VddBesoOracle,
 ];
 
 #[cfg(test)]
@@ -75,7 +77,7 @@ mod tests {
         assert!(e.contains("not available on task `toy-gmm`"), "{e}");
         let all = parse_methods(&["all".into()], "avoiding").unwrap();
         let expected = "ddpm beso ddpm-1 beso-1 cd ctm em imc vdd-ddpm vdd-beso beso-d3il \
-                        beso-d3il-1 vdd-beso-learned vdd-beso-d3il imc-authors";
+                        beso-d3il-1 vdd-beso-learned vdd-beso-d3il imc-authors vdd-beso-oracle";
         assert_eq!(
             names(&all).join(" "),
             expected,

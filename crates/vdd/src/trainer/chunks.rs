@@ -16,11 +16,11 @@ use vdd_nn::Parameters;
 use vdd_nn::parallel::{add_grads, chunk_range, copy_values};
 
 use super::{Vdd, at_iteration, e_step_weights};
+use crate::both_sides::BothSides;
 use crate::config::ExpertWeighting;
 use crate::error::VddError;
 use crate::expert_step::{
-    ExpertStepBuffers, ExpertStepStats, MomentSums, draw_sample_noise, moments_from_noise,
-    raw_gradients_of_chunk,
+    ExpertStepBuffers, ExpertStepStats, MomentSums, moments_from_noise, raw_gradients_of_chunk,
 };
 use crate::spaces::{ActionMap, with_map};
 
@@ -56,6 +56,8 @@ struct StepInputs<'a, E: Expert> {
     /// `ε` and noise levels of the whole batch.
     eps: &'a [f32],
     levels: &'a [f32],
+    /// The noising with noise on both sides.
+    both: Option<&'a BothSides>,
     action_map: Option<&'a ActionMap>,
     weighting: ExpertWeighting,
     vi_samples: usize,
@@ -127,9 +129,10 @@ impl<E: Expert> ChunkWork<E> {
         self.buf.noise_levels.extend_from_slice(&inp.levels[samples]);
         let teacher_states = inp.teacher_states.subrows(start, len);
         let (out, snapshot, v) = (self.student.output(), &self.snapshot, inp.vi_samples);
+        let both = inp.both.map(|b| b.view(start..start + len, per_state, d));
         let buf = &mut self.buf;
         let sums = with_map(teacher, inp.action_map, &mut self.map_scratch, |teacher| {
-            moments_from_noise(teacher, out, snapshot, teacher_states, v, buf)
+            moments_from_noise(teacher, out, snapshot, teacher_states, v, both, buf)
         });
         self.sums = sums.map_err(at_iteration(inp.iteration))?;
         let (expert, out) = (self.student.expert(), self.student.output());
@@ -157,14 +160,11 @@ impl<S: ScoreModel, E: Expert> Vdd<S, E> {
         let parallel = self.chunks.iter().all(|c| c.teacher.is_some());
         let (b_n, z_n, v_n) =
             (self.config.batch_size, self.student.num_experts(), self.config.vi_samples);
-        let d = self.student.config().action_dim;
         let (mut stats, mut gating_entropy, mut expert_lr) = (ExpertStepStats::default(), 0.0, 0.0);
         for k in 0..self.config.expert_steps_per_iter {
             let stream = (it * self.config.expert_steps_per_iter + k) as u64;
             let mut rng = self.seeds.stream_indexed("vi-noise", stream);
-            let (noise, n) = (&self.config.noise, b_n * z_n * v_n);
-            let (eps, levels) = (&mut self.buf.eps, &mut self.buf.noise_levels);
-            draw_sample_noise(&self.teacher, noise, progress, &mut rng, n, d, eps, levels);
+            let noised = self.draw_noise(progress, &mut rng).map_err(at_iteration(it))?;
             let inputs = StepInputs {
                 master: &self.student,
                 states: self.batch.as_ref(),
@@ -174,6 +174,7 @@ impl<S: ScoreModel, E: Expert> Vdd<S, E> {
                 },
                 eps: &self.buf.eps,
                 levels: &self.buf.noise_levels,
+                both: noised.then_some(&self.both),
                 action_map: self.action_map.as_ref(),
                 weighting: self.config.expert_weighting,
                 vi_samples: v_n,

@@ -41,6 +41,53 @@ fn distils_a_four_mode_mixture() {
     assert!(kl < 0.05, "reverse KL {kl}");
 }
 
+/// The mean expert standard deviation of `student` at state 0 (diagonal experts).
+fn mean_expert_std(student: &mut Moe) -> f32 {
+    student.forward(Mat::<f32>::zeros(1, 1).as_ref()).unwrap();
+    let out = student.output();
+    let z_n = out.num_experts;
+    let sum: f32 = (0..z_n).map(|z| (out.scale(0, z)[0] + out.scale(0, z)[3]) / 2.0).sum();
+    sum / z_n as f32
+}
+
+#[test]
+fn noise_on_both_sides_recovers_the_mixture_not_its_blur() {
+    // Modes of std 0.15, queried only at σ in [0.3, 0.6]: the paper's expert step settles on
+    // the blurred modes (std 0.34 to 0.62), noise on both sides on the modes themselves.
+    let teacher = IsoGmm::circle(4, 2.0, 0.15);
+    let std_with = |score_at| {
+        let (mut config, _, student, data) = small_run(300);
+        config.noise = NoiseSchedule::Uniform { min: 0.3, max: 0.6 };
+        config.score_at = score_at;
+        let mut vdd = Vdd::new(config, teacher.clone(), student, data).unwrap();
+        vdd.train(|_| {}).unwrap();
+        let mut student = vdd.into_student();
+        let covered = modes_covered(&mut student, &[0.0], &teacher.means, 0.3, 0.05).unwrap();
+        (mean_expert_std(&mut student), covered)
+    };
+    let (blurred, covered) = std_with(ScoreAt::CleanSample);
+    assert!(blurred > 0.3, "clean samples: std {blurred}, {covered} modes");
+    let (sharp, covered) = std_with(ScoreAt::NoisedSample);
+    assert!((sharp - 0.15).abs() < 0.03 && covered == 4, "noised: std {sharp}, {covered} modes");
+}
+
+#[test]
+fn noise_on_both_sides_recovers_the_mixture_from_a_vp_teacher() {
+    // The same modes behind a variance-preserving process (ᾱ = e^(−t)), queried only at
+    // t in [0.2, 0.6]: the noised student is √ᾱ a + √(1 − ᾱ) η, and the experts find the
+    // modes themselves.
+    let teacher = crate::test_support::VpGmm(IsoGmm::circle(4, 2.0, 0.15));
+    let (mut config, _, student, data) = small_run(300);
+    config.noise = NoiseSchedule::Uniform { min: 0.2, max: 0.6 };
+    config.score_at = ScoreAt::NoisedSample;
+    let mut vdd = Vdd::new(config, teacher.clone(), student, data).unwrap();
+    vdd.train(|_| {}).unwrap();
+    let mut student = vdd.into_student();
+    let covered = modes_covered(&mut student, &[0.0], &teacher.0.means, 0.3, 0.05).unwrap();
+    let std = mean_expert_std(&mut student);
+    assert!((std - 0.15).abs() < 0.03 && covered == 4, "std {std}, {covered} modes");
+}
+
 #[test]
 fn resuming_from_a_checkpoint_reproduces_an_uninterrupted_run() {
     let dir = std::env::temp_dir().join(format!("vdd-resume-{}", std::process::id()));

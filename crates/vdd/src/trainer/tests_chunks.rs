@@ -46,15 +46,21 @@ fn values(p: &dyn Parameters) -> Vec<f32> {
 }
 
 /// Trains `iterations` of the small run (two expert steps per iteration when `iterations > 1`)
-/// with `chunks` chunks on `threads` threads; returns the student's parameters, every
+/// with `chunks` chunks on `threads` threads, the score taken at `score_at` (noised samples at
+/// levels in `[0.2, 0.6]`); returns the student's parameters, every
 /// iteration's metrics and the last expert gradient.
 fn run<S: ScoreModel>(
     teacher: S,
     chunks: usize,
     threads: usize,
     iterations: usize,
+    score_at: ScoreAt,
 ) -> (Vec<f32>, Vec<IterationMetrics>, Vec<f32>) {
     let (mut config, _, student, data) = small_run(iterations);
+    if score_at == ScoreAt::NoisedSample {
+        config.score_at = score_at;
+        config.noise = vdd_core::NoiseSchedule::Uniform { min: 0.2, max: 0.6 };
+    }
     config.chunks = chunks;
     config.expert_steps_per_iter = if iterations > 1 { 2 } else { 1 };
     config.expert_weighting = ExpertWeighting::Gating;
@@ -71,25 +77,37 @@ fn run<S: ScoreModel>(
 
 #[test]
 fn chunked_students_do_not_depend_on_the_threads() {
+    for score_at in [ScoreAt::CleanSample, ScoreAt::NoisedSample] {
+        chunked_students_do_not_depend_on_the_threads_with(score_at);
+    }
+}
+
+fn chunked_students_do_not_depend_on_the_threads_with(at: ScoreAt) {
     let teacher = IsoGmm::circle(4, 2.0, 0.5);
     // Batches of 8 states in 3 chunks (3, 3 and 2 states).
-    let one = run(Forking(teacher.clone()), 3, 1, 15);
+    let one = run(Forking(teacher.clone()), 3, 1, 15, at);
     for threads in [0, 2, 3] {
-        assert!(one == run(Forking(teacher.clone()), 3, threads, 15), "{threads} threads");
+        assert!(one == run(Forking(teacher.clone()), 3, threads, 15, at), "{threads} threads");
     }
     // A teacher that does not fork is queried for each chunk in turn: the same student.
-    assert!(one == run(teacher.clone(), 3, 2, 15));
+    assert!(one == run(teacher.clone(), 3, 2, 15, at));
     // One chunk is the unchunked step, whatever the threads.
-    assert!(run(teacher.clone(), 1, 1, 15) == run(Forking(teacher), 1, 2, 15));
+    assert!(run(teacher.clone(), 1, 1, 15, at) == run(Forking(teacher), 1, 2, 15, at));
 }
 
 #[test]
 fn the_chunks_gradient_is_the_batch_gradient() {
+    for score_at in [ScoreAt::CleanSample, ScoreAt::NoisedSample] {
+        the_chunks_gradient_is_the_batch_gradient_with(score_at);
+    }
+}
+
+fn the_chunks_gradient_is_the_batch_gradient_with(at: ScoreAt) {
     // After one iteration from the same start, the chunked and the unchunked gradients differ
     // only by the order of the sums over states.
     let teacher = Forking(IsoGmm::circle(4, 2.0, 0.5));
-    let (_, m1, g1) = run(teacher.clone(), 1, 1, 1);
-    let (_, m4, g4) = run(teacher, 4, 2, 1);
+    let (_, m1, g1) = run(teacher.clone(), 1, 1, 1, at);
+    let (_, m4, g4) = run(teacher, 4, 2, 1, at);
     assert_eq!(g1.len(), g4.len());
     let scale = g1.iter().fold(0.0f32, |m, g| m.max(g.abs()));
     for (a, b) in g1.iter().zip(&g4) {

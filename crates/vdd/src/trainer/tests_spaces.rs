@@ -144,3 +144,46 @@ fn coinciding_spaces_change_no_number() {
     );
     assert_eq!(plain, spaced);
 }
+
+/// Perturbed states ([`VddConfig::state_noise`]) move by the same raw amount in the student's
+/// and the teacher's spaces, in about the configured share of the batch, from their own stream.
+#[test]
+fn perturbed_states_agree_between_the_spaces() {
+    let states = Mat::from_fn(64, 1, |i, _| i as f32);
+    let data = DistillData::from_states(states).unwrap().with_teacher_space(
+        TeacherSpace::normalized(Affine::new(vec![3.0], vec![4.0]).unwrap(), Affine::identity(2)),
+    );
+    let mut s = student(GatingKind::Uniform, None);
+    s.set_normalizers(Some(Affine::new(vec![-1.0], vec![0.5]).unwrap()), None).unwrap();
+    let noise = crate::StateNoise { share: 0.5, std: 0.3 };
+    let config = VddConfig { iterations: 20, state_noise: Some(noise), ..config() };
+    let mut vdd = Vdd::new(config.clone(), offset_teacher(), s.clone(), data.clone()).unwrap();
+    let mut moved = 0;
+    for _ in 0..20 {
+        vdd.step().unwrap();
+        for b in 0..vdd.batch.nrows() {
+            let raw = vdd.batch[(b, 0)] * 0.5 - 1.0;
+            assert!((vdd.teacher_batch[(b, 0)] - (raw - 3.0) / 4.0).abs() < 1e-5);
+            // The data's raw states are whole numbers; perturbed ones are not.
+            moved += usize::from((raw - raw.round()).abs() > 1e-3);
+        }
+    }
+    let share = moved as f32 / (20 * 8) as f32;
+    assert!((share - 0.5).abs() < 0.15, "share of perturbed states {share}");
+    // Without the setting the batches are the data's, and the state stream is unchanged.
+    let plain = VddConfig { state_noise: None, ..config };
+    let mut a = Vdd::new(plain, offset_teacher(), s, data).unwrap();
+    a.step().unwrap();
+    for b in 0..a.batch.nrows() {
+        let raw = a.batch[(b, 0)] * 0.5 - 1.0;
+        assert!((raw - raw.round()).abs() < 1e-4);
+    }
+}
+
+#[test]
+fn a_state_noise_out_of_range_is_refused() {
+    for (share, std) in [(0.0, 0.1), (1.5, 0.1), (0.5, 0.0), (0.5, f32::NAN)] {
+        let c = VddConfig { state_noise: Some(crate::StateNoise { share, std }), ..config() };
+        assert!(c.validate().unwrap_err().to_string().contains("state_noise"));
+    }
+}
