@@ -39,6 +39,14 @@ pub struct GatingFitConfig {
     pub lr: f32,
     /// Root seed of the teacher's draws and of the fit's minibatches.
     pub seed: u64,
+    /// States beyond the given ones: this share of the pairs takes its state moved by Gaussian
+    /// noise of standard deviation [`Self::state_noise_std`] in the student's normalised state
+    /// space (the raw state plus `std · scale · ε`), drawn from a stream of its own, so that
+    /// the gating also learns the teacher's weights a little off the training states, where a
+    /// policy's rollouts drift. 0 (the default): every pair at a given state.
+    pub state_noise_share: f32,
+    /// The standard deviation of those moves (normalised units); 0: none.
+    pub state_noise_std: f32,
 }
 
 impl Default for GatingFitConfig {
@@ -51,6 +59,8 @@ impl Default for GatingFitConfig {
             batch_size: 256,
             lr: 1e-3,
             seed: 0,
+            state_noise_share: 0.0,
+            state_noise_std: 0.0,
         }
     }
 }
@@ -128,7 +138,29 @@ pub fn fit_gating_to_policy<E: Expert, P: Policy + ?Sized>(
     vdd_core::check_len("gating-fit state columns", states.ncols(), ds)?;
     vdd_core::check_len("teacher action dimension", teacher.action_dim(), da)?;
 
-    let raw_states = Mat::from_fn(pairs, ds, |i, j| states[(i % n, j)]);
+    let (share, std) = (config.state_noise_share, config.state_noise_std);
+    if !(0.0..=1.0).contains(&share) || !(0.0..=1e3).contains(&std) {
+        return Err(config_error(format!(
+            "state_noise_share must be in [0, 1] and state_noise_std in [0, 1000], got {share} \
+             and {std}"
+        )));
+    }
+    let mut raw_states = Mat::from_fn(pairs, ds, |i, j| states[(i % n, j)]);
+    if share > 0.0 && std > 0.0 {
+        let mut rng = Seeds::new(config.seed).stream("gating-fit-states");
+        let scale = student.normalizers().0.map(|a| a.scale.clone());
+        for i in 0..pairs {
+            // One draw decides whether the pair moves, then one per dimension: the stream's
+            // use does not depend on the outcome.
+            let moves = rng.random::<f32>() < share;
+            for j in 0..ds {
+                let e: f32 = vdd_core::standard_normal(&mut rng);
+                if moves {
+                    raw_states[(i, j)] += std * e * scale.as_ref().map_or(1.0, |s| s[j]);
+                }
+            }
+        }
+    }
     let mut actions = Mat::zeros(pairs, da);
     teacher.seed(Seeds::new(config.seed).stream("gating-fit-teacher").random());
     teacher.act_batch(raw_states.as_ref(), actions.as_mut())?;

@@ -68,7 +68,65 @@ const FIT: GatingFitConfig = GatingFitConfig {
     batch_size: 256,
     lr: 1e-2,
     seed: 3,
+    state_noise_share: 0.0,
+    state_noise_std: 0.0,
 };
+
+/// A teacher that answers the origin and keeps the states it was asked at.
+#[derive(Default)]
+struct Recorder(Vec<f32>);
+impl Policy for Recorder {
+    fn obs_dim(&self) -> usize {
+        1
+    }
+    fn action_dim(&self) -> usize {
+        2
+    }
+    fn act_into(&mut self, obs: &[f32], action: &mut [f32]) -> Result<(), vdd_core::CoreError> {
+        self.0.push(obs[0]);
+        action.fill(0.0);
+        Ok(())
+    }
+}
+
+#[test]
+fn state_noise_moves_its_share_of_the_pairs_by_its_std() {
+    let asked = |share, std| {
+        let config = GatingFitConfig {
+            iterations: 1,
+            state_noise_share: share,
+            state_noise_std: std,
+            ..FIT
+        };
+        let mut teacher = Recorder::default();
+        let states = Mat::from_fn(64, 1, |_, _| 2.0f32);
+        fit_gating_to_policy(uniform_student(), network(), &mut teacher, states.as_ref(), &config)
+            .unwrap();
+        teacher.0
+    };
+    assert!(asked(0.0, 0.5).iter().all(|&s| s == 2.0), "no share: every pair at its state");
+    assert!(asked(0.7, 0.0).iter().all(|&s| s == 2.0), "no std: every pair at its state");
+    let moved = asked(0.5, 0.5);
+    assert_eq!(moved.len(), 64 * 32);
+    let off: Vec<f32> = moved.iter().map(|s| s - 2.0).filter(|d| *d != 0.0).collect();
+    let share = off.len() as f32 / moved.len() as f32;
+    let std = (off.iter().map(|d| d * d).sum::<f32>() / off.len() as f32).sqrt();
+    assert!((share - 0.5).abs() < 0.05 && (std - 0.5).abs() < 0.05, "{share} {std}");
+    assert_eq!(moved, asked(0.5, 0.5), "the moves follow the seed");
+    for (share, std) in [(1.5, 0.1), (f32::NAN, 0.1), (0.5, -1.0), (0.5, f32::INFINITY)] {
+        let config =
+            GatingFitConfig { state_noise_share: share, state_noise_std: std, ..FIT.clone() };
+        let states = Mat::zeros(4, 1);
+        let r = fit_gating_to_policy(
+            uniform_student(),
+            network(),
+            &mut Recorder::default(),
+            states.as_ref(),
+            &config,
+        );
+        assert!(r.unwrap_err().to_string().contains("state_noise"), "{share} {std}");
+    }
+}
 
 #[test]
 fn the_fitted_gating_learns_the_teachers_shares_and_the_experts_stay() {
