@@ -46,6 +46,7 @@ pub mod progress;
 pub mod recipe;
 pub mod registry;
 pub mod report;
+pub mod sample_fit;
 pub mod task;
 pub mod tasks;
 pub mod teachers;

@@ -210,21 +210,19 @@ impl<S: ScoreModel> crate::Vdd<vdd_core::ClampedDenoiser<S>> {
         (mc, vc): (&vdd_moe::MoeConfig, &crate::VddConfig),
         (clip_margin, init_from_teacher): (Option<f32>, bool),
     ) -> Result<Self, crate::VddError> {
-        let mut student = vdd_moe::Moe::from_config(mc.clone(), vc.seed)?;
-        student.set_normalizers(Some(sn.clone()), Some(an.clone()))?;
-        let clamped = match clip_margin {
-            Some(m) => vdd_core::ClampedDenoiser::around_data(
-                teacher,
-                an.normalize_rows(actions.as_ref())?.as_ref(),
-                m,
-            )?,
-            None => vdd_core::ClampedDenoiser::unclamped(teacher),
-        };
-        let data = crate::DistillData::new(states, Some(actions))?
-            .with_teacher_space(TeacherSpace::normalized(sn, an));
+        let student = vdd_moe::Moe::from_config(mc.clone(), vc.seed)?;
         if !init_from_teacher {
-            return Self::new(vc.clone(), clamped, student, data);
+            return Self::continue_in_teacher_space(
+                teacher,
+                (states, actions),
+                (sn, an),
+                student,
+                vc,
+                clip_margin,
+            );
         }
+        let (mut clamped, data) =
+            clamped_in_space(teacher, (states, actions), (sn, an), clip_margin)?;
         let options = crate::AutoOptions {
             iterations: Some(vc.iterations),
             expert_kind: mc.expert_kind,
@@ -232,11 +230,48 @@ impl<S: ScoreModel> crate::Vdd<vdd_core::ClampedDenoiser<S>> {
             samples: 2048,
             ..crate::AutoOptions::new(mc.num_experts, vc.seed)
         };
-        let mut clamped = clamped;
         let mut plan = crate::AutoPlan::inspect(&mut clamped, &data, &options)?;
         (plan.vdd.batch_size, plan.vdd.vi_samples) = (vc.batch_size, vc.vi_samples);
         Self::from_plan(&plan, clamped, data)
     }
+
+    /// As [`Self::in_teacher_space`] without `init_from_teacher`, but VDD continues from
+    /// `student` (any mixture of the teacher's dimensions, e.g. one fitted to the teacher's own
+    /// samples in its normalised space) instead of a new one: its normalisers are set to the
+    /// teacher's (`sn`, `an`), so its networks must work in that normalised space.
+    pub fn continue_in_teacher_space(
+        teacher: S,
+        (states, actions): (Mat<f32>, Mat<f32>),
+        (sn, an): (Affine, Affine),
+        mut student: vdd_moe::Moe,
+        vc: &crate::VddConfig,
+        clip_margin: Option<f32>,
+    ) -> Result<Self, crate::VddError> {
+        student.set_normalizers(Some(sn.clone()), Some(an.clone()))?;
+        let (clamped, data) = clamped_in_space(teacher, (states, actions), (sn, an), clip_margin)?;
+        Self::new(vc.clone(), clamped, student, data)
+    }
+}
+
+/// The teacher clamped around the normalised `actions`' box widened by `clip_margin` (`None`:
+/// unclamped), and the data in the teacher's normalised space (`sn`, `an`).
+fn clamped_in_space<S: ScoreModel>(
+    teacher: S,
+    (states, actions): (Mat<f32>, Mat<f32>),
+    (sn, an): (Affine, Affine),
+    clip_margin: Option<f32>,
+) -> Result<(vdd_core::ClampedDenoiser<S>, crate::DistillData), crate::VddError> {
+    let clamped = match clip_margin {
+        Some(m) => vdd_core::ClampedDenoiser::around_data(
+            teacher,
+            an.normalize_rows(actions.as_ref())?.as_ref(),
+            m,
+        )?,
+        None => vdd_core::ClampedDenoiser::unclamped(teacher),
+    };
+    let data = crate::DistillData::new(states, Some(actions))?
+        .with_teacher_space(TeacherSpace::normalized(sn, an));
+    Ok((clamped, data))
 }
 
 #[cfg(test)]

@@ -24,6 +24,7 @@ use super::AvoidingRecipe;
 use crate::context::RunContext;
 use crate::recipe::Resolved;
 use crate::report::{self, Row};
+use crate::sample_fit::SampleFit;
 
 /// The `[imported]` table of the Avoiding recipes.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -42,10 +43,51 @@ pub struct ImportedSettings {
     /// The clamp's margin.
     #[serde(default)]
     pub clip_margin: Option<f32>,
-    /// Start the experts from a mixture fitted to the teacher's samples, with the noise level
+    /// How the student starts.
+    pub init: ImportedInit,
+    /// The fit to the teacher's samples of `init = "samples"`.
+    pub fit: SampleFit,
+}
+
+/// How the student of an imported teacher starts (`imported.init`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum ImportedInit {
+    /// The paper's start: a new mixture of `student`, seeded by the run seed.
+    Paper,
+    /// Experts started from a mixture fitted to 2,048 teacher samples, with the noise level
     /// and normalisers `vdd::AutoPlan` picks (`imported.vdd` then gives only the iterations,
     /// the batch and the samples per state).
-    pub init_from_teacher: bool,
+    Auto,
+    /// The whole student fitted by EM to the teacher's samples (`imported.fit`, module
+    /// [`crate::sample_fit`]), then VDD with `imported.vdd` from there.
+    Samples,
+}
+
+/// A new mixture of `mc` (seeded by `seed`) fitted by EM to the teacher's samples at the data's
+/// `states` (raw; `sn` maps them into the teacher's normalised space, where the mixture works).
+fn fit_to_samples<T: vdd_core::ScoreModel + Clone + Send>(
+    fit: &SampleFit,
+    teacher: &T,
+    mc: &MoeConfig,
+    sn: &vdd_core::Affine,
+    states: &faer::Mat<f32>,
+    seed: u64,
+) -> crate::Result<vdd_moe::Moe> {
+    fit.validate()?;
+    let states_n = sn.normalize_rows(states.as_ref())?;
+    let blocks = fit.blocks as u64;
+    let bar = crate::progress::bar(blocks, &format!("teacher samples s{seed}"));
+    let (s, a) = fit.draw(teacher, states_n.as_ref(), seed, &|| bar.inc(1))?;
+    bar.finish_and_clear();
+    let bar = crate::progress::bar(fit.em.iterations as u64, &format!("EM fit s{seed}"));
+    let student = vdd_moe::Moe::from_config(mc.clone(), seed)?;
+    let student = fit.fit(student, s, a, seed, |ll| {
+        bar.inc(1);
+        bar.set_message(format!("log-lik {ll:.3}"));
+    })?;
+    bar.finish_and_clear();
+    Ok(student)
 }
 
 /// Runs the imported teacher's methods of `resolved` (see the module docs).
@@ -102,12 +144,20 @@ pub fn run(ctx: &RunContext, resolved: &Resolved<AvoidingRecipe>) -> crate::Resu
             let vc = VddConfig { seed, ..cfg.imported.vdd.clone() };
             let clip = cfg.imported.clip_margin.filter(|_| cfg.imported.clamp_denoiser);
             let space = (sn.clone(), an.clone());
-            let setup = (clip, cfg.imported.init_from_teacher);
             let data = (states.clone(), chunks.clone());
             let inner = teacher.as_ref().clone();
-            let mut vdd = Vdd::in_teacher_space(inner, data, space, (&mc, &vc), setup)?;
-            let bar = crate::progress::bar(vc.iterations as u64, &format!("{label} s{seed}"));
             let t0 = Instant::now();
+            let mut vdd = match cfg.imported.init {
+                ImportedInit::Samples => {
+                    let start = fit_to_samples(&cfg.imported.fit, &inner, &mc, &sn, &states, seed)?;
+                    Vdd::continue_in_teacher_space(inner, data, space, start, &vc, clip)?
+                }
+                init => {
+                    let setup = (clip, init == ImportedInit::Auto);
+                    Vdd::in_teacher_space(inner, data, space, (&mc, &vc), setup)?
+                }
+            };
+            let bar = crate::progress::bar(vc.iterations as u64, &format!("{label} s{seed}"));
             vdd.train(|_| bar.inc(1))?;
             let secs = t0.elapsed().as_secs_f64();
             bar.finish_and_clear();
@@ -181,5 +231,6 @@ mod tests {
         let only = Overrides { methods: Some(vec!["vdd".into()]), ..Default::default() };
         assert_eq!(resolved(&given, only).header.methods, ["vdd"]);
         assert!(r.imported.vdd.validate().is_ok() && r.imported.clip_margin == Some(0.5));
+        assert!(r.imported.fit.validate().is_ok());
     }
 }
