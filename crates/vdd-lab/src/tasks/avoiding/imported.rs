@@ -90,6 +90,43 @@ fn fit_to_samples<T: vdd_core::ScoreModel + Clone + Send>(
     Ok(student)
 }
 
+/// Appends one entry per row of a tuning run to the Avoiding tuning log: the configuration
+/// hash covers the data, the teacher file, the student and the whole `[imported]` table.
+fn log_tuning(
+    ctx: &RunContext,
+    cfg: &AvoidingRecipe,
+    dir: &Path,
+    rows: &[(String, Vec<Row>)],
+) -> crate::Result {
+    use crate::tuning;
+    let (revision, dirty) = ctx.git_revision();
+    let revision = if dirty == Some(true) { format!("{revision}+dirty") } else { revision };
+    let mut keys = serde_json::Map::new();
+    keys.insert("imported".into(), serde_json::to_value(&cfg.imported)?);
+    let mut entries = Vec::new();
+    for (label, rows) in rows {
+        let teacher = Some(&cfg.imported.teacher);
+        let config = tuning::config_hash(label, &cfg.data, teacher, &cfg.student, keys.clone())?;
+        let id = tuning::RunId {
+            method: label.clone(),
+            config,
+            recipe: ctx.name.clone(),
+            command: ctx.command.clone(),
+            revision: revision.clone(),
+            run: crate::teachers::rel(dir),
+        };
+        entries.push(tuning::LogEntry::from_rows(id, rows));
+    }
+    let path = tuning::log_path(&ctx.root, "avoiding");
+    let n = entries.len();
+    tuning::append_log(&path, entries)?;
+    crate::progress::print(format!(
+        "tuning log: {n} entries appended to {}",
+        crate::teachers::rel(&path)
+    ));
+    Ok(())
+}
+
 /// Runs the imported teacher's methods of `resolved` (see the module docs).
 pub fn run(ctx: &RunContext, resolved: &Resolved<AvoidingRecipe>) -> crate::Result {
     if !resolved.variants.is_empty() {
@@ -190,6 +227,9 @@ pub fn run(ctx: &RunContext, resolved: &Resolved<AvoidingRecipe>) -> crate::Resu
                 None => rows.push((label, vec![row])),
             }
         }
+    }
+    if crate::tuning::is_tuning_run(seeds, cfg.data.seed)? {
+        log_tuning(ctx, cfg, &dir, &rows)?;
     }
     let metrics = report::metrics_json(&ctx.name, "avoiding", seeds, &rows);
     let table = format!(
