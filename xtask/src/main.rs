@@ -203,12 +203,70 @@ pub mod progress {
         }
     }
 
+    /// A bar for a log file or pipe (stderr not a terminal, where indicatif draws nothing): a
+    /// line `what: pos/len (pct %) secs s msg` at most every [`LINE_EVERY`] and at the end.
+    struct Lines {
+        what: String,
+        len: u64,
+        start: std::time::Instant,
+        state: std::sync::Mutex<(u64, std::time::Instant, String)>,
+    }
+
+    /// How often a [`Lines`] bar prints.
+    const LINE_EVERY: std::time::Duration = std::time::Duration::from_secs(30);
+
+    impl Lines {
+        fn new(len: u64, what: &str) -> Self {
+            let now = std::time::Instant::now();
+            Self { what: what.to_owned(), len, start: now, state: (0, now, String::new()).into() }
+        }
+        fn update(&self, f: impl FnOnce(&mut u64)) {
+            let mut s = self.state.lock().unwrap_or_else(|e| e.into_inner());
+            f(&mut s.0);
+            if s.1.elapsed() >= LINE_EVERY || s.0 >= self.len {
+                s.1 = std::time::Instant::now();
+                let pct = 100.0 * s.0 as f64 / self.len.max(1) as f64;
+                let secs = self.start.elapsed().as_secs_f64();
+                log(format!(
+                    "{}: {}/{} ({pct:.0} %) {secs:.0} s {}",
+                    self.what, s.0, self.len, s.2
+                ));
+            }
+        }
+    }
+
+    impl Bar for Lines {
+        fn set_position(&self, pos: u64) {
+            self.update(|p| *p = pos);
+        }
+        fn inc(&self, n: u64) {
+            self.update(|p| *p += n);
+        }
+        fn set_message(&self, msg: String) {
+            self.state.lock().unwrap_or_else(|e| e.into_inner()).2 = msg;
+        }
+    }
+
+    fn is_terminal() -> bool {
+        use std::io::IsTerminal as _;
+        std::io::stderr().is_terminal()
+    }
+
     impl Sink for Terminal {
         fn bar(&self, len: u64, what: &str) -> Box<dyn Bar> {
-            Box::new(Shown(bar(len, what)))
+            if is_terminal() {
+                Box::new(Shown(bar(len, what)))
+            } else {
+                Box::new(Lines::new(len, what))
+            }
         }
         fn spinner(&self, what: &str, msg: &str) -> Box<dyn Bar> {
-            Box::new(Shown(spinner(what, msg)))
+            if is_terminal() {
+                Box::new(Shown(spinner(what, msg)))
+            } else {
+                log(format!("{what}: {msg}"));
+                Box::new(vdd_lab::progress::Silent)
+            }
         }
         fn log(&self, line: &str) {
             log(line);
