@@ -99,7 +99,8 @@ def test_the_plugin_registers_through_lerobots_discovery():
         output_features={"action": PolicyFeature(FeatureType.ACTION, (2,))},
         device="cpu",
     )
-    stats = {k: {"min": torch.zeros(2), "max": torch.ones(2)} for k in ["observation.state", "observation.environment_state", "action"]}
+    keys = ["observation.state", "observation.environment_state", "action"]
+    stats = {k: {"min": torch.zeros(2), "max": torch.ones(2)} for k in keys}
     pre, post = make_pre_post_processors(cfg, dataset_stats=stats)  # make_vdd_pre_post_processors
     out = pre({"observation.state": torch.full((2,), 0.5), "observation.environment_state": torch.ones(2)})
     assert torch.allclose(out["observation.state"], torch.zeros(1, 2))
@@ -152,9 +153,52 @@ def test_save_load_round_trip_acts_as_vdd_policy():
         assert max(diffs) > 1e-5
 
         chunk = policy.predict_action_chunk(
-            {k: v.unsqueeze(1).repeat(1, 2, 1) for k, v in pre(dict(_obs(rng, b=4))).items() if k.startswith("observation")}
+            {
+                k: v.unsqueeze(1).repeat(1, 2, 1)
+                for k, v in pre(dict(_obs(rng, b=4))).items()
+                if k.startswith("observation")
+            }
         )
         assert tuple(chunk.shape) == (4, 8, 2)
+
+
+def test_select_action_follows_lerobots_queues():
+    """Each executed block of `n_action_steps` actions is, for one expert, the mean chunk at
+    indices `n_obs_steps - 1 ..` of the window LeRobot's own `populate_queues` holds when its
+    action queue runs empty (the first observation repeated at the start)."""
+    _need_files()
+    from collections import deque
+
+    from lerobot.policies.utils import populate_queues
+    from lerobot_policy_vdd.modeling_vdd import raw_observation
+
+    with tempfile.TemporaryDirectory() as tmp:
+        policy, pre, post = _load(_converted(Path(tmp)))
+        cfg = policy.config
+        rng = np.random.default_rng(3)
+        keys = ["observation.state", "observation.environment_state"]
+        queues = {k: deque(maxlen=cfg.n_obs_steps) for k in keys}
+        policy.reset()
+        b, checked = 3, 0
+        for block in range(4):
+            for step in range(cfg.n_action_steps):
+                obs = _obs(rng, b=b)
+                populate_queues(queues, obs)
+                if step == 0:
+                    window = torch.cat([torch.stack(list(queues[k]), dim=1) for k in keys], -1).numpy()
+                    raw = raw_observation(window, policy.student.features).reshape(b, -1)
+                    _, means, _ = policy.student.components(raw)
+                    chunks = means.reshape(b, means.shape[1], cfg.horizon, -1)
+                    start = cfg.n_obs_steps - 1
+                    candidates = chunks[:, :, start : start + cfg.n_action_steps]
+                    executed = []
+                executed.append(post(policy.select_action(pre(dict(obs)))).numpy())
+            executed = np.stack(executed, 1)  # (b, n_action_steps, action_dim)
+            for row in range(b):
+                err = np.abs(candidates[row] - executed[row][None]).max(axis=(1, 2)).min()
+                assert err <= 1e-5, (block, row, err)
+                checked += 1
+        assert checked == 12
 
 
 def test_bad_input_gets_clear_errors():
@@ -166,7 +210,8 @@ def test_bad_input_gets_clear_errors():
         policy, pre, _ = _load(_converted(tmp))
         rng = np.random.default_rng(2)
         batch = pre(dict(_obs(rng, b=2)))
-        _raises(ValueError, "lacks 'observation.environment_state'", policy.select_action, {"observation.state": batch["observation.state"]})
+        only_state = {"observation.state": batch["observation.state"]}
+        _raises(ValueError, "lacks 'observation.environment_state'", policy.select_action, only_state)
         bad = dict(batch, **{"observation.state": torch.zeros(2, 3)})
         _raises(ValueError, "expected (B, 2)", policy.select_action, bad)
         bad = dict(batch, **{"observation.state": torch.full((2, 2), float("nan"))})
@@ -177,16 +222,21 @@ def test_bad_input_gets_clear_errors():
         policy.select_action(pre(dict(_obs(rng, b=1))))
         _raises(NotImplementedError, "not trained in PyTorch", policy.forward, batch)
         # The teacher's own model.safetensors is not a vdd policy.
-        _raises(ValueError, "not a vdd policy", VddPolicy._load_as_safetensor, policy, str(Path(TEACHER) / "model.safetensors"), "cpu", False)
-        _raises(FileNotFoundError, "no model.safetensors", VddPolicy._load_as_safetensor, policy, str(tmp / "model.safetensors"), "cpu", False)
+        load = VddPolicy._load_as_safetensor
+        teacher_model = str(Path(TEACHER) / "model.safetensors")
+        _raises(ValueError, "not a vdd policy", load, policy, teacher_model, "cpu", False)
+        missing = str(tmp / "model.safetensors")
+        _raises(FileNotFoundError, "no model.safetensors", load, policy, missing, "cpu", False)
         from lerobot_policy_vdd.convert import convert, main
 
-        _raises(FileNotFoundError, "no student file", convert, tmp / "missing.safetensors", TEACHER, tmp / "x")
+        missing = tmp / "missing.safetensors"
+        _raises(FileNotFoundError, "no student file", convert, missing, TEACHER, tmp / "x")
         _raises(FileNotFoundError, "no LeRobot teacher directory", convert, STUDENT, tmp, tmp / "x")
         assert main(["--student", str(tmp / "missing"), "--teacher", TEACHER, "--out", str(tmp / "x")]) == 2
         # A configuration that does not fit the student is refused, naming the fields.
         policy.config.n_action_steps = 4
-        _raises(ValueError, "execute_steps (n_action_steps): student 8, config 4", policy.load_mixture, STUDENT)
+        want = "execute_steps (n_action_steps): student 8, config 4"
+        _raises(ValueError, want, policy.load_mixture, STUDENT)
 
 
 if __name__ == "__main__":
