@@ -37,14 +37,20 @@ _NEEDED_STATS = {
 }
 
 
+_VDD_HINT = (
+    "the vdd policy needs the `vdd` wheel of the VDD repository (crates/vdd-py): build it with "
+    "`maturin build --release` in crates/vdd-py and pip install the wheel (PyPI's `vdd` is "
+    "another project)"
+)
+
+
 def _import_vdd():
     try:
         import vdd  # noqa: PLC0415
     except ImportError as e:  # pragma: no cover - depends on the environment
-        raise ImportError(
-            "the vdd policy needs the `vdd` wheel of this repository (crates/vdd-py): build it with "
-            "`maturin build --release` in crates/vdd-py and pip install the wheel"
-        ) from e
+        raise ImportError(_VDD_HINT) from e
+    if not hasattr(vdd, "Policy") or not hasattr(vdd, "VddError"):
+        raise ImportError(f"`vdd` imported from {getattr(vdd, '__file__', '?')} is not ours: {_VDD_HINT}")
     return vdd
 
 
