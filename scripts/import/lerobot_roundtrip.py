@@ -26,8 +26,9 @@ Steps:
    * the teacher: LeRobot's `DiffusionPolicy.select_action` (torch seeded with `--seed`),
    each reset at the episode's start. Then the same episodes again as one batch (one row per
    episode, `act_batch` on the Rust side) over the steps all of them have.
-Prints the max abs difference plugin vs `vdd.Policy` (the acceptance bar: <= 1e-5), and the
-teacher's actions beside the student's.
+Prints the max abs difference plugin vs `vdd.Policy` (the acceptance bar: <= 1e-5), the
+teacher's actions beside the student's, and the wall time per action of each (batch 1, one
+torch thread; the LeRobot ones include their processors).
 """
 
 from __future__ import annotations
@@ -123,13 +124,22 @@ def main() -> int:
         for t in range(steps):
             obs = np.stack([r[t] for r in rows])
             batch = lerobot_batch(obs)
+            t0 = time.perf_counter()
             plug.append(s_post(student.select_action(s_pre(dict(batch)))).numpy())
+            t1 = time.perf_counter()
             rust.append(reference.act_batch(raw_observation(obs, reference.features)))
+            t2 = time.perf_counter()
             with torch.no_grad():
                 teach.append(t_post(teacher.select_action(t_pre(dict(batch)))).numpy())
+            t3 = time.perf_counter()
+            if len(rows) == 1:
+                clock["plugin"] += t1 - t0
+                clock["vdd.Policy"] += t2 - t1
+                clock["teacher"] += t3 - t2
         return np.stack(plug, 1), np.stack(rust, 1), np.stack(teach, 1)
 
     torch.manual_seed(args.seed)
+    clock = {"plugin": 0.0, "vdd.Policy": 0.0, "teacher": 0.0}
     worst, calls, scale, t0 = 0.0, 0, 0.0, time.time()
     print("\nepisode  steps  max|plugin - vdd.Policy|  max|plugin - teacher|")
     first = None
@@ -152,6 +162,9 @@ def main() -> int:
     for t in range(min(args.show, len(plug))):
         fmt = lambda a: "(" + ", ".join(f"{x:+.6f}" for x in a) + ")"  # noqa: E731
         print(f"  t={t:3d}  {fmt(plug[t])} | {fmt(rust[t])} | {fmt(teach[t])}")
+    single = sum(lengths)
+    print(f"\nwall time per action, batch 1 ({single} actions; processors included for LeRobot's): "
+          + ", ".join(f"{k} {1e6 * v / single:.0f} us" for k, v in clock.items()))
     ok = worst <= 1e-5
     print(f"\nmax abs diff plugin vs vdd.Policy over {calls} actions: {worst:.3e} "
           f"({'within' if ok else 'ABOVE'} 1e-5; largest |action| {scale:.3e}); {time.time() - t0:.1f} s")
