@@ -4,7 +4,7 @@
 observation sequences, and compare the plugin's actions with the Rust `vdd.Policy`'s.
 
 Not part of CI (it needs PyTorch and LeRobot). Needs Python 3.12 with lerobot 0.6.1, the `vdd`
-wheel (crates/vdd-py) and the plugin (`pip install -e python/lerobot_policy_vdd`).
+wheel (crates/vdd-py) and the plugin (`pip install -e crates/vdd-py/lerobot_policy_vdd`).
 
     python scripts/import/lerobot_roundtrip.py --teacher results/e2e/lerobot_avoiding \
         --student results/e2e/run-s0/models/vdd-lerobot.safetensors \
@@ -86,7 +86,7 @@ def main() -> int:
 
     register_third_party_plugins()
     if "vdd" not in PreTrainedConfig.get_known_choices():
-        print("error: the `vdd` policy type is not registered: pip install -e python/lerobot_policy_vdd",
+        print("error: the `vdd` policy type is not registered: pip install -e crates/vdd-py/lerobot_policy_vdd",
               file=sys.stderr)
         return 2
     import vdd

@@ -1,5 +1,5 @@
 #!/usr/bin/env python3
-"""Checks of the `lerobot_policy_vdd` plugin (python/lerobot_policy_vdd). Not part of CI: it
+"""Checks of the `lerobot_policy_vdd` plugin (crates/vdd-py/lerobot_policy_vdd). Not part of CI: it
 needs PyTorch, lerobot 0.6.1, the `vdd` wheel and the plugin installed, plus a student file and
 its LeRobot teacher directory:
 
