@@ -53,7 +53,8 @@ pub const RISE: f32 = 1.25;
 /// iteration's [`crate::IterationMetrics::converged`].
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct Convergence {
-    /// The score mismatch after each measured iteration count (eighths of the run).
+    /// The score mismatch after each measured iteration count (eighths of the run; `f32::MAX`
+    /// where the probe overflowed).
     pub mismatches: Vec<(usize, f32)>,
     /// Score mismatch at the end of the run.
     pub mismatch: f32,
@@ -75,6 +76,8 @@ impl Convergence {
     /// assert!(judge(&[9.0, 1.0, 0.6, 0.52, 0.5, 0.5, 0.5, 0.5])); // high but flat
     /// assert!(!judge(&[9.0, 5.0, 3.0, 1.0, 0.5, 0.2, 0.1, 0.05])); // still falling
     /// assert!(!judge(&[9.0, 1.0, 0.2, 0.2, 0.3, 0.3, 0.4, 0.4])); // got worse
+    /// assert!(!judge(&[f32::MAX; 8])); // the probe overflowed every time
+    /// assert!(!judge(&[9.0, 1.0, 0.5, 0.5, 0.5, 0.5, 0.5, f32::MAX])); // overflowed at the end
     /// ```
     pub fn judge(mismatches: &[(usize, f32)], iterations: usize) -> Option<Self> {
         let at = |i: usize| mismatches.iter().find(|p| p.0 == i).map(|p| p.1);
@@ -88,7 +91,8 @@ impl Convergence {
         let whole = (first / end).ln();
         let falling = late > 0.0 && late > LATE_SHARE * whole;
         let rose = end > RISE * lowest;
-        let converged = end <= CONVERGED_MISMATCH || !(falling || rose);
+        let measurable = end.is_finite() && end < f32::MAX;
+        let converged = measurable && (end <= CONVERGED_MISMATCH || !(falling || rose));
         Some(Self {
             mismatches: points.iter().copied().zip(values).collect(),
             mismatch: end,
@@ -210,14 +214,11 @@ impl<S: ScoreModel, E: Expert> Vdd<S, E> {
                 norm += f64::from(own[(r, j)]).powi(2);
             }
         }
+        // A probe that overflows (a very sharp student or teacher) is a measurement, not a
+        // failure of the run: it reads as `f32::MAX` (finite, so checkpoints keep it), and the
+        // verdict as not converged.
         let mismatch = (diff / norm.max(f64::MIN_POSITIVE)) as f32;
-        if !mismatch.is_finite() {
-            return Err(VddError::NonFinite {
-                iteration: self.iteration,
-                quantity: "score mismatch",
-            });
-        }
-        Ok(mismatch)
+        Ok(if mismatch.is_finite() { mismatch } else { f32::MAX })
     }
 
     /// After iteration `iteration` (1-based count): the probe's measurement when one is due,
