@@ -49,12 +49,14 @@ impl SampleFit {
 
     /// Draws the teacher's samples at `states` (the teacher's space, one row per state) and
     /// returns the pairs: every selected state repeated `samples_per_state` times, beside one
-    /// sample each. `progress` is called once per block.
+    /// sample each. The blocks run on `workers` (the same pairs for any number of threads);
+    /// `progress` is called once per block.
     pub fn draw<T: ScoreModel + Clone + Send>(
         &self,
         teacher: &T,
         states: MatRef<'_, f32>,
         seed: u64,
+        workers: &Workers,
         progress: &(dyn Fn() + Sync),
     ) -> crate::Result<(Mat<f32>, Mat<f32>)> {
         let n = states.nrows();
@@ -72,7 +74,7 @@ impl SampleFit {
         let mut outs: Vec<(T, Mat<f32>, Option<vdd_core::CoreError>)> = (0..blocks)
             .map(|b| (teacher.clone(), Mat::zeros(chunk_range(rows, blocks, b).len(), d), None))
             .collect();
-        Workers::new(0)?.for_each_mut(&mut outs, |b, (t, out, err)| {
+        workers.for_each_mut(&mut outs, |b, (t, out, err)| {
             let range = chunk_range(rows, blocks, b);
             let mut rng = seeds.stream_indexed("block", b as u64);
             let cond = picked.as_ref().subrows(range.start, range.len());
@@ -109,5 +111,104 @@ impl SampleFit {
         let mut em = Em::new(config, student, Dataset::new(states, actions)?)?;
         em.train(|m| report(m.log_likelihood))?;
         Ok(em.into_student())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use faer::MatMut;
+    use rand::RngCore;
+    use vdd_core::CoreError;
+
+    /// Samples `state + N(0, 1)` per dimension.
+    #[derive(Clone)]
+    struct Shifted;
+    impl ScoreModel for Shifted {
+        fn action_dim(&self) -> usize {
+            2
+        }
+        fn state_dim(&self) -> usize {
+            2
+        }
+        fn score(
+            &mut self,
+            a: MatRef<'_, f32>,
+            s: MatRef<'_, f32>,
+            _: &[f32],
+            mut out: MatMut<'_, f32>,
+        ) -> Result<(), CoreError> {
+            for i in 0..a.nrows() {
+                for j in 0..2 {
+                    out[(i, j)] = s[(i, j)] - a[(i, j)];
+                }
+            }
+            Ok(())
+        }
+        fn sample_actions(
+            &mut self,
+            s: MatRef<'_, f32>,
+            rng: &mut dyn RngCore,
+            mut out: MatMut<'_, f32>,
+        ) -> Result<(), CoreError> {
+            for i in 0..s.nrows() {
+                for j in 0..2 {
+                    out[(i, j)] = s[(i, j)] + vdd_core::standard_normal(rng);
+                }
+            }
+            Ok(())
+        }
+    }
+
+    fn fit(states: usize, blocks: usize) -> SampleFit {
+        SampleFit { states, samples_per_state: 3, blocks, em: EmConfig::toy() }
+    }
+
+    #[test]
+    fn the_samples_depend_on_the_blocks_and_the_seed_never_on_the_threads() {
+        let states = Mat::from_fn(10, 2, |i, j| (i * 2 + j) as f32);
+        let draw = |f: &SampleFit, seed, threads| {
+            let workers = Workers::new(threads).unwrap();
+            f.draw(&Shifted, states.as_ref(), seed, &workers, &|| {}).unwrap()
+        };
+        let (s, a) = draw(&fit(5, 4), 1, 1);
+        // States 0, 2, 4, 6, 8, each three times.
+        assert_eq!((s.nrows(), a.nrows()), (15, 15));
+        assert!((0..15).all(|r| s[(r, 0)] == ((r / 3) * 4) as f32), "{s:?}");
+        assert_eq!(draw(&fit(5, 4), 1, 3), (s.clone(), a.clone()));
+        assert_ne!(draw(&fit(5, 2), 1, 1).1, a, "the blocks decide the streams");
+        assert_ne!(draw(&fit(5, 4), 2, 1).1, a, "the seed decides the streams");
+        assert_eq!(draw(&fit(0, 4), 1, 1).0.nrows(), 30, "0: every state");
+    }
+
+    #[test]
+    fn bad_settings_and_teachers_that_cannot_sample_are_refused() {
+        assert!(SampleFit { samples_per_state: 0, ..fit(5, 4) }.validate().is_err());
+        assert!(fit(5, 0).validate().is_err());
+        assert!(fit(5, 4).validate().is_ok());
+        /// A teacher without a sampler.
+        #[derive(Clone)]
+        struct ScoreOnly;
+        impl ScoreModel for ScoreOnly {
+            fn action_dim(&self) -> usize {
+                1
+            }
+            fn state_dim(&self) -> usize {
+                1
+            }
+            fn score(
+                &mut self,
+                _: MatRef<'_, f32>,
+                _: MatRef<'_, f32>,
+                _: &[f32],
+                _: MatMut<'_, f32>,
+            ) -> Result<(), CoreError> {
+                Ok(())
+            }
+        }
+        let states = Mat::zeros(4, 1);
+        let w = Workers::inline();
+        let e = fit(4, 2).draw(&ScoreOnly, states.as_ref(), 0, &w, &|| {}).unwrap_err();
+        assert!(e.to_string().to_lowercase().contains("sampl"), "{e}");
     }
 }

@@ -78,7 +78,8 @@ fn fit_to_samples<T: vdd_core::ScoreModel + Clone + Send>(
     let states_n = sn.normalize_rows(states.as_ref())?;
     let blocks = fit.blocks as u64;
     let bar = crate::progress::bar(blocks, &format!("teacher samples s{seed}"));
-    let (s, a) = fit.draw(teacher, states_n.as_ref(), seed, &|| bar.inc(1))?;
+    let workers = vdd_nn::parallel::Workers::new(0)?;
+    let (s, a) = fit.draw(teacher, states_n.as_ref(), seed, &workers, &|| bar.inc(1))?;
     bar.finish_and_clear();
     let bar = crate::progress::bar(fit.em.iterations as u64, &format!("EM fit s{seed}"));
     let student = vdd_moe::Moe::from_config(mc.clone(), seed)?;
