@@ -147,6 +147,10 @@ class Teacher:
         ``t - obs_window + 1 .. t`` and the chunk ``t - obs_window + 1 ..`` of ``action_chunk``
         steps, indices clamped to the episode. Pass them as ``distill(teacher, states,
         actions=chunks)``. ``TypeError`` for a ``vdd-diffusion`` teacher."""
+    def sample(self, states: ArrayLike, seed: int = 0) -> F32:
+        """Actions ``(n, action_dim)`` drawn by the teacher's own sampler (an imported
+        teacher's: ``sampler``) at raw states ``(n, state_dim)``, in raw units (an imported
+        teacher: raw chunks at observation windows); the same ``seed``, the same actions."""
     def save(self, path: Path) -> None:
         """Saves an imported teacher as one teacher file (as ``cargo xtask import`` writes it,
         its observation map and sampler included); :func:`load_teacher` reads it back."""

@@ -261,6 +261,41 @@ impl PyTeacher {
         Ok(mat_to_numpy(py, out.as_ref()))
     }
 
+    /// Actions `(n, action_dim)` the teacher samples with its own sampler at raw states
+    /// `(n, state_dim)` (an imported teacher: raw chunks at observation windows), in raw units;
+    /// `seed` seeds the draws (the same seed, the same actions).
+    #[pyo3(signature = (states, seed = 0))]
+    fn sample<'py>(
+        &mut self,
+        py: Python<'py>,
+        states: PyArrayLike2<'py, f32, AllowTypeChange>,
+        seed: u64,
+    ) -> PyResult<Bound<'py, PyArray2<f32>>> {
+        let (ds, da) = (self.state_dim(), self.action_dim());
+        let rows = states.as_array().nrows();
+        check_batch("a teacher's samples", rows, row_bytes(rows, (ds + 2 * da).saturating_mul(4)))?;
+        let states = matrix(states.as_array(), ds, "states")?;
+        let (s_map, a_map) = self.normalizers().py_err(py)?;
+        let states = s_map.normalize_rows(states.as_ref()).py_err(py)?;
+        let mut out = Mat::<f32>::zeros(rows, da);
+        let inner = self.score_model();
+        run(py, || {
+            let mut rng = vdd_core::Seeds::new(seed).stream("vdd.Teacher.sample");
+            inner.sample_actions(states.as_ref(), &mut rng, out.as_mut())
+        })?;
+        let mut row = vec![0.0f32; da];
+        for i in 0..rows {
+            for (j, x) in row.iter_mut().enumerate() {
+                *x = out[(i, j)];
+            }
+            a_map.denormalize(&mut row);
+            for (j, x) in row.iter().enumerate() {
+                out[(i, j)] = *x;
+            }
+        }
+        Ok(mat_to_numpy(py, out.as_ref()))
+    }
+
     /// The teacher's training samples of episodes (imported teachers): per episode, raw
     /// observations `(T, obs_dim)` and actions `(T, step_action_dim)`; returns the raw states
     /// `(N, state_dim)` and action chunks `(N, action_dim)`, one per step of every episode.

@@ -80,6 +80,15 @@ def test_the_teachers_score_takes_raw_windows_and_chunks(teacher):
     assert np.all(np.isfinite(score))
 
 
+def test_the_teacher_samples_raw_chunks_reproducibly(teacher):
+    obs, act = episodes(n=1, steps=3)
+    states, _ = teacher.training_windows(obs, act)
+    a = teacher.sample(states, seed=3)
+    assert a.shape == (3, 32) and np.all(np.isfinite(a))
+    np.testing.assert_array_equal(a, teacher.sample(states, seed=3))
+    assert not np.array_equal(a, teacher.sample(states, seed=4))
+
+
 def test_the_distilled_student_acts_on_raw_observations(student):
     assert (student.obs_dim, student.action_dim) == (7, 2)
     assert (student.obs_window, student.action_chunk) == (2, 16)
