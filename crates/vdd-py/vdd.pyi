@@ -284,8 +284,9 @@ def distill(
     run is wired as Rust's imported-teacher path (``cargo xtask experiment avoiding --teacher
     FILE``): the teacher works in its own normalised chunk space; its denoised chunk is clamped
     to the box of the ``actions`` chunks widened by ``clip_margin`` (0.5 by default, in the
-    teacher's normalised units; ``clip_margin=None``, or no ``actions``, distils the raw
-    score); the student starts from a mixture fitted to ``teacher_samples`` of the teacher's
+    teacher's normalised units; without ``actions`` this raises ``ValueError``;
+    ``clip_margin=None`` distils the raw score, which diverged on the committed fixture);
+    the student starts from a mixture fitted to ``teacher_samples`` of the teacher's
     own samples (with the sampler it was given: ``'ddim:10'`` is much faster than the trained
     DDPM schedule); VDD then runs with noise on both sides (``score_at='noised_sample'``),
     levels uniform over the teacher's steps ``[1, 0.3 N]``, batch 32, one sample per state,
@@ -295,9 +296,9 @@ def distill(
     the teacher's whole chunk and acts like the teacher's package: ``act`` takes one raw
     observation and keeps the window and the chunk queue (``obs_window``, ``action_chunk``,
     the executed steps). A teacher imported with an ``obs_map`` is refused (the student cannot
-    carry the map yet). To put the student back into LeRobot, save it (``Policy.save``) and
-    convert it with the ``lerobot_policy_vdd`` plugin's ``lerobot-vdd-convert``
-    (``crates/vdd-py/lerobot_policy_vdd``).
+    carry the map yet). To put the student back into LeRobot: ``Policy.save_pretrained(out,
+    teacher_dir)`` where the ``lerobot_policy_vdd`` plugin (crates/vdd-py/lerobot_policy_vdd)
+    is installed, else ``Policy.save`` and the plugin's ``lerobot-vdd-convert`` later.
 
     ``defaults='toy'`` starts from the paper's toy settings instead (``VddConfig.toy()``,
     ``MoeConfig.toy()``: exact score, ``sigma = 0``, actions of unit scale near the origin,

@@ -50,12 +50,15 @@ pub(crate) fn train(
             let a_n = an.normalize_rows(a.as_ref())?;
             ClampedDenoiser::around_data(teacher, a_n.as_ref(), m)?
         }
-        (Some(_), None) if extra.clip_margin.is_some() => {
+        (Some(_), None) => {
             return Err(RunError::Setting(
-                "setting `clip_margin`: the clamp needs the training chunks (actions=)".into(),
+                "an imported teacher's score is clamped around the training chunks: pass them \
+                 as actions= (teacher.training_windows gives them), or clip_margin=None to \
+                 distil the raw score"
+                    .into(),
             ));
         }
-        _ => ClampedDenoiser::unclamped(teacher),
+        (None, _) => ClampedDenoiser::unclamped(teacher),
     };
     let data =
         DistillData::new(states, actions)?.with_teacher_space(TeacherSpace::normalized(sn, an));

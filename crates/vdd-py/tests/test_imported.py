@@ -147,6 +147,8 @@ def test_bad_inputs_are_refused_naming_the_problem(teacher, tmp_path):
         teacher.training_windows([np.zeros((5, 7))], [np.zeros((4, 2))])
     with pytest.raises(ValueError, match="clip_margin"):
         vdd.distill(lambda a, s, t: -a, np.zeros((4, 1)), action_dim=2, clip_margin=0.5)
+    with pytest.raises(ValueError, match=r"pass them as actions= .* or clip_margin=None"):
+        vdd.distill(teacher, np.zeros((4, 14)), iterations=1)
 
 
 def test_a_teacher_with_an_observation_map_is_not_distilled_silently(tmp_path):
