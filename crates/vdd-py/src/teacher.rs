@@ -120,7 +120,12 @@ fn parse_obs_map(v: &Bound<'_, PyAny>) -> PyResult<ObsMap> {
 }
 
 fn parse_sampler(s: &str) -> PyResult<Sampler> {
-    s.parse().map_err(|e| PyValueError::new_err(format!("sampler: {e}")))
+    s.parse().map_err(sampler_error)
+}
+
+/// A sampler the caller named that does not parse or does not fit the teacher's schedule.
+fn sampler_error(e: vdd_import::ImportError) -> PyErr {
+    PyValueError::new_err(format!("sampler: {e}"))
 }
 
 /// Imports a LeRobot `DiffusionPolicy` directory (`save_pretrained`'s files; state inputs
@@ -150,7 +155,9 @@ pub fn import_lerobot(
     let mut teacher = match imported {
         Ok(t) => t,
         // A map that does not fit the policy's features is the caller's argument.
-        Err(e @ vdd_import::ImportError::BadValue { .. }) if e.to_string().contains("obs_map") => {
+        Err(e @ vdd_import::ImportError::BadValue { .. })
+            if e.to_string().contains("obs_map") || e.to_string().starts_with("sampler") =>
+        {
             return Err(PyValueError::new_err(e.to_string()));
         }
         Err(e) => return Err(crate::errors::to_py(py, &e)),
@@ -205,7 +212,7 @@ pub fn load_teacher(
     if is_import_file(&path) {
         let ImportedTeacher::Unet1d(mut t) = run(py, || vdd_import::load_teacher(&path))?;
         if let Some(s) = sampler {
-            t.set_sampler(parse_sampler(&s)?).py_err(py)?;
+            t.set_sampler(parse_sampler(&s)?).map_err(sampler_error)?;
         }
         vdd_core::Policy::seed(t.as_mut(), seed);
         return Ok(PyTeacher { inner: TeacherModel::Unet(t) });
@@ -347,12 +354,11 @@ impl PyTeacher {
     }
 
     /// Acts with `sampler` (`'ddpm'`, `'ddpm:N'`, `'ddim:N'`) from now on (imported teachers).
-    fn set_sampler(&mut self, py: Python<'_>, sampler: &str) -> PyResult<()> {
+    fn set_sampler(&mut self, sampler: &str) -> PyResult<()> {
         let s = parse_sampler(sampler)?;
-        self.unet("set_sampler")?;
         match &mut self.inner {
-            TeacherModel::Unet(t) => t.set_sampler(s).py_err(py),
-            TeacherModel::Diffusion(_) => Ok(()),
+            TeacherModel::Unet(t) => t.set_sampler(s).map_err(sampler_error),
+            TeacherModel::Diffusion(_) => self.unet("set_sampler").map(|_| ()),
         }
     }
 

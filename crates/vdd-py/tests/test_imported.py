@@ -118,6 +118,10 @@ def test_a_teacher_file_round_trips_through_load_teacher(teacher, tmp_path):
     teacher.save(str(path))
     again = vdd.load_teacher(str(path), sampler="ddpm")
     assert again.kind == "unet1d" and again.sampler == "ddpm"
+    again.set_sampler("ddim:10")
+    assert again.sampler == "ddim:10"
+    with pytest.raises(ValueError, match="sampler"):
+        again.set_sampler("ddim:1000")  # more steps than the 100 trained
     obs, act = episodes(n=1, steps=3)
     states, chunks = teacher.training_windows(obs, act)
     levels = np.full(len(states), 5.0)
@@ -135,6 +139,8 @@ def test_bad_inputs_are_refused_naming_the_problem(teacher, tmp_path):
         vdd.import_lerobot(str(tmp_path))  # a directory without LeRobot's files
     with pytest.raises(ValueError, match="sampler"):
         vdd.import_lerobot(str(FIXTURE), sampler="ddim")
+    with pytest.raises(ValueError, match="sampler"):
+        vdd.import_lerobot(str(FIXTURE), sampler="ddim:1000")
     with pytest.raises(ValueError, match="obs_map"):
         vdd.import_lerobot(str(FIXTURE), obs_map="observation.state=0..3;observation.environment_state=4..7")
     with pytest.raises(ValueError, match=r"observation windows of 2 steps × 7 features = 14 wide"):
