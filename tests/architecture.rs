@@ -98,10 +98,20 @@ fn crate_dependency_rules_hold() {
         ("vdd-recipe", &["vdd-core"]),
         // PyTorch teachers are networks plus noise processes; they know no student or trainer.
         ("vdd-import", &["vdd-core", "vdd-nn", "vdd-torch", "vdd-diffusion", "vdd-data"]),
-        // The Python package binds the deployed student, the trainer and the learned teachers.
+        // The Python package binds the deployed student, the trainer and the learned and
+        // imported teachers.
         (
             "vdd-py",
-            &["vdd-core", "vdd-data", "vdd-moe", "vdd", "vdd-diffusion", "vdd-onnx", "vdd-tasks"],
+            &[
+                "vdd-core",
+                "vdd-data",
+                "vdd-moe",
+                "vdd",
+                "vdd-diffusion",
+                "vdd-import",
+                "vdd-onnx",
+                "vdd-tasks",
+            ],
         ),
         // ONNX export reads a saved student; it knows no teacher, trainer or task.
         ("vdd-onnx", &["vdd-core", "vdd-nn", "vdd-data", "vdd-moe"]),

@@ -16,7 +16,7 @@ the Rust side, should one happen, raises ``RuntimeError``.
 """
 
 from os import PathLike
-from typing import Any, Callable, Optional, Tuple, Union
+from typing import Any, Callable, Iterable, Mapping, Optional, Sequence, Tuple, Union
 
 import numpy as np
 import numpy.typing as npt
@@ -73,6 +73,14 @@ class Policy:
         """Reseeds acting's random draws (expert picks, sampled actions)."""
     def save(self, path: Path) -> None:
         """Saves weights, normalisers, act mode and deployment spec to one file."""
+    def save_pretrained(self, out: Path, teacher_dir: Path, seed: int = 0) -> None:
+        """Writes a LeRobot policy directory (``--policy.type=vdd``: ``config.json``,
+        ``model.safetensors``, the teacher's processors) through the ``lerobot_policy_vdd``
+        plugin's converter (``lerobot-vdd-convert``); ``teacher_dir`` is the LeRobot
+        ``DiffusionPolicy`` directory the student was distilled from. Raises ``ImportError``
+        when the plugin (crates/vdd-py/lerobot_policy_vdd, with lerobot and torch) is not
+        installed: then ``save`` the student and run ``lerobot-vdd-convert --student FILE
+        --teacher DIR --out DIR`` where it is."""
     def rust_us_per_act(
         self, obs: ArrayLike, calls: int = 2000, warmup: int = 100, min_round_ms: float = 20.0
     ) -> float:
@@ -99,32 +107,139 @@ class Policy:
         """The observation feature map, e.g. ``'position_and_lag v1'``."""
 
 class Teacher:
-    """A learned diffusion teacher (DDPM or BESO) saved by the crates; usable as a
-    ``score_fn`` of :func:`distill` (then it runs in Rust, without Python calls)."""
+    """A learned diffusion teacher that runs in Rust: a DDPM or BESO teacher saved by the crates
+    (``vdd-diffusion``), or a 1-D U-Net diffusion policy imported from PyTorch (LeRobot's
+    ``DiffusionPolicy``, diffusion_policy's; ``kind == 'unet1d'``). Usable as the ``score_fn``
+    of :func:`distill` (then it runs in Rust, without Python calls).
+
+    An imported teacher's state is an *observation window* (``obs_window`` raw per-step
+    observations of ``obs_dim`` entries, oldest first, after its feature map and observation
+    map: ``state_dim = obs_window * (mapped obs_dim)``) and its action a whole *chunk*
+    (``action_chunk`` per-step actions of ``step_action_dim`` entries, step-major:
+    ``action_dim = action_chunk * step_action_dim``). :meth:`training_windows` builds both from
+    a user's episodes. A ``vdd-diffusion`` teacher has ``obs_window == action_chunk == 1``.
+    """
 
     def __call__(self, actions: ArrayLike, states: ArrayLike, levels: ArrayLike) -> F32:
-        """The score ``(n, action_dim)`` with respect to raw actions ``(n, action_dim)`` at raw
-        states ``(n, state_dim)`` and noise levels ``(n,)`` in the teacher's own normalised
-        space and convention (see ``noise_convention``)."""
+        """The score ``(n, action_dim)`` with respect to **raw** actions ``(n, action_dim)`` (an
+        imported teacher: raw chunks) at **raw** states ``(n, state_dim)`` (an imported
+        teacher: observation windows as :meth:`training_windows` builds them) and noise levels
+        ``(n,)`` in the teacher's own convention (``noise_convention``; for an imported U-Net
+        diffusers' steps ``t`` in ``noise_range == (1, N)``). The teacher's normalisers are
+        applied inside and the score is carried back to raw units (divided by the action
+        normaliser's scale): the units :func:`distill` uses."""
+    def training_windows(
+        self, observations: Sequence[ArrayLike], actions: Sequence[ArrayLike]
+    ) -> Tuple[F32, F32]:
+        """The states and action chunks to distil an imported teacher on, from a user's own
+        episodes, as LeRobot's dataset builds this policy's samples with ``delta_timestamps``.
+
+        ``observations[e]`` is episode ``e``'s raw observations ``(T_e, obs_dim)`` (for a
+        ``LeRobotDataset``: per frame ``observation.state`` then
+        ``observation.environment_state``, concatenated, unless the teacher was imported with
+        an ``obs_map``, which then says where each feature comes from), ``actions[e]`` its
+        actions ``(T_e, step_action_dim)``. Observations are raw in the sense of the
+        teacher's ``features`` map: with ``'identity v1'`` (any policy trained on a user's own
+        dataset) they are the dataset's features as they are; a teacher trained by this
+        project's script records ``'position_and_lag v1'`` and then takes the task's raw
+        observations, the map being applied here (and by the student when it acts). Returns raw ``states (N, state_dim)`` and
+        ``chunks (N, action_dim)``, ``N = sum T_e``: for every step ``t`` the window
+        ``t - obs_window + 1 .. t`` and the chunk ``t - obs_window + 1 ..`` of ``action_chunk``
+        steps, indices clamped to the episode. Pass them as ``distill(teacher, states,
+        actions=chunks)``. ``TypeError`` for a ``vdd-diffusion`` teacher."""
+    def sample(self, states: ArrayLike, seed: int = 0) -> F32:
+        """Actions ``(n, action_dim)`` drawn by the teacher's own sampler (an imported
+        teacher's: ``sampler``) at raw states ``(n, state_dim)``, in raw units (an imported
+        teacher: raw chunks at observation windows); the same ``seed``, the same actions."""
+    def save(self, path: Path) -> None:
+        """Saves an imported teacher as one teacher file (as ``cargo xtask import`` writes it,
+        its observation map and sampler included); :func:`load_teacher` reads it back."""
+    def set_sampler(self, sampler: str) -> None:
+        """The sampler an imported teacher acts (and samples for :func:`distill`) with from
+        now on: ``'ddpm'`` (every trained step), ``'ddpm:N'`` or ``'ddim:N'``. Its score does
+        not depend on it."""
     @property
-    def action_dim(self) -> int: ...
+    def action_dim(self) -> int:
+        """Width of the teacher's action (a whole chunk for an imported teacher)."""
     @property
-    def state_dim(self) -> int: ...
+    def state_dim(self) -> int:
+        """Width of the teacher's state (a whole observation window for an imported teacher)."""
+    @property
+    def obs_dim(self) -> int:
+        """Width of one raw per-step observation."""
+    @property
+    def step_action_dim(self) -> int:
+        """Width of one per-step action."""
+    @property
+    def obs_window(self) -> int:
+        """Observations per state (LeRobot's ``n_obs_steps``; 1 for ``vdd-diffusion``)."""
+    @property
+    def action_chunk(self) -> int:
+        """Actions per chunk (LeRobot's ``horizon``; 1 for ``vdd-diffusion``)."""
+    @property
+    def execute_steps(self) -> int:
+        """Actions of a chunk executed before the next prediction (``n_action_steps``)."""
+    @property
+    def chunk_start(self) -> int:
+        """Index of the chunk's first executed action (``n_obs_steps - 1`` for LeRobot)."""
+    @property
+    def sampler(self) -> Optional[str]:
+        """An imported teacher's sampler (``'ddpm'``, ``'ddpm:N'``, ``'ddim:N'``), else None."""
+    @property
+    def obs_map(self) -> Optional[str]:
+        """An imported teacher's observation map (``'key=i,j,...;...'``), else None."""
+    @property
+    def features(self) -> Optional[str]:
+        """An imported teacher's observation feature map (``'name vN'``), else None."""
+    @property
+    def noise_range(self) -> Optional[Tuple[float, float]]:
+        """The noise levels the teacher was trained on (``(1, N)`` for an imported U-Net)."""
     @property
     def kind(self) -> str:
-        """``'ddpm'`` or ``'beso'``."""
+        """``'ddpm'`` or ``'beso'`` (``vdd-diffusion``), ``'unet1d'`` (imported)."""
+    @property
+    def source(self) -> Optional[str]:
+        """An imported teacher's package (``'lerobot'``, ``'diffusion_policy'``), else None."""
     @property
     def noise_convention(self) -> str:
-        """``'sigma'`` (VE, BESO) or ``'time'`` (VP, DDPM)."""
+        """``'sigma'`` (VE, BESO) or ``'time'`` (VP: DDPM, imported U-Nets)."""
 
-def load_teacher(path: Path, seed: int = 0) -> Teacher:
-    """Loads a teacher saved by ``vdd-diffusion``; ``seed`` seeds its sampler."""
+def load_teacher(
+    path: Path,
+    seed: int = 0,
+    obs_map: Union[None, str, Mapping[str, Iterable[int]]] = None,
+    sampler: Optional[str] = None,
+) -> Teacher:
+    """Loads a teacher: a LeRobot policy directory (as :func:`import_lerobot`), a teacher file
+    written by ``cargo xtask import`` or :meth:`Teacher.save`, or a teacher saved by
+    ``vdd-diffusion``; ``seed`` seeds its sampler, ``sampler`` (imported teachers) chooses it,
+    ``obs_map`` only with a directory. A path that does not exist raises ``ValueError``."""
+
+def import_lerobot(
+    path: Path,
+    obs_map: Union[None, str, Mapping[str, Iterable[int]]] = None,
+    sampler: Optional[str] = None,
+    seed: int = 0,
+) -> Teacher:
+    """Imports a LeRobot ``DiffusionPolicy`` directory (``save_pretrained``'s ``config.json``,
+    ``model.safetensors`` and processor files; lerobot >= 0.4, state inputs only: images are
+    not supported) as a teacher that runs in Rust.
+
+    ``obs_map`` states where the policy's ``observation.state`` /
+    ``observation.environment_state`` come from in the raw per-step observation, as
+    ``'observation.state=3..7;observation.environment_state=0..3'`` or
+    ``{'observation.state': range(3, 7), 'observation.environment_state': [0, 1, 2]}``
+    (``None``: the features concatenated in that order); a map that does not fit the
+    features' shapes raises ``ValueError`` naming it. ``sampler`` (``'ddpm'``, ``'ddpm:N'``,
+    ``'ddim:N'``) replaces the package's. A path that is not a directory raises ``ValueError``;
+    a directory without a valid policy raises :class:`VddError` naming the file and key.
+    """
 
 def distill(
-    score_fn: Callable[[F32, F32, F32], ArrayLike],
+    score_fn: Union[Teacher, Callable[[F32, F32, F32], ArrayLike]],
     states: ArrayLike,
     *,
-    action_dim: int,
+    action_dim: Optional[int] = None,
     experts: int = 8,
     iterations: Optional[int] = None,
     seed: int = 0,
@@ -159,6 +274,32 @@ def distill(
     ``MoeConfig`` (``expert_kind='diag'``, ``gating='uniform'``, ``init_std``,
     ``experts_network={'hidden_dim': 64, 'num_blocks': 1, 'activation': 'mish'}``, ...); an
     unknown key raises ``ValueError`` naming it (before the teacher is called).
+    ``action_dim`` is required for a callable; for a :class:`Teacher` it is the teacher's
+    (given, it must match). ``teacher_samples=N`` sets how many teacher actions the plan
+    inspects (8192 by default; 2048 for an imported teacher).
+
+    **An imported teacher** (:func:`import_lerobot`): ``states`` are raw observation windows
+    and ``actions`` raw chunks, from :meth:`Teacher.training_windows` on the user's episodes
+    (a width other than ``state_dim`` raises ``ValueError`` saying what the states are). The
+    run is wired as Rust's imported-teacher path (``cargo xtask experiment avoiding --teacher
+    FILE``): the teacher works in its own normalised chunk space; its denoised chunk is clamped
+    to the box of the ``actions`` chunks widened by ``clip_margin`` (0.5 by default, in the
+    teacher's normalised units; without ``actions`` this raises ``ValueError``;
+    ``clip_margin=None`` distils the raw score, which diverged on the committed fixture);
+    the student starts from a mixture fitted to ``teacher_samples`` of the teacher's
+    own samples (with the sampler it was given: ``'ddim:10'`` is much faster than the trained
+    DDPM schedule); VDD then runs with noise on both sides (``score_at='noised_sample'``),
+    levels uniform over the teacher's steps ``[1, 0.3 N]``, batch 32, one sample per state,
+    the batch in two chunks on forks of the teacher (both cores), as the recipe's
+    ``[imported.vdd]``; ``settings`` override these. Rust's default start, EM on the teacher's
+    samples (``imported.init = "samples"``), is not available from Python. The student emits
+    the teacher's whole chunk and acts like the teacher's package: ``act`` takes one raw
+    observation and keeps the window and the chunk queue (``obs_window``, ``action_chunk``,
+    the executed steps). A teacher imported with an ``obs_map`` is refused (the student cannot
+    carry the map yet). To put the student back into LeRobot: ``Policy.save_pretrained(out,
+    teacher_dir)`` where the ``lerobot_policy_vdd`` plugin (crates/vdd-py/lerobot_policy_vdd)
+    is installed, else ``Policy.save`` and the plugin's ``lerobot-vdd-convert`` later.
+
     ``defaults='toy'`` starts from the paper's toy settings instead (``VddConfig.toy()``,
     ``MoeConfig.toy()``: exact score, ``sigma = 0``, actions of unit scale near the origin,
     the student's action normaliser only from ``actions``), the behaviour before ``Vdd::auto``

@@ -7,16 +7,14 @@ use pyo3::exceptions::{PyTypeError, PyValueError};
 use pyo3::prelude::*;
 use pyo3::types::{PyDict, PyList, PyTuple};
 use serde_json::{Map, Value};
-use vdd::{
-    Affine, AutoOptions, AutoPlan, DistillData, Moe, MoeConfig, ScoreModel, Vdd, VddConfig,
-    VddError,
-};
+use vdd::{Affine, AutoOptions, AutoPlan, DistillData, Moe, ScoreModel, Vdd};
 use vdd_core::{CoreError, check_score_args};
 
 use crate::arrays::{mat_to_numpy, matrix, row_bytes};
-use crate::errors::{IntoPy as _, to_py};
+use crate::errors::{IntoPy as _, run_train, to_py};
 use crate::policy::PyPolicy;
-use crate::teacher::PyTeacher;
+use crate::settings::{Defaults, Extra, Request, RunError, apply_settings};
+use crate::teacher::{PyTeacher, TeacherModel};
 
 /// A teacher whose score is a Python callable `score_fn(actions, states, sigma)`: called with
 /// the GIL held, the rest of training runs without it. A Python exception raised by the
@@ -173,59 +171,6 @@ fn to_json(v: &Bound<'_, PyAny>, key: &str) -> PyResult<Value> {
     }
 }
 
-/// Keys of `vdd.distill`'s own arguments, which `**settings` must not repeat.
-const RESERVED: &[(&str, &str)] = &[
-    ("seed", "seed="),
-    ("iterations", "iterations="),
-    ("num_experts", "experts="),
-    ("action_dim", "action_dim="),
-    ("state_dim", "the columns of `states`"),
-];
-
-/// Applies `settings` to the trainer's and the student's configurations (each key is a field of
-/// `VddConfig` or `MoeConfig`); an unknown key is an error naming it.
-pub fn apply_settings(
-    vdd: &mut VddConfig,
-    moe: &mut MoeConfig,
-    settings: &[(String, Value)],
-) -> Result<(), String> {
-    let mut v = serde_json::to_value(&*vdd).map_err(|e| e.to_string())?;
-    let mut m = serde_json::to_value(&*moe).map_err(|e| e.to_string())?;
-    // Every trainer field, those left out of the serialised form when unset included.
-    let probe = VddConfig {
-        noise_anneal_until: Some(0.0),
-        score_at: vdd::ScoreAt::NoisedSample,
-        state_noise: Some(vdd::StateNoise { share: 1.0, std: 1.0 }),
-        ..vdd.clone()
-    };
-    let trainer_fields = serde_json::to_value(&probe).map_err(|e| e.to_string())?;
-    for (key, value) in settings {
-        if let Some((_, instead)) = RESERVED.iter().find(|(k, _)| k == key) {
-            return Err(format!("setting `{key}`: give it as {instead}"));
-        }
-        let target = if trainer_fields.get(key).is_some() {
-            &mut v
-        } else if m.get(key).is_some() {
-            &mut m
-        } else {
-            let names = |x: &Value| {
-                let own = |k: &String| !RESERVED.iter().any(|(r, _)| r == k);
-                x.as_object()
-                    .map(|o| o.keys().filter(|k| own(k)).cloned().collect::<Vec<_>>().join(", "))
-            };
-            return Err(format!(
-                "unknown setting `{key}` (trainer settings: {}; student settings: {})",
-                names(&trainer_fields).unwrap_or_default(),
-                names(&m).unwrap_or_default()
-            ));
-        };
-        target[key.as_str()] = value.clone();
-    }
-    *vdd = serde_json::from_value(v).map_err(|e| format!("invalid trainer setting: {e}"))?;
-    *moe = serde_json::from_value(m).map_err(|e| format!("invalid student setting: {e}"))?;
-    Ok(())
-}
-
 /// Per-column mean and standard deviation of `m` as a normaliser (a constant column gets
 /// scale 1).
 fn column_normalizer(m: MatRef<'_, f32>) -> Result<Affine, CoreError> {
@@ -240,65 +185,9 @@ fn column_normalizer(m: MatRef<'_, f32>) -> Result<Affine, CoreError> {
     Affine::new(offset, scale)
 }
 
-/// Which defaults `distill` starts from (the setting `defaults`).
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-enum Defaults {
-    /// [`Vdd::auto`]: picked from the teacher ([`AutoPlan::inspect`]).
-    Auto,
-    /// The paper's toy settings ([`VddConfig::toy`], [`MoeConfig::toy`]) with [`Vdd::new`].
-    Toy,
-}
-
-/// A failed run: a training error, or a setting the plan's configurations refuse.
-enum RunError {
-    Vdd(VddError),
-    Setting(String),
-}
-
-impl From<VddError> for RunError {
-    fn from(e: VddError) -> Self {
-        Self::Vdd(e)
-    }
-}
-
-impl From<CoreError> for RunError {
-    fn from(e: CoreError) -> Self {
-        Self::Vdd(e.into())
-    }
-}
-
-impl From<vdd::MoeError> for RunError {
-    fn from(e: vdd::MoeError) -> Self {
-        Self::Vdd(e.into())
-    }
-}
-
-/// What `distill` was asked for, besides the teacher and the data.
-struct Request {
-    defaults: Defaults,
-    experts: usize,
-    iterations: Option<usize>,
-    seed: u64,
-    state_dim: usize,
-    action_dim: usize,
-    settings: Vec<(String, Value)>,
-}
-
-impl Request {
-    /// The toy configurations with `iterations`, `seed` and the settings applied.
-    fn toy_configs(&self) -> Result<(VddConfig, MoeConfig), String> {
-        let mut config = VddConfig { seed: self.seed, ..VddConfig::toy() };
-        if let Some(it) = self.iterations {
-            config.iterations = it;
-        }
-        let mut moe = MoeConfig::toy(self.state_dim, self.action_dim, self.experts);
-        apply_settings(&mut config, &mut moe, &self.settings)?;
-        Ok((config, moe))
-    }
-}
-
 fn train<S: ScoreModel>(
     request: &Request,
+    extra: &Extra,
     mut teacher: S,
     data: DistillData,
     actions: Option<&Mat<f32>>,
@@ -313,10 +202,13 @@ fn train<S: ScoreModel>(
             Vdd::new(config, teacher, student, data)?
         }
         Defaults::Auto => {
-            let options = AutoOptions {
+            let mut options = AutoOptions {
                 iterations: request.iterations,
                 ..AutoOptions::new(request.experts, request.seed)
             };
+            if let Some(n) = extra.teacher_samples {
+                options.samples = n;
+            }
             let mut plan = AutoPlan::inspect(&mut teacher, &data, &options)?;
             apply_settings(&mut plan.vdd, &mut plan.student, &request.settings)
                 .map_err(RunError::Setting)?;
@@ -330,13 +222,13 @@ fn train<S: ScoreModel>(
 /// Distils a teacher into a mixture of experts with the Rust VDD trainer; returns the
 /// student as a `vdd.Policy` (acting on raw states).
 #[pyfunction]
-#[pyo3(signature = (score_fn, states, *, action_dim, experts = 8, iterations = None, seed = 0, actions = None, sample_fn = None, **settings))]
+#[pyo3(signature = (score_fn, states, *, action_dim = None, experts = 8, iterations = None, seed = 0, actions = None, sample_fn = None, **settings))]
 #[allow(clippy::too_many_arguments)]
 pub fn distill(
     py: Python<'_>,
     score_fn: Bound<'_, PyAny>,
     states: PyArrayLike2<'_, f32, AllowTypeChange>,
-    action_dim: usize,
+    action_dim: Option<usize>,
     experts: usize,
     iterations: Option<usize>,
     seed: u64,
@@ -344,7 +236,29 @@ pub fn distill(
     sample_fn: Option<Bound<'_, PyAny>>,
     settings: Option<Bound<'_, PyDict>>,
 ) -> PyResult<PyPolicy> {
+    let teacher = score_fn.cast::<PyTeacher>().ok().map(|t| t.borrow().inner.clone());
     let state_dim = states.as_array().ncols();
+    let action_dim = match (&teacher, action_dim) {
+        (Some(t), given) => {
+            let (ts, ta) = teacher_dims(t);
+            if given.is_some_and(|a| a != ta) {
+                return Err(PyValueError::new_err(format!(
+                    "action_dim={} but the teacher's actions are {ta} wide",
+                    given.unwrap_or_default()
+                )));
+            }
+            if state_dim != ts {
+                return Err(PyValueError::new_err(wrong_state_width(t, state_dim)));
+            }
+            ta
+        }
+        (None, Some(a)) => a,
+        (None, None) => {
+            return Err(PyTypeError::new_err(
+                "distill: action_dim= is required for a Python score_fn",
+            ));
+        }
+    };
     // The dataset is copied once or twice (states, their normalised copy): bounded by memory,
     // not by the batch limit (a dataset may hold many more states than one batch).
     let rows = states.as_array().nrows();
@@ -361,6 +275,7 @@ pub fn distill(
     }
     let mut defaults = Defaults::Auto;
     let mut pairs = Vec::new();
+    let mut extra = Extra::default();
     if let Some(s) = &settings {
         for (k, v) in s.iter() {
             let k: String = k.extract()?;
@@ -377,6 +292,9 @@ pub fn distill(
                 };
                 continue;
             }
+            if extra.take(&k, &v)? {
+                continue;
+            }
             let value = to_json(&v, &k)?;
             pairs.push((k, value));
         }
@@ -385,38 +303,59 @@ pub fn distill(
         Request { defaults, experts, iterations, seed, state_dim, action_dim, settings: pairs };
     // Settings are checked before the teacher is inspected (which may take many calls).
     request.toy_configs().map_err(PyValueError::new_err)?;
-    let data = DistillData::new(states, actions.clone()).py_err(py)?;
-    let trained = if let Ok(teacher) = score_fn.cast::<PyTeacher>() {
-        if sample_fn.is_some() {
-            return Err(PyValueError::new_err(
-                "sample_fn is for a Python score_fn; a vdd.Teacher samples itself",
-            ));
+    let trained = match teacher {
+        Some(teacher) => {
+            if sample_fn.is_some() {
+                return Err(PyValueError::new_err(
+                    "sample_fn is for a Python score_fn; a vdd.Teacher samples itself",
+                ));
+            }
+            match teacher {
+                TeacherModel::Diffusion(inner) => {
+                    extra.refuse_imported_only()?;
+                    let (s, a) = inner.normalizers();
+                    let space = vdd::TeacherSpace::normalized(s.clone(), a.clone());
+                    let data = DistillData::new(states, actions.clone()).py_err(py)?;
+                    let data = data.with_teacher_space(space);
+                    run_train(py, || train(&request, &extra, *inner, data, actions.as_ref()))
+                }
+                TeacherModel::Unet(inner) => {
+                    if let Some(m) = &inner.spec().obs_map {
+                        return Err(PyValueError::new_err(format!(
+                            "the teacher was imported with the observation map `{m}`, which a \
+                             distilled student cannot carry yet (it would act on mapped \
+                             observations); import it without obs_map, its observation being \
+                             the features in the policy's order"
+                        )));
+                    }
+                    if request.defaults == Defaults::Toy {
+                        return Err(PyValueError::new_err(
+                            "defaults='toy' does not apply to an imported teacher",
+                        ));
+                    }
+                    run_train(py, || {
+                        crate::imported::train(&request, &extra, *inner, states, actions)
+                    })
+                }
+            }
         }
-        let teacher = teacher.borrow();
-        let data = data.with_teacher_space(teacher.space());
-        let inner = teacher.inner.clone();
-        if (inner.state_dim(), inner.action_dim()) != (state_dim, action_dim) {
-            return Err(PyValueError::new_err(format!(
-                "the teacher is {} -> {}, the data {state_dim} -> {action_dim}",
-                inner.state_dim(),
-                inner.action_dim()
-            )));
+        None => {
+            extra.refuse_imported_only()?;
+            if !score_fn.is_callable() {
+                return Err(PyTypeError::new_err("score_fn must be callable"));
+            }
+            if sample_fn.as_ref().is_some_and(|f| !f.is_callable()) {
+                return Err(PyTypeError::new_err("sample_fn must be callable (or None)"));
+            }
+            let data = DistillData::new(states, actions.clone()).py_err(py)?;
+            let teacher = PyScore {
+                score_fn: score_fn.unbind(),
+                sample_fn: sample_fn.map(Bound::unbind),
+                state_dim,
+                action_dim,
+            };
+            run_train(py, || train(&request, &extra, teacher, data, actions.as_ref()))
         }
-        run_train(py, || train(&request, inner, data, actions.as_ref()))
-    } else {
-        if !score_fn.is_callable() {
-            return Err(PyTypeError::new_err("score_fn must be callable"));
-        }
-        if sample_fn.as_ref().is_some_and(|f| !f.is_callable()) {
-            return Err(PyTypeError::new_err("sample_fn must be callable (or None)"));
-        }
-        let teacher = PyScore {
-            score_fn: score_fn.unbind(),
-            sample_fn: sample_fn.map(Bound::unbind),
-            state_dim,
-            action_dim,
-        };
-        run_train(py, || train(&request, teacher, data, actions.as_ref()))
     };
     match trained? {
         Ok(student) => Ok(PyPolicy::new(student.into_policy().py_err(py)?)),
@@ -425,12 +364,30 @@ pub fn distill(
     }
 }
 
-/// Runs a training closure with the GIL released; a panic becomes `RuntimeError`
-/// ([`crate::errors::panic_error`]), the training error is kept for [`to_py`].
-fn run_train<T: Send, E: Send>(
-    py: Python<'_>,
-    f: impl FnOnce() -> Result<T, E> + Send,
-) -> PyResult<Result<T, E>> {
-    py.detach(|| std::panic::catch_unwind(std::panic::AssertUnwindSafe(f)))
-        .map_err(|payload| crate::errors::panic_error(payload.as_ref()))
+/// The teacher's (state, action) widths.
+fn teacher_dims(t: &TeacherModel) -> (usize, usize) {
+    match t {
+        TeacherModel::Diffusion(t) => (t.state_dim(), t.action_dim()),
+        TeacherModel::Unet(t) => (t.state_dim(), t.action_dim()),
+    }
+}
+
+/// The error for states of the wrong width, saying what the teacher's states are.
+fn wrong_state_width(t: &TeacherModel, got: usize) -> String {
+    match t {
+        TeacherModel::Diffusion(t) => {
+            format!("states: {got} columns, but the teacher's states are {} wide", t.state_dim())
+        }
+        TeacherModel::Unet(t) => {
+            let s = t.spec();
+            format!(
+                "states: {got} columns, but the teacher's states are observation windows of \
+                 {} steps × {} features = {} wide (build them with \
+                 teacher.training_windows(observations, actions))",
+                s.n_obs_steps,
+                s.obs_dim(),
+                t.state_dim()
+            )
+        }
+    }
 }

@@ -99,3 +99,13 @@ pub fn panic_error(payload: &(dyn std::any::Any + Send)) -> PyErr {
         "internal error in vdd (a Rust panic, please report it): {msg}"
     ))
 }
+
+/// Runs a training closure with the GIL released; a panic becomes `RuntimeError`
+/// ([`crate::errors::panic_error`]), the training error is kept for [`to_py`].
+pub fn run_train<T: Send, E: Send>(
+    py: Python<'_>,
+    f: impl FnOnce() -> Result<T, E> + Send,
+) -> PyResult<Result<T, E>> {
+    py.detach(|| std::panic::catch_unwind(std::panic::AssertUnwindSafe(f)))
+        .map_err(|payload| panic_error(payload.as_ref()))
+}

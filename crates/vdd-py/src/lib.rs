@@ -2,8 +2,10 @@
 //!
 //! The Python package `vdd`, built from the workspace with [pyo3] and `maturin`: load, run and
 //! export distilled policies ([`policy::PyPolicy`], `vdd.Policy`), distil a teacher that lives
-//! in Python (`vdd.distill`, whose `score_fn` is any Python callable) and load the teachers the
-//! crates train (`vdd.load_teacher`). NumPy `float32` arrays go in and out; the GIL is released
+//! in Python (`vdd.distill`, whose `score_fn` is any Python callable), load the teachers the
+//! crates train (`vdd.load_teacher`) and import LeRobot diffusion policies
+//! (`vdd.import_lerobot`), which `vdd.distill` distils in Rust through the wiring of the Rust
+//! experiment path (the `imported` module). NumPy `float32` arrays go in and out; the GIL is released
 //! while Rust computes, and reacquired only to call a Python `score_fn`.
 //!
 //! The Python API and its documentation are in `vdd.pyi` beside this crate's `Cargo.toml`;
@@ -13,7 +15,9 @@
 pub mod arrays;
 pub mod distill;
 pub mod errors;
+mod imported;
 pub mod policy;
+mod settings;
 pub mod teacher;
 
 use pyo3::prelude::*;
@@ -28,5 +32,6 @@ fn vdd_module(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_class::<teacher::PyTeacher>()?;
     m.add_function(wrap_pyfunction!(distill::distill, m)?)?;
     m.add_function(wrap_pyfunction!(teacher::load_teacher, m)?)?;
+    m.add_function(wrap_pyfunction!(teacher::import_lerobot, m)?)?;
     Ok(())
 }

@@ -147,6 +147,48 @@ impl PyPolicy {
         run(py, || moe.save(&path))
     }
 
+    /// Writes the policy as a LeRobot policy directory (`--policy.type=vdd`) through the
+    /// `lerobot_policy_vdd` plugin's converter (`lerobot-vdd-convert`): `teacher_dir` is the
+    /// LeRobot `DiffusionPolicy` directory the student was distilled from. `ImportError` when
+    /// the plugin (and with it LeRobot and PyTorch) is not installed.
+    #[pyo3(signature = (out, teacher_dir, seed = 0))]
+    fn save_pretrained(
+        &self,
+        py: Python<'_>,
+        out: PathBuf,
+        teacher_dir: PathBuf,
+        seed: u64,
+    ) -> PyResult<()> {
+        let convert = match py.import("lerobot_policy_vdd.convert") {
+            Ok(m) => m,
+            Err(e) if e.is_instance_of::<pyo3::exceptions::PyImportError>(py) => {
+                let err = pyo3::exceptions::PyImportError::new_err(
+                    "save_pretrained needs the LeRobot plugin package lerobot_policy_vdd \
+                     (crates/vdd-py/lerobot_policy_vdd: `pip install \
+                     crates/vdd-py/lerobot_policy_vdd`, with lerobot 0.6.1 and torch); \
+                     without it, save the student with Policy.save and convert it later with \
+                     `lerobot-vdd-convert --student FILE --teacher DIR --out DIR`",
+                );
+                err.set_cause(py, Some(e));
+                return Err(err);
+            }
+            Err(e) => return Err(e),
+        };
+        let nanos = std::time::SystemTime::now()
+            .duration_since(std::time::UNIX_EPOCH)
+            .map_or(0, |d| d.as_nanos());
+        let tmp = std::env::temp_dir()
+            .join(format!("vdd-student-{}-{nanos}.safetensors", std::process::id()));
+        let moe = self.inner.inner();
+        run(py, || moe.save(&tmp))?;
+        let kwargs = pyo3::types::PyDict::new(py);
+        kwargs.set_item("seed", seed)?;
+        let result = convert.getattr("convert")?.call((&tmp, teacher_dir, out), Some(&kwargs));
+        // The temporary file goes whatever the converter did; failing to remove it is harmless.
+        let _ = std::fs::remove_file(&tmp);
+        result.map(|_| ())
+    }
+
     /// Writes the policy as an ONNX graph (`vdd_onnx`): input `obs`
     /// `(n, obs_window · obs_dim)`, outputs `log_gating`, `means`, `scale_tril` equal to
     /// `components(obs)`.
