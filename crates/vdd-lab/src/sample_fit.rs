@@ -17,6 +17,11 @@ use vdd_mixture::{Dataset, Em, EmConfig};
 use vdd_moe::Moe;
 use vdd_nn::parallel::{Workers, chunk_range};
 
+/// Most samples per state a fit draws.
+pub const MAX_SAMPLES_PER_STATE: usize = 1024;
+/// Most (state, sample) pairs a fit holds.
+pub const MAX_PAIRS: usize = vdd_mixture::gating::MAX_PAIRS;
+
 /// How the student is fitted to the teacher's samples.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
@@ -36,10 +41,12 @@ pub struct SampleFit {
 impl SampleFit {
     /// Checks ranges.
     pub fn validate(&self) -> crate::Result {
-        if self.samples_per_state == 0 || self.blocks == 0 || self.blocks > 4096 {
+        let per = self.samples_per_state;
+        if !(1..=MAX_SAMPLES_PER_STATE).contains(&per) || !(1..=4096).contains(&self.blocks) {
             return Err(format!(
-                "imported.fit: samples_per_state must be ≥ 1 and blocks in 1..=4096 (got {} and {})",
-                self.samples_per_state, self.blocks
+                "imported.fit: samples_per_state must be in 1..={MAX_SAMPLES_PER_STATE} and blocks \
+                 in 1..=4096 (got {per} and {})",
+                self.blocks
             )
             .into());
         }
@@ -64,7 +71,14 @@ impl SampleFit {
         if m == 0 {
             return Err("imported.fit: no states to sample the teacher at".into());
         }
-        let rows = m * self.samples_per_state;
+        self.validate()?;
+        let rows =
+            m.checked_mul(self.samples_per_state).filter(|&r| r <= MAX_PAIRS).ok_or_else(|| {
+                format!(
+                    "imported.fit: {m} states × {} samples is over {MAX_PAIRS} pairs",
+                    self.samples_per_state
+                )
+            })?;
         let picked = Mat::from_fn(rows, states.ncols(), |r, j| {
             states[((r / self.samples_per_state) * n / m, j)]
         });
@@ -185,6 +199,11 @@ mod tests {
     fn bad_settings_and_teachers_that_cannot_sample_are_refused() {
         assert!(SampleFit { samples_per_state: 0, ..fit(5, 4) }.validate().is_err());
         assert!(fit(5, 0).validate().is_err());
+        let huge = SampleFit { samples_per_state: MAX_SAMPLES_PER_STATE, ..fit(0, 4) };
+        assert!(huge.validate().is_ok());
+        let states = Mat::zeros(MAX_PAIRS / MAX_SAMPLES_PER_STATE + 1, 2);
+        let e = huge.draw(&Shifted, states.as_ref(), 0, &Workers::inline(), &|| {}).unwrap_err();
+        assert!(e.to_string().contains("pairs"), "{e}");
         assert!(fit(5, 4).validate().is_ok());
         /// A teacher without a sampler.
         #[derive(Clone)]
