@@ -84,6 +84,15 @@ impl RunContext {
         vdd_recipe::run::git_revision(&self.root)
     }
 
+    /// The revision a tuning-log entry records: `git rev-parse HEAD`, with `+dirty` when the
+    /// working tree has uncommitted changes.
+    pub fn revision_label(&self) -> String {
+        match self.git_revision() {
+            (revision, Some(true)) => format!("{revision}+dirty"),
+            (revision, _) => revision,
+        }
+    }
+
     /// Writes `run.json` ([`vdd_recipe::run::run_info`]) into `dir`.
     pub fn write_run_info(&self, dir: &Path, extra: serde_json::Value) -> crate::Result {
         let times = (self.started.elapsed().as_secs_f64(), cpu_seconds());

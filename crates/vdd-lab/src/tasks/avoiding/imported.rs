@@ -100,8 +100,7 @@ fn log_tuning(
     rows: &[(String, Vec<Row>)],
 ) -> crate::Result {
     use crate::tuning;
-    let (revision, dirty) = ctx.git_revision();
-    let revision = if dirty == Some(true) { format!("{revision}+dirty") } else { revision };
+    let revision = ctx.revision_label();
     let mut keys = serde_json::Map::new();
     keys.insert("imported".into(), serde_json::to_value(&cfg.imported)?);
     let mut entries = Vec::new();

@@ -305,8 +305,7 @@ fn tuning_entries(
     dir: &std::path::Path,
     rows: &mut [(String, Vec<Row>)],
 ) -> crate::Result<Vec<tuning::LogEntry>> {
-    let (revision, dirty) = ctx.git_revision();
-    let revision = if dirty == Some(true) { format!("{revision}+dirty") } else { revision };
+    let revision = ctx.revision_label();
     let mut entries = Vec::with_capacity(plan.len());
     for (e, (_, rows)) in plan.iter().zip(rows.iter_mut()) {
         let n = tuning::configs_tried(log, &e.label);
