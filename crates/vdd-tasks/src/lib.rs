@@ -33,6 +33,7 @@
 #![warn(missing_docs)]
 
 pub mod avoiding;
+pub mod episodes;
 mod error;
 pub mod timing;
 pub mod toy;

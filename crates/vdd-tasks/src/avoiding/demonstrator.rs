@@ -44,11 +44,13 @@ use vdd_core::{
     CoreError, Policy, Rng, Seeds, check_act_args, check_finite, check_shape, standard_normal,
 };
 
-use super::rollout::{Worker, episode_seed};
+use super::AvoidingEnv;
+use super::rollout::episode_seed;
 use super::{
     ACTION_DIM, ACTION_LIMIT, AvoidingMode, EE_RADIUS, LEVEL_Y, MAX_STEPS, N_LEVELS, N_MODES,
     OBS_DIM, OBSTACLES, START, gap_centre, segment_disc_distance,
 };
+use crate::episodes::Worker;
 use crate::{Result, TaskError};
 
 /// Height of the end point of every planned path (past the finish line at 0.35).
@@ -467,7 +469,7 @@ pub fn generate_demonstrations(
     let bytes = (n as u64).saturating_mul(per_episode);
     vdd_core::memory::check_fits(&format!("{n} demonstrations"), bytes)?;
     let mut demo = AvoidingDemonstrator::new(config.clone())?;
-    let mut worker = Worker::default();
+    let mut worker = Worker::<AvoidingEnv>::default();
     let mut out = Demonstrations {
         observations: Vec::with_capacity(n),
         actions: Vec::with_capacity(n),
@@ -484,7 +486,7 @@ pub fn generate_demonstrations(
             });
         }
         let i = out.episodes_run;
-        let r = worker.episode(&mut demo, i, episode_seed(seed, i), true)?;
+        let r = worker.episode(&mut demo, i, (episode_seed(seed, i), 0), true)?;
         out.episodes_run += 1;
         if let (true, Some(mode), Some(tr)) = (r.success(), r.mode(), r.trajectory) {
             out.observations.push(tr.observations);

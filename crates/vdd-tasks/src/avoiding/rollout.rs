@@ -1,29 +1,10 @@
-//! Rollouts of any [`Policy`] on the Avoiding task, and their aggregate metrics.
+//! Rollouts of any [`Policy`] on the Avoiding task, and their aggregate metrics: the Avoiding
+//! side of the shared engine in [`crate::episodes`] ([`AvoidingEnv`] is its [`Env`]), whose
+//! module docs say how episodes are seeded and stepped.
 //!
-//! # Seeding and stepping
-//!
-//! Everything is deterministic for [`EvalConfig::seed`], and identical whatever the number of
-//! threads, provided the policy honours the [`Policy`] contract (after `seed(s)` and `reset()`,
-//! its behaviour depends only on `s` and its inputs). Work is split into *units*:
-//!
-//! * [`Stepping::PerEpisode`]: one unit per episode. Before episode `i` the policy is seeded
-//!   with [`episode_seed`]`(seed, i)` and reset, then acts with [`Policy::act_into`] one
-//!   observation at a time. Works for every policy, including stateful ones.
-//! * [`Stepping::Lockstep`]: one unit per chunk of `batch_size` consecutive episodes. Before
-//!   chunk `c` the policy is seeded with [`chunk_seed`]`(seed, c)` and reset once; then all the
-//!   chunk's environments advance together with **one [`Policy::act_batch`] call per step**
-//!   (one batched network evaluation for neural policies). Row `i` of every batch belongs to
-//!   the chunk's `i`-th environment throughout the chunk, and the batch keeps its size: rows of
-//!   environments that have already ended carry their final observation, and the policy's
-//!   actions for them are ignored. A stateful policy (observation history, action chunks) may
-//!   therefore keep per-row state between `reset()`s.
-//!
-//! Both steppings are valid evaluations, but they seed the policy differently, so a stochastic
-//! policy gives different (equally distributed) rollouts under the two.
-//!
-//! [`evaluate`] runs the units on the calling thread; [`evaluate_parallel`] spreads them over
-//! one policy per thread (`std::thread::scope`, dynamic scheduling) and returns exactly what
-//! [`evaluate`] would; [`evaluate_cloned`] clones one policy per thread.
+//! [`evaluate`] runs the episodes on the calling thread; [`evaluate_parallel`] spreads them
+//! over one policy per thread and returns exactly what [`evaluate`] would; [`evaluate_cloned`]
+//! clones one policy per thread.
 //!
 //! ```
 //! use vdd_core::{CoreError, Policy};
@@ -50,109 +31,71 @@
 //! assert_eq!(eval.metrics.task_entropy, 0.0);
 //! ```
 
-use std::sync::Mutex;
-use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
-
-use faer::Mat;
-use rand::Rng as _;
 use serde::{Deserialize, Serialize};
-use vdd_core::{CoreError, Policy, Seeds};
+use vdd_core::{CoreError, Policy};
+
+use crate::episodes::{self, Env, TaskMetrics};
+pub use crate::episodes::{EvalConfig, SeedStreams, Stepping, Trajectory};
 
 use super::{ACTION_DIM, AvoidingEnv, AvoidingMode, N_LEVELS, N_MODES, OBS_DIM, Status, mode_of};
 use crate::{Result, TaskError, normalized_entropy};
 
-/// How the policy is driven.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
-pub enum Stepping {
-    /// One episode at a time through [`Policy::act_into`].
-    PerEpisode,
-    /// `batch_size` environments in lockstep through one [`Policy::act_batch`] per step.
-    Lockstep {
-        /// Environments per batch (at least 1).
-        batch_size: usize,
-    },
-}
+impl Env for AvoidingEnv {
+    type Status = Status;
+    type Info = [Option<u8>; N_LEVELS];
+    const OBS_DIM: usize = OBS_DIM;
+    const ACTION_DIM: usize = ACTION_DIM;
+    const STREAMS: SeedStreams = SeedStreams {
+        episode: "avoiding-episode",
+        chunk: "avoiding-chunk",
+        start: "avoiding-start",
+    };
 
-/// What to evaluate.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-pub struct EvalConfig {
-    /// Number of episodes (at least 1).
-    pub n_rollouts: usize,
-    /// Root seed of the policy seeds ([`episode_seed`], [`chunk_seed`]).
-    pub seed: u64,
-    /// How the policy is driven.
-    pub stepping: Stepping,
-    /// Whether to keep every episode's observations and actions ([`Rollout::trajectory`]).
-    pub record: bool,
-}
-
-impl Default for EvalConfig {
-    /// 500 episodes, seed 0, per-episode stepping, no trajectories.
-    fn default() -> Self {
-        Self { n_rollouts: 500, seed: 0, stepping: Stepping::PerEpisode, record: false }
+    /// Every Avoiding episode starts at [`super::START`]: the seed is not used.
+    fn start(_: u64) -> Self {
+        AvoidingEnv::new()
     }
-}
 
-impl EvalConfig {
-    fn validate(&self) -> Result<()> {
-        if self.n_rollouts == 0 {
-            return Err(TaskError::InvalidArgument("n_rollouts must be at least 1".into()));
+    fn observe(&self, out: &mut [f32]) {
+        out.copy_from_slice(&self.observation());
+    }
+
+    fn apply(&mut self, action: &[f32], applied: &mut [f32]) -> std::result::Result<(), CoreError> {
+        if !action.iter().all(|a| a.is_finite()) {
+            return Err(CoreError::NonFinite { what: "action" });
         }
-        if let Stepping::Lockstep { batch_size: 0 } = self.stepping {
-            return Err(TaskError::InvalidArgument(
-                "lockstep batch_size must be at least 1".into(),
-            ));
-        }
+        let a = AvoidingEnv::clip_action([action[0], action[1]]);
+        applied.copy_from_slice(&a);
+        self.step_clipped(a);
         Ok(())
     }
 
-    fn unit_size(&self) -> usize {
-        match self.stepping {
-            Stepping::PerEpisode => 1,
-            Stepping::Lockstep { batch_size } => batch_size,
-        }
+    fn status(&self) -> Status {
+        AvoidingEnv::status(self)
     }
 
-    fn n_units(&self) -> usize {
-        self.n_rollouts.div_ceil(self.unit_size())
+    fn is_done(&self) -> bool {
+        AvoidingEnv::status(self).is_done()
+    }
+
+    fn steps(&self) -> usize {
+        AvoidingEnv::steps(self)
+    }
+
+    fn info(&self) -> Self::Info {
+        self.gaps()
     }
 }
 
-/// The policy seed of episode `episode` under per-episode stepping.
-pub fn episode_seed(seed: u64, episode: usize) -> u64 {
-    Seeds::new(seed).stream_indexed("avoiding-episode", episode as u64).random()
-}
+/// The outcome of one Avoiding episode: its [`Status`] (never [`Status::Running`]), the gap
+/// recorded at each level in `info` (`None` for levels never crossed), its steps and, when
+/// asked for, its trajectory.
+pub type Rollout = episodes::Rollout<AvoidingEnv>;
 
-/// The policy seed of chunk `chunk` under lockstep stepping.
-pub fn chunk_seed(seed: u64, chunk: usize) -> u64 {
-    Seeds::new(seed).stream_indexed("avoiding-chunk", chunk as u64).random()
-}
+/// Every rollout of an Avoiding evaluation, in episode order, and their [`Metrics`].
+pub type Evaluation = episodes::Evaluation<AvoidingEnv, Metrics>;
 
-/// The observations and actions of one episode.
-#[derive(Debug, Clone, PartialEq)]
-pub struct Trajectory {
-    /// `T x 4`: the observation before each step.
-    pub observations: Mat<f32>,
-    /// `T x 2`: the action applied at each step (after clipping to `±ACTION_LIMIT`).
-    pub actions: Mat<f32>,
-    /// The observation after the last step.
-    pub final_observation: [f32; OBS_DIM],
-}
-
-/// The outcome of one episode.
-#[derive(Debug, Clone, PartialEq)]
-pub struct Rollout {
-    /// How the episode ended (never [`Status::Running`]).
-    pub status: Status,
-    /// The gap recorded at each level (`None` for levels never crossed).
-    pub gaps: [Option<u8>; N_LEVELS],
-    /// Steps taken.
-    pub steps: usize,
-    /// Observations and actions, when recording was asked for.
-    pub trajectory: Option<Trajectory>,
-}
-
-impl Rollout {
+impl episodes::Rollout<AvoidingEnv> {
     /// Whether the episode succeeded.
     pub fn success(&self) -> bool {
         self.status == Status::Success
@@ -160,8 +103,18 @@ impl Rollout {
 
     /// The behaviour mode, when all three levels were crossed (always, for a success).
     pub fn mode(&self) -> Option<AvoidingMode> {
-        mode_of(self.gaps)
+        mode_of(self.info)
     }
+}
+
+/// The policy seed of episode `episode` under per-episode stepping.
+pub fn episode_seed(seed: u64, episode: usize) -> u64 {
+    episodes::episode_seed::<AvoidingEnv>(seed, episode)
+}
+
+/// The policy seed of chunk `chunk` under lockstep stepping.
+pub fn chunk_seed(seed: u64, chunk: usize) -> u64 {
+    episodes::chunk_seed::<AvoidingEnv>(seed, chunk)
 }
 
 /// Aggregate metrics of a set of rollouts.
@@ -188,6 +141,12 @@ pub struct Metrics {
     pub mean_success_steps: f64,
     /// Environment steps over all episodes.
     pub total_steps: usize,
+}
+
+impl TaskMetrics<AvoidingEnv> for Metrics {
+    fn from_rollouts(rollouts: &[Rollout]) -> Result<Self> {
+        Metrics::from_rollouts(rollouts)
+    }
 }
 
 impl Metrics {
@@ -262,99 +221,26 @@ impl Metrics {
     }
 }
 
-/// Every rollout of an evaluation, in episode order, and their metrics.
-#[derive(Debug, Clone, PartialEq)]
-pub struct Evaluation {
-    /// Aggregate metrics.
-    pub metrics: Metrics,
-    /// One entry per episode.
-    pub rollouts: Vec<Rollout>,
-}
-
 /// Runs one episode: seeds the policy with `seed`, resets it, and acts through
 /// [`Policy::act_into`] until the episode ends.
 pub fn rollout<P: Policy + ?Sized>(policy: &mut P, seed: u64, record: bool) -> Result<Rollout> {
-    check_dims(policy)?;
-    Worker::default().episode(policy, 0, seed, record)
+    episodes::rollout::<AvoidingEnv, P>(policy, seed, 0, record)
 }
 
 /// Runs `cfg.n_rollouts` episodes on the calling thread and summarises them.
 pub fn evaluate<P: Policy + ?Sized>(policy: &mut P, cfg: &EvalConfig) -> Result<Evaluation> {
-    cfg.validate()?;
-    check_dims(policy)?;
-    let mut worker = Worker::default();
-    let mut rollouts = Vec::with_capacity(cfg.n_rollouts);
-    for unit in 0..cfg.n_units() {
-        rollouts.extend(worker.unit(policy, cfg, unit)?);
-    }
-    finish(rollouts)
+    episodes::evaluate(policy, cfg)
 }
 
 /// Like [`evaluate`], with the episodes spread over one thread per policy in `policies`
 /// (dynamic scheduling). The result equals [`evaluate`]'s with any one of the policies, as long
-/// as they are identical and honour the seeding contract (see the module docs). On failure, the
-/// error of the lowest failing unit is returned.
+/// as they are identical and honour the seeding contract (see [`crate::episodes`]). On failure,
+/// the error of the lowest failing unit is returned.
 pub fn evaluate_parallel<P: Policy + Send>(
     policies: &mut [P],
     cfg: &EvalConfig,
 ) -> Result<Evaluation> {
-    cfg.validate()?;
-    if policies.is_empty() {
-        return Err(TaskError::InvalidArgument(
-            "evaluate_parallel needs at least one policy".into(),
-        ));
-    }
-    for p in policies.iter() {
-        check_dims(p)?;
-    }
-    let n_units = cfg.n_units();
-    let next = AtomicUsize::new(0);
-    let failed = AtomicBool::new(false);
-    let done: Mutex<Vec<(usize, Result<Vec<Rollout>>)>> = Mutex::new(Vec::with_capacity(n_units));
-    let workers = policies.len().min(n_units);
-    let panicked = std::thread::scope(|scope| {
-        let handles: Vec<_> = policies[..workers]
-            .iter_mut()
-            .map(|policy| {
-                let (next, failed, done) = (&next, &failed, &done);
-                scope.spawn(move || {
-                    let mut worker = Worker::default();
-                    // Stop taking units after a failure, but finish every unit taken: all
-                    // units below a failing one were taken before it, so they all run.
-                    while !failed.load(Ordering::Relaxed) {
-                        let unit = next.fetch_add(1, Ordering::Relaxed);
-                        if unit >= n_units {
-                            break;
-                        }
-                        let result = worker.unit(policy, cfg, unit);
-                        if result.is_err() {
-                            failed.store(true, Ordering::Relaxed);
-                        }
-                        let stop = result.is_err();
-                        done.lock().unwrap_or_else(|e| e.into_inner()).push((unit, result));
-                        if stop {
-                            break;
-                        }
-                    }
-                })
-            })
-            .collect();
-        // Join every handle (no short-circuit): an unjoined panicked thread makes `scope` panic.
-        let joined: Vec<bool> = handles.into_iter().map(|h| h.join().is_err()).collect();
-        joined.contains(&true)
-    });
-    if panicked {
-        return Err(TaskError::WorkerPanicked);
-    }
-    let mut done = done.into_inner().unwrap_or_else(|e| e.into_inner());
-    done.sort_by_key(|(unit, _)| *unit);
-    // Units are handed out in increasing order and every unit taken is finished, so the first
-    // error in unit order is the same for any number of threads and any timing.
-    let mut rollouts = Vec::with_capacity(cfg.n_rollouts);
-    for (_, result) in done {
-        rollouts.extend(result?);
-    }
-    finish(rollouts)
+    episodes::evaluate_parallel(policies, cfg)
 }
 
 /// [`evaluate_parallel`] with `threads` clones of `policy`.
@@ -363,194 +249,7 @@ pub fn evaluate_cloned<P: Policy + Clone + Send>(
     threads: usize,
     cfg: &EvalConfig,
 ) -> Result<Evaluation> {
-    if threads == 0 {
-        return Err(TaskError::InvalidArgument("threads must be at least 1".into()));
-    }
-    let mut policies: Vec<P> =
-        (0..threads.min(cfg.n_units().max(1))).map(|_| policy.clone()).collect();
-    evaluate_parallel(&mut policies, cfg)
-}
-
-fn finish(rollouts: Vec<Rollout>) -> Result<Evaluation> {
-    Ok(Evaluation { metrics: Metrics::from_rollouts(&rollouts)?, rollouts })
-}
-
-fn check_dims<P: Policy + ?Sized>(policy: &P) -> Result<()> {
-    if policy.obs_dim() != OBS_DIM || policy.action_dim() != ACTION_DIM {
-        return Err(TaskError::PolicyDims {
-            obs: OBS_DIM,
-            action: ACTION_DIM,
-            got_obs: policy.obs_dim(),
-            got_action: policy.action_dim(),
-        });
-    }
-    Ok(())
-}
-
-/// Appends observations and applied actions of one episode.
-#[derive(Default)]
-struct Recorder {
-    observations: Vec<f32>,
-    actions: Vec<f32>,
-}
-
-impl Recorder {
-    fn push(&mut self, obs: &[f32; OBS_DIM], action: &[f32; ACTION_DIM]) {
-        self.observations.extend_from_slice(obs);
-        self.actions.extend_from_slice(action);
-    }
-
-    fn take(&mut self, final_observation: [f32; OBS_DIM]) -> Trajectory {
-        let t = self.actions.len() / ACTION_DIM;
-        let (o, a) = (&self.observations, &self.actions);
-        let tr = Trajectory {
-            observations: Mat::from_fn(t, OBS_DIM, |i, j| o[i * OBS_DIM + j]),
-            actions: Mat::from_fn(t, ACTION_DIM, |i, j| a[i * ACTION_DIM + j]),
-            final_observation,
-        };
-        self.observations.clear();
-        self.actions.clear();
-        tr
-    }
-}
-
-/// Buffers reused across the units one thread runs.
-pub(crate) struct Worker {
-    envs: Vec<AvoidingEnv>,
-    recorders: Vec<Recorder>,
-    obs: Mat<f32>,
-    actions: Mat<f32>,
-}
-
-impl Default for Worker {
-    fn default() -> Self {
-        Self {
-            envs: Vec::new(),
-            recorders: Vec::new(),
-            obs: Mat::zeros(0, OBS_DIM),
-            actions: Mat::zeros(0, ACTION_DIM),
-        }
-    }
-}
-
-fn policy_error(episode: usize, step: usize) -> impl FnOnce(CoreError) -> TaskError {
-    move |source| TaskError::Policy { episode, step, source }
-}
-
-impl Worker {
-    fn unit<P: Policy + ?Sized>(
-        &mut self,
-        policy: &mut P,
-        cfg: &EvalConfig,
-        unit: usize,
-    ) -> Result<Vec<Rollout>> {
-        match cfg.stepping {
-            Stepping::PerEpisode => {
-                let r = self.episode(policy, unit, episode_seed(cfg.seed, unit), cfg.record)?;
-                Ok(vec![r])
-            }
-            Stepping::Lockstep { batch_size } => {
-                let first = unit * batch_size;
-                let n = batch_size.min(cfg.n_rollouts - first);
-                self.lockstep(policy, first, n, chunk_seed(cfg.seed, unit), cfg.record)
-            }
-        }
-    }
-
-    pub(crate) fn episode<P: Policy + ?Sized>(
-        &mut self,
-        policy: &mut P,
-        episode: usize,
-        seed: u64,
-        record: bool,
-    ) -> Result<Rollout> {
-        policy.seed(seed);
-        policy.reset();
-        if self.recorders.is_empty() {
-            self.recorders.push(Recorder::default());
-        }
-        let rec = &mut self.recorders[0];
-        let mut env = AvoidingEnv::new();
-        let mut action = [0.0f32; ACTION_DIM];
-        while env.status() == Status::Running {
-            let step = env.steps();
-            let obs = env.observation();
-            policy.act_into(&obs, &mut action).map_err(policy_error(episode, step))?;
-            let applied = checked_clip(action).map_err(policy_error(episode, step))?;
-            if record {
-                rec.push(&obs, &applied);
-            }
-            env.step_clipped(applied);
-        }
-        let trajectory = record.then(|| rec.take(env.observation()));
-        Ok(Rollout { status: env.status(), gaps: env.gaps(), steps: env.steps(), trajectory })
-    }
-
-    fn lockstep<P: Policy + ?Sized>(
-        &mut self,
-        policy: &mut P,
-        first: usize,
-        n: usize,
-        seed: u64,
-        record: bool,
-    ) -> Result<Vec<Rollout>> {
-        policy.seed(seed);
-        policy.reset();
-        self.envs.clear();
-        self.envs.resize(n, AvoidingEnv::new());
-        if self.recorders.len() < n {
-            self.recorders.resize_with(n, Recorder::default);
-        }
-        if self.obs.nrows() < n {
-            self.obs = Mat::zeros(n, OBS_DIM);
-            self.actions = Mat::zeros(n, ACTION_DIM);
-        }
-        for step in 0.. {
-            for (i, env) in self.envs.iter().enumerate() {
-                let o = env.observation();
-                for j in 0..OBS_DIM {
-                    self.obs[(i, j)] = o[j];
-                }
-            }
-            policy
-                .act_batch(self.obs.as_ref().subrows(0, n), self.actions.as_mut().subrows_mut(0, n))
-                .map_err(policy_error(first, step))?;
-            let mut running = false;
-            for (i, env) in self.envs.iter_mut().enumerate() {
-                if env.status().is_done() {
-                    continue;
-                }
-                let raw = [self.actions[(i, 0)], self.actions[(i, 1)]];
-                let applied = checked_clip(raw).map_err(policy_error(first + i, step))?;
-                if record {
-                    self.recorders[i].push(&env.observation(), &applied);
-                }
-                running |= env.step_clipped(applied) == Status::Running;
-            }
-            if !running {
-                break;
-            }
-        }
-        Ok(self
-            .envs
-            .iter()
-            .zip(&mut self.recorders)
-            .map(|(env, rec)| Rollout {
-                status: env.status(),
-                gaps: env.gaps(),
-                steps: env.steps(),
-                trajectory: record.then(|| rec.take(env.observation())),
-            })
-            .collect())
-    }
-}
-
-fn checked_clip(action: [f32; ACTION_DIM]) -> std::result::Result<[f32; ACTION_DIM], CoreError> {
-    if action.iter().all(|a| a.is_finite()) {
-        Ok(AvoidingEnv::clip_action(action))
-    } else {
-        Err(CoreError::NonFinite { what: "action" })
-    }
+    episodes::evaluate_cloned(policy, threads, cfg)
 }
 
 #[cfg(test)]

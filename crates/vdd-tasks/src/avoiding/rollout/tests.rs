@@ -2,7 +2,9 @@
 
 use super::*;
 use faer::{MatMut, MatRef};
+use rand::Rng as _;
 use vdd_core::Rng;
+use vdd_core::Seeds;
 
 /// Memoryless and stochastic: at the start position it picks a side at random; afterwards
 /// it keeps steering towards the side of the start it is on, with jitter, moving up at 0.008
@@ -142,8 +144,8 @@ fn recorded_trajectories_replay_the_dynamics() {
                 env.step(&[tr.actions[(t, 0)], tr.actions[(t, 1)]]).unwrap();
             }
             assert_eq!(env.status(), r.status);
-            assert_eq!(env.gaps(), r.gaps);
-            assert_eq!(env.observation(), tr.final_observation);
+            assert_eq!(env.gaps(), r.info);
+            assert_eq!(env.observation()[..], tr.final_observation[..]);
         }
     }
 }
@@ -171,13 +173,13 @@ fn a_panicking_worker_is_an_error() {
 fn metrics_count_outcomes_and_entropy_over_successes() {
     let ok = |m: usize| Rollout {
         status: Status::Success,
-        gaps: AvoidingMode::from_index(m).unwrap().gaps().map(Some),
+        info: AvoidingMode::from_index(m).unwrap().gaps().map(Some),
         steps: 100,
         trajectory: None,
     };
     let crash = Rollout {
         status: Status::Collision,
-        gaps: [Some(0), None, None],
+        info: [Some(0), None, None],
         steps: 20,
         trajectory: None,
     };
