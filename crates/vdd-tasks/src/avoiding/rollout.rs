@@ -94,7 +94,7 @@ impl Default for EvalConfig {
 }
 
 impl EvalConfig {
-    fn validate(&self) -> Result<()> {
+    pub(crate) fn validate(&self) -> Result<()> {
         if self.n_rollouts == 0 {
             return Err(TaskError::InvalidArgument("n_rollouts must be at least 1".into()));
         }
@@ -106,14 +106,14 @@ impl EvalConfig {
         Ok(())
     }
 
-    fn unit_size(&self) -> usize {
+    pub(crate) fn unit_size(&self) -> usize {
         match self.stepping {
             Stepping::PerEpisode => 1,
             Stepping::Lockstep { batch_size } => batch_size,
         }
     }
 
-    fn n_units(&self) -> usize {
+    pub(crate) fn n_units(&self) -> usize {
         self.n_rollouts.div_ceil(self.unit_size())
     }
 }

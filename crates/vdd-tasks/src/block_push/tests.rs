@@ -1,0 +1,1 @@
+//! Tests of the Block-Push environment, oracle and rollouts.
