@@ -38,7 +38,7 @@
 //!
 //! The measured success, mode spread and episode lengths are in the module docs of [`super`].
 //!
-//! ```no_run
+//! ```
 //! use vdd_tasks::block_push::oracle::{generate_demonstrations, OracleConfig};
 //! let demos = generate_demonstrations(4, 0, &OracleConfig::default()).unwrap();
 //! assert_eq!(demos.observations.len(), 4);

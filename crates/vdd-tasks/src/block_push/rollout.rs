@@ -14,7 +14,7 @@
 //! [`evaluate`] returns, whatever the number of threads: each environment owns its own
 //! deterministic physics world.
 //!
-//! ```no_run
+//! ```
 //! use vdd_tasks::block_push::oracle::{BlockPushOracle, OracleConfig};
 //! use vdd_tasks::block_push::rollout::{evaluate_cloned, EvalConfig, Stepping};
 //! let oracle = BlockPushOracle::new(OracleConfig::default()).unwrap();
