@@ -86,6 +86,7 @@ use vdd_core::{CoreError, Seeds, check_len};
 
 use crate::{Result, TaskError};
 
+pub mod dataset;
 pub mod oracle;
 pub mod rollout;
 #[cfg(test)]
