@@ -219,15 +219,19 @@ fn the_oracle_succeeds_in_each_of_the_four_modes() {
 
 #[test]
 fn the_oracle_spreads_over_the_modes_and_the_demonstrations_are_consistent() {
+    // 100 episodes (about 1 s here; the example measures 200 and 1000 in release).
     let cfg = EvalConfig {
-        n_rollouts: 16,
+        n_rollouts: 100,
         seed: 2,
-        stepping: Stepping::Lockstep { batch_size: 8 },
+        stepping: Stepping::Lockstep { batch_size: 25 },
         record: false,
     };
     let e = evaluate(&mut oracle(OracleConfig::default()), &cfg).unwrap();
-    assert!(e.metrics.success_rate >= 0.9, "{:?}", e.metrics);
-    assert!(e.metrics.modes_reached >= 3, "{:?}", e.metrics);
+    let m = &e.metrics;
+    assert!(m.success_rate >= 0.95 && m.p1_rate >= m.success_rate, "{m:?}");
+    assert!(m.task_entropy >= 0.95 && m.modes_reached == 4, "{m:?}");
+    assert!(m.mode_counts.iter().all(|&c| c >= 15), "{m:?}");
+    assert!((60.0..200.0).contains(&m.mean_success_steps), "{m:?}");
     let d = generate_demonstrations(4, 9, &OracleConfig::default()).unwrap();
     assert_eq!(d, generate_demonstrations(4, 9, &OracleConfig::default()).unwrap());
     assert_eq!(d.mode_counts().iter().sum::<usize>(), 4);
