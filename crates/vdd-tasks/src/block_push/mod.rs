@@ -89,7 +89,7 @@
 //!
 //! Rollouts of any [`vdd_core::Policy`] with success (p2), p1, task entropy and mode histogram
 //! are in [`rollout`]; the scripted oracle and demonstration generation in [`oracle`]; the
-//! training matrices in [`dataset`]. Trajectory figures are drawn by `vdd-report`'s `plots`
+//! training matrices in [`dataset`]; the `.npz` demonstrations in [`demos`]. Trajectory figures are drawn by `vdd-report`'s `plots`
 //! (no plotting lives in this crate).
 //!
 //! ```
@@ -111,6 +111,7 @@ use vdd_core::{CoreError, Seeds, check_len};
 use crate::{Result, TaskError};
 
 pub mod dataset;
+pub mod demos;
 pub mod oracle;
 pub mod rollout;
 #[cfg(test)]
