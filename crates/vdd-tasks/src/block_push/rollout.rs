@@ -162,6 +162,34 @@ impl Metrics {
     }
 }
 
+impl Metrics {
+    /// The figures a results row reports: success rate (p2), p1 rate, task entropy, rollouts,
+    /// modes reached and their histogram (`mode_counts`), timeouts and the mean length of
+    /// successful episodes.
+    ///
+    /// ```
+    /// # use vdd_tasks::block_push::rollout::Metrics;
+    /// let m = Metrics { rollouts: 2, successes: 1, p1_count: 2, timeouts: 1, success_rate: 0.5,
+    ///     p1_rate: 1.0, task_entropy: 0.0, mode_counts: vec![0, 1, 0, 0], modes_reached: 1,
+    ///     mean_success_steps: 90.0, max_success_steps: 90, total_steps: 440 };
+    /// assert_eq!(m.row_fields()["p1_rate"], 1.0);
+    /// ```
+    pub fn row_fields(&self) -> serde_json::Map<String, serde_json::Value> {
+        use serde_json::json;
+        let fields = [
+            ("success_rate", json!(self.success_rate)),
+            ("p1_rate", json!(self.p1_rate)),
+            ("task_entropy", json!(self.task_entropy)),
+            ("rollouts", json!(self.rollouts)),
+            ("modes_reached", json!(self.modes_reached)),
+            ("timeouts", json!(self.timeouts)),
+            ("mean_success_steps", json!(self.mean_success_steps)),
+            ("mode_counts", json!(self.mode_counts)),
+        ];
+        fields.into_iter().map(|(k, v)| (k.to_owned(), v)).collect()
+    }
+}
+
 /// Every rollout of an evaluation, in episode order, and their metrics.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Evaluation {

@@ -278,3 +278,19 @@ fn metrics_count_p1_p2_and_modes_of_successes_only() {
     assert!(Metrics::from_rollouts(&[]).is_err());
     assert!(Metrics::from_rollouts(&[r(Status::Success, None, true)]).is_err());
 }
+
+#[test]
+fn the_noise_is_seeded_and_can_be_switched_off() {
+    let mode = Some(BlockPushMode::from_index(1).unwrap());
+    let actions = |config: OracleConfig, policy_seed: u64| {
+        let mut o = oracle(OracleConfig { fixed_mode: mode, ..config });
+        let r = rollout(&mut o, env_seed(5, 0), policy_seed, true).unwrap();
+        assert!(r.success(), "{:?}", r.status);
+        bits(&r.trajectory.unwrap().actions)
+    };
+    let quiet = OracleConfig::noise_free();
+    assert_eq!(actions(quiet.clone(), 1), actions(quiet, 2));
+    let noisy = OracleConfig::default();
+    assert_eq!(actions(noisy.clone(), 1), actions(noisy.clone(), 1));
+    assert_ne!(actions(noisy.clone(), 1), actions(noisy, 2));
+}
