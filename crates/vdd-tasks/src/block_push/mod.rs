@@ -99,7 +99,8 @@
 //!
 //! Rollouts of any [`vdd_core::Policy`] with success (p2), p1, task entropy and mode histogram
 //! are in [`rollout`]; the scripted oracle and demonstration generation in [`oracle`]; the
-//! training matrices in [`dataset`]; the `.npz` demonstrations in [`demos`]. Trajectory figures are drawn by `vdd-report`'s `plots`
+//! training matrices in [`dataset`]; the `.npz` demonstrations in [`demos`]; a run's evaluation
+//! ([`EvalProtocol`]: episodes, seed, lockstep batch) like Avoiding's. Trajectory figures are drawn by `vdd-report`'s `plots`
 //! (no plotting lives in this crate).
 //!
 //! ```
@@ -120,9 +121,12 @@ use vdd_core::{CoreError, Seeds, check_len};
 
 use crate::{Result, TaskError};
 
+pub use protocol::EvalProtocol;
+
 pub mod dataset;
 pub mod demos;
 pub mod oracle;
+mod protocol;
 pub mod rollout;
 #[cfg(test)]
 mod tests;
