@@ -85,14 +85,14 @@
 //! success 1.000 over 200, mean 102.5 / max 181 steps. For comparison, the original's BET
 //! dataset has mean 116.8 / max 201 steps (under a 200-step cap). Fewer substeps keep the
 //! success but lengthen the episodes (the cause was not investigated); 24 is kept to match
-//! PyBullet's 1/240 s. The µs include the oracle, whose cost is negligible beside the physics.
+//! PyBullet's 1/240 s. The µs include the oracle's own step (a few dozen arithmetic operations).
 //!
-//! The 7 failures of the 1000 are timeouts of two kinds: a block pushed against the workspace
-//! bound (`x = 0.15` or `y = −0.5`), where the pre-block point lies outside the bounds the
-//! commanded target is clipped to, so the oracle never gets within 1 mm of it; and long
-//! alternations of `OrientLeft`/`OrientRight` that walk a block off. In 6 of the 1000 (mostly
-//! failures) the first block→target visit differs from the order the oracle planned (a block
-//! passes through the other zone).
+//! The 7 failures of the 1000 are timeouts; in each, a block (or the pusher chasing it) ended
+//! at or beyond a workspace bound (`x ≈ 0.15`, `x ≈ 0.7` or `y ≈ −0.5`), where the pre-block
+//! point lies outside the bounds the commanded target is clipped to, so the oracle never gets
+//! within 1 mm of it; in several, long alternations of `OrientLeft`/`OrientRight` had walked the
+//! block there. In 6 of the 1000 (mostly these failures) the first block→target visit differs
+//! from the order the oracle planned.
 //!
 //! The environment's own step allocates nothing; rapier's `PhysicsWorld::step` allocates about
 //! twice per substep (≈ 48 allocations per control step, measured with a counting allocator).
