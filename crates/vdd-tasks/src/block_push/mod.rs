@@ -425,14 +425,14 @@ impl BlockPushEnv {
         self.observation()
     }
 
-    /// Block `i`'s pose `(x, y, yaw)`, yaw in `(−π, π]`.
+    /// Block `i`'s pose `(x, y, yaw)`, yaw in `(−π, π]` (`i` is 0 or 1; larger means 1).
     pub fn block_pose(&self, i: usize) -> [f32; 3] {
         let b = &self.world.bodies[self.blocks[i.min(1)]];
         let t = b.translation();
         [t.x, t.y, b.rotation().angle()]
     }
 
-    /// Block `i`'s linear velocity.
+    /// Block `i`'s linear velocity (`i` is 0 or 1; larger means 1).
     pub fn block_velocity(&self, i: usize) -> [f32; 2] {
         let v = self.world.bodies[self.blocks[i.min(1)]].linvel();
         [v.x, v.y]
