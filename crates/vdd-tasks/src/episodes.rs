@@ -9,9 +9,10 @@
 //!
 //! Everything is deterministic for [`EvalConfig::seed`], and identical whatever the number of
 //! threads, provided the policy honours the [`Policy`] contract (after `seed(s)` and `reset()`,
-//! its behaviour depends only on `s` and its inputs). Episode `i` starts from
-//! [`Env::start`]`(`[`start_seed`]`(seed, i))` under both steppings, so both see the same
-//! start states. Work is split into *units*:
+//! its behaviour depends only on `s` and its inputs). Every episode runs on an environment
+//! built from the settings the caller passes ([`Env::build`]), and episode `i` starts from
+//! [`Env::reset`]`(`[`start_seed`]`(seed, i))` under both steppings, so both see the same start
+//! states. Work is split into *units*:
 //!
 //! * [`Stepping::PerEpisode`]: one unit per episode. Before episode `i` the policy is seeded
 //!   with [`episode_seed`]`(seed, i)` and reset, then acts with [`Policy::act_into`] one
@@ -55,7 +56,8 @@ pub struct SeedStreams {
 /// use vdd_tasks::episodes::Env;
 /// use vdd_tasks::AvoidingEnv;
 ///
-/// let mut env = AvoidingEnv::start(0);
+/// let mut env = AvoidingEnv::build(&()).unwrap();
+/// Env::reset(&mut env, 0);
 /// let mut obs = [0.0f32; 4];
 /// let mut applied = [0.0f32; 2];
 /// env.observe(&mut obs);
@@ -63,7 +65,9 @@ pub struct SeedStreams {
 /// assert_eq!(applied, [0.0, 0.02]); // clipped to the task's action limit
 /// assert_eq!(env.steps(), 1);
 /// ```
-pub trait Env: Clone + Send + Sized {
+pub trait Env: Send + Sized {
+    /// The task's settings (time limit, physics, ...).
+    type Config: Clone + Send + Sync;
     /// How an episode stands (running, or how it ended).
     type Status: Copy + std::fmt::Debug + PartialEq + Send;
     /// What the task records of an episode beyond its status (e.g. Avoiding's gaps).
@@ -75,8 +79,12 @@ pub trait Env: Clone + Send + Sized {
     /// The task's seed streams.
     const STREAMS: SeedStreams;
 
-    /// A new episode; `seed` draws its start (a task without random starts ignores it).
-    fn start(seed: u64) -> Self;
+    /// An environment with `config`'s settings, ready for [`Env::reset`]; invalid settings are
+    /// an error.
+    fn build(config: &Self::Config) -> Result<Self>;
+    /// Starts a new episode; `seed` draws its start (a task without random starts ignores it).
+    /// What happened in earlier episodes never matters.
+    fn reset(&mut self, seed: u64);
     /// Writes the observation (`OBS_DIM` long) into `out`.
     fn observe(&self, out: &mut [f32]);
     /// Applies the policy's `action` (`ACTION_DIM` long) as the task's controller would
@@ -169,7 +177,7 @@ pub fn chunk_seed<E: Env>(seed: u64, chunk: usize) -> u64 {
     Seeds::new(seed).stream_indexed(E::STREAMS.chunk, chunk as u64).random()
 }
 
-/// The start seed ([`Env::start`]) of episode `episode` of task `E`, under either stepping.
+/// The start seed ([`Env::reset`]) of episode `episode` of task `E`, under either stepping.
 pub fn start_seed<E: Env>(seed: u64, episode: usize) -> u64 {
     Seeds::new(seed).stream_indexed(E::STREAMS.start, episode as u64).random()
 }
@@ -186,7 +194,7 @@ pub struct Trajectory {
 }
 
 /// The outcome of one episode.
-#[derive(Debug, Clone, PartialEq)]
+#[derive(Debug, Clone)]
 pub struct Rollout<E: Env> {
     /// How the episode ended.
     pub status: E::Status,
@@ -198,8 +206,16 @@ pub struct Rollout<E: Env> {
     pub trajectory: Option<Trajectory>,
 }
 
+// By hand: a derive would ask `E: PartialEq` of the environment itself.
+impl<E: Env> PartialEq for Rollout<E> {
+    fn eq(&self, other: &Self) -> bool {
+        (self.status, &self.info, self.steps, &self.trajectory)
+            == (other.status, &other.info, other.steps, &other.trajectory)
+    }
+}
+
 /// Every rollout of an evaluation, in episode order, and the task's metrics of them.
-#[derive(Debug, Clone, PartialEq)]
+#[derive(Debug, Clone)]
 pub struct Evaluation<E: Env, M> {
     /// Aggregate metrics.
     pub metrics: M,
@@ -207,27 +223,36 @@ pub struct Evaluation<E: Env, M> {
     pub rollouts: Vec<Rollout<E>>,
 }
 
-/// Runs one episode on the calling thread: seeds the policy with `policy_seed`, resets it,
-/// starts the task from `start` ([`Env::start`]) and acts through [`Policy::act_into`] until the
-/// episode ends.
+impl<E: Env, M: PartialEq> PartialEq for Evaluation<E, M> {
+    fn eq(&self, other: &Self) -> bool {
+        self.metrics == other.metrics && self.rollouts == other.rollouts
+    }
+}
+
+/// Runs one episode on the calling thread in an environment with `env`'s settings: seeds the policy with
+/// `policy_seed`, resets it, starts the task from `start` ([`Env::reset`]) and acts through
+/// [`Policy::act_into`] until the episode ends.
 pub fn rollout<E: Env, P: Policy + ?Sized>(
+    env: &E::Config,
     policy: &mut P,
     policy_seed: u64,
     start: u64,
     record: bool,
 ) -> Result<Rollout<E>> {
     check_dims::<E, P>(policy)?;
-    Worker::default().episode(policy, 0, (policy_seed, start), record)
+    Worker::new(env.clone()).episode(policy, 0, (policy_seed, start), record)
 }
 
-/// Runs `cfg.n_rollouts` episodes on the calling thread and summarises them.
+/// Runs `cfg.n_rollouts` episodes in environments with `env`'s settings, on the calling
+/// thread, and summarises them.
 pub fn evaluate<E: Env, M: TaskMetrics<E>, P: Policy + ?Sized>(
+    env: &E::Config,
     policy: &mut P,
     cfg: &EvalConfig,
 ) -> Result<Evaluation<E, M>> {
     cfg.validate()?;
     check_dims::<E, P>(policy)?;
-    let mut worker = Worker::default();
+    let mut worker = Worker::new(env.clone());
     let mut rollouts = Vec::with_capacity(cfg.n_rollouts);
     for unit in 0..cfg.n_units() {
         rollouts.extend(worker.unit(policy, cfg, unit)?);
@@ -240,6 +265,7 @@ pub fn evaluate<E: Env, M: TaskMetrics<E>, P: Policy + ?Sized>(
 /// as they are identical and honour the seeding contract (see the module docs). On failure, the
 /// error of the lowest failing unit is returned.
 pub fn evaluate_parallel<E: Env, M: TaskMetrics<E>, P: Policy + Send>(
+    env: &E::Config,
     policies: &mut [P],
     cfg: &EvalConfig,
 ) -> Result<Evaluation<E, M>> {
@@ -264,7 +290,7 @@ pub fn evaluate_parallel<E: Env, M: TaskMetrics<E>, P: Policy + Send>(
             .map(|policy| {
                 let (next, failed, done) = (&next, &failed, &done);
                 scope.spawn(move || {
-                    let mut worker = Worker::<E>::default();
+                    let mut worker = Worker::<E>::new(env.clone());
                     // Stop taking units after a failure, but finish every unit taken: all
                     // units below a failing one were taken before it, so they all run.
                     while !failed.load(Ordering::Relaxed) {
@@ -305,6 +331,7 @@ pub fn evaluate_parallel<E: Env, M: TaskMetrics<E>, P: Policy + Send>(
 
 /// [`evaluate_parallel`] with `threads` clones of `policy`.
 pub fn evaluate_cloned<E: Env, M: TaskMetrics<E>, P: Policy + Clone + Send>(
+    env: &E::Config,
     policy: &P,
     threads: usize,
     cfg: &EvalConfig,
@@ -314,7 +341,7 @@ pub fn evaluate_cloned<E: Env, M: TaskMetrics<E>, P: Policy + Clone + Send>(
     }
     let mut policies: Vec<P> =
         (0..threads.min(cfg.n_units().max(1))).map(|_| policy.clone()).collect();
-    evaluate_parallel(&mut policies, cfg)
+    evaluate_parallel(env, &mut policies, cfg)
 }
 
 fn finish<E: Env, M: TaskMetrics<E>>(rollouts: Vec<Rollout<E>>) -> Result<Evaluation<E, M>> {
@@ -363,8 +390,9 @@ impl Recorder {
     }
 }
 
-/// Buffers reused across the units one thread runs.
+/// Environments and buffers reused across the units one thread runs.
 pub(crate) struct Worker<E: Env> {
+    config: E::Config,
     envs: Vec<E>,
     recorders: Vec<Recorder>,
     obs: Mat<f32>,
@@ -374,9 +402,11 @@ pub(crate) struct Worker<E: Env> {
     applied: Vec<f32>,
 }
 
-impl<E: Env> Default for Worker<E> {
-    fn default() -> Self {
+impl<E: Env> Worker<E> {
+    /// A worker whose episodes run in environments with `config`'s settings.
+    pub(crate) fn new(config: E::Config) -> Self {
         Self {
+            config,
             envs: Vec::new(),
             recorders: Vec::new(),
             obs: Mat::zeros(0, E::OBS_DIM),
@@ -402,6 +432,17 @@ fn finished<E: Env>(env: &E, rec: &mut Recorder, record: bool) -> Rollout<E> {
 }
 
 impl<E: Env> Worker<E> {
+    /// At least `n` environments and recorders.
+    fn ensure(&mut self, n: usize) -> Result<()> {
+        while self.envs.len() < n {
+            self.envs.push(E::build(&self.config)?);
+        }
+        if self.recorders.len() < n {
+            self.recorders.resize_with(n, Recorder::default);
+        }
+        Ok(())
+    }
+
     fn unit<P: Policy + ?Sized>(
         &mut self,
         policy: &mut P,
@@ -432,11 +473,9 @@ impl<E: Env> Worker<E> {
     ) -> Result<Rollout<E>> {
         policy.seed(policy_seed);
         policy.reset();
-        if self.recorders.is_empty() {
-            self.recorders.push(Recorder::default());
-        }
-        let rec = &mut self.recorders[0];
-        let mut env = E::start(start);
+        self.ensure(1)?;
+        let (env, rec) = (&mut self.envs[0], &mut self.recorders[0]);
+        env.reset(start);
         let (obs, action, applied) = (&mut self.row_obs, &mut self.row_action, &mut self.applied);
         while !env.is_done() {
             let step = env.steps();
@@ -447,7 +486,7 @@ impl<E: Env> Worker<E> {
                 rec.push(obs, applied);
             }
         }
-        Ok(finished(&env, rec, record))
+        Ok(finished(env, rec, record))
     }
 
     fn lockstep<P: Policy + ?Sized>(
@@ -461,10 +500,9 @@ impl<E: Env> Worker<E> {
     ) -> Result<Vec<Rollout<E>>> {
         policy.seed(chunk_seed::<E>(seed, chunk));
         policy.reset();
-        self.envs.clear();
-        self.envs.extend((first..first + n).map(|i| E::start(start_seed::<E>(seed, i))));
-        if self.recorders.len() < n {
-            self.recorders.resize_with(n, Recorder::default);
+        self.ensure(n)?;
+        for (i, env) in self.envs[..n].iter_mut().enumerate() {
+            env.reset(start_seed::<E>(seed, first + i));
         }
         if self.obs.nrows() < n {
             self.obs = Mat::zeros(n, E::OBS_DIM);
@@ -473,7 +511,7 @@ impl<E: Env> Worker<E> {
         let (row_obs, row_action, applied) =
             (&mut self.row_obs, &mut self.row_action, &mut self.applied);
         for step in 0.. {
-            for (i, env) in self.envs.iter().enumerate() {
+            for (i, env) in self.envs[..n].iter().enumerate() {
                 env.observe(row_obs);
                 row_obs.iter().enumerate().for_each(|(j, &o)| self.obs[(i, j)] = o);
             }
@@ -481,7 +519,7 @@ impl<E: Env> Worker<E> {
                 .act_batch(self.obs.as_ref().subrows(0, n), self.actions.as_mut().subrows_mut(0, n))
                 .map_err(policy_error(first, step))?;
             let mut running = false;
-            for (i, env) in self.envs.iter_mut().enumerate() {
+            for (i, env) in self.envs[..n].iter_mut().enumerate() {
                 if env.is_done() {
                     continue;
                 }
@@ -497,8 +535,7 @@ impl<E: Env> Worker<E> {
                 break;
             }
         }
-        Ok(self
-            .envs
+        Ok(self.envs[..n]
             .iter()
             .zip(&mut self.recorders)
             .map(|(env, rec)| finished(env, rec, record))

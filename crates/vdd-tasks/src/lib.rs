@@ -10,6 +10,13 @@
 //!   multimodal demonstrator with demonstration generation ([`avoiding::demonstrator`]); the
 //!   recipes' evaluation protocol ([`avoiding::EvalProtocol`]) and observation features
 //!   ([`avoiding::ObsFeatures`], from the `vdd_data::features` registry);
+//! * [`block_push`]: Multimodal Block-Push (after IBC / Diffusion Policy / BET / VDD), the first
+//!   contact task, on the `rapier2d` rigid-body engine: the environment
+//!   ([`block_push::BlockPushEnv`]: a round pusher, two square blocks, two target zones, 10 Hz
+//!   control of the commanded effector target), seeded single, lockstep and parallel rollouts
+//!   of any [`vdd_core::Policy`] with success (p2), p1, task entropy over the 4 modes and mode
+//!   histogram ([`block_push::rollout`]), and the scripted multimodal oracle with human-like
+//!   noise and demonstration generation ([`block_push::oracle`]);
 //! * [`timing`]: µs per action of policies timed together ([`timing::us_per_action`]).
 //!
 //! Errors are [`TaskError`]; shape and finiteness violations found by the `vdd_core` helpers are
@@ -33,6 +40,7 @@
 #![warn(missing_docs)]
 
 pub mod avoiding;
+pub mod block_push;
 pub mod episodes;
 mod error;
 pub mod timing;

@@ -469,7 +469,7 @@ pub fn generate_demonstrations(
     let bytes = (n as u64).saturating_mul(per_episode);
     vdd_core::memory::check_fits(&format!("{n} demonstrations"), bytes)?;
     let mut demo = AvoidingDemonstrator::new(config.clone())?;
-    let mut worker = Worker::<AvoidingEnv>::default();
+    let mut worker = Worker::<AvoidingEnv>::new(());
     let mut out = Demonstrations {
         observations: Vec::with_capacity(n),
         actions: Vec::with_capacity(n),

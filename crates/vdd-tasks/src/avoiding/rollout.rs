@@ -51,9 +51,16 @@ impl Env for AvoidingEnv {
         start: "avoiding-start",
     };
 
+    /// Avoiding has no settings.
+    type Config = ();
+
+    fn build(_: &()) -> Result<Self> {
+        Ok(AvoidingEnv::new())
+    }
+
     /// Every Avoiding episode starts at [`super::START`]: the seed is not used.
-    fn start(_: u64) -> Self {
-        AvoidingEnv::new()
+    fn reset(&mut self, _: u64) {
+        *self = AvoidingEnv::new();
     }
 
     fn observe(&self, out: &mut [f32]) {
@@ -224,12 +231,12 @@ impl Metrics {
 /// Runs one episode: seeds the policy with `seed`, resets it, and acts through
 /// [`Policy::act_into`] until the episode ends.
 pub fn rollout<P: Policy + ?Sized>(policy: &mut P, seed: u64, record: bool) -> Result<Rollout> {
-    episodes::rollout::<AvoidingEnv, P>(policy, seed, 0, record)
+    episodes::rollout::<AvoidingEnv, P>(&(), policy, seed, 0, record)
 }
 
 /// Runs `cfg.n_rollouts` episodes on the calling thread and summarises them.
 pub fn evaluate<P: Policy + ?Sized>(policy: &mut P, cfg: &EvalConfig) -> Result<Evaluation> {
-    episodes::evaluate(policy, cfg)
+    episodes::evaluate(&(), policy, cfg)
 }
 
 /// Like [`evaluate`], with the episodes spread over one thread per policy in `policies`
@@ -240,7 +247,7 @@ pub fn evaluate_parallel<P: Policy + Send>(
     policies: &mut [P],
     cfg: &EvalConfig,
 ) -> Result<Evaluation> {
-    episodes::evaluate_parallel(policies, cfg)
+    episodes::evaluate_parallel(&(), policies, cfg)
 }
 
 /// [`evaluate_parallel`] with `threads` clones of `policy`.
@@ -249,7 +256,7 @@ pub fn evaluate_cloned<P: Policy + Clone + Send>(
     threads: usize,
     cfg: &EvalConfig,
 ) -> Result<Evaluation> {
-    episodes::evaluate_cloned(policy, threads, cfg)
+    episodes::evaluate_cloned(&(), policy, threads, cfg)
 }
 
 #[cfg(test)]
