@@ -8,6 +8,7 @@
 //! cargo xtask bench nn|teachers|import|robustness
 //! cargo xtask import lerobot|diffusion-policy|beso INPUT --out FILE
 //! cargo xtask demos avoiding --n 200 --seed 0 --out DIR
+//! cargo xtask demos block-push --n 200 --seed 0 --out DIR
 //! cargo xtask export-onnx MODEL --out policy.onnx
 //! ```
 //!
@@ -81,6 +82,8 @@ enum Bench {
 enum Demos {
     /// Scripted Avoiding demonstrations written as .npz, and the demonstrator's metrics.
     Avoiding(demos::AvoidingArgs),
+    /// Scripted Block-Push demonstrations (rapier2d) as .npz, their modes and a figure.
+    BlockPush(demos::BlockPushArgs),
 }
 
 /// The command line parser, with the recipes found in `recipes/` listed under `experiment`.
@@ -127,6 +130,7 @@ fn main() {
         Cli::Import(a) => import::run(&a),
         Cli::Bench(Bench::Robustness(a)) => bench_robust::run(&a),
         Cli::Demos(Demos::Avoiding(a)) => demos::avoiding(&a),
+        Cli::Demos(Demos::BlockPush(a)) => demos::block_push(&a),
         Cli::Fuzz(a) => fuzz::run(&a),
         Cli::FuzzCase(a) => fuzz::case(&a),
         Cli::ExportOnnx(a) => export_onnx::run(&a),
@@ -317,6 +321,8 @@ mod tests {
             if a.seeds == [0, 3] && a.only == [100] && a.variant.name() == "long"));
         let d = parse(&words("demos avoiding --n 5 --seed 2 --out /tmp/d")).unwrap();
         assert!(matches!(d, Cli::Demos(Demos::Avoiding(a)) if a.n == 5 && a.seed == 2));
+        let d = parse(&words("demos block-push --n 7 --figure 3")).unwrap();
+        assert!(matches!(d, Cli::Demos(Demos::BlockPush(a)) if a.n == 7 && a.figure == 3));
         // Help is not an error; bad input is.
         for help in ["help", "--help", "help experiment", "experiment --help"] {
             assert!(!parse(&words(help)).unwrap_err().use_stderr(), "{help}");

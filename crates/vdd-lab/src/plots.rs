@@ -1,5 +1,6 @@
 //! Figures, from `vdd-report`'s plots (see [`vdd_report::plots`]); this module adds what knows
-//! the Avoiding task: its scene and the panels built from its rollouts.
+//! the tasks: Avoiding's scene and the panels built from its rollouts, and Block-Push's
+//! demonstration figure.
 
 use std::path::Path;
 
@@ -21,6 +22,7 @@ pub fn avoiding_scene() -> Scene {
             .iter()
             .map(|o| Disc { centre: (o.centre[0], o.centre[1]), radius: o.radius })
             .collect(),
+        zones: vec![],
         start: Some((START[0], START[1])),
         legend: (0.22, 0.43),
     }
@@ -72,6 +74,99 @@ pub fn avoiding_trajectories(
     trajectories(stem, &avoiding_scene(), &panels, png)
 }
 
+/// The Block-Push scene for the targets of `targets` (centres), the workspace window and the
+/// effector's start.
+pub fn block_push_scene(targets: [[f32; 2]; 2]) -> Scene {
+    use vdd_tasks::block_push::{EFFECTOR_START, TARGET_HALF, WORKSPACE};
+    Scene {
+        x_range: (WORKSPACE[0][0], WORKSPACE[1][0]),
+        y_range: (-0.5, 0.35),
+        finish_y: None,
+        obstacles: vec![],
+        zones: (0..2)
+            .map(|t| Zone {
+                centre: (targets[t][0], targets[t][1]),
+                half: TARGET_HALF,
+                colour: 4 + t,
+            })
+            .collect(),
+        start: Some((EFFECTOR_START[0], EFFECTOR_START[1])),
+        legend: (WORKSPACE[0][0] + 0.01, 0.33),
+    }
+}
+
+/// The figure of Block-Push demonstrations (`observations` per episode, `T x 16`, and each
+/// episode's mode index): one panel per target layout (the colour coin flip of
+/// [`vdd_tasks::block_push::StartState`]), at most `per_panel` episodes each; the effector's
+/// path and both blocks' paths are drawn in the colour of the episode's mode (legend: modes
+/// `b0→t0, b0→t1, b1→t0, b1→t1`). Returns the files written.
+pub fn block_push_demonstrations(
+    stem: &Path,
+    observations: &[faer::Mat<f32>],
+    modes: &[usize],
+    per_panel: usize,
+    png: bool,
+) -> vdd_report::Result<Vec<String>> {
+    use vdd_tasks::block_push::N_MODES;
+    // Observation columns: block 0 x, y (0, 1), block 1 x, y (4, 5), effector x, y (8, 9),
+    // target 0 (12, 13), target 1 (14, 15).
+    let path = |o: &faer::Mat<f32>, c: usize| -> Vec<(f32, f32)> {
+        (0..o.nrows()).map(|t| (o[(t, c)], o[(t, c + 1)])).collect()
+    };
+    use vdd_report::plots::TrajectoryPanel as Panel;
+    let mut layouts: Vec<([[f32; 2]; 2], Panel)> = Vec::new();
+    for (o, &m) in observations.iter().zip(modes).filter(|(o, _)| o.nrows() > 1) {
+        let targets = [[o[(0, 12)], o[(0, 13)]], [o[(0, 14)], o[(0, 15)]]];
+        let left = usize::from(targets[0][0] > targets[1][0]);
+        let at = match layouts.iter().position(|(t, _)| usize::from(t[0][0] > t[1][0]) == left) {
+            Some(i) => i,
+            None => {
+                let label = format!("t0 {}", ["left", "right"][left]);
+                let panel = Panel {
+                    label,
+                    paths: vec![],
+                    success: vec![],
+                    experts: Some((vec![], N_MODES)),
+                    success_rate: 1.0,
+                    task_entropy: 0.0,
+                };
+                layouts.push((targets, panel));
+                layouts.len() - 1
+            }
+        };
+        let panel = &mut layouts[at].1;
+        if panel.paths.len() >= 3 * per_panel {
+            continue;
+        }
+        for c in [8, 0, 4] {
+            let p = path(o, c);
+            if let Some((ids, _)) = &mut panel.experts {
+                ids.push(vec![m; p.len()]);
+            }
+            panel.paths.push(p);
+            panel.success.push(true);
+        }
+    }
+    let mut files = Vec::new();
+    for (k, (targets, mut panel)) in layouts.into_iter().enumerate() {
+        let mut counts = [0usize; N_MODES];
+        if let Some((ids, _)) = &panel.experts {
+            ids.iter()
+                .step_by(3)
+                .filter_map(|p| p.first())
+                .for_each(|&m| counts[m.min(N_MODES - 1)] += 1);
+        }
+        panel.label = format!("{}, {} demos", panel.label, counts.iter().sum::<usize>());
+        panel.task_entropy = f64::from(vdd_tasks::normalized_entropy(&counts));
+        let stem = stem.with_file_name(format!(
+            "{}-{k}",
+            stem.file_name().map_or("block_push".into(), |f| f.to_string_lossy().into_owned())
+        ));
+        files.extend(trajectories(&stem, &block_push_scene(targets), &[panel], png)?);
+    }
+    Ok(files)
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -88,6 +183,36 @@ mod tests {
         assert_eq!(files.len(), 1);
         let svg = std::fs::read_to_string(dir.join("traj.svg")).unwrap();
         assert!(svg.contains("em: success 0.50, entropy 0.25"));
+        std::fs::remove_dir_all(&dir).unwrap();
+    }
+
+    #[test]
+    fn the_block_push_figure_has_a_panel_per_target_layout_and_counts_modes() {
+        use vdd_tasks::block_push::oracle::{OracleConfig, generate_demonstrations};
+        let demos = generate_demonstrations(6, 2, &OracleConfig::default()).unwrap();
+        let modes: Vec<usize> = demos.modes.iter().map(|m| m.index()).collect();
+        let layouts = |o: &faer::Mat<f32>| o[(0, 12)] > o[(0, 14)];
+        let n_layouts =
+            if demos.observations.iter().all(layouts) || !demos.observations.iter().any(layouts) {
+                1
+            } else {
+                2
+            };
+        let dir = std::env::temp_dir().join(format!("vdd-lab-bp-fig-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let files =
+            block_push_demonstrations(&dir.join("traj"), &demos.observations, &modes, 2, false)
+                .unwrap();
+        assert_eq!(files.len(), n_layouts);
+        let svgs: String = files.iter().map(|f| std::fs::read_to_string(f).unwrap()).collect();
+        // Each panel's title counts the episodes drawn: at most 2 a panel.
+        let counts: Vec<usize> = svgs
+            .match_indices(" demos")
+            .filter_map(|(i, _)| svgs[..i].rsplit(' ').next()?.parse().ok())
+            .collect();
+        assert_eq!(counts.len(), n_layouts, "{counts:?}");
+        assert!(counts.iter().all(|&c| (1..=2).contains(&c)), "{counts:?}");
+        assert!(svgs.contains("t0 left") || svgs.contains("t0 right"));
         std::fs::remove_dir_all(&dir).unwrap();
     }
 }

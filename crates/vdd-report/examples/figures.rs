@@ -59,6 +59,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         y_range: (0.0, 1.0),
         finish_y: Some(0.9),
         obstacles: vec![Disc { centre: (0.5, 0.5), radius: 0.08 }],
+        zones: vec![],
         start: Some((0.5, 0.1)),
         legend: (0.03, 0.97),
     };

@@ -3,7 +3,7 @@
 //!
 //! ```text
 //! cargo run --release -p vdd-tasks --example rollout_saved -- MODEL [--seed S] [--rollouts N]
-//!     [--lockstep-batch B] [--threads T] [--hold K] [--greedy]
+//!     [--lockstep-batch B] [--threads T] [--hold K] [--greedy] [--temperature T]
 //! ```
 //!
 //! `MODEL` is a mixture saved by `Moe::save`, e.g. a recipe's
@@ -17,7 +17,8 @@
 //! [`vdd_moe::ActMode::hold_steps`]: each episode keeps the expert it picks for `K` predictions
 //! (`K` steps; `K · execute_steps` with action chunks), which changes the figures for `K > 1`.
 //! `--greedy` acts with the most probable expert of `q(z|s)` instead of a sampled one
-//! ([`vdd_moe::ActMode::greedy_gating`]).
+//! ([`vdd_moe::ActMode::greedy_gating`]). `--temperature T` sharpens (`T < 1`) or flattens a
+//! learned gating first ([`vdd_moe::Moe::sharpen_gating`]).
 
 use std::path::PathBuf;
 use std::process::ExitCode;
@@ -32,10 +33,11 @@ struct Args {
     threads: usize,
     hold: Option<u32>,
     greedy: bool,
+    temperature: Option<f32>,
 }
 
 const USAGE: &str = "usage: rollout_saved MODEL [--seed S] [--rollouts N] [--lockstep-batch B] [--threads T] \
-     [--hold K] [--greedy]";
+     [--hold K] [--greedy] [--temperature T]";
 
 fn parse() -> Result<Args, String> {
     let mut model = None;
@@ -44,6 +46,7 @@ fn parse() -> Result<Args, String> {
     let mut threads = std::thread::available_parallelism().map_or(1, |n| n.get());
     let mut hold = None;
     let mut greedy = false;
+    let mut temperature = None;
     let mut args = std::env::args().skip(1);
     while let Some(arg) = args.next() {
         let mut value = |name: &str| -> Result<u64, String> {
@@ -57,6 +60,10 @@ fn parse() -> Result<Args, String> {
             "--threads" => threads = value("--threads")? as usize,
             "--hold" => hold = Some(u32::try_from(value("--hold")?).map_err(|e| e.to_string())?),
             "--greedy" => greedy = true,
+            "--temperature" => {
+                let v = args.next().ok_or("--temperature needs a value")?;
+                temperature = Some(v.parse().map_err(|e| format!("--temperature {v}: {e}"))?);
+            }
             "-h" | "--help" => return Err(USAGE.into()),
             flag if flag.starts_with('-') => return Err(format!("unknown option {flag}\n{USAGE}")),
             path if model.is_none() => model = Some(PathBuf::from(path)),
@@ -64,7 +71,7 @@ fn parse() -> Result<Args, String> {
         }
     }
     let model = model.ok_or_else(|| USAGE.to_owned())?;
-    Ok(Args { model, seed, protocol, threads, hold, greedy })
+    Ok(Args { model, seed, protocol, threads, hold, greedy, temperature })
 }
 
 fn run() -> Result<(), Box<dyn std::error::Error>> {
@@ -72,6 +79,9 @@ fn run() -> Result<(), Box<dyn std::error::Error>> {
     let mut policy =
         vdd_moe::load_policy(&args.model).map_err(|e| format!("{}: {e}", args.model.display()))?;
     let moe = policy.inner_mut();
+    if let Some(t) = args.temperature {
+        moe.sharpen_gating(t)?;
+    }
     let saved = moe.act_mode();
     let hold_steps = args.hold.unwrap_or(saved.hold_steps);
     let greedy_gating = args.greedy || saved.greedy_gating;

@@ -311,6 +311,57 @@ impl<E: Expert> Moe<E> {
         Ok(())
     }
 
+    /// Sharpens (or flattens) a learned gating by a temperature: afterwards
+    /// `q(z|s) ∝ q_old(z|s)^(1/temperature)` at every state, so `temperature < 1` moves weight
+    /// to each state's most probable experts (towards greedy acting at 0) and `1` changes
+    /// nothing. The gating's output layer is divided by `temperature`, so the change lives in
+    /// the weights: a saved, exported or converted policy acts the same in every runtime. The
+    /// experts are untouched. A uniform gating, or a temperature that is not finite and
+    /// positive (or whose scaled weights would overflow), is an error and changes nothing.
+    ///
+    /// ```
+    /// use vdd_moe::{GatingKind, Moe, MoeConfig};
+    ///
+    /// let config = MoeConfig { gating: GatingKind::Learned, ..MoeConfig::toy(2, 1, 3) };
+    /// let mut moe = Moe::from_config(config, 0)?;
+    /// let s = faer::mat![[0.3f32, -1.0]];
+    /// moe.forward_gating(s.as_ref())?;
+    /// let before = moe.output().log_gating_row(0).to_vec();
+    /// moe.sharpen_gating(0.5)?;
+    /// moe.forward_gating(s.as_ref())?;
+    /// let after = moe.output().log_gating_row(0);
+    /// // log q_new = 2 log q_old − log Σ_z q_old(z)²
+    /// let norm = before.iter().map(|l| (2.0 * l).exp()).sum::<f32>().ln();
+    /// assert!(after.iter().zip(&before).all(|(a, b)| (a - (2.0 * b - norm)).abs() < 1e-5));
+    /// assert!(moe.sharpen_gating(0.0).is_err());
+    /// # Ok::<(), Box<dyn std::error::Error>>(())
+    /// ```
+    pub fn sharpen_gating(&mut self, temperature: f32) -> Result<(), MoeError> {
+        let config_error = |m: String| MoeError::Core(vdd_core::CoreError::Config(m));
+        if !(temperature.is_finite() && temperature > 0.0) {
+            return Err(config_error(format!(
+                "the gating temperature must be finite and positive, not {temperature}"
+            )));
+        }
+        let Some(net) = self.gating.as_mut() else {
+            return Err(config_error("a uniform gating has no temperature to set".into()));
+        };
+        let out = net.output_layer_mut();
+        let scaled = |v: &f32| v / temperature;
+        if out.weight.value.iter().chain(&out.bias.value).any(|v| !scaled(v).is_finite()) {
+            return Err(config_error(format!(
+                "the gating's output layer overflows f32 at temperature {temperature}"
+            )));
+        }
+        out.weight
+            .value
+            .iter_mut()
+            .chain(out.bias.value.iter_mut())
+            .for_each(|v| *v /= temperature);
+        self.gating_forwarded = false;
+        Ok(())
+    }
+
     /// The expert that produced each row's action in the last
     /// [`Policy::act_into`](vdd_core::Policy::act_into) (one entry) or
     /// [`Policy::act_batch`](vdd_core::Policy::act_batch) (one entry per row, in row order) call:

@@ -31,7 +31,7 @@ pub use curves::learning_curves;
 pub use density::{DensityPanel, ExpertEllipse, density, viridis};
 pub use modes::mode_histograms;
 pub use pixel_font::PixelFont;
-pub use trajectories::{Disc, Scene, TrajectoryPanel, trajectories};
+pub use trajectories::{Disc, Scene, TrajectoryPanel, Zone, trajectories};
 
 /// Named training curves: series name → `(x, y)` points.
 pub type Curves = BTreeMap<String, Vec<(f64, f64)>>;

@@ -6,6 +6,7 @@ fn scene() -> Scene {
         y_range: (-0.32, 0.45),
         finish_y: Some(0.35),
         obstacles: vec![Disc { centre: (0.5, -0.1), radius: 0.03 }],
+        zones: vec![],
         start: Some((0.525, -0.28)),
         legend: (0.22, 0.43),
     }

@@ -18,6 +18,18 @@ pub struct Disc {
     pub radius: f32,
 }
 
+/// An axis-aligned square zone of a [`Scene`] (a target), drawn as a light outline in its
+/// palette colour.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct Zone {
+    /// Centre `(x, y)`.
+    pub centre: (f32, f32),
+    /// Half the side.
+    pub half: f32,
+    /// Palette index of its colour ([`super::palette`]).
+    pub colour: usize,
+}
+
 /// The fixed scene under the paths of a trajectory figure, in the task's coordinates.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct Scene {
@@ -29,6 +41,9 @@ pub struct Scene {
     pub finish_y: Option<f32>,
     /// Obstacles, drawn as filled dark discs.
     pub obstacles: Vec<Disc>,
+    /// Target zones, drawn under the paths.
+    #[serde(default)]
+    pub zones: Vec<Zone>,
     /// The start position, drawn as a black dot over the paths.
     pub start: Option<(f32, f32)>,
     /// Upper-left corner of the expert legend (one coloured square per expert, 15 a row).
@@ -109,6 +124,19 @@ impl Figure for Trajectories<'_> {
                     .collect();
                 chart.draw_series(std::iter::once(Polygon::new(pts, BLACK.mix(0.75).filled())))?;
             }
+            for zone in &scene.zones {
+                let (c, h) = (zone.centre, zone.half);
+                let corners = [(c.0 - h, c.1 - h), (c.0 + h, c.1 + h)];
+                let colour = palette(zone.colour);
+                chart.draw_series(std::iter::once(Rectangle::new(
+                    corners,
+                    colour.mix(0.15).filled(),
+                )))?;
+                chart.draw_series(std::iter::once(Rectangle::new(
+                    corners,
+                    colour.stroke_width(2),
+                )))?;
+            }
             for (i, path) in panel.paths.iter().enumerate() {
                 match &panel.experts {
                     Some((ids, _)) if i < ids.len() && !ids[i].is_empty() => {
@@ -166,6 +194,7 @@ impl Figure for Trajectories<'_> {
 ///     y_range: (0.0, 1.0),
 ///     finish_y: Some(0.9),
 ///     obstacles: vec![Disc { centre: (0.5, 0.5), radius: 0.05 }],
+///     zones: vec![],
 ///     start: Some((0.5, 0.1)),
 ///     legend: (0.02, 0.98),
 /// };

@@ -145,6 +145,9 @@ pub const WORKSPACE: [[f32; 2]; 2] = [[0.15, -0.5], [0.70, 0.5]];
 pub const EFFECTOR_START: [f32; 2] = [0.30, -0.40];
 /// A block is in a target when its centre is closer than this to the target's centre.
 pub const GOAL_TOLERANCE: f32 = 0.05;
+/// Half the side of a target zone as the original draws it (a 0.12 square; visual only:
+/// success is [`GOAL_TOLERANCE`] from its centre).
+pub const TARGET_HALF: f32 = 0.06;
 /// Default episode step limit (Diffusion Policy's).
 pub const MAX_STEPS: usize = 350;
 /// Per-component bound on the action (the original's declared action space).

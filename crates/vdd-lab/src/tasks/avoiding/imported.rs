@@ -47,6 +47,10 @@ pub struct ImportedSettings {
     pub init: ImportedInit,
     /// The fit to the teacher's samples of `init = "samples"`.
     pub fit: SampleFit,
+    /// The learned gating's temperature after training (`Moe::sharpen_gating`):
+    /// `q(z|s) ∝ q(z|s)^(1/T)`; below 1 it moves weight to each state's most probable experts,
+    /// trading task entropy for success; 1 leaves the student as trained.
+    pub gating_temperature: f32,
 }
 
 /// How the student of an imported teacher starts (`imported.init`).
@@ -199,6 +203,14 @@ pub fn run(ctx: &RunContext, resolved: &Resolved<AvoidingRecipe>) -> crate::Resu
             let secs = t0.elapsed().as_secs_f64();
             bar.finish_and_clear();
             let mut student = vdd.into_student();
+            if cfg.imported.gating_temperature != 1.0 {
+                student.sharpen_gating(cfg.imported.gating_temperature).map_err(|e| {
+                    format!(
+                        "imported.gating_temperature = {}: {e}",
+                        cfg.imported.gating_temperature
+                    )
+                })?;
+            }
             student.set_deploy_spec(teacher.chunk_deploy_spec())?;
             std::fs::create_dir_all(dir.join("models"))?;
             student.save(&dir.join("models").join(format!("{label}-s{seed}.safetensors")))?;

@@ -269,6 +269,33 @@ fn sampled_gating_picks_experts_with_the_gating_probabilities() {
 }
 
 #[test]
+fn a_sharpened_gating_is_the_old_one_to_the_power_one_over_t_and_bad_temperatures_change_nothing() {
+    let mut moe = built(config(2, 2, ExpertKind::Diagonal, GatingKind::Learned, true), 10);
+    let obs = Mat::from_fn(3, 2, |i, j| [0.4f32, -0.3][j] * (i as f32 - 1.0));
+    let gating = |moe: &mut Moe| {
+        moe.forward_gating(obs.as_ref()).unwrap();
+        (0..3).map(|b| moe.output().log_gating_row(b).to_vec()).collect::<Vec<_>>()
+    };
+    let before = gating(&mut moe);
+    moe.forward_observations(obs.as_ref()).unwrap();
+    let means = denormalized_means(&moe, 2);
+    for bad in [0.0, -1.0, f32::NAN, f32::INFINITY, 1e-44] {
+        assert!(moe.sharpen_gating(bad).is_err(), "{bad}");
+        assert_eq!(gating(&mut moe), before, "{bad} changed the gating");
+    }
+    moe.sharpen_gating(0.25).unwrap();
+    for (new, old) in gating(&mut moe).iter().zip(&before) {
+        let norm = old.iter().map(|l| (4.0 * l).exp()).sum::<f32>().ln();
+        assert_all_close(new, &old.iter().map(|l| 4.0 * l - norm).collect::<Vec<_>>());
+    }
+    // The experts are untouched, and a uniform gating has no temperature.
+    moe.forward_observations(obs.as_ref()).unwrap();
+    assert_eq!(denormalized_means(&moe, 2), means);
+    let mut uniform = built(config(2, 2, ExpertKind::Diagonal, GatingKind::Uniform, true), 10);
+    assert!(uniform.sharpen_gating(0.5).is_err());
+}
+
+#[test]
 fn the_same_seed_gives_the_same_actions_and_seed_resets_the_stream() {
     for mode in [
         ActMode { greedy_gating: false, sample_action: true, hold_steps: 0 },
