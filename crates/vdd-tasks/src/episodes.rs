@@ -60,9 +60,12 @@ pub struct SeedStreams {
 /// Env::reset(&mut env, 0);
 /// let mut obs = [0.0f32; 4];
 /// let mut applied = [0.0f32; 2];
-/// env.observe(&mut obs);
+/// env.observe(&mut obs).unwrap();
 /// env.apply(&[0.0, 0.5], &mut applied).unwrap();
 /// assert_eq!(applied, [0.0, 0.02]); // clipped to the task's action limit
+/// assert_eq!(env.steps(), 1);
+/// assert!(env.apply(&[0.0], &mut applied).is_err()); // a wrong length is an error
+/// assert!(env.apply(&[f32::NAN, 0.0], &mut applied).is_err());
 /// assert_eq!(env.steps(), 1);
 /// ```
 pub trait Env: Send + Sized {
@@ -85,12 +88,12 @@ pub trait Env: Send + Sized {
     /// Starts a new episode; `seed` draws its start (a task without random starts ignores it).
     /// What happened in earlier episodes never matters.
     fn reset(&mut self, seed: u64);
-    /// Writes the observation (`OBS_DIM` long) into `out`.
-    fn observe(&self, out: &mut [f32]);
+    /// Writes the observation into `out` (`OBS_DIM` long, else an error).
+    fn observe(&self, out: &mut [f32]) -> std::result::Result<(), CoreError>;
     /// Applies the policy's `action` (`ACTION_DIM` long) as the task's controller would
-    /// (clipped to its limits), writes the action applied into `applied`, and advances one
-    /// step. A non-finite action is an error and leaves the episode unchanged. Never called
-    /// after the episode has ended.
+    /// (clipped to its limits), writes the action applied into `applied` (`ACTION_DIM` long),
+    /// and advances one step. A wrong length, a non-finite action or an ended episode is an
+    /// error ([`check_apply`]) and leaves the episode unchanged.
     fn apply(&mut self, action: &[f32], applied: &mut [f32]) -> std::result::Result<(), CoreError>;
     /// The episode's status.
     fn status(&self) -> Self::Status;
@@ -100,6 +103,24 @@ pub trait Env: Send + Sized {
     fn steps(&self) -> usize;
     /// What the task records of the episode.
     fn info(&self) -> Self::Info;
+}
+
+/// The checks every [`Env::apply`] makes first: the episode is running, `action` and `applied`
+/// are `ACTION_DIM` long, and the action is finite.
+pub fn check_apply<E: Env>(
+    env: &E,
+    action: &[f32],
+    applied: &[f32],
+) -> std::result::Result<(), CoreError> {
+    if env.is_done() {
+        return Err(CoreError::implementor(TaskError::EpisodeOver("ended")));
+    }
+    vdd_core::check_len("action", action.len(), E::ACTION_DIM)?;
+    vdd_core::check_len("applied action", applied.len(), E::ACTION_DIM)?;
+    if !action.iter().all(|a| a.is_finite()) {
+        return Err(CoreError::NonFinite { what: "action" });
+    }
+    Ok(())
 }
 
 /// A task's aggregate metrics of a set of rollouts.
@@ -378,7 +399,8 @@ impl Recorder {
         let t = self.actions.len() / ad;
         let (o, a) = (&self.observations, &self.actions);
         let mut final_observation = vec![0.0; od];
-        env.observe(&mut final_observation);
+        // The buffer has the length `observe` asks for: it cannot fail.
+        let _ = env.observe(&mut final_observation);
         let tr = Trajectory {
             observations: Mat::from_fn(t, od, |i, j| o[i * od + j]),
             actions: Mat::from_fn(t, ad, |i, j| a[i * ad + j]),
@@ -479,7 +501,7 @@ impl<E: Env> Worker<E> {
         let (obs, action, applied) = (&mut self.row_obs, &mut self.row_action, &mut self.applied);
         while !env.is_done() {
             let step = env.steps();
-            env.observe(obs);
+            env.observe(obs)?;
             policy.act_into(obs, action).map_err(policy_error(episode, step))?;
             env.apply(action, applied).map_err(policy_error(episode, step))?;
             if record {
@@ -512,7 +534,7 @@ impl<E: Env> Worker<E> {
             (&mut self.row_obs, &mut self.row_action, &mut self.applied);
         for step in 0.. {
             for (i, env) in self.envs[..n].iter().enumerate() {
-                env.observe(row_obs);
+                env.observe(row_obs)?;
                 row_obs.iter().enumerate().for_each(|(j, &o)| self.obs[(i, j)] = o);
             }
             policy
@@ -524,7 +546,7 @@ impl<E: Env> Worker<E> {
                     continue;
                 }
                 row_action.iter_mut().enumerate().for_each(|(j, a)| *a = self.actions[(i, j)]);
-                env.observe(row_obs);
+                env.observe(row_obs)?;
                 env.apply(row_action, applied).map_err(policy_error(first + i, step))?;
                 if record {
                     self.recorders[i].push(row_obs, applied);

@@ -63,14 +63,14 @@ impl Env for AvoidingEnv {
         *self = AvoidingEnv::new();
     }
 
-    fn observe(&self, out: &mut [f32]) {
+    fn observe(&self, out: &mut [f32]) -> std::result::Result<(), CoreError> {
+        vdd_core::check_len("observation buffer", out.len(), OBS_DIM)?;
         out.copy_from_slice(&self.observation());
+        Ok(())
     }
 
     fn apply(&mut self, action: &[f32], applied: &mut [f32]) -> std::result::Result<(), CoreError> {
-        if !action.iter().all(|a| a.is_finite()) {
-            return Err(CoreError::NonFinite { what: "action" });
-        }
+        episodes::check_apply(self, action, applied)?;
         let a = AvoidingEnv::clip_action([action[0], action[1]]);
         applied.copy_from_slice(&a);
         self.step_clipped(a);
