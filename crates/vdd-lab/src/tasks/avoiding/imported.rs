@@ -141,6 +141,15 @@ pub fn run(ctx: &RunContext, resolved: &Resolved<AvoidingRecipe>) -> crate::Resu
     if let Some(m) = methods.iter().find(|m| !["teacher", "vdd"].contains(&m.as_str())) {
         return Err(format!("method `{m}` with --teacher (teacher, vdd)").into());
     }
+    let t = cfg.imported.gating_temperature;
+    if !(t.is_finite() && t > 0.0) || (t != 1.0 && cfg.imported.gating != GatingKind::Learned) {
+        // Checked before any training: `Moe::sharpen_gating` would refuse it only after.
+        return Err(format!(
+            "imported.gating_temperature = {t}: a finite positive temperature of a learned gating \
+             (imported.gating = \"learned\"), or 1"
+        )
+        .into());
+    }
     let ImportedTeacher::Unet1d(teacher) =
         vdd_import::load_teacher(Path::new(&cfg.imported.teacher))?;
     let src = teacher.spec().source.clone();
