@@ -52,7 +52,7 @@
 //! ```
 
 use serde::{Deserialize, Serialize};
-use vdd_core::{CoreError, check_len};
+use vdd_core::CoreError;
 
 use crate::{Result, TaskError};
 
@@ -317,11 +317,9 @@ impl AvoidingEnv {
         if self.status.is_done() {
             return Err(TaskError::EpisodeOver(self.status.as_str()));
         }
-        check_len("action", action.len(), ACTION_DIM)?;
-        if !action.iter().all(|a| a.is_finite()) {
-            return Err(CoreError::NonFinite { what: "action" }.into());
-        }
-        Ok(self.step_clipped(Self::clip_action([action[0], action[1]])))
+        // The rollouts' step (`episodes::Env::apply`): the same checks and clipping.
+        crate::episodes::Env::apply(self, action, &mut [0.0; ACTION_DIM])?;
+        Ok(self.status)
     }
 
     /// One step with an already validated and clipped action.

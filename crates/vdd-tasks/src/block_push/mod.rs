@@ -117,7 +117,7 @@
 use rand::Rng as _;
 use rapier2d::prelude::{ColliderBuilder, PhysicsWorld, RigidBodyBuilder, RigidBodyHandle, Vector};
 use serde::{Deserialize, Serialize};
-use vdd_core::{CoreError, Seeds, check_len};
+use vdd_core::Seeds;
 
 use crate::{Result, TaskError};
 
@@ -505,11 +505,9 @@ impl BlockPushEnv {
         if self.status.is_done() {
             return Err(TaskError::EpisodeOver(self.status.as_str()));
         }
-        check_len("action", action.len(), ACTION_DIM)?;
-        if !action.iter().all(|a| a.is_finite()) {
-            return Err(CoreError::NonFinite { what: "action" }.into());
-        }
-        Ok(self.step_clipped(Self::clip_action([action[0], action[1]])))
+        // The rollouts' step (`episodes::Env::apply`): the same checks and clipping.
+        crate::episodes::Env::apply(self, action, &mut [0.0; ACTION_DIM])?;
+        Ok(self.status)
     }
 
     /// One step with an already validated and clipped action.

@@ -2,7 +2,7 @@
 //! optimised even in test builds, as every dependency does).
 
 use faer::Mat;
-use vdd_core::Policy;
+use vdd_core::{CoreError, Policy};
 
 use super::oracle::{BlockPushOracle, OracleConfig, generate_demonstrations};
 use super::rollout::{
