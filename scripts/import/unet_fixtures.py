@@ -57,7 +57,9 @@ def record_noise(seed, shape, steps):
 
 
 # ---------------------------------------------------------------- LeRobot
-def lerobot_fixture(out_dir, name, seed, **kw):
+def lerobot_fixture(out_dir, name, seed, keep_init=False, bench_batch=ROWS_BENCH, **kw):
+    """`keep_init`: PyTorch's own initialisation (the scaled normal draws below would overflow a
+    wide network); `bench_batch`: the batch the U-Net is timed at (recorded as `bench_batch`)."""
     from importlib.metadata import version as pkg_version
 
     from lerobot.configs.types import FeatureType, NormalizationMode, PolicyFeature
@@ -81,9 +83,10 @@ def lerobot_fixture(out_dir, name, seed, **kw):
     )
     pol = DiffusionPolicy(cfg).eval()
     # Random non-trivial weights everywhere (GroupNorm affine included).
-    with torch.no_grad():
-        for p in pol.parameters():
-            p.copy_(torch.randn_like(p) * (0.3 if p.ndim > 1 else 0.2))
+    if not keep_init:
+        with torch.no_grad():
+            for p in pol.parameters():
+                p.copy_(torch.randn_like(p) * (0.3 if p.ndim > 1 else 0.2))
     stats = {
         "observation.state": {"min": torch.tensor([-1.0, 0.0, 0.5, -3.0]), "max": torch.tensor([1.0, 2.0, 0.7, 3.0]),
                               "mean": torch.tensor([0.1, 1.0, 0.6, -0.5]), "std": torch.tensor([0.5, 0.7, 0.05, 2.0])},
@@ -125,10 +128,11 @@ def lerobot_fixture(out_dir, name, seed, **kw):
         acts = pol.diffusion.generate_actions(batch, noise=noise.clone())
     acts_raw = post(acts)
 
-    rate = bench_rows_per_s(
-        lambda n: unet(torch.randn(n, h, ad), torch.randint(0, 100, (n,)), global_cond=torch.randn(n, gdim)),
-        ROWS_BENCH,
-    )
+    with torch.no_grad():
+        rate = bench_rows_per_s(
+            lambda n: unet(torch.randn(n, h, ad), torch.randint(0, 100, (n,)), global_cond=torch.randn(n, gdim)),
+            bench_batch,
+        )
     tensors = {
         "unet.x": x, "unet.t": steps.float(), "unet.global_cond": g, "unet.out": y,
         "sample.observation.state": state, "sample.observation.environment_state": env,
@@ -136,7 +140,7 @@ def lerobot_fixture(out_dir, name, seed, **kw):
         "sample.actions": acts_raw.contiguous(),
     }
     meta = {"torch_rows_per_s": f"{rate:.1f}", "versions": json.dumps({**versions(), "lerobot": pkg_version("lerobot")}),
-            "architecture": "lerobot_unet1d"}
+            "architecture": "lerobot_unet1d", "bench_batch": str(bench_batch)}
     save_file({k: v.contiguous().float() for k, v in tensors.items()}, os.path.join(d, "expected.safetensors"), metadata=meta)
     print(name, "torch rows/s", round(rate), "params", sum(p.numel() for p in pol.parameters()))
 
@@ -236,8 +240,15 @@ def main():
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--out", required=True)
     ap.add_argument("--diffusion-policy", help="path to a real-stanford/diffusion_policy checkout")
+    ap.add_argument("--default-scale", action="store_true",
+                    help="only write lerobot_unet_default: LeRobot's DiffusionConfig defaults (down_dims "
+                         "512/1024/2048, 248M parameters, about 1 GB; too large to commit), timed at batch 32")
     a = ap.parse_args()
     from lerobot.configs.types import NormalizationMode as N
+    if a.default_scale:
+        # Every U-Net and scheduler setting at DiffusionConfig's default; PyTorch's initialisation.
+        lerobot_fixture(a.out, "lerobot_unet_default", 3, keep_init=True, bench_batch=32)
+        return
     lerobot_fixture(a.out, "lerobot_unet_ddpm", 0, n_obs_steps=2, horizon=16, n_action_steps=8,
                     down_dims=(16, 32, 48), kernel_size=5, n_groups=8, diffusion_step_embed_dim=32,
                     use_film_scale_modulation=True)

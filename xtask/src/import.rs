@@ -88,6 +88,10 @@ pub struct BenchArgs {
     /// Fixture directories (one per architecture).
     #[arg(long, default_value = "tests/fixtures/import")]
     pub fixtures: PathBuf,
+    /// Another directory of U-Net fixtures, too large to commit (repeatable): the LeRobot
+    /// default-scale U-Net of `scripts/import/unet_fixtures.py --default-scale --out DIR`.
+    #[arg(long = "extra")]
+    pub extra: Vec<PathBuf>,
     /// Where import.json goes.
     #[arg(long)]
     pub out: PathBuf,
@@ -96,7 +100,8 @@ pub struct BenchArgs {
 /// Checks every fixture and times our forward at batch 1024 on this thread
 /// ([`vdd_import::bench::bench_fixtures`]); writes `import.json`.
 pub fn bench(a: &BenchArgs) -> XResult {
-    let records = vdd_import::bench::bench_fixtures(&a.fixtures, |_, line| println!("{line}"))?;
+    let records =
+        vdd_import::bench::bench_fixtures(&a.fixtures, &a.extra, |_, line| println!("{line}"))?;
     std::fs::create_dir_all(&a.out)?;
     let path = a.out.join("import.json");
     std::fs::write(&path, serde_json::to_string_pretty(&records)? + "\n")?;

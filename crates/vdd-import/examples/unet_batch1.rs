@@ -109,37 +109,86 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         ("subnormal input, step 0", &xs, &cs, 0.0),
     ];
     println!(
-        "{:<26} {:>10} {:>10} {:>10} {:>10} {:>8} {:>8}",
-        "case", "min µs", "median µs", "p90 µs", "max µs", "max/min", "p90/med"
+        "{:<26} {:>10} {:>10} {:>10} {:>10} {:>8} {:>8} {:>6}",
+        "case", "min µs", "median µs", "p90 µs", "max µs", "max/min", "p90/med", "cv"
     );
+    // The machine's own variation: a fixed single-threaded GEMM of about the U-Net's work at
+    // `--dims 64,128,256` (no allocation, no branches on the data), timed the same way.
+    let n = 320;
+    let a = Mat::from_fn(n, n, |i, j| ((i * 7 + j * 3) % 13) as f32 / 13.0);
+    let mut out = Mat::<f32>::zeros(n, n);
+    let mut gemm = || {
+        faer::linalg::matmul::matmul(
+            out.as_mut(),
+            faer::Accum::Replace,
+            a.as_ref(),
+            a.as_ref(),
+            1.0,
+            faer::Par::Seq,
+        );
+        std::hint::black_box(out[(0, 0)]);
+    };
+    print_row(&format!("baseline: GEMM {n}³"), time_calls(calls, &mut gemm));
+    // ... and one pass over as many bytes as the U-Net's parameters (memory-bound, as the
+    // U-Net's weights are read once per call at batch 1).
+    let bytes = vec![1.0f32; params];
+    let mut stream = || {
+        std::hint::black_box(bytes.iter().fold(0.0f32, |s, v| s + v));
+    };
+    print_row("baseline: read the weights", time_calls(calls, &mut stream));
     for (name, x, c, step) in cases {
-        // Steady state, as in a control loop: the first calls size the layers' buffers.
-        for _ in 0..WARM_UP {
-            std::hint::black_box(unet.forward(x.as_ref(), &[step], c.as_ref())?[(0, 0)]);
-        }
-        let mut times = Vec::with_capacity(calls);
-        for _ in 0..calls {
-            let (t0, c0) = (Instant::now(), cpu_ns());
-            let y = unet.forward(x.as_ref(), &[step], c.as_ref())?;
-            std::hint::black_box(y[(0, 0)]);
-            let wall = t0.elapsed().as_secs_f64() * 1e6;
-            times.push(match (c0, cpu_ns()) {
-                (Some(a), Some(b)) => (b - a) as f64 / 1e3,
-                _ => wall,
+        // Steady state, as in a control loop: the untimed first calls size the layers' buffers.
+        let mut failed = None;
+        let times =
+            time_calls(calls, &mut || match unet.forward(x.as_ref(), &[step], c.as_ref()) {
+                Ok(y) => {
+                    std::hint::black_box(y[(0, 0)]);
+                }
+                Err(e) => failed = Some(e),
             });
+        if let Some(e) = failed {
+            return Err(e.into());
         }
         let y = unet.forward(x.as_ref(), &[step], c.as_ref())?;
         if !y.col_iter().all(|col| col.iter().all(|v| v.is_finite())) {
             return Err(format!("{name}: non-finite output").into());
         }
-        times.sort_by(f64::total_cmp);
-        let n = times.len();
-        let (lo, med, p90, hi) = (times[0], times[n / 2], times[(n * 9) / 10], times[n - 1]);
-        println!(
-            "{name:<26} {lo:>10.0} {med:>10.0} {p90:>10.0} {hi:>10.0} {:>8.2} {:>8.2}",
-            hi / lo,
-            p90 / med
-        );
+        print_row(name, times);
     }
     Ok(())
+}
+
+/// `calls` timings of `f` in µs (thread CPU time where available, else wall time), taken
+/// after [`WARM_UP`] untimed calls.
+fn time_calls(calls: usize, f: &mut dyn FnMut()) -> Vec<f64> {
+    for _ in 0..WARM_UP {
+        f();
+    }
+    (0..calls)
+        .map(|_| {
+            let (t0, c0) = (Instant::now(), cpu_ns());
+            f();
+            let wall = t0.elapsed().as_secs_f64() * 1e6;
+            match (c0, cpu_ns()) {
+                (Some(a), Some(b)) => (b - a) as f64 / 1e3,
+                _ => wall,
+            }
+        })
+        .collect()
+}
+
+/// One line of the table: min, median, p90, max, max/min, p90/median and the coefficient of
+/// variation (standard deviation over mean) of `times`.
+fn print_row(name: &str, mut times: Vec<f64>) {
+    times.sort_by(f64::total_cmp);
+    let n = times.len();
+    let (lo, med, p90, hi) = (times[0], times[n / 2], times[(n * 9) / 10], times[n - 1]);
+    let mean = times.iter().sum::<f64>() / n as f64;
+    let var = times.iter().map(|t| (t - mean).powi(2)).sum::<f64>() / n as f64;
+    println!(
+        "{name:<26} {lo:>10.0} {med:>10.0} {p90:>10.0} {hi:>10.0} {:>8.2} {:>8.2} {:>6.3}",
+        hi / lo,
+        p90 / med,
+        var.sqrt() / mean
+    );
 }

@@ -19,13 +19,15 @@ pub struct ImportBenchRecord {
     pub architecture: String,
     /// Largest absolute difference of our network's outputs from PyTorch's on the fixture.
     pub max_abs_diff: f32,
-    /// Rows (samples) per second of our forward pass at batch [`BENCH_BATCH`], one thread.
+    /// Rows (samples) per second of our forward pass at batch [`Self::batch`], one thread.
     pub rows_per_s: f64,
     /// The same for PyTorch, as the fixture script recorded it (`torch.set_num_threads(1)`).
     pub torch_rows_per_s: f64,
+    /// The batch both were timed at: [`BENCH_BATCH`], or the fixture's own (a large network's).
+    pub batch: usize,
 }
 
-/// The batch the throughput is measured at.
+/// The batch the throughput is measured at, unless a fixture names its own.
 pub const BENCH_BATCH: usize = 1024;
 
 /// Errors of [`bench_fixtures`]: the fixtures' directory, or an importer's error.
@@ -67,42 +69,57 @@ pub fn unet_rows_per_s(teacher: &mut UnetTeacher, batch: usize) -> Result<f64, I
     Ok(batch as f64 / best)
 }
 
-/// Checks every fixture under `dir` against PyTorch's recorded outputs and times our forward
-/// at [`BENCH_BATCH`] rows on this thread: the U-Net fixtures (directories `lerobot_unet*`,
-/// `diffusion_policy_unet*` with an `expected.safetensors`), then [`crate::BESO_FIXTURES`]
-/// and [`crate::DP_TRANSFORMER_FIXTURES`]. `row` receives each record with a one-line
-/// summary as it is measured.
-pub fn bench_fixtures(
-    dir: &Path,
-    mut row: impl FnMut(&ImportBenchRecord, &str),
-) -> Result<Vec<ImportBenchRecord>, BenchError> {
+/// The U-Net fixture directories below `dir`: those named `lerobot_unet*` or
+/// `diffusion_policy_unet*` holding an `expected.safetensors`, sorted.
+fn unet_fixture_dirs(dir: &Path) -> Result<Vec<PathBuf>, BenchError> {
     let io = |source| BenchError::Io { path: dir.to_owned(), source };
     let mut dirs: Vec<PathBuf> = std::fs::read_dir(dir)
         .map_err(io)?
         .filter_map(|e| e.ok().map(|e| e.path()))
         .filter(|p| p.join("expected.safetensors").is_file())
+        .filter(|p| {
+            let name = p.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
+            name.starts_with("lerobot_unet") || name.starts_with("diffusion_policy_unet")
+        })
         .collect();
     dirs.sort();
+    Ok(dirs)
+}
+
+/// Checks every fixture under `dir` against PyTorch's recorded outputs and times our forward
+/// on this thread at [`BENCH_BATCH`] rows (or the batch a fixture names): the U-Net fixtures
+/// (directories `lerobot_unet*`, `diffusion_policy_unet*` with an `expected.safetensors`) of
+/// `dir` and then of each of `extra` (fixtures too large to commit, such as the LeRobot
+/// default-scale U-Net that `scripts/import/unet_fixtures.py --default-scale` writes), then
+/// [`crate::BESO_FIXTURES`] and [`crate::DP_TRANSFORMER_FIXTURES`] of `dir`. `row` receives
+/// each record with a one-line summary as it is measured.
+pub fn bench_fixtures(
+    dir: &Path,
+    extra: &[PathBuf],
+    mut row: impl FnMut(&ImportBenchRecord, &str),
+) -> Result<Vec<ImportBenchRecord>, BenchError> {
+    let mut dirs = unet_fixture_dirs(dir)?;
+    for e in extra {
+        dirs.extend(unet_fixture_dirs(e)?);
+    }
     let mut records = Vec::new();
     for dir in dirs {
         let name = dir.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
-        if !(name.starts_with("lerobot_unet") || name.starts_with("diffusion_policy_unet")) {
-            continue;
-        }
         let (mut teacher, check) = check_unet_fixture(&dir)?;
         let r = ImportBenchRecord {
             fixture: name,
             architecture: check.architecture,
             max_abs_diff: check.unet_max_abs_diff.max(check.sample_max_abs_diff),
-            rows_per_s: unet_rows_per_s(&mut teacher, BENCH_BATCH)?,
+            rows_per_s: unet_rows_per_s(&mut teacher, check.bench_batch)?,
             torch_rows_per_s: check.torch_rows_per_s,
+            batch: check.bench_batch,
         };
         let (u, s) = (check.unet_max_abs_diff, check.sample_max_abs_diff);
         row(
             &r,
             &format!(
-                "{:24} max_abs_diff {:.2e} (U-Net {u:.2e}, sampling {s:.2e})  rows/s {:>9.0}  torch {:>9.0}",
-                r.fixture, r.max_abs_diff, r.rows_per_s, r.torch_rows_per_s
+                "{:24} max_abs_diff {:.2e} (U-Net {u:.2e}, sampling {s:.2e})  rows/s {:>9.1}  torch {:>9.1}  batch {}",
+                r.fixture, r.max_abs_diff, r.rows_per_s, r.torch_rows_per_s, r.batch
             ),
         );
         records.push(r);
@@ -114,11 +131,12 @@ pub fn bench_fixtures(
             max_abs_diff: diff as f32,
             rows_per_s: ours,
             torch_rows_per_s: torch,
+            batch: BENCH_BATCH,
         };
         row(
             &r,
             &format!(
-                "{fixture:24} max_abs_diff {diff:.2e}  rows/s {ours:>9.0}  torch {torch:>9.0}"
+                "{fixture:24} max_abs_diff {diff:.2e}  rows/s {ours:>9.1}  torch {torch:>9.1}"
             ),
         );
         records.push(r);

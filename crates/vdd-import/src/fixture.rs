@@ -22,9 +22,15 @@ pub struct UnetFixtureCheck {
     pub unet_max_abs_diff: f32,
     /// Largest absolute difference of the executed actions of the full sampling run.
     pub sample_max_abs_diff: f32,
-    /// PyTorch's rows per second at batch 1024 on one thread, as recorded.
+    /// PyTorch's rows per second at batch [`Self::bench_batch`] on one thread, as recorded.
     pub torch_rows_per_s: f64,
+    /// The batch PyTorch was timed at: the metadata's `bench_batch`, else
+    /// [`crate::bench::BENCH_BATCH`] (the committed fixtures).
+    pub bench_batch: usize,
 }
+
+/// Largest `bench_batch` a fixture may name.
+const MAX_BENCH_BATCH: usize = 1 << 16;
 
 /// Imports a fixture directory (LeRobot when it has `policy_preprocessor.json` or a LeRobot
 /// `config.json`, diffusion_policy otherwise).
@@ -158,10 +164,24 @@ pub fn check_unet_fixture_with(
         .get("architecture")
         .cloned()
         .ok_or_else(|| ImportError::missing(&file, "architecture"))?;
-    Ok((
-        teacher,
-        UnetFixtureCheck { architecture, unet_max_abs_diff, sample_max_abs_diff, torch_rows_per_s },
-    ))
+    let bench_batch = match meta.get("bench_batch") {
+        None => crate::bench::BENCH_BATCH,
+        Some(v) => match v.parse::<usize>() {
+            Ok(b) if (1..=MAX_BENCH_BATCH).contains(&b) => b,
+            _ => {
+                let why = format!("`{v}` is not a batch in 1..={MAX_BENCH_BATCH}");
+                return Err(ImportError::bad(&file, "bench_batch", why));
+            }
+        },
+    };
+    let check = UnetFixtureCheck {
+        architecture,
+        unet_max_abs_diff,
+        sample_max_abs_diff,
+        torch_rows_per_s,
+        bench_batch,
+    };
+    Ok((teacher, check))
 }
 
 fn row_mat(v: &[f32], r: usize, c: usize, file: &str, key: &str) -> Result<Mat<f32>, ImportError> {

@@ -15,7 +15,7 @@
 //! |---|---|---|
 //! | [`vdd_nn::limits::MAX_WIDTH`] | 65,536 | any width, channel count or embedding size |
 //! | [`vdd_nn::limits::MAX_BLOCKS`] | 1,024 | layers / residual blocks of one network |
-//! | [`vdd_nn::limits::MAX_PARAMS`] | 2^27 | parameters of the imported network |
+//! | [`vdd_nn::limits::MAX_PARAMS`] | 2^29 | parameters of the imported network |
 //! | [`MAX_KERNEL_SIZE`] | 1,024 | a convolution's kernel size |
 //! | [`MAX_UNET_LEVELS`] | 16 | resolution levels (`down_dims` entries) of a U-Net |
 //! | [`MAX_SEQUENCE`] | 4,096 | horizons, observation windows, token sequences |
@@ -416,6 +416,28 @@ pub fn yaml_nesting(text: &str) -> usize {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn lerobot_default_scale_fits_and_four_times_its_width_does_not() {
+        // LeRobot 0.6.1's `DiffusionConfig` defaults, 2-D actions, 2 steps of 7 features.
+        let c = Unet1dConfig {
+            input_dim: 2,
+            global_cond_dim: 14,
+            step_embed_dim: 128,
+            down_dims: vec![512, 1024, 2048],
+            kernel_size: 5,
+            n_groups: 8,
+            film_scale: true,
+            layout: vdd_torch::UnetLayout::Lerobot,
+        };
+        // The parameter count PyTorch reports for that policy (scripts/import/unet_fixtures.py
+        // --default-scale): nothing but the U-Net has parameters without images.
+        assert_eq!(check_unet(&c, 16, 2), Ok(248_128_642));
+        let wide = Unet1dConfig { down_dims: vec![2048, 4096, 8192], ..c };
+        let e = check_unet(&wide, 16, 2).unwrap_err();
+        assert_eq!(e.key, "down_dims");
+        assert!(e.reason.contains("more than the limit"), "{e:?}");
+    }
 
     #[test]
     fn nesting_of_ordinary_documents() {

@@ -4,13 +4,14 @@
 //! metadata, a recipe) gives an error instead of an abort, a panic or a hang.
 //!
 //! The limits are far above any model of the paper (its largest networks have well under a
-//! million parameters):
+//! million parameters) and leave room for the teachers users import (LeRobot's default
+//! diffusion policy has 248 million):
 //!
 //! | limit | value | what it bounds |
 //! |---|---|---|
 //! | [`MAX_WIDTH`] | 65,536 | any single input, hidden or output width |
 //! | [`MAX_BLOCKS`] | 1,024 | residual blocks of one network |
-//! | [`MAX_PARAMS`] | 2^27 (134,217,728; 512 MiB of `f32`) | parameters of one model |
+//! | [`MAX_PARAMS`] | 2^29 (536,870,912; 2 GiB of `f32`) | parameters of one model |
 //! | [`MAX_ABS_WEIGHT`] | 10^6 | magnitude of any weight read or written |
 //! | [`MAX_ABS_ADAM_FIRST_MOMENT`] | 10^15 | magnitude of an Adam first moment (a gradient average) |
 //! | [`MAX_ADAM_SECOND_MOMENT`] | 10^30 | an Adam second moment (a squared-gradient average) |
@@ -36,8 +37,9 @@ pub const MAX_WIDTH: usize = 1 << 16;
 /// Largest number of residual blocks of one network.
 pub const MAX_BLOCKS: usize = 1024;
 
-/// Largest number of parameters of one model (2^27, 512 MiB of `f32`).
-pub const MAX_PARAMS: usize = 1 << 27;
+/// Largest number of parameters of one model (2^29, 2 GiB of `f32`): room for LeRobot's
+/// default `DiffusionPolicy` (a U-Net of 248 million parameters) with its image encoders.
+pub const MAX_PARAMS: usize = 1 << 29;
 
 /// Largest magnitude of a weight read from a file. Trained networks stay orders of magnitude
 /// below it; a value beyond it is corruption, and it would turn outputs non-finite.

@@ -164,8 +164,14 @@ impl Conv1d {
             matmul(self.out.as_mut(), Accum::Add, x, wt, 1.0, Par::Seq);
             return Ok(&mut self.out);
         }
-        // im2col and product a chunk of whole samples at a time, so the columns stay in cache.
-        let per_chunk = (IM2COL_FLOATS / (out_len * k_in)).clamp(1, batch);
+        // im2col and product a chunk of whole samples at a time, so the columns stay in cache;
+        // a weight too large for the cache is read once per chunk, so its chunks are made tall
+        // enough for the product to reuse it.
+        let mut per_chunk = IM2COL_FLOATS / (out_len * k_in);
+        if k_in * self.out_ch > LARGE_WEIGHT_FLOATS {
+            per_chunk = per_chunk.max(LARGE_WEIGHT_ROWS.div_ceil(out_len));
+        }
+        let per_chunk = per_chunk.clamp(1, batch);
         ensure(&mut self.cols, per_chunk * out_len, k_in);
         let (s, p) = (self.stride, self.padding as isize);
         for b0 in (0..batch).step_by(per_chunk) {
@@ -203,6 +209,14 @@ impl Conv1d {
 
 /// Floats of one chunk of [`Conv1d`]'s im2col columns.
 const IM2COL_FLOATS: usize = 1 << 16;
+
+/// A [`Conv1d`] weight of more floats than this (4 MiB, beyond a core's L2) is streamed from
+/// memory by every chunk's product...
+const LARGE_WEIGHT_FLOATS: usize = 1 << 20;
+
+/// ... so its chunks hold at least this many output rows (LeRobot's default U-Net, 2048
+/// channels at length 4, would otherwise read its 84 MB weight once per sample).
+const LARGE_WEIGHT_ROWS: usize = 256;
 
 /// One im2col column of a length-preserving stride-1 convolution: `dst[b·len + t] =
 /// src[b·len + t + shift]` where `0 ≤ t + shift < len`, else zero; one copy of the whole column,
@@ -402,6 +416,33 @@ mod tests {
                     for o in 0..ol {
                         assert!((y[(b * ol + o, co)] - want[co][o]).abs() < 1e-5, "k{k} s{s} p{p}");
                     }
+                }
+            }
+        }
+    }
+
+    #[test]
+    fn a_conv_with_a_large_weight_matches_the_definition_in_any_batch() {
+        // 512 → 512 channels, kernel 5: a weight past `LARGE_WEIGHT_FLOATS`, so its chunks are
+        // made tall; the samples must still come out as one at a time.
+        let (cin, cout, k) = (512, 512, 5);
+        assert!(cin * cout * k > LARGE_WEIGHT_FLOATS);
+        let mut c = Conv1d::new(cin, cout, k, 1, 2).unwrap();
+        for (i, w) in c.weight.value.iter_mut().enumerate() {
+            *w = ((i * 7 % 11) as f32 - 5.0) * 0.01;
+        }
+        c.bias.value = (0..cout).map(|i| (i % 3) as f32 * 0.1).collect();
+        let (batch, len) = (70, 4);
+        let x = Mat::from_fn(batch * len, cin, |r, ch| ((r * 3 + ch * 5) % 7) as f32 - 3.0);
+        let y = c.forward(x.as_ref(), batch).unwrap().to_owned();
+        for b in [0, 33, 69] {
+            let xs: Vec<Vec<f32>> =
+                (0..cin).map(|ch| (0..len).map(|t| x[(b * len + t, ch)]).collect()).collect();
+            let want = naive_conv(&c, &xs, len);
+            for (co, w) in want.iter().enumerate() {
+                for (o, &v) in w.iter().enumerate() {
+                    let got = y[(b * len + o, co)];
+                    assert!((got - v).abs() < 1e-3 * (1.0 + v.abs()), "{b} {co} {o}: {got} {v}");
                 }
             }
         }
