@@ -112,6 +112,62 @@ impl NoiseSchedule {
         if ok { Ok(()) } else { Err(CoreError::Config(format!("invalid noise schedule {self:?}"))) }
     }
 
+    /// The lowest and highest level the schedule can draw.
+    ///
+    /// ```
+    /// use vdd_core::NoiseSchedule;
+    /// assert_eq!(NoiseSchedule::Annealed { start: 1.0, end: 0.01 }.bounds(), (0.01, 1.0));
+    /// assert_eq!(NoiseSchedule::Uniform { min: 0.1, max: 1.0 }.bounds(), (0.1, 1.0));
+    /// ```
+    pub fn bounds(&self) -> (f32, f32) {
+        match *self {
+            NoiseSchedule::Fixed { level } => (level, level),
+            NoiseSchedule::Uniform { min, max } => (min, max),
+            NoiseSchedule::Annealed { start, end } => (start.min(end), start.max(end)),
+        }
+    }
+
+    /// Checks that every level of the schedule is in `unit` and inside `range` (both
+    /// inclusive), as the teacher reports them ([`ScoreModel::noise_convention`] and
+    /// [`ScoreModel::noise_range`]); `None` skips a check. The errors name the settings
+    /// `noise` and `noise_unit`.
+    ///
+    /// ```
+    /// use vdd_core::{NoiseConvention, NoiseSchedule};
+    /// let s = NoiseSchedule::Uniform { min: 0.1, max: 1.0 };
+    /// let ve = Some((0.002, 80.0));
+    /// assert!(s.check_teacher(Some(NoiseConvention::Sigma), NoiseConvention::Sigma, ve).is_ok());
+    /// assert!(s.check_teacher(None, NoiseConvention::Time, Some((1.0, 100.0))).is_err());
+    /// assert!(s.check_teacher(Some(NoiseConvention::Sigma), NoiseConvention::Time, None).is_err());
+    /// ```
+    pub fn check_teacher(
+        &self,
+        unit: Option<NoiseConvention>,
+        teacher_unit: NoiseConvention,
+        range: Option<(f32, f32)>,
+    ) -> Result<()> {
+        let name = |u: NoiseConvention| match u {
+            NoiseConvention::Sigma => "sigma (a VE noise level σ)",
+            NoiseConvention::Time => "time (a VP diffusion time t)",
+        };
+        if let Some(u) = unit.filter(|&u| u != teacher_unit) {
+            return Err(CoreError::Config(format!(
+                "noise_unit is {} but the teacher's levels are in {}",
+                name(u),
+                name(teacher_unit)
+            )));
+        }
+        let (lo, hi) = self.bounds();
+        if let Some((min, max)) = range.filter(|&(min, max)| lo < min || hi > max) {
+            return Err(CoreError::Config(format!(
+                "noise levels {lo}..={hi} are outside the teacher's range {min}..={max} \
+                 (its levels are in {})",
+                name(teacher_unit)
+            )));
+        }
+        Ok(())
+    }
+
     /// Draws one level at training progress `progress ∈ [0, 1]`.
     ///
     /// ```

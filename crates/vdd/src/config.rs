@@ -1,7 +1,7 @@
 //! Configuration of a VDD run.
 
 use serde::{Deserialize, Serialize};
-use vdd_core::{CoreError, NoiseSchedule};
+use vdd_core::{CoreError, NoiseConvention, NoiseSchedule};
 use vdd_moe::MoeConfig;
 use vdd_nn::{AdamConfig, LrSchedule};
 
@@ -55,6 +55,11 @@ pub struct VddConfig {
     pub vi_samples: usize,
     /// Teacher noise levels used in the expert step (in the teacher's convention).
     pub noise: NoiseSchedule,
+    /// The unit `noise` is written in, checked against the teacher's
+    /// ([`vdd_core::ScoreModel::noise_convention`]) when the run starts: `sigma` (VE σ) or
+    /// `time` (VP diffusion time t). `None`: the teacher's, unchecked.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub noise_unit: Option<NoiseConvention>,
     /// With an [`NoiseSchedule::Annealed`] schedule: the fraction of the run over which the
     /// level goes from `start` to `end`; it then stays at `end`. `None`: the whole run.
     #[serde(default, skip_serializing_if = "Option::is_none")]
@@ -123,6 +128,7 @@ impl VddConfig {
             vi_samples: 64,
             noise: NoiseSchedule::Fixed { level: 0.0 },
             noise_anneal_until: None,
+            noise_unit: None,
             score_at: ScoreAt::CleanSample,
             state_noise: None,
             expert_weighting: ExpertWeighting::Gating,

@@ -267,6 +267,8 @@ impl<S: ScoreModel, E: Expert> Vdd<S, E> {
         mut data: DistillData,
     ) -> Result<Self, VddError> {
         config.validate()?;
+        let (unit, range) = (teacher.noise_convention(), teacher.noise_range());
+        config.noise.check_teacher(config.noise_unit, unit, range)?;
         let mc = student.config();
         let (ds, d) = (mc.state_dim, mc.action_dim);
         check_len("teacher action_dim vs student", teacher.action_dim(), d)?;

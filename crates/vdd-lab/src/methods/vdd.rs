@@ -17,7 +17,7 @@
 use faer::Mat;
 use serde_json::json;
 use vdd::{DistillData, Resumable, ResumableOutcome, VddConfig};
-use vdd_core::{Affine, ClampedDenoiser, ScoreModel};
+use vdd_core::{Affine, ClampedDenoiser, NoiseConvention, ScoreModel};
 use vdd_diffusion::TeacherKind;
 use vdd_mixture::gating::{GatingFitConfig, fit_gating_to_policy};
 use vdd_moe::{ActMode, Moe, MoeConfig};
@@ -141,7 +141,18 @@ impl Method for VddMethod {
                 format!("vdd.{t}_gating_fit needs a teacher that acts; {t} does not").into()
             );
         }
-        Ok(s.vdd.check(&s.student).map_err(|e| format!("vdd.{}: {e}", self.1))?)
+        // The schedule's unit against the teacher's, before any training (its range is
+        // checked against the trained teacher's when VDD starts).
+        let unit = match self.0.teacher {
+            Some(TeacherKind::Ddpm) => NoiseConvention::Time,
+            Some(TeacherKind::Beso) | None => NoiseConvention::Sigma,
+        };
+        s.vdd
+            .noise
+            .check_teacher(s.vdd.noise_unit, unit, None)
+            .and_then(|()| s.vdd.check(&s.student))
+            .map_err(|e| format!("vdd.{}: {e}", self.1))?;
+        Ok(())
     }
 
     fn train(&self, job: &Job<'_>) -> crate::Result<Trained> {
@@ -171,7 +182,8 @@ impl Method for VddMethod {
                     "teacher": teacher_config,
                     "teacher_hash": t.hash,
                     "student": mc,
-                    "vdd": vc,
+                    // The unit only checks the schedule; it never changes a student.
+                    "vdd": VddConfig { noise_unit: None, ..vc.clone() },
                     "clip_margin": s.clip_margin,
                 });
                 if let Some(c) = job.curves {
@@ -204,11 +216,14 @@ impl Method for VddMethod {
                 if s.official_init {
                     vdd::init_official(&mut student, vc.seed)?;
                 }
+                let key = format!("vdd.{}", self.1);
                 let (c, noise, curve_seconds) = match teacher {
-                    Some(t) => distill(vc, t.teacher.clone(), student, data, clip, job, &policy)?,
+                    Some(t) => distill(vc, t.teacher.clone(), student, data, clip, job, &policy)
+                        .map_err(|e| e.context(key))?,
                     None => {
                         let exact = d.exact.clone().ok_or("the task has no exact teacher")?;
-                        distill(vc, exact, student, data, clip, job, &policy)?
+                        distill(vc, exact, student, data, clip, job, &policy)
+                            .map_err(|e| e.context(key))?
                     }
                 };
                 if let Some((cache, hash)) = &cache {

@@ -483,3 +483,42 @@ fn sizes_beyond_the_limits_are_refused_before_allocating() {
     let e = Vdd::new(config, teacher, student, data).map(drop).unwrap_err();
     assert!(e.to_string().contains("num_experts"), "{e}");
 }
+
+#[test]
+fn a_schedule_in_another_unit_or_outside_the_teachers_range_is_refused() {
+    use crate::test_support::VpGmm;
+    use vdd_core::NoiseConvention;
+    /// [`IsoGmm`] that says it was trained on σ ∈ [0.002, 80].
+    struct Ranged(IsoGmm);
+    impl ScoreModel for Ranged {
+        fn action_dim(&self) -> usize {
+            self.0.action_dim()
+        }
+        fn state_dim(&self) -> usize {
+            self.0.state_dim()
+        }
+        fn score(
+            &mut self,
+            a: MatRef<'_, f32>,
+            s: MatRef<'_, f32>,
+            l: &[f32],
+            out: MatMut<'_, f32>,
+        ) -> Result<(), CoreError> {
+            self.0.score(a, s, l, out)
+        }
+        fn noise_range(&self) -> Option<(f32, f32)> {
+            Some((0.002, 80.0))
+        }
+    }
+    let (config, teacher, student, data) = small_run(1);
+    let vp = VpGmm(teacher.clone());
+    let sigma = VddConfig { noise_unit: Some(NoiseConvention::Sigma), ..config.clone() };
+    let e = Vdd::new(sigma.clone(), vp, student.clone(), data.clone()).err().unwrap();
+    assert!(e.to_string().contains("noise_unit is sigma"), "{e}");
+    assert!(Vdd::new(sigma.clone(), teacher.clone(), student.clone(), data.clone()).is_ok());
+    let wide = VddConfig { noise: NoiseSchedule::Uniform { min: 0.1, max: 100.0 }, ..sigma };
+    let e = Vdd::new(wide.clone(), Ranged(teacher.clone()), student.clone(), data.clone());
+    assert!(e.err().unwrap().to_string().contains("outside the teacher's range 0.002..=80"));
+    // Without a range (the exact mixture here), any level goes.
+    assert!(Vdd::new(wide, teacher, student, data).is_ok());
+}

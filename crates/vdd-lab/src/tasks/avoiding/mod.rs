@@ -563,6 +563,12 @@ mod tests {
             ("baselines.emm.iterations=3", "baselines.emm"),
             ("baselines.em.iteratons=3", "iteratons"),
             ("vdd.beso_gating=sometimes", "vdd-beso"),
+            // A schedule written in another unit than its teacher's levels.
+            (
+                "vdd.ddpm.noise_unit=\"sigma\"",
+                "vdd.ddpm: invalid configuration: noise_unit is sigma",
+            ),
+            ("vdd.beso.noise_unit=\"time\"", "vdd.beso: invalid configuration: noise_unit is time"),
         ] {
             let (k, v) = set.split_once('=').unwrap();
             let o = recipe::Overrides { sets: vec![(k.into(), v.into())], ..Default::default() };
