@@ -35,7 +35,9 @@ struct Bc;
 
 static BC: Bc = Bc;
 
-const BC_INFO: Info = Info { name: "bc", teacher: None, tasks: &["line"], keys: &["baselines.bc"] };
+/// `bc` needs nothing of a task but runs only on `line` (its settings are `line`'s).
+const BC_INFO: Info =
+    Info { name: "bc", teacher: None, needs: &[], only_on: &["line"], keys: &["baselines.bc"] };
 
 impl Method for Bc {
     fn info(&self) -> &Info {
@@ -196,6 +198,11 @@ static LINE: Line = Line;
 impl Task for Line {
     fn name(&self) -> &'static str {
         "line"
+    }
+    /// Neither rollouts nor learned teachers: `line` scores policies by their error on
+    /// held-out states, so no built-in method runs on it.
+    fn offers(&self) -> &'static [vdd_lab::method::Capability] {
+        &[]
     }
 
     fn columns(&self) -> Vec<Column> {

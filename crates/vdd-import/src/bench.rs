@@ -106,13 +106,14 @@ pub fn bench_fixtures(
     for dir in dirs {
         let name = dir.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
         let (mut teacher, check) = check_unet_fixture(&dir)?;
+        let batch = check.bench_batch.unwrap_or(BENCH_BATCH);
         let r = ImportBenchRecord {
             fixture: name,
             architecture: check.architecture,
             max_abs_diff: check.unet_max_abs_diff.max(check.sample_max_abs_diff),
-            rows_per_s: unet_rows_per_s(&mut teacher, check.bench_batch)?,
+            rows_per_s: unet_rows_per_s(&mut teacher, batch)?,
             torch_rows_per_s: check.torch_rows_per_s,
-            batch: check.bench_batch,
+            batch,
         };
         let (u, s) = (check.unet_max_abs_diff, check.sample_max_abs_diff);
         row(

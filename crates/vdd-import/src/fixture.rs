@@ -24,9 +24,9 @@ pub struct UnetFixtureCheck {
     pub sample_max_abs_diff: f32,
     /// PyTorch's rows per second at batch [`Self::bench_batch`] on one thread, as recorded.
     pub torch_rows_per_s: f64,
-    /// The batch PyTorch was timed at: the metadata's `bench_batch`, else
-    /// [`crate::bench::BENCH_BATCH`] (the committed fixtures).
-    pub bench_batch: usize,
+    /// The batch PyTorch was timed at, when the fixture names one (its metadata's
+    /// `bench_batch`); `None` for the committed fixtures, timed at the bench's default batch.
+    pub bench_batch: Option<usize>,
 }
 
 /// Largest `bench_batch` a fixture may name.
@@ -165,9 +165,9 @@ pub fn check_unet_fixture_with(
         .cloned()
         .ok_or_else(|| ImportError::missing(&file, "architecture"))?;
     let bench_batch = match meta.get("bench_batch") {
-        None => crate::bench::BENCH_BATCH,
+        None => None,
         Some(v) => match v.parse::<usize>() {
-            Ok(b) if (1..=MAX_BENCH_BATCH).contains(&b) => b,
+            Ok(b) if (1..=MAX_BENCH_BATCH).contains(&b) => Some(b),
             _ => {
                 let why = format!("`{v}` is not a batch in 1..={MAX_BENCH_BATCH}");
                 return Err(ImportError::bad(&file, "bench_batch", why));

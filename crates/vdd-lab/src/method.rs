@@ -15,6 +15,7 @@ use vdd_moe::MoeConfig;
 use crate::plots::Curves;
 use crate::policy::TrainedPolicy;
 use crate::recipe;
+pub use crate::task::Capability;
 use crate::teachers::{TeachersConfig, TrainedTeacher};
 pub use vdd_data::TrainingData;
 use vdd_moe::cache::StudentCache;
@@ -27,8 +28,12 @@ pub struct Info {
     pub name: &'static str,
     /// The learned teacher the method needs (trained, or loaded from the cache, before it).
     pub teacher: Option<TeacherKind>,
-    /// The tasks it runs on (`avoiding`, `toy-gmm`, `toy-conditional`).
-    pub tasks: &'static [&'static str],
+    /// What it needs of a task: it runs on every task that offers all of it
+    /// ([`crate::task::Task::offers`]).
+    pub needs: &'static [Capability],
+    /// When not empty, the only tasks it runs on (rows tied to one task's settings, such as
+    /// the D3IL configurations of Avoiding).
+    pub only_on: &'static [&'static str],
     /// The recipe keys (dotted paths below a task's method sections) it reads.
     pub keys: &'static [&'static str],
 }

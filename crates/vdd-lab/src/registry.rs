@@ -92,7 +92,17 @@ impl Registry {
 
     /// The methods that run on `task`, in table order.
     pub fn methods_of(&self, task: &str) -> Vec<&'static dyn Method> {
-        self.methods.iter().copied().filter(|m| supports(*m, task)).collect()
+        self.methods.iter().copied().filter(|m| self.supports(*m, task)).collect()
+    }
+
+    /// Whether `method` runs on `task`: the task is registered, offers everything the method
+    /// needs ([`Task::offers`], [`crate::method::Info::needs`]) and is not excluded by the
+    /// method's [`crate::method::Info::only_on`].
+    pub fn supports(&self, method: &dyn Method, task: &str) -> bool {
+        let info = method.info();
+        let Ok(t) = self.task(task) else { return false };
+        (info.only_on.is_empty() || info.only_on.contains(&task))
+            && info.needs.iter().all(|n| t.offers().contains(n))
     }
 
     /// Parses and checks a recipe's method list: known names available on `task`, no
@@ -111,7 +121,7 @@ impl Registry {
         let mut out: Vec<&'static dyn Method> = Vec::with_capacity(names.len());
         for n in names {
             let m = self.method(n)?;
-            if !supports(m, task) {
+            if !self.supports(m, task) {
                 return Err(format!("method `{n}` is not available on task `{task}`").into());
             }
             if out.iter().any(|o| o.name() == m.name()) {
@@ -127,11 +137,6 @@ impl Registry {
     pub fn columns_of(&self, task: &str) -> Vec<Column> {
         self.task(task).map(|t| t.columns()).unwrap_or_default()
     }
-}
-
-/// Whether `method` runs on `task`.
-pub fn supports(method: &dyn Method, task: &str) -> bool {
-    method.info().tasks.contains(&task)
 }
 
 /// The label of a method in results: `vdd-beso`, or `vdd-beso-z4` under variant `z4`.

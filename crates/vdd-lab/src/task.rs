@@ -10,10 +10,28 @@ use crate::context::RunContext;
 use crate::recipe::{Header, Overrides};
 use crate::teachers::TeachersConfig;
 
+/// What a task offers its methods ([`Task::offers`]) and a method needs
+/// ([`crate::method::Info::needs`]): a method runs on every task that offers all it needs.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Capability {
+    /// Episodes to roll a policy out in, from raw observations (success, task entropy): any
+    /// policy can be evaluated.
+    Rollouts,
+    /// The learned diffusion teachers (`teachers.beso`, `teachers.ddpm`), trained on the
+    /// task's demonstrations.
+    LearnedTeachers,
+    /// The exact mixture the data come from (the toys), as a teacher and a reference.
+    ExactMixture,
+}
+
 /// A task of `cargo xtask experiment` (the `task` key of a recipe).
 pub trait Task: Sync {
     /// `avoiding`, `toy-gmm`, ...
     fn name(&self) -> &'static str;
+    /// What it offers its methods. By default a control task's: rollouts and learned teachers.
+    fn offers(&self) -> &'static [Capability] {
+        &[Capability::Rollouts, Capability::LearnedTeachers]
+    }
     /// The columns of its results tables (after `method` and `seeds`).
     fn columns(&self) -> Vec<crate::report::Column>;
     /// Runs a recipe of this task.

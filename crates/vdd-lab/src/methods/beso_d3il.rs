@@ -14,7 +14,7 @@ use vdd_diffusion::TeacherKind;
 
 use super::teacher::TeacherRow;
 use super::vdd::{VddMethod, vdd_keys};
-use crate::method::{Info, Job, Method, MethodRecipe, Trained};
+use crate::method::{Capability, Info, Job, Method, MethodRecipe, Trained};
 use crate::teachers::TeachersConfig;
 use vdd_diffusion::cache::BesoTeacherConfig;
 
@@ -29,15 +29,25 @@ pub const BESO_D3IL: D3il<TeacherRow> = D3il(TeacherRow(teacher_info("beso-d3il"
 #[allow(missing_docs)]
 pub const BESO_D3IL_1: D3il<TeacherRow> = D3il(TeacherRow(teacher_info("beso-d3il-1"), true));
 
+/// The D3IL configurations are Avoiding's settings.
+const AVOIDING: &[&str] = &["avoiding"];
+
 const fn teacher_info(name: &'static str) -> Info {
-    Info { name, teacher: Some(TeacherKind::Beso), tasks: &["avoiding"], keys: &[KEY] }
+    Info {
+        name,
+        teacher: Some(TeacherKind::Beso),
+        needs: &[Capability::Rollouts, Capability::LearnedTeachers],
+        only_on: AVOIDING,
+        keys: &[KEY],
+    }
 }
 #[allow(missing_docs)]
 pub const VDD_BESO_D3IL: D3il<VddMethod> = D3il(VddMethod(
     Info {
         name: "vdd-beso-d3il",
         teacher: Some(TeacherKind::Beso),
-        tasks: &["avoiding"],
+        needs: &[Capability::LearnedTeachers],
+        only_on: AVOIDING,
         keys: vdd_keys!("beso_d3il", KEY),
     },
     "beso_d3il",

@@ -9,7 +9,7 @@ use vdd_consistency::{CdConfig, CdTrainer, ConsistencyProgress, ConsistencyStep,
 use vdd_core::Snapshot;
 use vdd_diffusion::{Beso, BesoConfig, DiffusionTeacher, TeacherKind};
 
-use crate::method::{Budget, CurveProbe, Info, Job, Method, MethodRecipe, Trained};
+use crate::method::{Budget, Capability, CurveProbe, Info, Job, Method, MethodRecipe, Trained};
 use crate::plots::Curves;
 use crate::policy::TrainedPolicy;
 
@@ -19,7 +19,8 @@ pub struct Cd;
 const INFO: Info = Info {
     name: "cd",
     teacher: Some(TeacherKind::Beso),
-    tasks: &["avoiding"],
+    needs: &[Capability::Rollouts, Capability::LearnedTeachers],
+    only_on: &[],
     keys: &["baselines.cd", FOLLOW],
 };
 

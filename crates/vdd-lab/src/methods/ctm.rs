@@ -6,7 +6,7 @@ use vdd_consistency::{CtmConfig, CtmTrainer};
 use vdd_diffusion::TeacherKind;
 
 use super::cd;
-use crate::method::{Budget, Info, Job, Method, MethodRecipe, Trained};
+use crate::method::{Budget, Capability, Info, Job, Method, MethodRecipe, Trained};
 use crate::policy::TrainedPolicy;
 
 /// CTM.
@@ -15,7 +15,8 @@ pub struct Ctm;
 const INFO: Info = Info {
     name: "ctm",
     teacher: Some(TeacherKind::Beso),
-    tasks: &["avoiding"],
+    needs: &[Capability::Rollouts, Capability::LearnedTeachers],
+    only_on: &[],
     keys: &["baselines.ctm", cd::FOLLOW],
 };
 

@@ -7,15 +7,20 @@ use crate::progress::Bar;
 use vdd_mixture::{Dataset, EmConfig};
 use vdd_moe::{Moe, MoeConfig};
 
-use crate::method::{Budget, CurveProbe, Info, Job, Method, MethodRecipe, Trained};
+use crate::method::{Budget, Capability, CurveProbe, Info, Job, Method, MethodRecipe, Trained};
 use crate::plots::Curves;
 use crate::policy::TrainedPolicy;
 
 /// EM.
 pub struct Em;
 
-const INFO: Info =
-    Info { name: "em", teacher: None, tasks: &["avoiding"], keys: &["baselines.em"] };
+const INFO: Info = Info {
+    name: "em",
+    teacher: None,
+    needs: &[Capability::Rollouts],
+    only_on: &[],
+    keys: &["baselines.em"],
+};
 
 impl Method for Em {
     fn info(&self) -> &Info {

@@ -7,7 +7,7 @@
 
 use vdd_mixture::{ImcConfig, ImcMetrics, ImcVariant};
 
-use crate::method::{Info, Job, Method, MethodRecipe, Trained};
+use crate::method::{Capability, Info, Job, Method, MethodRecipe, Trained};
 use crate::plots::Curves;
 
 /// An IMC row: the method's info, the key of its [`ImcConfig`] and the variant it requires
@@ -21,7 +21,13 @@ pub struct Imc {
 
 /// The paper's IMC.
 pub const IMC: Imc = Imc {
-    info: Info { name: "imc", teacher: None, tasks: &["avoiding"], keys: &["baselines.imc"] },
+    info: Info {
+        name: "imc",
+        teacher: None,
+        needs: &[Capability::Rollouts],
+        only_on: &[],
+        keys: &["baselines.imc"],
+    },
     key: "baselines.imc",
     variant: None,
 };
@@ -31,7 +37,8 @@ pub const IMC_AUTHORS: Imc = Imc {
     info: Info {
         name: "imc-authors",
         teacher: None,
-        tasks: &["avoiding"],
+        needs: &[Capability::Rollouts],
+        only_on: &["avoiding"],
         keys: &["baselines.imc_authors"],
     },
     key: "baselines.imc_authors",

@@ -4,7 +4,7 @@
 
 use vdd_diffusion::TeacherKind;
 
-use crate::method::{Budget, BudgetRole, Info, Job, Method, MethodRecipe, Trained};
+use crate::method::{Budget, BudgetRole, Capability, Info, Job, Method, MethodRecipe, Trained};
 use crate::plots::Curves;
 use crate::policy::TrainedPolicy;
 use crate::teachers;
@@ -13,7 +13,8 @@ use crate::teachers;
 pub struct TeacherRow(pub(super) Info, pub(super) bool);
 
 const fn row(name: &'static str, kind: TeacherKind, one_step: bool) -> TeacherRow {
-    TeacherRow(Info { name, teacher: Some(kind), tasks: &["avoiding"], keys: &[] }, one_step)
+    let needs = &[Capability::Rollouts, Capability::LearnedTeachers];
+    TeacherRow(Info { name, teacher: Some(kind), needs, only_on: &[], keys: &[] }, one_step)
 }
 
 /// `ddpm`, `beso`, `ddpm-1`, `beso-1`.

@@ -22,7 +22,7 @@ use vdd_diffusion::TeacherKind;
 use vdd_mixture::gating::{GatingFitConfig, fit_gating_to_policy};
 use vdd_moe::{ActMode, Moe, MoeConfig};
 
-use crate::method::{Budget, Info, Job, Method, MethodRecipe, Trained};
+use crate::method::{Budget, Capability, Info, Job, Method, MethodRecipe, Trained};
 use crate::policy::TrainedPolicy;
 use crate::recipe;
 use crate::teachers;
@@ -30,8 +30,6 @@ use vdd_moe::cache::{CachedStudent, STUDENT_CACHE_VERSION};
 
 /// VDD distilling one teacher, with the key of its settings below `vdd`.
 pub struct VddMethod(pub(super) Info, pub(super) &'static str);
-
-const LEARNED: &[&str] = &["avoiding", "toy-gmm"];
 
 /// The recipe keys of the VDD method whose settings are `vdd.<teacher>`, after `extra` keys.
 macro_rules! vdd_keys {
@@ -54,7 +52,8 @@ pub const VDD_DDPM: VddMethod = VddMethod(
     Info {
         name: "vdd-ddpm",
         teacher: Some(TeacherKind::Ddpm),
-        tasks: LEARNED,
+        needs: &[Capability::LearnedTeachers],
+        only_on: &[],
         keys: vdd_keys!("ddpm"),
     },
     "ddpm",
@@ -64,7 +63,8 @@ pub const VDD_BESO: VddMethod = VddMethod(
     Info {
         name: "vdd-beso",
         teacher: Some(TeacherKind::Beso),
-        tasks: LEARNED,
+        needs: &[Capability::LearnedTeachers],
+        only_on: &[],
         keys: vdd_keys!("beso"),
     },
     "beso",
@@ -74,7 +74,8 @@ pub const VDD_EXACT: VddMethod = VddMethod(
     Info {
         name: "vdd-exact",
         teacher: None,
-        tasks: &["toy-gmm", "toy-conditional"],
+        needs: &[Capability::ExactMixture],
+        only_on: &[],
         keys: vdd_keys!("exact"),
     },
     "exact",

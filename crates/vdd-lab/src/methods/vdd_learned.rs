@@ -8,7 +8,7 @@ use toml::Value;
 use vdd_diffusion::TeacherKind;
 
 use super::vdd::VDD_BESO;
-use crate::method::{Info, Job, Method, MethodRecipe, Trained};
+use crate::method::{Capability, Info, Job, Method, MethodRecipe, Trained};
 
 /// `vdd-beso-learned`.
 pub struct VddBesoLearned;
@@ -16,7 +16,8 @@ pub struct VddBesoLearned;
 const INFO: Info = Info {
     name: "vdd-beso-learned",
     teacher: Some(TeacherKind::Beso),
-    tasks: &["avoiding"],
+    needs: &[Capability::Rollouts, Capability::LearnedTeachers],
+    only_on: &[],
     keys: VDD_BESO.0.keys,
 };
 

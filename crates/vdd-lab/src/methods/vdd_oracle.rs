@@ -11,7 +11,7 @@ use vdd_diffusion::{DiffusionTeacher, TeacherKind};
 use vdd_moe::Moe;
 
 use super::vdd::VDD_BESO;
-use crate::method::{Info, Job, Method, MethodRecipe, Trained};
+use crate::method::{Capability, Info, Job, Method, MethodRecipe, Trained};
 use crate::policy::TrainedPolicy;
 
 /// `vdd-beso-oracle`.
@@ -20,7 +20,8 @@ pub struct VddBesoOracle;
 const INFO: Info = Info {
     name: "vdd-beso-oracle",
     teacher: Some(TeacherKind::Beso),
-    tasks: &["avoiding"],
+    needs: &[Capability::Rollouts, Capability::LearnedTeachers],
+    only_on: &[],
     keys: VDD_BESO.0.keys,
 };
 

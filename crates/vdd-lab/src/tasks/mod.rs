@@ -3,9 +3,9 @@
 //!
 //! Adding a task: a new file here implementing [`crate::task::Task`] (usually: a recipe type
 //! implementing [`crate::task::TaskRecipe`], its defaults in `recipes/defaults/<task>.toml`,
-//! data preparation, evaluation), one line in [`BUILTIN`], and the task's name in the
-//! [`crate::method::Info::tasks`] of the methods that run on it (docs/recipes.md, "Adding a
-//! task"). A task outside this crate is added with
+//! data preparation, evaluation) and one line in [`BUILTIN`]; the methods whose needs it offers
+//! ([`crate::task::Task::offers`], [`crate::method::Info::needs`]) run on it (docs/recipes.md,
+//! "Adding a task"). A task outside this crate is added with
 //! [`crate::registry::Registry::with_task`].
 
 use crate::task::Task;

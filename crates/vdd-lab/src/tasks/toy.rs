@@ -34,6 +34,7 @@ use crate::plots;
 use crate::policy::TrainedPolicy;
 use crate::recipe::{self, Header, Overrides};
 use crate::report::{self, Row};
+use crate::task::Capability;
 use crate::teachers::TeachersConfig;
 
 /// A toy recipe: the schema of the recipe files; the values not given there come from
@@ -136,6 +137,15 @@ const MODES: usize = 8;
 impl Task for Toy {
     fn name(&self) -> &'static str {
         self.name
+    }
+
+    /// The exact mixture; `toy-gmm` also trains the learned teachers on its samples.
+    fn offers(&self) -> &'static [Capability] {
+        if self.conditional {
+            &[Capability::ExactMixture]
+        } else {
+            &[Capability::LearnedTeachers, Capability::ExactMixture]
+        }
     }
 
     fn columns(&self) -> Vec<report::Column> {
