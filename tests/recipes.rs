@@ -60,7 +60,9 @@ fn the_avoiding_students_get_equal_budgets_in_the_default_and_the_quick_run() {
 fn the_toy_recipe_is_the_papers_configuration() {
     let t = recipe("toy-gmm", "toy-gmm", false);
     let exact: VddConfig = t["vdd"]["exact"].clone().try_into().unwrap();
-    assert_eq!(exact, VddConfig::toy());
+    // The recipe also states the unit of its levels (σ, the exact mixture's).
+    assert_eq!(exact.noise_unit, Some(vdd_core::NoiseConvention::Sigma));
+    assert_eq!(VddConfig { noise_unit: None, ..exact }, VddConfig::toy());
     let student: MoeConfig = t["student"].clone().try_into().unwrap();
     assert_eq!(student, MoeConfig::toy(1, 2, 8));
     assert_eq!((get(&t, "data.points"), get(&t, "eval.kl_samples")), (5000, 100_000));
