@@ -165,15 +165,30 @@ impl DatasetConfig {
             self.featured_train(demos.observations, demos.actions)?;
         let window =
             WindowConfig::new(self.obs_window, self.action_chunk).with_pad_start(self.pad_start);
+        Dataset::from_train(&train, window, episode_observations, mode_counts)
+    }
+}
+
+impl Dataset {
+    /// The training matrices of `train`'s episodes cut into `window`s, raw and under the
+    /// standard normalisation fitted per step on `train` (repeated over the window or chunk);
+    /// `episode_observations` and `mode_counts` are kept as given. Every task's dataset is
+    /// built by it (Avoiding's, Block-Push's).
+    pub fn from_train(
+        train: &Episodes,
+        window: WindowConfig,
+        episode_observations: Vec<Mat<f32>>,
+        mode_counts: Vec<usize>,
+    ) -> Result<Self, DatasetError> {
         let (states, actions) = SequenceDataset::new(train.clone(), window)?.to_matrices();
-        let norm = Normalization::fit(&train, NormalizationKind::standard())?;
+        let norm = Normalization::fit(train, NormalizationKind::standard())?;
         let (states_normalized, actions_normalized) =
             SequenceDataset::new(train.normalized(&norm)?, window)?.to_matrices();
         let training = TrainingData {
             states,
             actions,
-            state_normalizer: tile(&norm.observations, self.obs_window),
-            action_normalizer: tile(&norm.actions, self.action_chunk),
+            state_normalizer: tile(&norm.observations, window.obs_window),
+            action_normalizer: tile(&norm.actions, window.action_chunk),
             states_normalized,
             actions_normalized,
             exact: None,
@@ -185,9 +200,7 @@ impl DatasetConfig {
             mode_counts,
         })
     }
-}
 
-impl Dataset {
     /// What a run records of its data: `demonstrations` (given), `train_episodes`,
     /// `train_samples`, `state_dim`, `action_dim`, `dataset_modes` (modes with a
     /// demonstration) and `dataset_entropy` ([`crate::normalized_entropy`] of the modes).

@@ -15,11 +15,7 @@
 //! ```
 
 use serde::{Deserialize, Serialize};
-use vdd_core::Affine;
-use vdd_data::{
-    DeploySpec, Episodes, Normalization, NormalizationKind, SequenceDataset, TrainingData,
-    WindowConfig,
-};
+use vdd_data::{DeploySpec, Episodes, WindowConfig};
 
 use super::oracle::{OracleConfig, generate_demonstrations};
 pub use crate::avoiding::dataset::{Dataset, DatasetError};
@@ -94,29 +90,6 @@ impl DatasetConfig {
         let (episode_observations, _) = train.to_episode_matrices();
         let window =
             WindowConfig::new(self.obs_window, self.action_chunk).with_pad_start(self.pad_start);
-        let (states, actions) = SequenceDataset::new(train.clone(), window)?.to_matrices();
-        let norm = Normalization::fit(&train, NormalizationKind::standard())?;
-        let (states_normalized, actions_normalized) =
-            SequenceDataset::new(train.normalized(&norm)?, window)?.to_matrices();
-        let training = TrainingData {
-            states,
-            actions,
-            state_normalizer: tile(&norm.observations, self.obs_window),
-            action_normalizer: tile(&norm.actions, self.action_chunk),
-            states_normalized,
-            actions_normalized,
-            exact: None,
-        };
-        Ok(Dataset {
-            training,
-            episode_observations,
-            train_episodes: train.num_episodes(),
-            mode_counts,
-        })
+        Dataset::from_train(&train, window, episode_observations, mode_counts)
     }
-}
-
-/// Repeats a per-step normaliser over a window of `k` steps.
-fn tile(a: &Affine, k: usize) -> Affine {
-    Affine { offset: a.offset.repeat(k), scale: a.scale.repeat(k) }
 }
