@@ -163,6 +163,25 @@ impl Default for EvalConfig {
 }
 
 impl EvalConfig {
+    /// `n_rollouts` episodes from root seed `seed`, in lockstep batches of `lockstep_batch`
+    /// (0: one episode at a time), keeping trajectories when `record`: what the tasks'
+    /// evaluation protocols build.
+    ///
+    /// ```
+    /// use vdd_tasks::episodes::{EvalConfig, Stepping};
+    /// let c = EvalConfig::protocol(500, 50, 7, false);
+    /// assert_eq!((c.n_rollouts, c.seed), (500, 7));
+    /// assert_eq!(c.stepping, Stepping::Lockstep { batch_size: 50 });
+    /// assert_eq!(EvalConfig::protocol(10, 0, 7, true).stepping, Stepping::PerEpisode);
+    /// ```
+    pub fn protocol(n_rollouts: usize, lockstep_batch: usize, seed: u64, record: bool) -> Self {
+        let stepping = match lockstep_batch {
+            0 => Stepping::PerEpisode,
+            b => Stepping::Lockstep { batch_size: b },
+        };
+        Self { n_rollouts, seed, stepping, record }
+    }
+
     fn validate(&self) -> Result<()> {
         if self.n_rollouts == 0 {
             return Err(TaskError::InvalidArgument("n_rollouts must be at least 1".into()));

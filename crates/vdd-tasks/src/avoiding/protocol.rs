@@ -6,7 +6,7 @@ use serde::{Deserialize, Serialize};
 use vdd_core::{Policy, Seeds};
 
 use super::CurveProtocol;
-use super::rollout::{EvalConfig, Evaluation, Stepping, evaluate_cloned};
+use super::rollout::{EvalConfig, Evaluation, evaluate_cloned};
 use crate::timing::Timing;
 use crate::{Result, TaskError};
 
@@ -96,11 +96,7 @@ impl EvalProtocol {
     /// assert_eq!((c.stepping, c.record), (Stepping::PerEpisode, true));
     /// ```
     pub fn config(&self, run_seed: u64, record: bool) -> EvalConfig {
-        let stepping = match self.lockstep_batch {
-            0 => Stepping::PerEpisode,
-            b => Stepping::Lockstep { batch_size: b },
-        };
-        EvalConfig { n_rollouts: self.rollouts, seed: Self::seed(run_seed), stepping, record }
+        EvalConfig::protocol(self.rollouts, self.lockstep_batch, Self::seed(run_seed), record)
     }
 
     /// Rolls `policy` out for run seed `run_seed` on `threads` clones of it

@@ -6,7 +6,7 @@
 use serde::{Deserialize, Serialize};
 use vdd_core::{Policy, Seeds};
 
-use super::rollout::{EvalConfig, Evaluation, Stepping, evaluate_cloned};
+use super::rollout::{EvalConfig, Evaluation, evaluate_cloned};
 use crate::{Result, TaskError};
 
 /// A Block-Push evaluation: `rollouts` episodes from the evaluation seed
@@ -66,11 +66,7 @@ impl EvalProtocol {
 
     /// The rollouts' configuration for run seed `run_seed` (`record`: keep trajectories).
     pub fn config(&self, run_seed: u64, record: bool) -> EvalConfig {
-        let stepping = match self.lockstep_batch {
-            0 => Stepping::PerEpisode,
-            b => Stepping::Lockstep { batch_size: b },
-        };
-        EvalConfig { n_rollouts: self.rollouts, seed: Self::seed(run_seed), stepping, record }
+        EvalConfig::protocol(self.rollouts, self.lockstep_batch, Self::seed(run_seed), record)
     }
 
     /// Rolls `policy` out for run seed `run_seed` on `threads` clones of it, in the default
