@@ -43,6 +43,7 @@ pub mod avoiding;
 pub mod block_push;
 pub mod episodes;
 mod error;
+pub mod scripted;
 pub mod timing;
 pub mod toy;
 

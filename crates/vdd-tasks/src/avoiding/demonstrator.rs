@@ -36,13 +36,10 @@
 //! }
 //! ```
 
-use faer::reborrow::Reborrow;
-use faer::{Mat, MatMut, MatRef};
+use faer::Mat;
 use rand::Rng as _;
 use serde::{Deserialize, Serialize};
-use vdd_core::{
-    CoreError, Policy, Rng, Seeds, check_act_args, check_finite, check_shape, standard_normal,
-};
+use vdd_core::{CoreError, Rng, standard_normal};
 
 use super::AvoidingEnv;
 use super::rollout::episode_seed;
@@ -51,6 +48,7 @@ use super::{
     OBS_DIM, OBSTACLES, START, gap_centre, segment_disc_distance,
 };
 use crate::episodes::Worker;
+use crate::scripted::{Script, Scripted};
 use crate::{Result, TaskError};
 
 /// Height of the end point of every planned path (past the finish line at 0.35).
@@ -153,12 +151,13 @@ impl DemonstratorConfig {
     }
 }
 
-/// The scripted multimodal demonstrator: a [`Policy`] for the Avoiding task.
+/// The scripted multimodal demonstrator: a [`Policy`](vdd_core::Policy) for the Avoiding task, the
+/// [`Scripted`] demonstrator of [`AvoidingScript`].
 ///
-/// It keeps one plan per environment between [`Policy::reset`]s: [`Policy::act_into`] drives a
-/// single environment; [`Policy::act_batch`] drives one environment per row (row `i` must stay
+/// It keeps one plan per environment between [`Policy::reset`](vdd_core::Policy::reset)s: [`Policy::act_into`](vdd_core::Policy::act_into) drives a
+/// single environment; [`Policy::act_batch`](vdd_core::Policy::act_batch) drives one environment per row (row `i` must stay
 /// the same environment until the next reset, as lockstep rollouts guarantee). Plans are drawn
-/// from the demonstrator's own stream, which [`Policy::seed`] resets.
+/// from the demonstrator's own stream, which [`Policy::seed`](vdd_core::Policy::seed) resets.
 ///
 /// ```
 /// use vdd_tasks::avoiding::demonstrator::{AvoidingDemonstrator, DemonstratorConfig};
@@ -168,94 +167,46 @@ impl DemonstratorConfig {
 /// assert!(eval.metrics.success_rate >= 0.95);
 /// assert!(eval.metrics.modes_reached >= 16);
 /// ```
+pub type AvoidingDemonstrator = Scripted<AvoidingScript>;
+
+/// The Avoiding demonstrator's script: a mode and a smooth path per episode, followed at the
+/// episode's speed.
 #[derive(Debug, Clone)]
-pub struct AvoidingDemonstrator {
+pub struct AvoidingScript {
     config: DemonstratorConfig,
-    rng: Rng,
-    plans: Vec<Plan>,
 }
 
-impl AvoidingDemonstrator {
+impl Scripted<AvoidingScript> {
     /// A demonstrator with a validated `config`, seeded with 0.
     pub fn new(config: DemonstratorConfig) -> Result<Self> {
         config.validate()?;
-        Ok(Self { config, rng: Self::stream(0), plans: Vec::new() })
+        Ok(Self::with_script(AvoidingScript { config }))
     }
 
     /// The configuration.
     pub fn config(&self) -> &DemonstratorConfig {
-        &self.config
+        &self.script().config
     }
 
     /// The mode planned for environment (row) `row` of the current episode, once it has acted.
     pub fn planned_mode(&self, row: usize) -> Option<AvoidingMode> {
-        self.plans.get(row).map(|p| p.mode)
-    }
-
-    fn stream(seed: u64) -> Rng {
-        Seeds::new(seed).stream("avoiding-demonstrator")
-    }
-
-    fn ensure_plans(&mut self, n: usize) -> std::result::Result<(), CoreError> {
-        if self.plans.is_empty() {
-            for _ in 0..n {
-                let plan = Plan::sample(&self.config, &mut self.rng);
-                self.plans.push(plan);
-            }
-        } else if self.plans.len() != n {
-            return Err(CoreError::implementor(TaskError::DemonstratorBatch {
-                driving: self.plans.len(),
-                got: n,
-            }));
-        }
-        Ok(())
+        self.plan(row).map(|p| p.mode)
     }
 }
 
-impl Policy for AvoidingDemonstrator {
-    fn obs_dim(&self) -> usize {
-        OBS_DIM
+impl Script for AvoidingScript {
+    type Plan = Plan;
+    const OBS_DIM: usize = OBS_DIM;
+    const ACTION_DIM: usize = ACTION_DIM;
+    const STREAM: &'static str = "avoiding-demonstrator";
+
+    /// Every episode starts at [`START`]: the plan does not depend on the observation.
+    fn start(&self, _: &[f32], rng: &mut Rng) -> std::result::Result<Plan, CoreError> {
+        Ok(Plan::sample(&self.config, rng))
     }
 
-    fn action_dim(&self) -> usize {
-        ACTION_DIM
-    }
-
-    fn reset(&mut self) {
-        self.plans.clear();
-    }
-
-    fn seed(&mut self, seed: u64) {
-        self.rng = Self::stream(seed);
-    }
-
-    fn act_into(&mut self, obs: &[f32], action: &mut [f32]) -> std::result::Result<(), CoreError> {
-        check_act_args(self, obs, action)?;
-        self.ensure_plans(1)?;
-        let a = self.plans[0].act(&self.config, &mut self.rng, [obs[0], obs[1]]);
-        action.copy_from_slice(&a);
-        Ok(())
-    }
-
-    fn act_batch(
-        &mut self,
-        obs: MatRef<'_, f32>,
-        mut actions: MatMut<'_, f32>,
-    ) -> std::result::Result<(), CoreError> {
-        let n = obs.nrows();
-        check_shape("observations", obs, n, OBS_DIM)?;
-        check_shape("actions", actions.rb(), n, ACTION_DIM)?;
-        check_finite("observations", obs)?;
-        if n == 0 {
-            return Ok(());
-        }
-        self.ensure_plans(n)?;
-        for (i, plan) in self.plans.iter_mut().enumerate() {
-            let a = plan.act(&self.config, &mut self.rng, [obs[(i, 0)], obs[(i, 1)]]);
-            actions[(i, 0)] = a[0];
-            actions[(i, 1)] = a[1];
-        }
-        Ok(())
+    fn act(&self, plan: &mut Plan, rng: &mut Rng, obs: &[f32], action: &mut [f32]) {
+        action.copy_from_slice(&plan.act(&self.config, rng, [obs[0], obs[1]]));
     }
 }
 
@@ -282,9 +233,9 @@ impl Offsets {
     }
 }
 
-/// A path tabulated by arc length, and the progress along it.
+/// One episode's plan: a path tabulated by arc length, and the progress along it.
 #[derive(Debug, Clone)]
-struct Plan {
+pub struct Plan {
     mode: AvoidingMode,
     points: [[f32; 2]; TABLE],
     arc: [f32; TABLE],
@@ -500,6 +451,7 @@ pub fn generate_demonstrations(
 #[cfg(test)]
 mod tests {
     use super::*;
+    use vdd_core::{Policy, Seeds};
     use crate::avoiding::rollout::{EvalConfig, Stepping, evaluate, rollout};
     use crate::avoiding::{AvoidingEnv, FINISH_Y, MAX_STEPS, TRACKING_GAIN};
 

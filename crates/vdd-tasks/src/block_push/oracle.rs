@@ -45,19 +45,17 @@
 //! assert_eq!(demos.mode_counts().iter().sum::<usize>(), 4);
 //! ```
 
-use faer::reborrow::Reborrow;
-use faer::{Mat, MatMut, MatRef};
+use faer::Mat;
 use rand::Rng as _;
 use serde::{Deserialize, Serialize};
-use vdd_core::{
-    CoreError, Policy, Rng, Seeds, check_act_args, check_finite, check_shape, standard_normal,
-};
+use vdd_core::{CoreError, Rng, standard_normal};
 
 use super::rollout::episode_seed;
 use super::{
     ACTION_DIM, BlockPushEnv, BlockPushMode, CONTROL_DT, EnvConfig, N_MODES, OBS_DIM, env_seed,
 };
 use crate::episodes::Worker;
+use crate::scripted::{Script, Scripted};
 use crate::{Result, TaskError};
 
 /// Parameters of the oracle.
@@ -131,9 +129,9 @@ pub enum Phase {
     ReturnToOrigin,
 }
 
-/// Per-episode state of one environment.
+/// Per-episode state of one environment: the oracle's plan.
 #[derive(Debug, Clone)]
-struct EpisodeState {
+pub struct EpisodeState {
     order: BlockPushMode,
     phase: Phase,
     origin: [f32; 2],
@@ -143,126 +141,73 @@ struct EpisodeState {
     ou: [f32; 2],
 }
 
-/// The scripted multimodal oracle: a [`Policy`] for Block-Push ([`OBS_DIM`] → [`ACTION_DIM`]).
+/// The scripted multimodal oracle: a [`Policy`](vdd_core::Policy) for Block-Push
+/// ([`OBS_DIM`] → [`ACTION_DIM`]), the [`Scripted`] demonstrator of [`OracleScript`].
 ///
 /// Like the Avoiding demonstrator it keeps one state per environment between
-/// [`Policy::reset`]s ([`Policy::act_batch`] row `i` is environment `i`), and draws from its
-/// own stream, which [`Policy::seed`] resets.
+/// [`Policy::reset`](vdd_core::Policy::reset)s
+/// ([`Policy::act_batch`](vdd_core::Policy::act_batch) row `i` is environment `i`), and draws
+/// from its own stream, which [`Policy::seed`](vdd_core::Policy::seed) resets.
+pub type BlockPushOracle = Scripted<OracleScript>;
+
+/// The Block-Push oracle's script: an order and a speed per episode, then the phases above.
 #[derive(Debug, Clone)]
-pub struct BlockPushOracle {
+pub struct OracleScript {
     config: OracleConfig,
-    rng: Rng,
-    states: Vec<EpisodeState>,
 }
 
-impl BlockPushOracle {
+impl Scripted<OracleScript> {
     /// An oracle with a validated `config`, seeded with 0.
     pub fn new(config: OracleConfig) -> Result<Self> {
         config.validate()?;
-        Ok(Self { config, rng: Self::stream(0), states: Vec::new() })
+        Ok(Self::with_script(OracleScript { config }))
     }
 
     /// The configuration.
     pub fn config(&self) -> &OracleConfig {
-        &self.config
+        &self.script().config
     }
 
     /// The order planned for environment (row) `row` of the current episode, once it has acted.
     pub fn planned_mode(&self, row: usize) -> Option<BlockPushMode> {
-        self.states.get(row).map(|s| s.order)
+        self.plan(row).map(|s| s.order)
     }
 
     /// The current phase of environment (row) `row`, once it has acted.
     pub fn phase(&self, row: usize) -> Option<Phase> {
-        self.states.get(row).map(|s| s.phase)
-    }
-
-    fn stream(seed: u64) -> Rng {
-        Seeds::new(seed).stream("block-push-oracle")
-    }
-
-    fn ensure_states(&mut self, obs: MatRef<'_, f32>) -> std::result::Result<(), CoreError> {
-        let n = obs.nrows();
-        if self.states.is_empty() {
-            for i in 0..n {
-                let order = match self.config.fixed_mode {
-                    Some(m) => m,
-                    None => BlockPushMode::from_index(self.rng.random_range(0..N_MODES))
-                        .map_err(CoreError::implementor)?,
-                };
-                let j = self.config.speed_jitter;
-                let speed_scale = 1.0 + j * (2.0 * self.rng.random::<f32>() - 1.0);
-                self.states.push(EpisodeState {
-                    order,
-                    phase: Phase::MoveToPreBlock,
-                    origin: [obs[(i, 10)], obs[(i, 11)]],
-                    first_preblock: None,
-                    switched: false,
-                    speed_scale,
-                    ou: [0.0; 2],
-                });
-            }
-        } else if self.states.len() != n {
-            return Err(CoreError::implementor(TaskError::DemonstratorBatch {
-                driving: self.states.len(),
-                got: n,
-            }));
-        }
-        Ok(())
+        self.plan(row).map(|s| s.phase)
     }
 }
 
-impl Policy for BlockPushOracle {
-    fn obs_dim(&self) -> usize {
-        OBS_DIM
+impl Script for OracleScript {
+    type Plan = EpisodeState;
+    const OBS_DIM: usize = OBS_DIM;
+    const ACTION_DIM: usize = ACTION_DIM;
+    const STREAM: &'static str = "block-push-oracle";
+
+    fn start(&self, obs: &[f32], rng: &mut Rng) -> std::result::Result<EpisodeState, CoreError> {
+        let order = match self.config.fixed_mode {
+            Some(m) => m,
+            None => BlockPushMode::from_index(rng.random_range(0..N_MODES))
+                .map_err(CoreError::implementor)?,
+        };
+        let j = self.config.speed_jitter;
+        let speed_scale = 1.0 + j * (2.0 * rng.random::<f32>() - 1.0);
+        Ok(EpisodeState {
+            order,
+            phase: Phase::MoveToPreBlock,
+            origin: [obs[10], obs[11]],
+            first_preblock: None,
+            switched: false,
+            speed_scale,
+            ou: [0.0; 2],
+        })
     }
 
-    fn action_dim(&self) -> usize {
-        ACTION_DIM
-    }
-
-    fn reset(&mut self) {
-        self.states.clear();
-    }
-
-    fn seed(&mut self, seed: u64) {
-        self.rng = Self::stream(seed);
-    }
-
-    fn act_into(&mut self, obs: &[f32], action: &mut [f32]) -> std::result::Result<(), CoreError> {
-        check_act_args(self, obs, action)?;
-        let o = MatRef::from_row_major_slice(obs, 1, OBS_DIM);
-        self.ensure_states(o)?;
+    fn act(&self, plan: &mut EpisodeState, rng: &mut Rng, obs: &[f32], action: &mut [f32]) {
         let mut row = [0.0f32; OBS_DIM];
         row.copy_from_slice(obs);
-        let a = act(&self.config, &mut self.states[0], &mut self.rng, &row);
-        action.copy_from_slice(&a);
-        Ok(())
-    }
-
-    fn act_batch(
-        &mut self,
-        obs: MatRef<'_, f32>,
-        mut actions: MatMut<'_, f32>,
-    ) -> std::result::Result<(), CoreError> {
-        let n = obs.nrows();
-        check_shape("observations", obs, n, OBS_DIM)?;
-        check_shape("actions", actions.rb(), n, ACTION_DIM)?;
-        check_finite("observations", obs)?;
-        if n == 0 {
-            return Ok(());
-        }
-        self.ensure_states(obs)?;
-        let mut row = [0.0f32; OBS_DIM];
-        for (i, state) in self.states.iter_mut().enumerate() {
-            for (j, r) in row.iter_mut().enumerate() {
-                *r = obs[(i, j)];
-            }
-            let a = act(&self.config, state, &mut self.rng, &row);
-            actions[(i, 0)] = a[0];
-            actions[(i, 1)] = a[1];
-        }
-        Ok(())
+        action.copy_from_slice(&act(&self.config, plan, rng, &row));
     }
 }
 
