@@ -1,13 +1,15 @@
 //! Scripted demonstrators as policies: [`Scripted`] holds what every task's demonstrator
 //! shares (one plan per environment of a lockstep batch, drawn from the demonstrator's own
 //! seeded stream, and the [`Policy`] checks), and a [`Script`] says what one task's plans are
-//! and how a plan acts. Avoiding's demonstrator and Block-Push's oracle are `Scripted` scripts.
+//! and how a plan acts. Avoiding's demonstrator and Block-Push's oracle are `Scripted` scripts;
+//! [`collect`] runs one into [`Demonstrations`].
 
 use faer::reborrow::Reborrow;
-use faer::{MatMut, MatRef};
+use faer::{Mat, MatMut, MatRef};
 use vdd_core::{CoreError, Policy, Rng, Seeds, check_act_args, check_finite, check_shape};
 
 use crate::TaskError;
+use crate::episodes::{Env, Rollout, Worker};
 
 /// One task's scripted behaviour: how an episode's plan starts and how it acts.
 pub trait Script: Clone {
@@ -124,4 +126,102 @@ impl<S: Script> Policy for Scripted<S> {
         }
         Ok(())
     }
+}
+
+/// A task's behaviour mode, as demonstrations count them.
+pub trait Mode: Copy {
+    /// How many modes the task has.
+    const COUNT: usize;
+    /// Its index in `0..COUNT`.
+    fn index(&self) -> usize;
+}
+
+/// Demonstrations: one `T x OBS_DIM` observation and `T x ACTION_DIM` action matrix per
+/// successful episode, and the mode each reached.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Demonstrations<M> {
+    /// Per-episode observations (the task's observation layout).
+    pub observations: Vec<Mat<f32>>,
+    /// Per-episode actions (as the task applied them, after its clipping).
+    pub actions: Vec<Mat<f32>>,
+    /// The behaviour mode each episode reached.
+    pub modes: Vec<M>,
+    /// Episodes run, including failures that were discarded.
+    pub episodes_run: usize,
+}
+
+impl<M: Mode> Demonstrations<M> {
+    /// Steps of each episode.
+    pub fn lengths(&self) -> Vec<usize> {
+        self.observations.iter().map(|o| o.nrows()).collect()
+    }
+
+    /// Episodes per behaviour mode, indexed by [`Mode::index`].
+    pub fn mode_counts(&self) -> Vec<usize> {
+        let mut counts = vec![0usize; M::COUNT];
+        for m in &self.modes {
+            counts[m.index()] += 1;
+        }
+        counts
+    }
+
+    /// Share of the episodes run that succeeded (and were kept).
+    pub fn success_rate(&self) -> f64 {
+        self.modes.len() as f64 / self.episodes_run.max(1) as f64
+    }
+
+    /// The demonstrations as a dataset (`vdd_data::Episodes`), ready to save as `.npz`.
+    pub fn to_episodes(&self) -> Result<vdd_data::Episodes, vdd_data::DataError> {
+        vdd_data::Episodes::from_episodes(self.observations.clone(), self.actions.clone())
+    }
+}
+
+/// Runs `demonstrator` in environments of `E` built from `env` until `n` episodes have
+/// succeeded and returns them (failed episodes are skipped; [`Demonstrations::success_rate`] reports how many).
+/// Episode `i` runs with the policy seed and start seed `seeds(i)`, and `kept(rollout)` gives
+/// the mode of a successful episode (`None`: a failure). More than `2n + 16` episodes without
+/// `n` successes is an error; so is `n = 0`, or `n` episodes of `max_steps` steps that would
+/// not fit in memory.
+pub fn collect<E: Env, P: Policy + ?Sized, M: Mode>(
+    demonstrator: &mut P,
+    env: E::Config,
+    (n, max_steps): (usize, usize),
+    seeds: impl Fn(usize) -> (u64, u64),
+    kept: impl Fn(&Rollout<E>) -> Option<M>,
+) -> crate::Result<Demonstrations<M>> {
+    if n == 0 {
+        return Err(TaskError::InvalidArgument("cannot generate 0 demonstrations".into()));
+    }
+    let step = demonstrator.obs_dim() + demonstrator.action_dim();
+    let per_episode = vdd_core::memory::product(&[max_steps, step, 4]) + 128;
+    let bytes = (n as u64).saturating_mul(per_episode);
+    vdd_core::memory::check_fits(&format!("{n} demonstrations"), bytes)?;
+    let mut out = Demonstrations {
+        observations: Vec::with_capacity(n),
+        actions: Vec::with_capacity(n),
+        modes: Vec::with_capacity(n),
+        episodes_run: 0,
+    };
+    let mut worker = Worker::<E>::new(env);
+    let max_attempts = 2 * n + 16;
+    while out.observations.len() < n {
+        if out.episodes_run == max_attempts {
+            return Err(TaskError::TooManyFailures {
+                collected: out.observations.len(),
+                wanted: n,
+                attempts: max_attempts,
+            });
+        }
+        let i = out.episodes_run;
+        let r = worker.episode(demonstrator, i, seeds(i), true)?;
+        out.episodes_run += 1;
+        if let Some(mode) = kept(&r) {
+            if let Some(tr) = r.trajectory {
+                out.observations.push(tr.observations);
+                out.actions.push(tr.actions);
+                out.modes.push(mode);
+            }
+        }
+    }
+    Ok(out)
 }

@@ -36,7 +36,6 @@
 //! }
 //! ```
 
-use faer::Mat;
 use rand::Rng as _;
 use serde::{Deserialize, Serialize};
 use vdd_core::{CoreError, Rng, standard_normal};
@@ -47,8 +46,7 @@ use super::{
     ACTION_DIM, ACTION_LIMIT, AvoidingMode, EE_RADIUS, LEVEL_Y, MAX_STEPS, N_LEVELS, N_MODES,
     OBS_DIM, OBSTACLES, START, gap_centre, segment_disc_distance,
 };
-use crate::episodes::Worker;
-use crate::scripted::{Script, Scripted};
+use crate::scripted::{Mode, Script, Scripted, collect};
 use crate::{Result, TaskError};
 
 /// Height of the end point of every planned path (past the finish line at 0.35).
@@ -369,37 +367,14 @@ impl Plan {
     }
 }
 
-/// Demonstrations: one `T x 4` observation and `T x 2` action matrix per successful episode.
-#[derive(Debug, Clone, PartialEq)]
-pub struct Demonstrations {
-    /// Per-episode observations (previous desired position, current position).
-    pub observations: Vec<Mat<f32>>,
-    /// Per-episode actions (change of desired position).
-    pub actions: Vec<Mat<f32>>,
-    /// The behaviour mode each episode reached.
-    pub modes: Vec<AvoidingMode>,
-    /// Episodes run, including failures that were discarded.
-    pub episodes_run: usize,
-}
+/// Avoiding's demonstrations: one `T x 4` observation (previous desired position, current
+/// position) and `T x 2` action (change of desired position) matrix per successful episode.
+pub type Demonstrations = crate::scripted::Demonstrations<AvoidingMode>;
 
-impl Demonstrations {
-    /// Steps of each episode.
-    pub fn lengths(&self) -> Vec<usize> {
-        self.observations.iter().map(|o| o.nrows()).collect()
-    }
-
-    /// Episodes per behaviour mode, indexed by [`AvoidingMode::index`].
-    pub fn mode_counts(&self) -> Vec<usize> {
-        let mut counts = vec![0usize; super::N_MODES];
-        for m in &self.modes {
-            counts[m.index()] += 1;
-        }
-        counts
-    }
-
-    /// The demonstrations as a dataset (`vdd_data::Episodes`), ready to save as `.npz`.
-    pub fn to_episodes(&self) -> std::result::Result<vdd_data::Episodes, vdd_data::DataError> {
-        vdd_data::Episodes::from_episodes(self.observations.clone(), self.actions.clone())
+impl Mode for AvoidingMode {
+    const COUNT: usize = super::N_MODES;
+    fn index(&self) -> usize {
+        AvoidingMode::index(self)
     }
 }
 
@@ -412,48 +387,20 @@ pub fn generate_demonstrations(
     seed: u64,
     config: &DemonstratorConfig,
 ) -> Result<Demonstrations> {
-    if n == 0 {
-        return Err(TaskError::InvalidArgument("cannot generate 0 demonstrations".into()));
-    }
-    // Observations (4) and actions (2) of up to MAX_STEPS steps, and the vectors holding them.
-    let per_episode = vdd_core::memory::product(&[MAX_STEPS, 6, 4]) + 128;
-    let bytes = (n as u64).saturating_mul(per_episode);
-    vdd_core::memory::check_fits(&format!("{n} demonstrations"), bytes)?;
     let mut demo = AvoidingDemonstrator::new(config.clone())?;
-    let mut worker = Worker::<AvoidingEnv>::new(());
-    let mut out = Demonstrations {
-        observations: Vec::with_capacity(n),
-        actions: Vec::with_capacity(n),
-        modes: Vec::with_capacity(n),
-        episodes_run: 0,
-    };
-    let max_attempts = 2 * n + 16;
-    while out.observations.len() < n {
-        if out.episodes_run == max_attempts {
-            return Err(TaskError::TooManyFailures {
-                collected: out.observations.len(),
-                wanted: n,
-                attempts: max_attempts,
-            });
-        }
-        let i = out.episodes_run;
-        let r = worker.episode(&mut demo, i, (episode_seed(seed, i), 0), true)?;
-        out.episodes_run += 1;
-        if let (true, Some(mode), Some(tr)) = (r.success(), r.mode(), r.trajectory) {
-            out.observations.push(tr.observations);
-            out.actions.push(tr.actions);
-            out.modes.push(mode);
-        }
-    }
-    Ok(out)
+    let seeds = |i| (episode_seed(seed, i), 0);
+    collect::<AvoidingEnv, _, _>(&mut demo, (), (n, MAX_STEPS), seeds, |r| {
+        r.success().then(|| r.mode()).flatten()
+    })
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
-    use vdd_core::{Policy, Seeds};
     use crate::avoiding::rollout::{EvalConfig, Stepping, evaluate, rollout};
     use crate::avoiding::{AvoidingEnv, FINISH_Y, MAX_STEPS, TRACKING_GAIN};
+    use faer::Mat;
+    use vdd_core::{Policy, Seeds};
 
     fn demo() -> AvoidingDemonstrator {
         AvoidingDemonstrator::new(DemonstratorConfig::default()).unwrap()

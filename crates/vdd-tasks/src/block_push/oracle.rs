@@ -45,7 +45,6 @@
 //! assert_eq!(demos.mode_counts().iter().sum::<usize>(), 4);
 //! ```
 
-use faer::Mat;
 use rand::Rng as _;
 use serde::{Deserialize, Serialize};
 use vdd_core::{CoreError, Rng, standard_normal};
@@ -54,8 +53,7 @@ use super::rollout::episode_seed;
 use super::{
     ACTION_DIM, BlockPushEnv, BlockPushMode, CONTROL_DT, EnvConfig, N_MODES, OBS_DIM, env_seed,
 };
-use crate::episodes::Worker;
-use crate::scripted::{Script, Scripted};
+use crate::scripted::{Mode, Script, Scripted, collect};
 use crate::{Result, TaskError};
 
 /// Parameters of the oracle.
@@ -323,42 +321,14 @@ fn act(c: &OracleConfig, s: &mut EpisodeState, rng: &mut Rng, o: &[f32; OBS_DIM]
     clip([delta[0] + m * s.ou[0], delta[1] + m * s.ou[1]])
 }
 
-/// Demonstrations: one `T x 16` observation and `T x 2` action matrix per successful episode.
-#[derive(Debug, Clone, PartialEq)]
-pub struct Demonstrations {
-    /// Per-episode observations (see the module docs of [`super`]).
-    pub observations: Vec<Mat<f32>>,
-    /// Per-episode actions (change of the commanded effector target).
-    pub actions: Vec<Mat<f32>>,
-    /// The behaviour mode each episode reached.
-    pub modes: Vec<BlockPushMode>,
-    /// Episodes run, including failures that were discarded.
-    pub episodes_run: usize,
-}
+/// Block-Push's demonstrations: one `T x 16` observation (see the module docs of [`super`])
+/// and `T x 2` action (change of the commanded effector target) matrix per successful episode.
+pub type Demonstrations = crate::scripted::Demonstrations<BlockPushMode>;
 
-impl Demonstrations {
-    /// Steps of each episode.
-    pub fn lengths(&self) -> Vec<usize> {
-        self.observations.iter().map(|o| o.nrows()).collect()
-    }
-
-    /// Episodes per behaviour mode, indexed by [`BlockPushMode::index`].
-    pub fn mode_counts(&self) -> Vec<usize> {
-        let mut counts = vec![0usize; N_MODES];
-        for m in &self.modes {
-            counts[m.index()] += 1;
-        }
-        counts
-    }
-
-    /// Share of the episodes run that succeeded (and were kept).
-    pub fn success_rate(&self) -> f64 {
-        self.modes.len() as f64 / self.episodes_run.max(1) as f64
-    }
-
-    /// The demonstrations as a dataset (`vdd_data::Episodes`), ready to save as `.npz`.
-    pub fn to_episodes(&self) -> std::result::Result<vdd_data::Episodes, vdd_data::DataError> {
-        vdd_data::Episodes::from_episodes(self.observations.clone(), self.actions.clone())
+impl Mode for BlockPushMode {
+    const COUNT: usize = N_MODES;
+    fn index(&self) -> usize {
+        BlockPushMode::index(self)
     }
 }
 
@@ -381,38 +351,9 @@ pub fn generate_demonstrations_with(
     config: &OracleConfig,
     env: &EnvConfig,
 ) -> Result<Demonstrations> {
-    if n == 0 {
-        return Err(TaskError::InvalidArgument("cannot generate 0 demonstrations".into()));
-    }
-    let per_episode = vdd_core::memory::product(&[env.max_steps, OBS_DIM + ACTION_DIM, 4]) + 128;
-    let bytes = (n as u64).saturating_mul(per_episode);
-    vdd_core::memory::check_fits(&format!("{n} demonstrations"), bytes)?;
     let mut oracle = BlockPushOracle::new(config.clone())?;
     env.validate()?;
-    let mut worker = Worker::<BlockPushEnv>::new(env.clone());
-    let mut out = Demonstrations {
-        observations: Vec::with_capacity(n),
-        actions: Vec::with_capacity(n),
-        modes: Vec::with_capacity(n),
-        episodes_run: 0,
-    };
-    let max_attempts = 2 * n + 16;
-    while out.observations.len() < n {
-        if out.episodes_run == max_attempts {
-            return Err(TaskError::TooManyFailures {
-                collected: out.observations.len(),
-                wanted: n,
-                attempts: max_attempts,
-            });
-        }
-        let i = out.episodes_run;
-        let r = worker.episode(&mut oracle, i, (episode_seed(seed, i), env_seed(seed, i)), true)?;
-        out.episodes_run += 1;
-        if let (true, Some(mode), Some(tr)) = (r.success(), r.info.mode, r.trajectory) {
-            out.observations.push(tr.observations);
-            out.actions.push(tr.actions);
-            out.modes.push(mode);
-        }
-    }
-    Ok(out)
+    let seeds = |i| (episode_seed(seed, i), env_seed(seed, i));
+    let kept = |r: &super::rollout::Rollout| r.success().then_some(r.info.mode).flatten();
+    collect::<BlockPushEnv, _, _>(&mut oracle, env.clone(), (n, env.max_steps), seeds, kept)
 }
