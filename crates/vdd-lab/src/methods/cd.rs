@@ -19,7 +19,7 @@ pub struct Cd;
 const INFO: Info = Info {
     name: "cd",
     teacher: Some(TeacherKind::Beso),
-    tasks: &["avoiding"],
+    tasks: &["avoiding", "block-push"],
     keys: &["baselines.cd", FOLLOW],
 };
 

@@ -15,7 +15,7 @@ pub struct Ctm;
 const INFO: Info = Info {
     name: "ctm",
     teacher: Some(TeacherKind::Beso),
-    tasks: &["avoiding"],
+    tasks: &["avoiding", "block-push"],
     keys: &["baselines.ctm", cd::FOLLOW],
 };
 

@@ -15,7 +15,7 @@ use crate::policy::TrainedPolicy;
 pub struct Em;
 
 const INFO: Info =
-    Info { name: "em", teacher: None, tasks: &["avoiding"], keys: &["baselines.em"] };
+    Info { name: "em", teacher: None, tasks: &["avoiding", "block-push"], keys: &["baselines.em"] };
 
 impl Method for Em {
     fn info(&self) -> &Info {

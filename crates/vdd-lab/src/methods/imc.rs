@@ -21,7 +21,12 @@ pub struct Imc {
 
 /// The paper's IMC.
 pub const IMC: Imc = Imc {
-    info: Info { name: "imc", teacher: None, tasks: &["avoiding"], keys: &["baselines.imc"] },
+    info: Info {
+        name: "imc",
+        teacher: None,
+        tasks: &["avoiding", "block-push"],
+        keys: &["baselines.imc"],
+    },
     key: "baselines.imc",
     variant: None,
 };

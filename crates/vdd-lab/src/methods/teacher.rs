@@ -13,7 +13,10 @@ use crate::teachers;
 pub struct TeacherRow(pub(super) Info, pub(super) bool);
 
 const fn row(name: &'static str, kind: TeacherKind, one_step: bool) -> TeacherRow {
-    TeacherRow(Info { name, teacher: Some(kind), tasks: &["avoiding"], keys: &[] }, one_step)
+    TeacherRow(
+        Info { name, teacher: Some(kind), tasks: &["avoiding", "block-push"], keys: &[] },
+        one_step,
+    )
 }
 
 /// `ddpm`, `beso`, `ddpm-1`, `beso-1`.

@@ -31,7 +31,7 @@ use vdd_moe::cache::{CachedStudent, STUDENT_CACHE_VERSION};
 /// VDD distilling one teacher, with the key of its settings below `vdd`.
 pub struct VddMethod(pub(super) Info, pub(super) &'static str);
 
-const LEARNED: &[&str] = &["avoiding", "toy-gmm"];
+const LEARNED: &[&str] = &["avoiding", "toy-gmm", "block-push"];
 
 /// The recipe keys of the VDD method whose settings are `vdd.<teacher>`, after `extra` keys.
 macro_rules! vdd_keys {
