@@ -22,33 +22,53 @@ fn get(tree: &Table, path: &str) -> u64 {
     get_path(tree, path).unwrap().unwrap_or_else(|| panic!("no {path}"))
 }
 
+/// The product of each student's optimiser steps × batch in `t`, by the key of its settings:
+/// `vdd.<k>` (iterations × batch × samples), `baselines.<k>` of a mixture (iterations × expert
+/// steps × batch) or of a consistency model (`train.steps` × `train.batch_size`).
+fn budget(t: &Table, key: &str) -> u64 {
+    let product = |fields: &[&str]| fields.iter().map(|f| get(t, &format!("{key}.{f}"))).product();
+    match key {
+        _ if key.starts_with("vdd.") => product(&["iterations", "batch_size", "vi_samples"]),
+        "baselines.cd" | "baselines.ctm.base" => product(&["train.steps", "train.batch_size"]),
+        _ => product(&["iterations", "expert_steps_per_iter", "batch_size"]),
+    }
+}
+
 /// Every student of the Avoiding comparison trains on the same optimiser steps × batch
 /// (docs/avoiding-tuning.md, "Budgets"), in the default and in the quick run.
 #[test]
 fn the_avoiding_students_get_equal_budgets_in_the_default_and_the_quick_run() {
     for (quick, expected) in [(false, 7_680_000), (true, 3_072_000)] {
         let t = recipe("avoiding", "avoiding", quick);
-        let vdd = |k: &str| {
-            ["iterations", "batch_size", "vi_samples"].map(|f| get(&t, &format!("vdd.{k}.{f}")))
-        };
-        let mixture = |k: &str| {
-            ["iterations", "expert_steps_per_iter", "batch_size"]
-                .map(|f| get(&t, &format!("baselines.{k}.{f}")))
-        };
-        let consistency =
-            |k: &str| ["steps", "batch_size"].map(|f| get(&t, &format!("baselines.{k}.train.{f}")));
-        let budgets: [(&str, Vec<u64>); 8] = [
-            ("vdd-beso", vdd("beso").to_vec()),
-            ("vdd-ddpm", vdd("ddpm").to_vec()),
-            ("vdd-beso-d3il", vdd("beso_d3il").to_vec()),
-            ("cd", consistency("cd").to_vec()),
-            ("ctm", consistency("ctm.base").to_vec()),
-            ("em", mixture("em").to_vec()),
-            ("imc", mixture("imc").to_vec()),
-            ("imc-authors", mixture("imc_authors").to_vec()),
-        ];
-        for (method, factors) in budgets {
-            assert_eq!(factors.iter().product::<u64>(), expected, "{method} (quick: {quick})");
+        for key in [
+            "vdd.beso",
+            "vdd.ddpm",
+            "vdd.beso_d3il",
+            "baselines.cd",
+            "baselines.ctm.base",
+            "baselines.em",
+            "baselines.imc",
+            "baselines.imc_authors",
+        ] {
+            assert_eq!(budget(&t, key), expected, "{key} (quick: {quick})");
+        }
+    }
+}
+
+/// So do the students of Block-Push's (VDD-BESO, VDD-DDPM, CD, CTM, EM, IMC).
+#[test]
+fn the_block_push_students_get_equal_budgets_in_the_default_and_the_quick_run() {
+    for (quick, expected) in [(false, 7_680_000), (true, 1_536_000)] {
+        let t = recipe("block-push", "block-push", quick);
+        for key in [
+            "vdd.beso",
+            "vdd.ddpm",
+            "baselines.cd",
+            "baselines.ctm.base",
+            "baselines.em",
+            "baselines.imc",
+        ] {
+            assert_eq!(budget(&t, key), expected, "{key} (quick: {quick})");
         }
     }
 }

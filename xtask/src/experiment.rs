@@ -46,7 +46,7 @@ pub struct ExperimentArgs {
     pub resume: bool,
     /// A tuning run: the tuning seeds (100–104 unless --seeds says which) and their own
     /// demonstrations; results under results/tuning/, every method appended to the tuning log
-    /// (Avoiding; see vdd_lab::tuning).
+    /// (Avoiding, Block-Push; see vdd_lab::tuning).
     #[arg(long)]
     pub tuning: bool,
     /// toy-gmm: the teacher VDD distils (exact, ddpm, beso; shorthand for --methods

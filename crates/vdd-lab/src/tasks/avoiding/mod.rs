@@ -11,7 +11,6 @@
 
 use std::time::Instant;
 
-use faer::Mat;
 use serde::{Deserialize, Serialize};
 use serde_json::{Value, json};
 use toml::Table;
@@ -20,21 +19,21 @@ use vdd_moe::MoeConfig;
 
 use vdd_tasks::avoiding::dataset::DatasetConfig;
 use vdd_tasks::avoiding::{AvoidingEval, DeployedCurves, EvalProtocol, PlotSettings};
-use vdd_tasks::timing::us_per_action;
+use vdd_tasks::timing::Timing;
 
 mod imported;
 
+use super::rollouts::{self, Prepared, RolloutRecipe};
 use crate::context::{RunContext, StageTimes};
-use crate::driver::{self, Datasets, Entry, Task, TaskRecipe};
-use crate::method::{CurveEval, Trained, TrainingData};
+use crate::driver::{self, Entry, Task, TaskRecipe};
+use crate::method::{CurveEval, Trained};
 use crate::plots::{self, Curves, TrajectoryPanel};
 use crate::policy::TrainedPolicy;
 use crate::recipe::{self, Overrides};
 use crate::report::{self, Row};
-use crate::teachers::{self, TeachersConfig};
+use crate::teachers::TeachersConfig;
 use crate::tuning;
 use imported::ImportedSettings;
-use vdd_moe::cache::StudentCache;
 
 /// A recipe of the Avoiding task (see `recipes/avoiding.toml`): the schema of the recipe files;
 /// the values not given there come from `recipes/defaults/avoiding.toml` ([`Self::defaults`]).
@@ -91,34 +90,34 @@ impl TaskRecipe for AvoidingRecipe {
 /// The Avoiding task.
 pub struct Avoiding;
 
-/// The dataset of a run.
-struct Prepared {
-    training: TrainingData,
-    /// Raw observations of the training episodes (µs-per-action timing).
-    episodes_obs: Vec<Mat<f32>>,
-    summary: Value,
-}
-
-impl AsRef<TrainingData> for Prepared {
-    fn as_ref(&self) -> &TrainingData {
-        &self.training
+impl RolloutRecipe for AvoidingRecipe {
+    type Data = DatasetConfig;
+    const TASK: &'static str = "avoiding";
+    fn data(&self) -> &DatasetConfig {
+        &self.data
     }
-}
-
-fn prepare(data: &DatasetConfig) -> crate::Result<Prepared> {
-    let t0 = Instant::now();
-    let d = data.build()?;
-    let summary = d.summary(data.demonstrations);
-    crate::progress::log(format!(
-        "data: {} demonstrations ({} train episodes, {} samples, {} of 24 modes, entropy {:.3}) in {:.2} s",
-        data.demonstrations,
-        d.train_episodes,
-        d.training.states.nrows(),
-        summary["dataset_modes"],
-        summary["dataset_entropy"].as_f64().unwrap_or(0.0),
-        t0.elapsed().as_secs_f64()
-    ));
-    Ok(Prepared { training: d.training, episodes_obs: d.episode_observations, summary })
+    fn data_seed(&self) -> u64 {
+        self.data.seed
+    }
+    fn jobs(&self) -> usize {
+        self.jobs
+    }
+    fn timing(&self) -> Timing {
+        self.eval.timing()
+    }
+    fn eval_seed(run_seed: u64) -> u64 {
+        EvalProtocol::seed(run_seed)
+    }
+    fn check_before_training(&self) -> crate::Result {
+        self.eval.check().map_err(|e| format!("eval: {e}"))?;
+        self.data.deploy_spec().validate().map_err(|e| format!("data: {e}"))?;
+        Ok(())
+    }
+    fn prepare(&self) -> crate::Result<Prepared> {
+        let t0 = Instant::now();
+        let d = self.data.build()?;
+        Ok(Prepared::new(d, self.data.demonstrations, 24, t0))
+    }
 }
 
 /// Curves over training on Avoiding, through the recipe's features and windows; `None` when
@@ -134,10 +133,9 @@ impl CurveEval for DeployedCurves {
     }
 }
 
-/// What the evaluation collects for the outputs.
+/// What the evaluation collects for the figures.
 #[derive(Default)]
 struct Collected {
-    rows: Vec<(String, Vec<Row>)>,
     curves: serde_json::Map<String, Value>,
     panels: Vec<TrajectoryPanel>,
     curve_panels: Vec<(String, Curves)>,
@@ -176,8 +174,7 @@ impl Task for Avoiding {
             if k != "tuning" {
                 return Err(format!("option --{k} does not apply to task `avoiding`"));
             }
-            o.seeds.get_or_insert_with(|| tuning::TUNING_SEEDS.collect());
-            o.sets.insert(0, ("data.seed".into(), tuning::TUNING_DATA_SEED.to_string()));
+            rollouts::apply_tuning(o);
         }
         Ok(())
     }
@@ -189,49 +186,9 @@ impl Task for Avoiding {
             return imported::run(ctx, &resolved);
         }
         let plan = driver::plan(&ctx.registry, &resolved, "avoiding", &ctx.overrides.sets)?;
-        for (_, cfg) in resolved.configs() {
-            // Before any training: a bad setting would otherwise fail after it.
-            cfg.eval.check().map_err(|e| format!("eval: {e}"))?;
-            cfg.data.deploy_spec().validate().map_err(|e| format!("data: {e}"))?;
-        }
-        let runs = resolved.configs().into_iter().map(|(_, c)| (&c.header.seeds[..], c.data.seed));
-        let is_tuning = tuning::is_tuning_plan(runs)?;
-        let dir = match (&ctx.out, is_tuning) {
-            (None, true) => ctx
-                .root
-                .join("results/tuning")
-                .join(&ctx.name)
-                .join(crate::context::run_name(&base.header.seeds, &ctx.overrides)),
-            _ => ctx.run_dir(&base.header.seeds),
-        };
-        let log_path = tuning::log_path(&ctx.root, "avoiding");
-        let log = tuning::read_log(&log_path)?;
-        ctx.write_resolved(&dir, &resolved.to_toml()?)?;
-        crate::progress::log(format!(
-            "recipe `{}`: {} method run(s) x {} seed(s) -> {}",
-            ctx.name,
-            plan.len(),
-            base.header.seeds.len(),
-            teachers::rel(&dir)
-        ));
-        let result =
-            run_plan(ctx, base, &plan, &dir, &log, is_tuning.then_some(log_path.as_path()));
-        if let (Err(e), true) = (&result, is_tuning) {
-            // A configuration that failed was still tried: the log says so, with the error.
-            let mut rows = driver::empty_rows(&plan);
-            let mut entries = tuning_entries(ctx, &plan, &log, &dir, &mut rows)?;
-            for entry in &mut entries {
-                entry.seeds.clone_from(&base.header.seeds);
-                entry.failure = Some(format!("the run failed: {e}"));
-            }
-            let n = entries.len();
-            tuning::append_log(&log_path, entries)?;
-            crate::progress::log(format!(
-                "tuning log: {n} entries with the run's error appended to {}",
-                teachers::rel(&log_path)
-            ));
-        }
-        result
+        rollouts::run_logged(ctx, &resolved, &plan, |dir, log, tuning_log| {
+            run_plan(ctx, base, &plan, dir, log, tuning_log)
+        })
     }
 }
 
@@ -246,81 +203,26 @@ fn run_plan(
     tuning_log: Option<&std::path::Path>,
 ) -> crate::Result {
     let mut stages = StageTimes::default();
-    let cores = std::thread::available_parallelism().map_or(1, |p| p.get());
     let threads = base.eval.eval_threads();
-    let jobs = if base.jobs == 0 { cores } else { base.jobs };
-
-    // One dataset per distinct `data` table (usually one), whatever the seed.
-    let key = |_, pi: usize| -> crate::Result<_> { Ok(recipe::config_hash(&plan[pi].cfg.data)?) };
-    let prepare = |_, pi: usize| stages.time("data", || prepare(&plan[pi].cfg.data));
-    let data = Datasets::build(base.header.seeds.len(), plan.len(), key, prepare)?;
-    let students = StudentCache { dir: &ctx.student_cache_dir, fresh: ctx.fresh };
-    let mut trainings = driver::train_all(
+    let mut collected = Collected::default();
+    let mut eval = |e: &Entry<'_, AvoidingRecipe>, trained, seed, first, stages: &mut _| {
+        evaluate(e, trained, seed, first, threads, dir, &mut collected, stages)
+    };
+    let out = rollouts::train_and_evaluate(
         ctx,
+        base,
         plan,
-        &base.header.seeds,
-        &data,
-        jobs,
-        (Some(students), &curves_of),
+        dir,
+        log,
+        &curves_of,
+        &mut eval,
         &mut stages,
     )?;
-
-    // Evaluation, one method at a time (rollouts on every core), then the seed's
-    // single-threaded timing with nothing else running.
-    let mut out = Collected { rows: driver::empty_rows(plan), ..Default::default() };
-    for (si, &seed) in base.header.seeds.iter().enumerate() {
-        let mut timed = Vec::with_capacity(plan.len());
-        for (pi, e) in plan.iter().enumerate() {
-            let trained = trainings.trained.remove(&(si, pi)).ok_or("internal: not trained")?;
-            let first = si == 0;
-            let (row, policy) =
-                evaluate(e, trained, seed, first, threads, dir, &mut out, &mut stages)?;
-            out.rows[pi].1.push(row);
-            timed.push((pi, policy));
-        }
-        let t0 = Instant::now();
-        time_seed(plan, &data, si, seed, timed, &mut out.rows)?;
-        stages.add("timing", t0.elapsed().as_secs_f64());
-    }
-    let entries = tuning_entries(ctx, plan, log, dir, &mut out.rows)?;
-    let summary = data.get(0, 0).summary.clone();
-    write_outputs(ctx, dir, base, out, summary, trainings.teachers.log, jobs, &mut stages)?;
+    let entries = write_outputs(ctx, dir, base, out, collected, &mut stages)?;
     if let Some(path) = tuning_log {
-        let n = entries.len();
-        tuning::append_log(path, entries)?;
-        crate::progress::print(format!(
-            "tuning log: {n} entries appended to {}",
-            teachers::rel(path)
-        ));
+        rollouts::append_tuning(path, entries)?;
     }
     Ok(())
-}
-
-/// Adds `tuning_configs` (the method's configurations in the tuning `log`) to every row and
-/// returns the run's tuning-log entries, one per method.
-fn tuning_entries(
-    ctx: &RunContext,
-    plan: &[Entry<'_, AvoidingRecipe>],
-    log: &[tuning::LogEntry],
-    dir: &std::path::Path,
-    rows: &mut [(String, Vec<Row>)],
-) -> crate::Result<Vec<tuning::LogEntry>> {
-    let revision = ctx.revision_label();
-    let mut entries = Vec::with_capacity(plan.len());
-    for (e, (_, rows)) in plan.iter().zip(rows.iter_mut()) {
-        let n = tuning::configs_tried(log, &e.label);
-        rows.iter_mut().for_each(|r| drop(r.insert("tuning_configs".into(), json!(n))));
-        let id = tuning::RunId {
-            method: e.label.clone(),
-            config: tuning::method_config_hash(e.method, &e.recipe(), &e.cfg.data)?,
-            recipe: ctx.name.clone(),
-            command: ctx.command.clone(),
-            revision: revision.clone(),
-            run: teachers::rel(dir),
-        };
-        entries.push(tuning::LogEntry::from_rows(id, rows));
-    }
-    Ok(entries)
 }
 
 /// Rolls out one trained method on raw observations through the recipe's features and windows,
@@ -340,11 +242,7 @@ fn evaluate(
 ) -> crate::Result<(Row, Windowed<TrainedPolicy>)> {
     let (label, cfg) = (&e.label, e.cfg);
     let tag = format!("{label} s{seed}");
-    let spec = cfg.data.deploy_spec();
-    if let TrainedPolicy::Moe(moe) = &mut trained.policy {
-        moe.set_deploy_spec(spec.clone())?;
-    }
-    let wrapped = Windowed::new(trained.policy.clone(), spec)?;
+    let wrapped = rollouts::deploy(&mut trained, cfg.data.deploy_spec())?;
     let protocol = cfg.eval.protocol();
     let record = first_seed && cfg.plots.enabled;
     let spin = crate::progress::spinner(&tag, &format!("{} rollouts", cfg.eval.rollouts));
@@ -353,11 +251,7 @@ fn evaluate(
     let eval_seconds = t0.elapsed().as_secs_f64();
     stages.add("rollouts", eval_seconds);
     spin.finish_and_clear();
-    if let TrainedPolicy::Moe(moe) = &trained.policy {
-        let models = dir.join("models");
-        std::fs::create_dir_all(&models)?;
-        moe.save(&models.join(format!("{label}-s{seed}.safetensors")))?;
-    }
+    rollouts::save_model(&trained, dir, label, seed)?;
 
     let m = &ev.metrics;
     crate::progress::log(format!(
@@ -366,24 +260,10 @@ fn evaluate(
         m.task_entropy,
         m.modes_reached,
         trained.train_seconds,
-        trained.teacher_seconds.map_or(String::new(), |t| format!(" (+ teacher {t:.1} s)")),
+        rollouts::teacher_note(&trained),
         eval_seconds
     ));
-    let mut row = m.row_fields();
-    row.insert("seed".into(), json!(seed));
-    row.insert("train_seconds".into(), report::json_f64(trained.train_seconds));
-    if let Some(t) = trained.teacher_seconds {
-        row.insert("teacher_seconds".into(), report::json_f64(t));
-    }
-    if let Some(s) = trained.sampling_steps {
-        row.insert("sampling_steps".into(), json!(s));
-    }
-    if let Some(b) = trained.budget {
-        row.extend(b.fields());
-    }
-    if trained.curve_seconds > 0.0 {
-        row.insert("curve_seconds".into(), report::json_f64(trained.curve_seconds));
-    }
+    let row = rollouts::trained_row(m.row_fields(), &trained, seed);
     out.curves.insert(format!("{label}/seed{seed}"), serde_json::to_value(&trained.curves)?);
 
     if record {
@@ -403,55 +283,18 @@ fn evaluate(
     Ok((row, wrapped))
 }
 
-/// Inference time, single-threaded, one observation per call, with nothing else running: the
-/// seed's methods take their timing rounds in turn (see `us_per_action`), in groups that share
-/// the observations and the timing settings (one group unless variants change them).
-fn time_seed(
-    plan: &[Entry<'_, AvoidingRecipe>],
-    data: &Datasets<Prepared>,
-    si: usize,
-    seed: u64,
-    mut timed: Vec<(usize, Windowed<TrainedPolicy>)>,
-    rows: &mut [(String, Vec<Row>)],
-) -> crate::Result {
-    let eval_seed = EvalProtocol::seed(seed);
-    while let Some((first, _)) = timed.first() {
-        let (timing, id) = (plan[*first].cfg.eval.timing(), data.id(si, *first));
-        let same = |pi: usize| data.id(si, pi) == id && plan[pi].cfg.eval.timing() == timing;
-        let (group, rest): (Vec<_>, Vec<_>) = timed.drain(..).partition(|(pi, _)| same(*pi));
-        timed = rest;
-        let (pis, mut policies): (Vec<usize>, Vec<_>) = group.into_iter().unzip();
-        let episodes = &data.get(si, pis[0]).episodes_obs;
-        let us = us_per_action(&mut policies, episodes, timing, eval_seed)?;
-        let mut line = Vec::with_capacity(pis.len());
-        for (pi, us) in pis.into_iter().zip(us) {
-            rows[pi].1[si].insert("us_per_action".into(), report::json_f64(us));
-            line.push(format!("{} {us:.1}", plan[pi].label));
-        }
-        crate::progress::log(format!("[s{seed}] µs per action: {}", line.join(", ")));
-    }
-    Ok(())
-}
-
-/// `metrics.json`, `curves.json`, `table.md`, the figures and `run.json`.
-#[allow(clippy::too_many_arguments)]
+/// `metrics.json`, `curves.json`, `table.md`, the figures and `run.json`; returns the tuning-log
+/// entries.
 fn write_outputs(
     ctx: &RunContext,
     dir: &std::path::Path,
     base: &AvoidingRecipe,
-    out: Collected,
-    data_summary: Value,
-    teacher_log: Vec<Value>,
-    jobs: usize,
+    out: rollouts::Outcome,
+    collected: Collected,
     stages: &mut StageTimes,
-) -> crate::Result {
-    let mut metrics = report::metrics_json(&ctx.name, "avoiding", &base.header.seeds, &out.rows);
-    metrics.insert("data".into(), data_summary.clone());
-    if let Some(w) = report::unequal_budgets(&out.rows) {
-        crate::progress::log(format!("\nWARNING: unequal budgets: {w}\n"));
-        metrics.insert("budget_warning".into(), json!(w));
-    }
-    let curves = serde_json::to_string(&out.curves)?;
+) -> crate::Result<Vec<tuning::LogEntry>> {
+    let metrics = rollouts::metrics(ctx, base, &out);
+    let curves = serde_json::to_string(&collected.curves)?;
     vdd_nn::io::write_atomic(&dir.join("curves.json"), curves.as_bytes())?;
     let table = format!(
         "## {} (Avoiding)\n\n{}\n\n{}\nmean ± std over seeds {:?}; {} rollouts per method and seed; µs per action: single-threaded `Policy::act` on one observation.\n",
@@ -462,11 +305,13 @@ fn write_outputs(
         base.eval.rollouts
     );
     let mut figures = Vec::new();
-    if base.plots.enabled && !out.panels.is_empty() {
+    if base.plots.enabled && !collected.panels.is_empty() {
         let t0 = Instant::now();
         let png = base.plots.png;
-        figures.extend(plots::avoiding_trajectories(&dir.join("trajectories"), &out.panels, png)?);
-        figures.extend(plots::learning_curves(&dir.join("curves"), &out.curve_panels, png)?);
+        let panels = &collected.panels;
+        figures.extend(plots::avoiding_trajectories(&dir.join("trajectories"), panels, png)?);
+        let curve_panels = &collected.curve_panels;
+        figures.extend(plots::learning_curves(&dir.join("curves"), curve_panels, png)?);
         figures.extend(plots::mode_histograms(
             &dir.join("modes"),
             &report::mode_shares(&out.rows),
@@ -474,20 +319,8 @@ fn write_outputs(
         )?);
         stages.add("plots", t0.elapsed().as_secs_f64());
     }
-    let details = json!({
-        "figures": figures,
-        "data": data_summary,
-        "teachers": teacher_log,
-        "jobs": jobs,
-        "stage_seconds": stages.to_json(),
-    });
-    driver::write_results(ctx, dir, &metrics, &table, details)?;
-    crate::acceptance::avoiding_acceptance(&out.rows).iter().for_each(crate::progress::print);
-    crate::progress::print(format!("stages: {}", stages.summary()));
-    let cpu = crate::context::cpu_seconds().map_or(String::new(), |c| format!(", {c:.0} s CPU"));
-    let wall = ctx.started.elapsed().as_secs_f64();
-    crate::progress::print(format!("results in {} ({wall:.1} s wall{cpu})", teachers::rel(dir)));
-    Ok(())
+    let lines = crate::acceptance::avoiding_acceptance(&out.rows);
+    rollouts::finish(ctx, dir, &metrics, &table, out, figures, lines, stages)
 }
 
 #[cfg(test)]
