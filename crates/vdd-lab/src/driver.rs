@@ -15,7 +15,7 @@ use toml::Table;
 use vdd_diffusion::TeacherKind;
 
 use crate::context::{RunContext, StageTimes};
-use crate::method::{CurveEval, Job, Method, MethodRecipe, Trained, TrainingData};
+use crate::method::{CurveEval, Job, Method, MethodRecipe, StateVisits, Trained, TrainingData};
 use crate::recipe::{self, Resolved};
 use crate::report::Row;
 pub use crate::task::{Task, TaskRecipe};
@@ -183,19 +183,29 @@ pub struct Trainings {
     pub teachers: TeacherStore,
 }
 
-/// How a task takes curves over training for a configuration ([`Job::curves`]; `None`: none).
-pub type CurvesFor<'a, R> = &'a (dyn Fn(&R) -> Option<Box<dyn CurveEval>> + Sync);
+/// What a task's episodes give a training of a configuration: curves over training
+/// ([`Job::curves`]) and the states a policy visits ([`Job::visits`]); `None`: not offered.
+#[derive(Default)]
+pub struct Probes {
+    /// Curves over training.
+    pub curves: Option<Box<dyn CurveEval>>,
+    /// Rollouts that return the states a policy visits.
+    pub visits: Option<Box<dyn StateVisits>>,
+}
+
+/// How a task builds the [`Probes`] of a configuration.
+pub type ProbesFor<'a, R> = &'a (dyn Fn(&R) -> Probes + Sync);
 
 /// Trains every entry of `plan` for every seed (see the module docs for the phases; the stages
-/// `teachers` and `students`). `students`: the student cache, for tasks that use it; `curves`:
-/// the curves over training of a configuration.
+/// `teachers` and `students`). `students`: the student cache, for tasks that use it; `probes`:
+/// what the task's episodes give a configuration's trainings.
 pub fn train_all<R: TaskRecipe, P: AsRef<TrainingData> + Sync>(
     ctx: &RunContext,
     plan: &[Entry<'_, R>],
     seeds: &[u64],
     data: &Datasets<P>,
     jobs: usize,
-    (students, curves): (Option<StudentCache<'_>>, CurvesFor<'_, R>),
+    (students, probes): (Option<StudentCache<'_>>, ProbesFor<'_, R>),
     stages: &mut StageTimes,
 ) -> XResult<Trainings> {
     let mut teacher_jobs: Vec<(String, TeacherKind, usize, usize)> = Vec::new();
@@ -240,9 +250,19 @@ pub fn train_all<R: TaskRecipe, P: AsRef<TrainingData> + Sync>(
         let teacher = teacher.transpose().map_err(|e| e.to_string())?;
         let checkpoints = (ck.as_path(), ctx.resume);
         let (data, recipe) = (d, e.recipe());
-        let curve = curves(e.cfg);
-        let curves = curve.as_deref();
-        let job = Job { seed, label: &label, data, teacher, recipe, students, checkpoints, curves };
+        let probe = probes(e.cfg);
+        let (curves, visits) = (probe.curves.as_deref(), probe.visits.as_deref());
+        let job = Job {
+            seed,
+            label: &label,
+            data,
+            teacher,
+            recipe,
+            students,
+            checkpoints,
+            curves,
+            visits,
+        };
         let t = e.method.train(&job).map_err(|e| format!("{label}: {e}"))?;
         Ok(Done::Method((si, pi), Box::new(t)))
     };

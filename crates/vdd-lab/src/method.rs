@@ -106,6 +106,22 @@ pub struct Job<'a> {
     pub checkpoints: (&'a std::path::Path, bool),
     /// Curves over training, when the task takes them ([`CurveProbe`]).
     pub curves: Option<&'a dyn CurveEval>,
+    /// Rollouts of a policy in the task, when the task has them ([`StateVisits`]).
+    pub visits: Option<&'a dyn StateVisits>,
+}
+
+/// The states a policy reaches in a task's episodes: what a method fits beyond the
+/// demonstrations (a distilled student's gating on the states the student itself visits).
+pub trait StateVisits: Sync {
+    /// The states `policy` (acting on the data's raw states) acts on in `episodes` episodes
+    /// drawn from root seed `seed` (a stream of the task's own, apart from its evaluation and
+    /// curve episodes), in the data's state space and in episode order.
+    fn visit(
+        &self,
+        policy: &TrainedPolicy,
+        seed: u64,
+        episodes: usize,
+    ) -> Result<faer::Mat<f32>, vdd_tasks::TaskError>;
 }
 
 /// What a task evaluates at checkpoints of a training (the held-out curves of

@@ -96,3 +96,23 @@ fn a_tiny_block_push_run_writes_its_metrics_and_a_tuning_run_its_log() {
     assert!(log.iter().all(|e| e.seeds == [100] && e.success_rate.len() == 1));
     std::fs::remove_dir_all(&root).unwrap();
 }
+
+/// `vdd.beso_gating_visits`: the student's gating is fitted to teacher samples at the
+/// demonstration states and at the states the student visits, over two rounds.
+#[test]
+fn a_gating_fitted_on_visited_states_runs_end_to_end() {
+    let root = root("visits");
+    let tiny = TINY.replace(r#"methods = ["beso", "vdd-beso", "em"]"#, r#"methods = ["vdd-beso"]"#)
+        + r#"
+[vdd]
+beso_gating_fit = { samples_per_state = 1, iterations = 2, steps_per_iter = 2, batch_size = 16 }
+beso_gating_visits = { episodes = 2, rounds = 2 }
+"#;
+    std::fs::write(root.join("recipes/tiny.toml"), tiny).unwrap();
+    let out = root.join("results/tiny");
+    run(&root, &out, false).unwrap();
+    let model = out.join("models/vdd-beso-s0.safetensors");
+    let policy = vdd_moe::load_policy(&model).unwrap();
+    assert!(policy.inner().has_learned_gating(), "the fit replaced the uniform gating");
+    std::fs::remove_dir_all(&root).unwrap();
+}

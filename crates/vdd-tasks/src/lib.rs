@@ -46,6 +46,7 @@ mod error;
 pub mod scripted;
 pub mod timing;
 pub mod toy;
+pub mod visits;
 
 pub use avoiding::demonstrator::{
     AvoidingDemonstrator, DemonstratorConfig, generate_demonstrations,

@@ -15,6 +15,8 @@
 //! ([`vdd_moe::cache`]).
 
 use faer::Mat;
+use rand::Rng as _;
+use serde::{Deserialize, Serialize};
 use serde_json::json;
 use vdd::{DistillData, Resumable, ResumableOutcome, VddConfig};
 use vdd_core::{Affine, ClampedDenoiser, NoiseConvention, ScoreModel};
@@ -41,6 +43,7 @@ macro_rules! vdd_keys {
             concat!("vdd.", $teacher, "_gating"),
             concat!("vdd.", $teacher, "_experts"),
             concat!("vdd.", $teacher, "_gating_fit"),
+            concat!("vdd.", $teacher, "_gating_visits"),
             CLIP, CLAMP, INIT, GREEDY, SAMPLE,
         ]
     }};
@@ -97,7 +100,27 @@ struct Settings {
     act: ActMode,
     /// `vdd.<teacher>_gating_fit`: after distillation, a gating fitted to teacher samples.
     gating_fit: Option<GatingFitConfig>,
+    /// `vdd.<teacher>_gating_visits`: that fit also on the states the student visits.
+    gating_visits: Option<GatingVisits>,
 }
+
+/// `vdd.<teacher>_gating_visits`: fit the gating of `vdd.<teacher>_gating_fit` on the states
+/// the student itself visits as well as on the demonstrations' (DAgger-style aggregation; the
+/// teacher labels every state through its samples). Each round rolls the student out (with
+/// the gating of the round before, uniform in the first), adds the states it acted on to the
+/// fit's states and fits again from the current gating.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct GatingVisits {
+    /// Student episodes per round (their own seed stream, apart from every evaluation).
+    pub episodes: usize,
+    /// Rounds of roll-out-and-fit (at least 1).
+    pub rounds: usize,
+}
+
+/// Most rounds and episodes per round of [`GatingVisits`].
+const MAX_VISIT_ROUNDS: usize = 16;
+const MAX_VISIT_EPISODES: usize = 100_000;
 
 impl VddMethod {
     fn settings(&self, r: &MethodRecipe<'_>) -> crate::Result<Settings> {
@@ -120,6 +143,7 @@ impl VddMethod {
                 hold_steps: 0,
             },
             gating_fit: r.get_opt(&format!("vdd.{}_gating_fit", self.1))?,
+            gating_visits: r.get_opt(&format!("vdd.{}_gating_visits", self.1))?,
         })
     }
 }
@@ -142,6 +166,25 @@ impl Method for VddMethod {
                 format!("vdd.{t}_gating_fit needs a teacher that acts; {t} does not").into()
             );
         }
+        if let Some(v) = s.gating_visits {
+            let t = self.1;
+            if s.gating_fit.is_none() {
+                return Err(format!(
+                    "vdd.{t}_gating_visits needs vdd.{t}_gating_fit (the fit it feeds)"
+                )
+                .into());
+            }
+            if !(1..=MAX_VISIT_ROUNDS).contains(&v.rounds)
+                || !(1..=MAX_VISIT_EPISODES).contains(&v.episodes)
+            {
+                return Err(format!(
+                    "vdd.{t}_gating_visits: rounds must be in 1..={MAX_VISIT_ROUNDS} and \
+                     episodes in 1..={MAX_VISIT_EPISODES}, got {} and {}",
+                    v.rounds, v.episodes
+                )
+                .into());
+            }
+        }
         // The schedule's unit against the teacher's, before any training (its range is
         // checked against the trained teacher's when VDD starts).
         let unit = match self.0.teacher {
@@ -158,7 +201,7 @@ impl Method for VddMethod {
 
     fn train(&self, job: &Job<'_>) -> crate::Result<Trained> {
         let (s, d, label) = (self.settings(&job.recipe)?, job.data, job.label);
-        let vc = VddConfig { seed: job.seed, ..s.vdd };
+        let vc = VddConfig { seed: job.seed, ..s.vdd.clone() };
         let teacher = self.0.teacher.map(|_| job.teacher()).transpose()?;
         let (sn, an) = match teacher {
             Some(t) => (t.teacher.normalizers().0.clone(), t.teacher.normalizers().1.clone()),
@@ -241,19 +284,8 @@ impl Method for VddMethod {
         student.set_normalizers(Some(sn), Some(an))?;
         if let (Some(fit), Some(t)) = (&s.gating_fit, teacher) {
             let t0 = std::time::Instant::now();
-            let fit = GatingFitConfig { seed: job.seed, ..fit.clone() };
-            let network = s.student.gating_network.clone();
-            let mut teacher = t.teacher.clone();
-            let (fitted, report) =
-                fit_gating_to_policy(student, network, &mut teacher, d.states.as_ref(), &fit)?;
-            student = fitted;
-            let secs = t0.elapsed().as_secs_f64();
-            crate::progress::log(format!(
-                "[{label}] gating fitted to {} teacher samples in {secs:.1} s: their \
-                 log-likelihood {:.3} -> {:.3} nats",
-                report.pairs, report.log_likelihood_before, report.log_likelihood_after
-            ));
-            train_seconds += secs;
+            student = fit_gating(student, (self.1, &s), fit, t, job)?;
+            train_seconds += t0.elapsed().as_secs_f64();
         }
         student.set_act_mode(s.act);
         Ok(Trained {
@@ -265,6 +297,67 @@ impl Method for VddMethod {
             ..Trained::new(TrainedPolicy::Moe(Box::new(student)), train_seconds, curves)
         })
     }
+}
+
+/// Fits a learned gating of `student` (experts frozen) to samples of `t` at the demonstration
+/// states, and at the states the student visits when `s.gating_visits` asks for them.
+fn fit_gating(
+    mut student: Moe,
+    (key, s): (&str, &Settings),
+    fit: &GatingFitConfig,
+    t: &teachers::TrainedTeacher,
+    job: &Job<'_>,
+) -> crate::Result<Moe> {
+    let (label, d) = (job.label, job.data);
+    let network = s.student.gating_network.clone();
+    let mut states = d.states.clone();
+    let rounds = s.gating_visits.map_or(1, |v| v.rounds);
+    for round in 0..rounds {
+        let t0 = std::time::Instant::now();
+        let mut seed = job.seed;
+        if let Some(v) = s.gating_visits {
+            let visits = job.visits.ok_or_else(|| {
+                format!("vdd.{key}_gating_visits: the task has no rollouts to visit states")
+            })?;
+            let mut acting = student.clone();
+            acting.set_act_mode(s.act);
+            let policy = TrainedPolicy::Moe(Box::new(acting));
+            let root = vdd_core::Seeds::new(job.seed).child("gating-visits");
+            let visit_seed: u64 = root.stream_indexed("episodes", round as u64).random();
+            let visited = visits.visit(&policy, visit_seed, v.episodes)?;
+            crate::progress::log(format!(
+                "[{label}] round {}: the student visited {} states in {} episodes",
+                round + 1,
+                visited.nrows(),
+                v.episodes
+            ));
+            if visited.ncols() != states.ncols() {
+                return Err(format!(
+                    "internal: visited states have {} columns, the data {}",
+                    visited.ncols(),
+                    states.ncols()
+                )
+                .into());
+            }
+            let n = states.nrows();
+            states = Mat::from_fn(n + visited.nrows(), states.ncols(), |i, j| {
+                if i < n { states[(i, j)] } else { visited[(i - n, j)] }
+            });
+            seed = root.stream_indexed("fit", round as u64).random();
+        }
+        let fit = GatingFitConfig { seed, ..fit.clone() };
+        let mut teacher = t.teacher.clone();
+        let (fitted, report) =
+            fit_gating_to_policy(student, network.clone(), &mut teacher, states.as_ref(), &fit)?;
+        student = fitted;
+        let secs = t0.elapsed().as_secs_f64();
+        crate::progress::log(format!(
+            "[{label}] gating fitted to {} teacher samples in {secs:.1} s: their \
+             log-likelihood {:.3} -> {:.3} nats",
+            report.pairs, report.log_likelihood_before, report.log_likelihood_after
+        ));
+    }
+    Ok(student)
 }
 
 /// Seconds of VDD training between checkpoints.

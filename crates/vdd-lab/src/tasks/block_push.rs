@@ -21,16 +21,18 @@ use vdd_tasks::block_push::EvalProtocol;
 use vdd_tasks::block_push::dataset::DatasetConfig;
 use vdd_tasks::timing::Timing;
 
-use super::rollouts::{self, Prepared, RolloutRecipe};
+use super::rollouts::{self, Prepared, RolloutRecipe, Visits};
 use crate::context::{RunContext, StageTimes};
-use crate::driver::{self, Entry, Task, TaskRecipe};
-use crate::method::{CurveEval, Trained};
+use crate::driver::{self, Entry, Probes, Task, TaskRecipe};
+use crate::method::Trained;
 use crate::plots::{self, Curves};
 use crate::policy::TrainedPolicy;
 use crate::recipe::{self, Overrides};
 use crate::report::{self, Row};
 use crate::teachers::TeachersConfig;
 use crate::tuning;
+use vdd_tasks::block_push::rollout::Metrics;
+use vdd_tasks::block_push::{BlockPushEnv, EnvConfig};
 
 /// A recipe of the Block-Push task (see `recipes/block-push.toml`); the values not given there
 /// come from `recipes/defaults/block-push.toml` ([`Self::defaults`]). Unknown keys are errors.
@@ -213,14 +215,21 @@ impl Task for BlockPush {
                 |e: &Entry<'_, BlockPushRecipe>, trained, seed, first: bool, st: &mut _| {
                     evaluate(e, trained, seed, threads, dir, st, first.then_some(&mut curves))
                 };
-            let none = |_: &BlockPushRecipe| None::<Box<dyn CurveEval>>;
+            let probes = |cfg: &BlockPushRecipe| Probes {
+                curves: None,
+                visits: Some(Box::new(Visits::<BlockPushEnv, Metrics>::new(
+                    &EnvConfig::default(),
+                    cfg.data.deploy_spec(),
+                    "block-push-visits",
+                ))),
+            };
             let out = rollouts::train_and_evaluate(
                 ctx,
                 base,
                 &plan,
                 dir,
                 log,
-                &none,
+                &probes,
                 &mut eval,
                 &mut stages,
             )?;

@@ -19,11 +19,12 @@ use serde_json::{Value, json};
 use vdd_data::{DeploySpec, Windowed};
 use vdd_moe::cache::StudentCache;
 use vdd_tasks::avoiding::dataset::Dataset;
+use vdd_tasks::episodes::{Env, EvalConfig, TaskMetrics};
 use vdd_tasks::timing::{Timing, us_per_action};
 
 use crate::context::{RunContext, StageTimes};
-use crate::driver::{self, CurvesFor, Datasets, Entry, TaskRecipe};
-use crate::method::{Trained, TrainingData};
+use crate::driver::{self, Datasets, Entry, ProbesFor, TaskRecipe};
+use crate::method::{StateVisits, Trained, TrainingData};
 use crate::policy::TrainedPolicy;
 use crate::recipe::{self, Overrides, Resolved};
 use crate::report::{self, Row};
@@ -205,7 +206,7 @@ pub(crate) type Evaluate<'a, R> = dyn FnMut(
     + 'a;
 
 /// Trains every method of `plan` for every seed (one dataset per distinct `data` table,
-/// the student cache, `curves` over training), evaluates each with `evaluate`, one method at a
+/// the student cache, the task's `probes`: curves over training and visited states), evaluates each with `evaluate`, one method at a
 /// time, and times the seed's methods single-threaded with nothing else running.
 #[allow(clippy::too_many_arguments)]
 pub(crate) fn train_and_evaluate<R: RolloutRecipe>(
@@ -214,7 +215,7 @@ pub(crate) fn train_and_evaluate<R: RolloutRecipe>(
     plan: &[Entry<'_, R>],
     dir: &Path,
     log: &[LogEntry],
-    curves: CurvesFor<'_, R>,
+    probes: ProbesFor<'_, R>,
     evaluate: &mut Evaluate<'_, R>,
     stages: &mut StageTimes,
 ) -> crate::Result<Outcome> {
@@ -228,7 +229,7 @@ pub(crate) fn train_and_evaluate<R: RolloutRecipe>(
     let data = Datasets::build(seeds.len(), plan.len(), key, prepare)?;
     let students = StudentCache { dir: &ctx.student_cache_dir, fresh: ctx.fresh };
     let mut trainings =
-        driver::train_all(ctx, plan, seeds, &data, jobs, (Some(students), curves), stages)?;
+        driver::train_all(ctx, plan, seeds, &data, jobs, (Some(students), probes), stages)?;
 
     let mut rows = driver::empty_rows(plan);
     for (si, &seed) in seeds.iter().enumerate() {
@@ -366,4 +367,45 @@ pub(crate) fn finish(
     let wall = ctx.started.elapsed().as_secs_f64();
     crate::progress::print(format!("results in {} ({wall:.1} s wall{cpu})", teachers::rel(dir)));
     Ok(out.entries)
+}
+
+/// The states a policy visits in task `E`'s episodes (metrics `M`) through a deployment spec:
+/// the [`StateVisits`] of a rollout task, episodes from the seed stream `stream`.
+pub(crate) struct Visits<E: Env, M> {
+    env: E::Config,
+    spec: DeploySpec,
+    stream: &'static str,
+    metrics: std::marker::PhantomData<fn() -> M>,
+}
+
+impl<E: Env, M> Visits<E, M> {
+    /// Visits in environments with `env`'s settings, through `spec`, on the stream `stream`.
+    pub(crate) fn new(env: &E::Config, spec: DeploySpec, stream: &'static str) -> Self {
+        Self { env: env.clone(), spec, stream, metrics: std::marker::PhantomData }
+    }
+}
+
+/// Most states one [`Visits`] call returns.
+const MAX_VISITED: usize = 1 << 20;
+
+impl<E: Env, M: TaskMetrics<E>> StateVisits for Visits<E, M>
+where
+    E::Config: Sync,
+{
+    fn visit(
+        &self,
+        policy: &TrainedPolicy,
+        seed: u64,
+        episodes: usize,
+    ) -> Result<Mat<f32>, vdd_tasks::TaskError> {
+        let root = vdd_core::Seeds::new(seed).child(self.stream).root();
+        let cfg = EvalConfig::protocol(episodes, 0, root, false);
+        vdd_tasks::visits::visited_states::<E, M, _>(
+            &self.env,
+            policy,
+            &self.spec,
+            &cfg,
+            MAX_VISITED,
+        )
+    }
 }

@@ -28,7 +28,7 @@ use vdd_tasks::toy::ToyData;
 use super::toy_eval::{ToyPlots, ToyStudent, circle_modes, density_panel};
 use crate::Registry;
 use crate::context::{RunContext, StageTimes};
-use crate::driver::{self, Datasets, Entry, Task, TaskRecipe, Trainings};
+use crate::driver::{self, Datasets, Entry, Probes, Task, TaskRecipe, Trainings};
 use crate::method::{Trained, TrainingData};
 use crate::plots;
 use crate::policy::TrainedPolicy;
@@ -234,7 +234,7 @@ impl Task for Toy {
             &base.header.seeds,
             &data,
             1,
-            (None, &|_| None),
+            (None, &|_| Probes::default()),
             &mut stages,
         )?;
 

@@ -20,12 +20,13 @@ use vdd_moe::MoeConfig;
 use vdd_tasks::avoiding::dataset::DatasetConfig;
 use vdd_tasks::avoiding::{AvoidingEval, DeployedCurves, EvalProtocol, PlotSettings};
 use vdd_tasks::timing::Timing;
+use vdd_tasks::{AvoidingEnv, Metrics};
 
 mod imported;
 
-use super::rollouts::{self, Prepared, RolloutRecipe};
+use super::rollouts::{self, Prepared, RolloutRecipe, Visits};
 use crate::context::{RunContext, StageTimes};
-use crate::driver::{self, Entry, Task, TaskRecipe};
+use crate::driver::{self, Entry, Probes, Task, TaskRecipe};
 use crate::method::{CurveEval, Trained};
 use crate::plots::{self, Curves, TrajectoryPanel};
 use crate::policy::TrainedPolicy;
@@ -120,11 +121,15 @@ impl RolloutRecipe for AvoidingRecipe {
     }
 }
 
-/// Curves over training on Avoiding, through the recipe's features and windows; `None` when
-/// `eval.curve_points` is 0.
-fn curves_of(cfg: &AvoidingRecipe) -> Option<Box<dyn CurveEval>> {
-    let curves = DeployedCurves { protocol: cfg.eval.curves(), spec: cfg.data.deploy_spec() };
-    curves.protocol.enabled().then(|| Box::new(curves) as Box<dyn CurveEval>)
+/// What Avoiding's episodes give a training, through the recipe's features and windows: curves
+/// over training (none when `eval.curve_points` is 0) and visited states.
+fn probes_of(cfg: &AvoidingRecipe) -> Probes {
+    let spec = cfg.data.deploy_spec();
+    let curves = DeployedCurves { protocol: cfg.eval.curves(), spec: spec.clone() };
+    Probes {
+        curves: curves.protocol.enabled().then(|| Box::new(curves) as Box<dyn CurveEval>),
+        visits: Some(Box::new(Visits::<AvoidingEnv, Metrics>::new(&(), spec, "avoiding-visits"))),
+    }
 }
 
 impl CurveEval for DeployedCurves {
@@ -214,7 +219,7 @@ fn run_plan(
         plan,
         dir,
         log,
-        &curves_of,
+        &probes_of,
         &mut eval,
         &mut stages,
     )?;
@@ -402,6 +407,9 @@ mod tests {
                 "vdd.ddpm: invalid configuration: noise_unit is sigma",
             ),
             ("vdd.beso.noise_unit=\"time\"", "vdd.beso: invalid configuration: noise_unit is time"),
+            // Visited states feed a gating fit, which must be asked for; bounded rounds.
+            ("vdd.beso_gating_visits={episodes=10,rounds=1}", "needs vdd.beso_gating_fit"),
+            ("vdd.beso_gating_visits={episodes=10,rounds=0,extra=1}", "extra"),
         ] {
             let (k, v) = set.split_once('=').unwrap();
             let o = recipe::Overrides { sets: vec![(k.into(), v.into())], ..Default::default() };
