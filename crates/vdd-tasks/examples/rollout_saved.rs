@@ -1,18 +1,21 @@
-//! Rolls out a saved Avoiding policy on the environment's raw observations and prints one JSON
-//! line with its success rate and task entropy.
+//! Rolls out a saved policy of a task (Avoiding, the default, or Block-Push) on the
+//! environment's raw observations and prints one JSON line with its success rate and task
+//! entropy (and, on Block-Push, p1).
 //!
 //! ```text
-//! cargo run --release -p vdd-tasks --example rollout_saved -- MODEL [--seed S] [--rollouts N]
-//!     [--lockstep-batch B] [--threads T] [--hold K] [--greedy] [--temperature T]
+//! cargo run --release -p vdd-tasks --example rollout_saved -- MODEL [--task TASK] [--seed S]
+//!     [--rollouts N] [--lockstep-batch B] [--threads T] [--hold K] [--greedy] [--temperature T]
 //! ```
 //!
 //! `MODEL` is a mixture saved by `Moe::save`, e.g. a recipe's
 //! `results/avoiding/<run>/models/vdd-beso-s0.safetensors`. One call
 //! (`vdd_moe::load_policy`) loads it with everything it needs to act on raw observations: the
 //! normalisers, the act mode and the deployment spec (observation features, window, chunk). The
-//! evaluation is the recipe's ([`EvalProtocol`]): with the run seed `S` (default 0), `N`
-//! rollouts (default 500; `--quick` recipes use 200) and the recipe's lockstep batch (default
-//! 50) it prints the recipe's figures for that student bit for bit. Threads (default: every
+//! evaluation is the recipe's ([`EvalProtocol`]; Block-Push's is
+//! `vdd_tasks::block_push::EvalProtocol`): with the run seed `S` (default 0), `N` rollouts
+//! (default: the task's, 500 on Avoiding and 200 on Block-Push; `--quick` recipes use fewer)
+//! and the recipe's lockstep batch (default 50) it prints the recipe's figures for that student
+//! bit for bit. Threads (default: every
 //! core) do not change the figures. `--hold K` replaces the saved act mode's
 //! [`vdd_moe::ActMode::hold_steps`]: each episode keeps the expert it picks for `K` predictions
 //! (`K` steps; `K · execute_steps` with action chunks), which changes the figures for `K > 1`.
@@ -28,21 +31,25 @@ use vdd_tasks::avoiding::EvalProtocol;
 /// The command line.
 struct Args {
     model: PathBuf,
+    task: String,
     seed: u64,
-    protocol: EvalProtocol,
+    rollouts: Option<usize>,
+    lockstep_batch: usize,
     threads: usize,
     hold: Option<u32>,
     greedy: bool,
     temperature: Option<f32>,
 }
 
-const USAGE: &str = "usage: rollout_saved MODEL [--seed S] [--rollouts N] [--lockstep-batch B] [--threads T] \
+const USAGE: &str = "usage: rollout_saved MODEL [--task avoiding|block-push] [--seed S] [--rollouts N] [--lockstep-batch B] [--threads T] \
      [--hold K] [--greedy] [--temperature T]";
 
 fn parse() -> Result<Args, String> {
     let mut model = None;
     let mut seed = 0;
-    let mut protocol = EvalProtocol::default();
+    let mut task = "avoiding".to_owned();
+    let mut rollouts = None;
+    let mut lockstep_batch = EvalProtocol::default().lockstep_batch;
     let mut threads = std::thread::available_parallelism().map_or(1, |n| n.get());
     let mut hold = None;
     let mut greedy = false;
@@ -55,8 +62,9 @@ fn parse() -> Result<Args, String> {
         };
         match arg.as_str() {
             "--seed" => seed = value("--seed")?,
-            "--rollouts" => protocol.rollouts = value("--rollouts")? as usize,
-            "--lockstep-batch" => protocol.lockstep_batch = value("--lockstep-batch")? as usize,
+            "--task" => task = args.next().ok_or("--task needs a value")?,
+            "--rollouts" => rollouts = Some(value("--rollouts")? as usize),
+            "--lockstep-batch" => lockstep_batch = value("--lockstep-batch")? as usize,
             "--threads" => threads = value("--threads")? as usize,
             "--hold" => hold = Some(u32::try_from(value("--hold")?).map_err(|e| e.to_string())?),
             "--greedy" => greedy = true,
@@ -71,7 +79,7 @@ fn parse() -> Result<Args, String> {
         }
     }
     let model = model.ok_or_else(|| USAGE.to_owned())?;
-    Ok(Args { model, seed, protocol, threads, hold, greedy, temperature })
+    Ok(Args { model, task, seed, rollouts, lockstep_batch, threads, hold, greedy, temperature })
 }
 
 fn run() -> Result<(), Box<dyn std::error::Error>> {
@@ -86,15 +94,36 @@ fn run() -> Result<(), Box<dyn std::error::Error>> {
     let hold_steps = args.hold.unwrap_or(saved.hold_steps);
     let greedy_gating = args.greedy || saved.greedy_gating;
     moe.set_act_mode(vdd_moe::ActMode { hold_steps, greedy_gating, ..saved });
-    let eval = args.protocol.evaluate(&policy, args.seed, args.threads, false)?;
-    let m = &eval.metrics;
+    let (seed, threads, lockstep_batch) = (args.seed, args.threads, args.lockstep_batch);
     // Numbers as serde_json writes them (as in the recipe's metrics.json), keys in this order.
-    println!(
-        r#"{{"success_rate": {}, "task_entropy": {}, "rollouts": {}}}"#,
-        serde_json::to_string(&m.success_rate)?,
-        serde_json::to_string(&m.task_entropy)?,
-        m.rollouts
-    );
+    let json = |x: &f64| serde_json::to_string(x);
+    match args.task.as_str() {
+        "avoiding" => {
+            let rollouts = args.rollouts.unwrap_or(EvalProtocol::default().rollouts);
+            let protocol = EvalProtocol { rollouts, lockstep_batch };
+            let m = protocol.evaluate(&policy, seed, threads, false)?.metrics;
+            println!(
+                r#"{{"success_rate": {}, "task_entropy": {}, "rollouts": {}}}"#,
+                json(&m.success_rate)?,
+                json(&m.task_entropy)?,
+                m.rollouts
+            );
+        }
+        "block-push" => {
+            use vdd_tasks::block_push::EvalProtocol as BlockPush;
+            let rollouts = args.rollouts.unwrap_or(BlockPush::default().rollouts);
+            let protocol = BlockPush { rollouts, lockstep_batch };
+            let m = protocol.evaluate(&policy, seed, threads, false)?.metrics;
+            println!(
+                r#"{{"success_rate": {}, "p1_rate": {}, "task_entropy": {}, "rollouts": {}}}"#,
+                json(&m.success_rate)?,
+                json(&m.p1_rate)?,
+                json(&m.task_entropy)?,
+                m.rollouts
+            );
+        }
+        other => return Err(format!("unknown task {other}\n{USAGE}").into()),
+    }
     Ok(())
 }
 
