@@ -127,8 +127,8 @@ pub struct PushingPlots {
     pub enabled: bool,
     /// Also write PNGs (SVG always).
     pub png: bool,
-    /// Paths per panel of the trajectory figures: the first rollouts of each method (first
-    /// seed), and as many demonstrations (0: no trajectory figures).
+    /// Paths per panel of the trajectory figures: rollouts of each method spread over the
+    /// contexts (first seed), and as many demonstrations (0: no trajectory figures).
     pub trajectories: usize,
 }
 
