@@ -224,8 +224,15 @@ impl Task for Line {
             Ok(line_data(&plan[pi].cfg.data, seeds[si]))
         })?;
         // No student cache, no curves over training, one job at a time.
-        let mut trainings =
-            driver::train_all(ctx, &plan, seeds, &data, 1, (None, &|_| None), &mut stages)?;
+        let mut trainings = driver::train_all(
+            ctx,
+            &plan,
+            seeds,
+            &data,
+            1,
+            (None, &|_| driver::Probes::default()),
+            &mut stages,
+        )?;
         let mut rows = driver::empty_rows(&plan);
         for (si, &seed) in seeds.iter().enumerate() {
             for (pi, e) in plan.iter().enumerate() {

@@ -1,6 +1,6 @@
 //! Figures, from `vdd-report`'s plots (see [`vdd_report::plots`]); this module adds what knows
-//! the tasks: Avoiding's scene and the panels built from its rollouts, and Block-Push's
-//! demonstration figure.
+//! the tasks: Avoiding's scene and the panels built from its rollouts, Block-Push's
+//! demonstration figure, and Pushing's scene and mode-coloured panels.
 
 use std::path::Path;
 
@@ -167,6 +167,74 @@ pub fn block_push_demonstrations(
     Ok(files)
 }
 
+/// The Pushing scene: the two fixed target zones (red, green), the effector's start, the
+/// table region around the boxes.
+pub fn pushing_scene() -> Scene {
+    use vdd_tasks::pushing::{EFFECTOR_START, TARGET_HALF, TARGETS};
+    Scene {
+        x_range: (0.25, 0.80),
+        y_range: (-0.35, 0.5),
+        finish_y: None,
+        obstacles: vec![],
+        // Palette 3 is red, 2 green.
+        zones: (0..2)
+            .map(|t| Zone {
+                centre: (TARGETS[t][0], TARGETS[t][1]),
+                half: TARGET_HALF,
+                colour: [3, 2][t],
+            })
+            .collect(),
+        start: Some((EFFECTOR_START[0], EFFECTOR_START[1])),
+        legend: (0.26, 0.49),
+    }
+}
+
+/// One path of a Pushing panel: an episode's observations (`T x 12`), its final observation
+/// (drawn last, when given) and its mode index (`None`: a failure).
+pub type PushingPath<'a> = (&'a faer::Mat<f32>, Option<&'a [f32]>, Option<usize>);
+
+/// One panel of the Pushing trajectory figure: the paths of the pusher (observation columns
+/// 2–3, then the final observation) of `paths`, each coloured by its episode's mode index
+/// (`Some(0..4)`) or, for an episode without a mode (a failure), by colour 4; the legend
+/// shows the four modes (D3IL's `rr→gg, gg→rr, rg→gr, gr→rg`) and the failure colour.
+pub fn pushing_panel(
+    label: &str,
+    paths: &[PushingPath<'_>],
+    success_rate: f64,
+    task_entropy: f64,
+) -> vdd_report::plots::TrajectoryPanel {
+    use vdd_tasks::pushing::N_MODES;
+    let mut out = vdd_report::plots::TrajectoryPanel {
+        label: label.to_owned(),
+        paths: Vec::with_capacity(paths.len()),
+        success: Vec::with_capacity(paths.len()),
+        experts: Some((Vec::with_capacity(paths.len()), N_MODES + 1)),
+        success_rate,
+        task_entropy,
+    };
+    for (o, last, mode) in paths {
+        let mut p: Vec<(f32, f32)> = (0..o.nrows()).map(|t| (o[(t, 2)], o[(t, 3)])).collect();
+        if let Some(f) = last.filter(|f| f.len() > 3) {
+            p.push((f[2], f[3]));
+        }
+        if let Some((ids, _)) = &mut out.experts {
+            ids.push(vec![mode.unwrap_or(N_MODES).min(N_MODES); p.len()]);
+        }
+        out.paths.push(p);
+        out.success.push(mode.is_some());
+    }
+    out
+}
+
+/// Writes the Pushing trajectory figure `stem.svg` / `stem.png` (one panel per entry).
+pub fn pushing_trajectories(
+    stem: &Path,
+    panels: &[vdd_report::plots::TrajectoryPanel],
+    png: bool,
+) -> vdd_report::Result<Vec<String>> {
+    trajectories(stem, &pushing_scene(), panels, png)
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -183,6 +251,29 @@ mod tests {
         assert_eq!(files.len(), 1);
         let svg = std::fs::read_to_string(dir.join("traj.svg")).unwrap();
         assert!(svg.contains("em: success 0.50, entropy 0.25"));
+        std::fs::remove_dir_all(&dir).unwrap();
+    }
+
+    #[test]
+    fn the_pushing_figure_colours_paths_by_mode() {
+        use vdd_tasks::pushing::oracle::{OracleConfig, generate_demonstrations};
+        let demos = generate_demonstrations(2, 2, &OracleConfig::default()).unwrap();
+        let paths: Vec<_> = demos
+            .observations
+            .iter()
+            .zip(&demos.modes)
+            .map(|(o, m)| (o, None, Some(m.index())))
+            .chain(std::iter::once((&demos.observations[0], None, None)))
+            .collect();
+        let panel = pushing_panel("demos", &paths, 1.0, 0.5);
+        let (ids, n) = panel.experts.clone().unwrap();
+        assert_eq!(n, 5);
+        assert_eq!(ids[2][0], 4);
+        assert_eq!(ids[0][0], demos.modes[0].index());
+        let dir = std::env::temp_dir().join(format!("vdd-lab-push-fig-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let files = pushing_trajectories(&dir.join("traj"), &[panel], false).unwrap();
+        assert_eq!(files.len(), 1);
         std::fs::remove_dir_all(&dir).unwrap();
     }
 

@@ -103,6 +103,13 @@ pub trait Env: Send + Sized {
     fn steps(&self) -> usize;
     /// What the task records of the episode.
     fn info(&self) -> Self::Info;
+    /// The start seed ([`Env::reset`]) of episode `episode` of an evaluation with root seed
+    /// `seed` in environments with `config`'s settings: [`start_seed`] by default. A task whose
+    /// evaluation repeats each start over several episodes (D3IL's test contexts) overrides it.
+    fn start_of(config: &Self::Config, seed: u64, episode: usize) -> u64 {
+        let _ = config;
+        start_seed::<Self>(seed, episode)
+    }
 }
 
 /// The checks every [`Env::apply`] makes first: the episode is running, `action` and `applied`
@@ -492,7 +499,8 @@ impl<E: Env> Worker<E> {
     ) -> Result<Vec<Rollout<E>>> {
         match cfg.stepping {
             Stepping::PerEpisode => {
-                let seeds = (episode_seed::<E>(cfg.seed, unit), start_seed::<E>(cfg.seed, unit));
+                let start = E::start_of(&self.config, cfg.seed, unit);
+                let seeds = (episode_seed::<E>(cfg.seed, unit), start);
                 Ok(vec![self.episode(policy, unit, seeds, cfg.record)?])
             }
             Stepping::Lockstep { batch_size } => {
@@ -543,7 +551,7 @@ impl<E: Env> Worker<E> {
         policy.reset();
         self.ensure(n)?;
         for (i, env) in self.envs[..n].iter_mut().enumerate() {
-            env.reset(start_seed::<E>(seed, first + i));
+            env.reset(E::start_of(&self.config, seed, first + i));
         }
         if self.obs.nrows() < n {
             self.obs = Mat::zeros(n, E::OBS_DIM);

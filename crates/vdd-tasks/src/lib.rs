@@ -17,6 +17,11 @@
 //!   of any [`vdd_core::Policy`] with success (p2), p1, task entropy over the 4 modes and mode
 //!   histogram ([`block_push::rollout`]), and the scripted multimodal oracle with human-like
 //!   noise and demonstration generation ([`block_push::oracle`]);
+//! * [`pushing`]: D3IL Pushing on `rapier2d`: the environment ([`pushing::PushingEnv`]: a round
+//!   pusher, a red and a green box, two fixed target zones, 28.6 Hz control of the desired
+//!   effector position), rollouts with success, p1, mean distance, task entropy per test context
+//!   over the 4 modes and mode histogram ([`pushing::rollout`]), and a scripted demonstrator
+//!   with human-like noise ([`pushing::oracle`]);
 //! * [`timing`]: µs per action of policies timed together ([`timing::us_per_action`]).
 //!
 //! Errors are [`TaskError`]; shape and finiteness violations found by the `vdd_core` helpers are
@@ -43,6 +48,7 @@ pub mod avoiding;
 pub mod block_push;
 pub mod episodes;
 mod error;
+pub mod pushing;
 pub mod scripted;
 pub mod timing;
 pub mod toy;

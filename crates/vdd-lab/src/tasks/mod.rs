@@ -12,14 +12,21 @@ use crate::task::Task;
 
 mod avoiding;
 mod block_push;
+mod pushing;
 mod rollouts;
 mod toy;
 mod toy_eval;
 
 pub use avoiding::{AvoidingRecipe, COLUMNS as AVOIDING_COLUMNS};
 pub use block_push::{BlockPushRecipe, COLUMNS as BLOCK_PUSH_COLUMNS};
+pub use pushing::{COLUMNS as PUSHING_COLUMNS, PushingRecipe};
 pub use toy::check_toy_gmm;
 
 /// The workspace's tasks.
-pub static BUILTIN: &[&dyn Task] =
-    &[&avoiding::Avoiding, &toy::TOY_GMM, &toy::TOY_CONDITIONAL, &block_push::BlockPush];
+pub static BUILTIN: &[&dyn Task] = &[
+    &avoiding::Avoiding,
+    &toy::TOY_GMM,
+    &toy::TOY_CONDITIONAL,
+    &block_push::BlockPush,
+    &pushing::Pushing,
+];

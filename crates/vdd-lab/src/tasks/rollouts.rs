@@ -1,9 +1,9 @@
-//! What the rollout tasks (Avoiding, Block-Push) share beyond [`crate::driver`]: the run's
-//! directory and tuning log ([`run_logged`]), the dataset of a run ([`Prepared`]), training and
-//! evaluating every method of the plan with the single-threaded timing ([`train_and_evaluate`]),
-//! a trained method's deployment and its results row ([`deploy`], [`trained_row`]), and the
-//! closing outputs ([`metrics`], [`finish`]). Each task keeps its evaluation (protocol, figures)
-//! and its tables.
+//! What the rollout tasks (Avoiding, Block-Push, Pushing) share beyond [`crate::driver`]: the
+//! run's directory and tuning log ([`run_logged`]), the dataset of a run ([`Prepared`]),
+//! training and evaluating every method of the plan with the single-threaded timing
+//! ([`train_and_evaluate`]), a trained method's deployment and its results row ([`deploy`],
+//! [`trained_row`]), and the closing outputs ([`metrics`], [`finish`]). Each task keeps its
+//! evaluation (protocol, figures) and its tables.
 //!
 //! Seeds: the demonstrations come from `data.seed` (one fixed dataset for every run seed);
 //! the run seed drives teacher training, student initialisation and training, and the
@@ -35,7 +35,7 @@ use crate::tuning::{self, LogEntry};
 pub(crate) trait RolloutRecipe: TaskRecipe {
     /// The `data` table.
     type Data: Serialize;
-    /// The task's name (`avoiding`, `block-push`).
+    /// The task's name (`avoiding`, `block-push`, `pushing`).
     const TASK: &'static str;
     /// The `data` table (its hash keys the datasets and the tuning log's configurations).
     fn data(&self) -> &Self::Data;
