@@ -15,7 +15,7 @@
 //! latency tables are [`vdd_lab::bench::teachers::report`]'s.
 //!
 //! Trained teachers are cached under `--cache` (default `target/xtask-cache/teachers`) by the
-//! recipes' teacher cache ([`crate::teachers::train_or_load`]: keyed by the cache version, the
+//! recipes' teacher cache ([`vdd_lab::teachers::train_or_load`]: keyed by the cache version, the
 //! model and training configuration, the seed and the training data); `--retrain` ignores the
 //! cache. The command fails when a check fails.
 

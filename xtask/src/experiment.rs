@@ -31,10 +31,10 @@ pub struct ExperimentArgs {
     /// (repeatable, applied in order).
     #[arg(long = "set", value_name = "KEY.PATH=VALUE", value_parser = key_value)]
     pub sets: Vec<(String, String)>,
-    /// Merge the recipe's smaller [quick] settings.
+    /// Merge the recipe's smaller `[quick]` settings.
     #[arg(long)]
     pub quick: bool,
-    /// Results directory (default: results/<recipe>/<run>).
+    /// Results directory (default: `results/<recipe>/<run>`).
     #[arg(long, value_name = "DIR")]
     pub out: Option<PathBuf>,
     /// Retrain cached teachers and students.
@@ -49,8 +49,8 @@ pub struct ExperimentArgs {
     /// (Avoiding, Block-Push; see vdd_lab::tuning).
     #[arg(long)]
     pub tuning: bool,
-    /// toy-gmm: the teacher VDD distils (exact, ddpm, beso; shorthand for --methods
-    /// vdd-<teacher>). avoiding: a teacher file of `cargo xtask import`, rolled out and
+    /// toy-gmm: the teacher VDD distils (exact, ddpm, beso; shorthand for `--methods
+    /// vdd-<teacher>`). avoiding: a teacher file of `cargo xtask import`, rolled out and
     /// distilled (methods teacher, vdd).
     #[arg(long, value_name = "TEACHER")]
     pub teacher: Option<String>,

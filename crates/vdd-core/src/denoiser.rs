@@ -40,7 +40,8 @@ pub fn data_box(actions: MatRef<'_, f32>, margin: f32) -> (Vec<f32>, Vec<f32>) {
 }
 
 /// A teacher whose score is formed from its denoised estimate clamped to a box (a deviation
-/// from the paper; the [module docs](self) say why).
+/// from the paper: far from its data a learned teacher extrapolates, and its score there can
+/// point away from the data and make a distilled expert's variance run away).
 ///
 /// It wraps any [`ScoreModel`] that states its [`DenoiserForm`] through
 /// [`ScoreModel::denoiser_form`]; for each coordinate it computes `D = (a + v s) / k`, clamps it

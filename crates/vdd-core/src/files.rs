@@ -16,9 +16,8 @@
 //! one byte more than the bound and refuses the file if that byte arrives.
 //!
 //! Errors are [`std::io::Error`]s (every crate wraps them in its own error with the path):
-//! [`ErrorKind::InvalidInput`](std::io::ErrorKind::InvalidInput) with a [`NotRegularFile`]
-//! source for special files, [`ErrorKind::FileTooLarge`](std::io::ErrorKind::FileTooLarge) with
-//! a [`TooLarge`] source for files over the bound.
+//! [`ErrorKind::InvalidInput`] with a [`NotRegularFile`] source for special files,
+//! [`ErrorKind::FileTooLarge`] with a [`TooLarge`] source for files over the bound.
 //!
 //! ```
 //! use vdd_core::files::{read_bounded, NotRegularFile};

@@ -32,7 +32,7 @@ pub struct TrainConfig {
     pub grad_clip: Option<f32>,
     /// Report progress every this many steps (and after the last step).
     pub log_every: u64,
-    /// Chunks each minibatch is split into for the gradient (at most [`MAX_CHUNKS`]): each
+    /// Chunks each minibatch is split into for the gradient (at most `MAX_CHUNKS` = 256): each
     /// chunk's forward and backward pass runs on its own replica of the network, possibly on
     /// another thread, and the chunks' gradients are summed in chunk order
     /// ([`vdd_nn::parallel`]). The results depend on the number of chunks, never on the number

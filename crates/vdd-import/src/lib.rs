@@ -10,8 +10,8 @@
 //! The networks themselves (forward only) live in [`vdd_torch`]; this crate reads the
 //! packages' files (safetensors, JSON, YAML), checks them, and wires network, noise process and
 //! normalisers into one teacher, saved to and loaded from one teacher file ([`load_teacher`]).
-//! [`convert`] has one call per package format (package in, teacher file out); [`bench`]
-//! checks the fixtures against PyTorch and times them.
+//! [`convert`] has one call per package format (package in, teacher file out);
+//! [`bench`](mod@bench) checks the fixtures against PyTorch and times them.
 #![warn(missing_docs)]
 
 pub mod bench;

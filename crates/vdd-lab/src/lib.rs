@@ -14,8 +14,9 @@
 //! * [`teachers`], [`policy`], [`plots`], [`tuning`], [`acceptance`]: the learned teachers'
 //!   cache, every method's trained policy as one type, the tasks' figures, the tuning protocol
 //!   and log, the acceptance lines.
-//! * [`bench`]: the benchmarks of `cargo xtask bench` that are experiments (the robustness
-//!   benchmark of VDD's defaults, the toy teachers' acceptance checks and sampling latency).
+//! * [`bench`](mod@bench): the benchmarks of `cargo xtask bench` that are experiments (the
+//!   robustness benchmark of VDD's defaults, the toy teachers' acceptance checks and sampling
+//!   latency).
 //!
 //! The layer never prints: progress and result lines go to the [`progress`] sink the program
 //! installs.

@@ -4,10 +4,10 @@
 //! # What the oracle does
 //!
 //! It acts on the observation alone (plus its per-episode state). At the first call after
-//! [`Policy::reset`] it draws one of the four orders uniformly from its own seeded stream (or
-//! uses [`OracleConfig::fixed_mode`]): first block → first target, then the other block → the
-//! other target; it stores the commanded effector target as its `origin`. Then, with
-//! `ee` = the commanded target (obs 10–11), `b` the current block, `t` its target,
+//! [`Policy::reset`](vdd_core::Policy::reset) it draws one of the four orders uniformly from its
+//! own seeded stream (or uses [`OracleConfig::fixed_mode`]): first block → first target, then the
+//! other block → the other target; it stores the commanded effector target as its `origin`.
+//! Then, with `ee` = the commanded target (obs 10–11), `b` the current block, `t` its target,
 //! `u = (t − b)/|t − b|` and `θ_err = atan2(u) − yaw` wrapped into `[−π/4, π/4]`, the phases
 //! (checked one after another in the same call, as in the original) are:
 //!

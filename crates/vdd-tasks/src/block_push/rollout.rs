@@ -4,8 +4,8 @@
 //! # Seeding and stepping
 //!
 //! The shared engine's ([`crate::episodes`]; [`BlockPushEnv`] is its [`Env`]): episode `i` of
-//! an evaluation with root seed `s` always starts from [`env_seed`]`(s, i)`, under either
-//! stepping; the policy is seeded with [`episode_seed`]`(s, i)` per episode or
+//! an evaluation with root seed `s` always starts from [`env_seed`](super::env_seed)`(s, i)`,
+//! under either stepping; the policy is seeded with [`episode_seed`]`(s, i)` per episode or
 //! [`chunk_seed`]`(s, c)` per lockstep chunk. [`evaluate_parallel`] and [`evaluate_cloned`]
 //! return exactly what [`evaluate`] returns, whatever the number of threads: each environment
 //! owns its own deterministic physics world.
