@@ -46,6 +46,7 @@
 
 pub mod avoiding;
 pub mod block_push;
+pub mod demo_data;
 pub mod episodes;
 mod error;
 pub mod pushing;

@@ -207,37 +207,26 @@ impl Task for BlockPush {
         let resolved = recipe::resolve(&BlockPushRecipe::defaults()?, &ctx.file, &ctx.overrides)?;
         let base = &resolved.base;
         let plan = driver::plan(&ctx.registry, &resolved, "block-push", &ctx.overrides.sets)?;
+        let threads = base.eval.eval_threads();
+        let probes = |cfg: &BlockPushRecipe| Probes {
+            curves: None,
+            visits: Some(Box::new(Visits::<BlockPushEnv, Metrics>::new(
+                &EnvConfig::default(),
+                cfg.data.deploy_spec(),
+                "block-push-visits",
+            ))),
+        };
         rollouts::run_logged(ctx, &resolved, &plan, |dir, log, tuning_log| {
-            let mut stages = StageTimes::default();
-            let threads = base.eval.eval_threads();
-            let mut curves = Vec::new();
-            let mut eval =
-                |e: &Entry<'_, BlockPushRecipe>, trained, seed, first: bool, st: &mut _| {
-                    evaluate(e, trained, seed, threads, dir, st, first.then_some(&mut curves))
-                };
-            let probes = |cfg: &BlockPushRecipe| Probes {
-                curves: None,
-                visits: Some(Box::new(Visits::<BlockPushEnv, Metrics>::new(
-                    &EnvConfig::default(),
-                    cfg.data.deploy_spec(),
-                    "block-push-visits",
-                ))),
+            let eval = |e: &Entry<'_, BlockPushRecipe>,
+                        trained,
+                        seed,
+                        first: bool,
+                        kept: &mut _,
+                        st: &mut _| {
+                evaluate(e, trained, seed, threads, dir, st, first.then_some(kept))
             };
-            let out = rollouts::train_and_evaluate(
-                ctx,
-                base,
-                &plan,
-                dir,
-                log,
-                &probes,
-                &mut eval,
-                &mut stages,
-            )?;
-            let entries = write_outputs(ctx, dir, base, out, curves, &mut stages)?;
-            if let Some(path) = tuning_log {
-                rollouts::append_tuning(path, entries)?;
-            }
-            Ok(())
+            let write = |out, kept, st: &mut _| write_outputs(ctx, dir, base, out, kept, st);
+            rollouts::run_plan(ctx, base, &plan, dir, log, tuning_log, &probes, eval, write)
         })
     }
 }
@@ -255,15 +244,12 @@ fn evaluate(
     curves: Option<&mut Vec<(String, Curves)>>,
 ) -> crate::Result<(Row, Windowed<TrainedPolicy>)> {
     let (label, cfg) = (&e.label, e.cfg);
+    let (spec, n) = (cfg.data.deploy_spec(), cfg.eval.rollouts);
+    let (wrapped, ev, eval_seconds) =
+        rollouts::roll_out(&mut trained, spec, label, seed, n, dir, stages, |w| {
+            Ok(cfg.eval.protocol().evaluate(w, seed, threads, false)?)
+        })?;
     let tag = format!("{label} s{seed}");
-    let wrapped = rollouts::deploy(&mut trained, cfg.data.deploy_spec())?;
-    let spin = crate::progress::spinner(&tag, &format!("{} rollouts", cfg.eval.rollouts));
-    let t0 = Instant::now();
-    let ev = cfg.eval.protocol().evaluate(&wrapped, seed, threads, false)?;
-    let eval_seconds = t0.elapsed().as_secs_f64();
-    stages.add("rollouts", eval_seconds);
-    spin.finish_and_clear();
-    rollouts::save_model(&trained, dir, label, seed)?;
     let m = &ev.metrics;
     crate::progress::log(format!(
         "[{tag}] success {:.3}, p1 {:.3}, entropy {:.3} (modes {:?}), trained in {:.1} s{}, evaluated in {:.1} s",

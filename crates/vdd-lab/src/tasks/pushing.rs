@@ -224,37 +224,26 @@ impl Task for Pushing {
         let resolved = recipe::resolve(&PushingRecipe::defaults()?, &ctx.file, &ctx.overrides)?;
         let base = &resolved.base;
         let plan = driver::plan(&ctx.registry, &resolved, "pushing", &ctx.overrides.sets)?;
+        let threads = base.eval.eval_threads();
+        let probes = |cfg: &PushingRecipe| Probes {
+            curves: None,
+            visits: Some(Box::new(Visits::<PushingEnv, Metrics>::new(
+                &EnvConfig::default(),
+                cfg.data.deploy_spec(),
+                "pushing-visits",
+            ))),
+        };
         rollouts::run_logged(ctx, &resolved, &plan, |dir, log, tuning_log| {
-            let mut stages = StageTimes::default();
-            let threads = base.eval.eval_threads();
-            let mut firsts = FirstSeed::default();
-            let mut eval =
-                |e: &Entry<'_, PushingRecipe>, trained, seed, first: bool, st: &mut _| {
-                    evaluate(e, trained, seed, threads, dir, st, first.then_some(&mut firsts))
-                };
-            let probes = |cfg: &PushingRecipe| Probes {
-                curves: None,
-                visits: Some(Box::new(Visits::<PushingEnv, Metrics>::new(
-                    &EnvConfig::default(),
-                    cfg.data.deploy_spec(),
-                    "pushing-visits",
-                ))),
+            let eval = |e: &Entry<'_, PushingRecipe>,
+                        trained,
+                        seed,
+                        first: bool,
+                        kept: &mut _,
+                        st: &mut _| {
+                evaluate(e, trained, seed, threads, dir, st, first.then_some(kept))
             };
-            let out = rollouts::train_and_evaluate(
-                ctx,
-                base,
-                &plan,
-                dir,
-                log,
-                &probes,
-                &mut eval,
-                &mut stages,
-            )?;
-            let entries = write_outputs(ctx, dir, base, out, firsts, &mut stages)?;
-            if let Some(path) = tuning_log {
-                rollouts::append_tuning(path, entries)?;
-            }
-            Ok(())
+            let write = |out, kept, st: &mut _| write_outputs(ctx, dir, base, out, kept, st);
+            rollouts::run_plan(ctx, base, &plan, dir, log, tuning_log, &probes, eval, write)
         })
     }
 }
@@ -280,17 +269,14 @@ fn evaluate(
     first: Option<&mut FirstSeed>,
 ) -> crate::Result<(Row, Windowed<TrainedPolicy>)> {
     let (label, cfg) = (&e.label, e.cfg);
-    let tag = format!("{label} s{seed}");
-    let wrapped = rollouts::deploy(&mut trained, cfg.data.deploy_spec())?;
     let protocol = cfg.eval.protocol();
-    let spin = crate::progress::spinner(&tag, &format!("{} rollouts", protocol.rollouts()));
     let record = first.is_some() && cfg.plots.enabled && cfg.plots.trajectories > 0;
-    let t0 = Instant::now();
-    let ev = protocol.evaluate(&wrapped, seed, threads, record)?;
-    let eval_seconds = t0.elapsed().as_secs_f64();
-    stages.add("rollouts", eval_seconds);
-    spin.finish_and_clear();
-    rollouts::save_model(&trained, dir, label, seed)?;
+    let (spec, n) = (cfg.data.deploy_spec(), protocol.rollouts());
+    let (wrapped, ev, eval_seconds) =
+        rollouts::roll_out(&mut trained, spec, label, seed, n, dir, stages, |w| {
+            Ok(protocol.evaluate(w, seed, threads, record)?)
+        })?;
+    let tag = format!("{label} s{seed}");
     let m = &ev.metrics;
     crate::progress::log(format!(
         "[{tag}] success {:.3}, p1 {:.3}, mean distance {:.4}, task entropy {:.3}, mode entropy {:.3} (modes {:?}), trained in {:.1} s{}, evaluated in {:.1} s",

@@ -180,6 +180,68 @@ pub(crate) fn append_tuning(path: &Path, entries: Vec<LogEntry>) -> crate::Resul
     Ok(())
 }
 
+/// The body of [`run_logged`] for a task: trains `plan` and evaluates each trained method with
+/// `evaluate` (`(entry, trained, run seed, first seed?, kept, stages)`; `kept` collects what the
+/// figures need), then `write_outputs(outcome, kept, stages)` writes the run's outputs and returns
+/// its tuning-log entries, which a tuning run (`tuning_log`: the log's path) appends to the log.
+#[allow(clippy::too_many_arguments)]
+pub(crate) fn run_plan<R: RolloutRecipe, K: Default>(
+    ctx: &RunContext,
+    base: &R,
+    plan: &[Entry<'_, R>],
+    dir: &Path,
+    log: &[LogEntry],
+    tuning_log: Option<&Path>,
+    probes: ProbesFor<'_, R>,
+    mut evaluate: impl FnMut(
+        &Entry<'_, R>,
+        Trained,
+        u64,
+        bool,
+        &mut K,
+        &mut StageTimes,
+    ) -> crate::Result<(Row, Windowed<TrainedPolicy>)>,
+    write_outputs: impl FnOnce(Outcome, K, &mut StageTimes) -> crate::Result<Vec<LogEntry>>,
+) -> crate::Result {
+    let mut stages = StageTimes::default();
+    let mut kept = K::default();
+    let mut eval = |e: &Entry<'_, R>, trained, seed, first, st: &mut StageTimes| {
+        evaluate(e, trained, seed, first, &mut kept, st)
+    };
+    let out = train_and_evaluate(ctx, base, plan, dir, log, probes, &mut eval, &mut stages)?;
+    let entries = write_outputs(out, kept, &mut stages)?;
+    if let Some(path) = tuning_log {
+        append_tuning(path, entries)?;
+    }
+    Ok(())
+}
+
+/// Deploys `trained` through `spec` ([`deploy`]), runs `rollouts` on the deployed policy (`n`
+/// rollouts, for the spinner `label s<seed>`) as the stage `rollouts`, and saves a mixture
+/// ([`save_model`]); returns the deployed policy, what `rollouts` returned and its seconds.
+#[allow(clippy::too_many_arguments)]
+pub(crate) fn roll_out<T>(
+    trained: &mut Trained,
+    spec: DeploySpec,
+    label: &str,
+    seed: u64,
+    n: usize,
+    dir: &Path,
+    stages: &mut StageTimes,
+    rollouts: impl FnOnce(&Windowed<TrainedPolicy>) -> crate::Result<T>,
+) -> crate::Result<(Windowed<TrainedPolicy>, T, f64)> {
+    let tag = format!("{label} s{seed}");
+    let wrapped = deploy(trained, spec)?;
+    let spin = crate::progress::spinner(&tag, &format!("{n} rollouts"));
+    let t0 = Instant::now();
+    let ev = rollouts(&wrapped)?;
+    let eval_seconds = t0.elapsed().as_secs_f64();
+    stages.add("rollouts", eval_seconds);
+    spin.finish_and_clear();
+    save_model(trained, dir, label, seed)?;
+    Ok((wrapped, ev, eval_seconds))
+}
+
 /// What [`train_and_evaluate`] gives the task's outputs.
 pub(crate) struct Outcome {
     /// One list of per-seed rows per plan entry.

@@ -207,27 +207,12 @@ fn run_plan(
     log: &[tuning::LogEntry],
     tuning_log: Option<&std::path::Path>,
 ) -> crate::Result {
-    let mut stages = StageTimes::default();
     let threads = base.eval.eval_threads();
-    let mut collected = Collected::default();
-    let mut eval = |e: &Entry<'_, AvoidingRecipe>, trained, seed, first, stages: &mut _| {
-        evaluate(e, trained, seed, first, threads, dir, &mut collected, stages)
+    let eval = |e: &Entry<'_, AvoidingRecipe>, trained, seed, first, kept: &mut _, st: &mut _| {
+        evaluate(e, trained, seed, first, threads, dir, kept, st)
     };
-    let out = rollouts::train_and_evaluate(
-        ctx,
-        base,
-        plan,
-        dir,
-        log,
-        &probes_of,
-        &mut eval,
-        &mut stages,
-    )?;
-    let entries = write_outputs(ctx, dir, base, out, collected, &mut stages)?;
-    if let Some(path) = tuning_log {
-        rollouts::append_tuning(path, entries)?;
-    }
-    Ok(())
+    let write = |out, kept, st: &mut _| write_outputs(ctx, dir, base, out, kept, st);
+    rollouts::run_plan(ctx, base, plan, dir, log, tuning_log, &probes_of, eval, write)
 }
 
 /// Rolls out one trained method on raw observations through the recipe's features and windows,
@@ -246,17 +231,14 @@ fn evaluate(
     stages: &mut StageTimes,
 ) -> crate::Result<(Row, Windowed<TrainedPolicy>)> {
     let (label, cfg) = (&e.label, e.cfg);
-    let tag = format!("{label} s{seed}");
-    let wrapped = rollouts::deploy(&mut trained, cfg.data.deploy_spec())?;
     let protocol = cfg.eval.protocol();
     let record = first_seed && cfg.plots.enabled;
-    let spin = crate::progress::spinner(&tag, &format!("{} rollouts", cfg.eval.rollouts));
-    let t0 = Instant::now();
-    let ev = protocol.evaluate(&wrapped, seed, threads, record)?;
-    let eval_seconds = t0.elapsed().as_secs_f64();
-    stages.add("rollouts", eval_seconds);
-    spin.finish_and_clear();
-    rollouts::save_model(&trained, dir, label, seed)?;
+    let (spec, n) = (cfg.data.deploy_spec(), cfg.eval.rollouts);
+    let (wrapped, ev, eval_seconds) =
+        rollouts::roll_out(&mut trained, spec, label, seed, n, dir, stages, |w| {
+            Ok(protocol.evaluate(w, seed, threads, record)?)
+        })?;
+    let tag = format!("{label} s{seed}");
 
     let m = &ev.metrics;
     crate::progress::log(format!(
