@@ -194,13 +194,7 @@ impl Task for BlockPush {
         given: &[(String, String)],
         o: &mut Overrides,
     ) -> Result<(), String> {
-        for (k, _) in given {
-            if k != "tuning" {
-                return Err(format!("option --{k} does not apply to task `block-push`"));
-            }
-            rollouts::apply_tuning(o);
-        }
-        Ok(())
+        given.iter().try_for_each(|(k, _)| rollouts::tuning_shorthand(self.name(), k, o))
     }
 
     fn run(&self, ctx: &RunContext) -> crate::Result {

@@ -211,13 +211,7 @@ impl Task for Pushing {
         given: &[(String, String)],
         o: &mut Overrides,
     ) -> Result<(), String> {
-        for (k, _) in given {
-            if k != "tuning" {
-                return Err(format!("option --{k} does not apply to task `pushing`"));
-            }
-            rollouts::apply_tuning(o);
-        }
-        Ok(())
+        given.iter().try_for_each(|(k, _)| rollouts::tuning_shorthand(self.name(), k, o))
     }
 
     fn run(&self, ctx: &RunContext) -> crate::Result {

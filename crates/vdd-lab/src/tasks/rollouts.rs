@@ -59,6 +59,16 @@ pub(crate) fn apply_tuning(o: &mut Overrides) {
     o.sets.insert(0, ("data.seed".into(), tuning::TUNING_DATA_SEED.to_string()));
 }
 
+/// The shorthand `--<key>` of a rollout task `task` whose only shorthand is `--tuning`
+/// ([`apply_tuning`]); any other is an error naming it and the task.
+pub(crate) fn tuning_shorthand(task: &str, key: &str, o: &mut Overrides) -> Result<(), String> {
+    if key != "tuning" {
+        return Err(format!("option --{key} does not apply to task `{task}`"));
+    }
+    apply_tuning(o);
+    Ok(())
+}
+
 /// The dataset of a run.
 pub(crate) struct Prepared {
     pub training: TrainingData,

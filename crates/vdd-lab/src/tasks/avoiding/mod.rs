@@ -176,10 +176,7 @@ impl Task for Avoiding {
                 o.methods.get_or_insert_with(|| vec!["teacher".into(), "vdd".into()]);
                 continue;
             }
-            if k != "tuning" {
-                return Err(format!("option --{k} does not apply to task `avoiding`"));
-            }
-            rollouts::apply_tuning(o);
+            rollouts::tuning_shorthand(self.name(), k, o)?;
         }
         Ok(())
     }
