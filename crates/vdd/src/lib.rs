@@ -83,7 +83,9 @@ pub use config::{
 };
 pub use error::VddError;
 pub use spaces::TeacherSpace;
-pub use trainer::{Convergence, DistillData, IterationMetrics, Resumable, ResumableOutcome, Vdd};
+pub use trainer::{
+    Convergence, DistillData, IterationMetrics, Resumable, ResumableOutcome, Selected, Vdd,
+};
 
 // The front door: everything a user of the trainer names, from one dependency.
 /// Exact Gaussian-mixture teachers ([`vdd_core::gmm`]), the robustness family among them.

@@ -19,7 +19,7 @@ pub use convergence::{
     CONVERGED_MISMATCH, Convergence, LATE_SHARE, PROBE_ACTIONS, PROBE_STATES, PROBES, RISE,
     probe_points,
 };
-pub use resumable::{Resumable, ResumableOutcome};
+pub use resumable::{Resumable, ResumableOutcome, Selected};
 
 use crate::spaces::{ActionMap, TeacherSpace, normalize_rows, same_map, with_map};
 

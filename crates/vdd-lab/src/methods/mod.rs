@@ -22,6 +22,7 @@ mod teacher;
 mod vdd;
 mod vdd_learned;
 mod vdd_oracle;
+mod vdd_selected;
 
 /// Every method, in the paper's table order, then the paper's own configurations beside ours
 /// (D3IL's BESO teacher and its rows, VDD-BESO with a learned gating, the authors' IMC).
@@ -43,6 +44,7 @@ pub static BUILTIN: &[&dyn Method] = &[
     &beso_d3il::VDD_BESO_D3IL,
     &imc::IMC_AUTHORS,
     &vdd_oracle::VddBesoOracle,
+    &vdd_selected::VddBesoSelected,
 ];
 
 #[cfg(test)]
@@ -78,7 +80,8 @@ mod tests {
         assert!(e.contains("not available on task `toy-gmm`"), "{e}");
         let all = parse_methods(&["all".into()], "avoiding").unwrap();
         let expected = "ddpm beso ddpm-1 beso-1 cd ctm em imc vdd-ddpm vdd-beso beso-d3il \
-                        beso-d3il-1 vdd-beso-learned vdd-beso-d3il imc-authors vdd-beso-oracle";
+                        beso-d3il-1 vdd-beso-learned vdd-beso-d3il imc-authors vdd-beso-oracle \
+                        vdd-beso-selected";
         assert_eq!(
             names(&all).join(" "),
             expected,

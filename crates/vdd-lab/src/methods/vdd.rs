@@ -200,7 +200,35 @@ impl Method for VddMethod {
     }
 
     fn train(&self, job: &Job<'_>) -> crate::Result<Trained> {
+        self.train_selecting(job, None)
+    }
+}
+
+/// The name under which the snapshot kept by checkpoint selection is cached, beside the
+/// final student of method `name` (same key).
+pub(super) fn selected_name(name: &str) -> String {
+    format!("{name}-selected")
+}
+
+/// The curve series holding the selected checkpoint: `(iteration, value)`.
+pub(super) const SELECTED_SERIES: &str = "selected checkpoint";
+
+impl VddMethod {
+    /// Trains (or loads) the student; with `select_by`, the row's policy is the snapshot with
+    /// the highest value of that curve series among the curves' checkpoints (the paper's
+    /// checkpoint selection, [`vdd::Resumable::select_by`]) instead of the final iterate, and
+    /// its curves gain [`SELECTED_SERIES`]. A training stores both in the student cache.
+    pub(super) fn train_selecting(
+        &self,
+        job: &Job<'_>,
+        select_by: Option<&str>,
+    ) -> crate::Result<Trained> {
         let (s, d, label) = (self.settings(&job.recipe)?, job.data, job.label);
+        if select_by.is_some() && job.curves.is_none() {
+            return Err("checkpoint selection needs curves over training, and this run takes \
+                        none (eval.curve_points = 0, or the task has no curves)"
+                .into());
+        }
         let vc = VddConfig { seed: job.seed, ..s.vdd.clone() };
         let teacher = self.0.teacher.map(|_| job.teacher()).transpose()?;
         let (sn, an) = match teacher {
@@ -241,7 +269,9 @@ impl Method for VddMethod {
             }
             _ => None,
         };
-        let hit = cache.as_ref().map(|(c, hash)| c.load(self.0.name, hash)).transpose()?.flatten();
+        let selected = selected_name(self.0.name);
+        let name = if select_by.is_some() { selected.as_str() } else { self.0.name };
+        let hit = cache.as_ref().map(|(c, hash)| c.load(name, hash)).transpose()?.flatten();
         let (trained, noise_level, curve_seconds) = match hit {
             Some(c) => {
                 crate::progress::log(format!("[{label}] student loaded from the cache"));
@@ -261,13 +291,13 @@ impl Method for VddMethod {
                     vdd::init_official(&mut student, vc.seed)?;
                 }
                 let key = format!("vdd.{}", self.1);
-                let (c, noise, curve_seconds) = match teacher {
-                    Some(t) => distill(vc, t.teacher.clone(), student, data, clip, job, &policy)
+                let run = DistillRun { clip_margin: clip, job, policy: &policy, select_by };
+                let (c, chosen, noise, curve_seconds) = match teacher {
+                    Some(t) => distill(vc, t.teacher.clone(), student, data, run)
                         .map_err(|e| e.context(key))?,
                     None => {
                         let exact = d.exact.clone().ok_or("the task has no exact teacher")?;
-                        distill(vc, exact, student, data, clip, job, &policy)
-                            .map_err(|e| e.context(key))?
+                        distill(vc, exact, student, data, run).map_err(|e| e.context(key))?
                     }
                 };
                 if let Some((cache, hash)) = &cache {
@@ -276,7 +306,20 @@ impl Method for VddMethod {
                     crate::progress::log(format!(
                         "[{label}] trained in {secs:.1} s; cached as {path}"
                     ));
+                    if let Some(chosen) = &chosen {
+                        cache.store(&selected, hash, chosen)?;
+                    }
                 }
+                let c = match (select_by, chosen) {
+                    (None, _) => c,
+                    (Some(_), Some(chosen)) => chosen,
+                    (Some(series), None) => {
+                        return Err(format!(
+                            "checkpoint selection by `{series}`: the run took no checkpoint"
+                        )
+                        .into());
+                    }
+                };
                 (c, Some(noise), curve_seconds)
             }
         };
@@ -360,12 +403,25 @@ fn fit_gating(
     Ok(student)
 }
 
+/// How [`distill`] runs, besides what it distils.
+struct DistillRun<'a> {
+    /// [`ClampedDenoiser::around_data`]'s margin (`None`: the raw score).
+    clip_margin: Option<f32>,
+    /// The job (checkpoints, curves, label).
+    job: &'a Job<'a>,
+    /// A snapshot of the student as a policy on raw states, for the curves over training.
+    policy: &'a dyn Fn(Moe) -> crate::Result<TrainedPolicy>,
+    /// [`vdd::Resumable::select_by`].
+    select_by: Option<&'a str>,
+}
+
 /// Seconds of VDD training between checkpoints.
 const CHECKPOINT_SECONDS: u64 = 10;
 
 /// Distils `teacher` into `student`, freshly initialised, with VDD (states and actions in
 /// the student's normalised space; the student initialised from the run seed `vc.seed`), with a
-/// progress bar and learning curves; also returns the mean noise level of the teacher queries
+/// progress bar and learning curves; also returns the snapshot `select_by` chose (with its
+/// point in [`SELECTED_SERIES`] of its curves), the mean noise level of the teacher queries
 /// and the seconds the curves over training took.
 ///
 /// The run is a [`Resumable`] one: it commits a checkpoint every [`CHECKPOINT_SECONDS`] of
@@ -377,18 +433,21 @@ fn distill<S: ScoreModel>(
     teacher: S,
     student: Moe,
     (states, actions): (Mat<f32>, Mat<f32>),
-    clip_margin: Option<f32>,
-    job: &Job<'_>,
-    policy: &dyn Fn(Moe) -> crate::Result<TrainedPolicy>,
-) -> crate::Result<(CachedStudent, f32, f64)> {
+    run: DistillRun<'_>,
+) -> crate::Result<(CachedStudent, Option<CachedStudent>, f32, f64)> {
+    let DistillRun { clip_margin, job, policy, select_by } = run;
     let teacher = match clip_margin {
         Some(m) => ClampedDenoiser::around_data(teacher, actions.as_ref(), m)?,
         None => ClampedDenoiser::unclamped(teacher),
     };
     let data = DistillData::new(states, Some(actions))?;
     let root = job.checkpoints.0.join(job.label.replace(' ', "-"));
-    let run =
-        Resumable { dir: &root, resume: job.checkpoints.1, every_seconds: CHECKPOINT_SECONDS };
+    let run = Resumable {
+        dir: &root,
+        resume: job.checkpoints.1,
+        every_seconds: CHECKPOINT_SECONDS,
+        select_by,
+    };
     let bar = crate::progress::bar(vc.iterations as u64, job.label);
     let report = |m: &vdd::IterationMetrics| {
         bar.set_position(m.iteration as u64 + 1);
@@ -400,8 +459,14 @@ fn distill<S: ScoreModel>(
     let out = run.run((vc, teacher, student, data), &mut probe, policy, report)?;
     bar.finish_and_clear();
     let _ = std::fs::remove_dir(job.checkpoints.0); // when empty
-    let ResumableOutcome { student, train_seconds, curves, mean_noise_level } = out;
-    Ok((CachedStudent { student, train_seconds, curves }, mean_noise_level, probe.seconds))
+    let ResumableOutcome { student, train_seconds, curves, mean_noise_level, selected } = out;
+    let chosen = selected.map(|c| {
+        let mut curves = curves.clone();
+        curves.insert(SELECTED_SERIES.to_owned(), vec![(c.iteration as f64, c.value)]);
+        CachedStudent { student: c.student, train_seconds, curves }
+    });
+    let last = CachedStudent { student, train_seconds, curves };
+    Ok((last, chosen, mean_noise_level, probe.seconds))
 }
 
 #[cfg(test)]

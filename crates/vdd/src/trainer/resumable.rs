@@ -25,6 +25,21 @@ pub struct Resumable<'a> {
     pub resume: bool,
     /// Seconds of training between commits (commits and curves are not training time).
     pub every_seconds: u64,
+    /// Checkpoint selection: keep the snapshot with the highest value of this series of the
+    /// probe's curves (e.g. held-out task entropy, as the paper's official code selects), in
+    /// [`ResumableOutcome::selected`]. `None`: keep nothing (the final iterate only).
+    pub select_by: Option<&'a str>,
+}
+
+/// The snapshot a [`Resumable::select_by`] run kept: the best of the probe's checkpoints.
+#[derive(Debug, Clone)]
+pub struct Selected {
+    /// The iterations done when it was taken.
+    pub iteration: usize,
+    /// Its value in the selection series.
+    pub value: f64,
+    /// The student then.
+    pub student: Moe,
 }
 
 /// What a [`Resumable::run`] returns.
@@ -40,6 +55,9 @@ pub struct ResumableOutcome {
     pub curves: Curves,
     /// The mean noise level the teacher was queried at.
     pub mean_noise_level: f32,
+    /// The snapshot kept by [`Resumable::select_by`] (`None` without it, or when the probe
+    /// took no checkpoint).
+    pub selected: Option<Selected>,
 }
 
 /// The file beside the trainer's in a generation: the curves, the noise levels' sum, the
@@ -48,6 +66,40 @@ const PROGRESS: &str = "progress.json";
 
 /// Largest `progress.json` read (the curves of a run; a real one has a few MB).
 const MAX_PROGRESS_BYTES: u64 = 1 << 30;
+
+/// The selected snapshot in a generation ([`Resumable::select_by`]): its iteration and value
+/// (`selected.json`) and the student (`selected.safetensors`).
+const SELECTED: (&str, &str) = ("selected.json", "selected.safetensors");
+
+/// Largest `selected.json` read.
+const MAX_SELECTED_BYTES: u64 = 1 << 16;
+
+/// Writes `best` into the generation `dir`.
+fn write_selected(dir: &Path, best: &Selected) -> Result<(), VddError> {
+    best.student.save(&dir.join(SELECTED.1))?;
+    let path = dir.join(SELECTED.0);
+    let json = serde_json::to_vec(&(best.iteration, best.value))
+        .map_err(|source| VddError::CheckpointFormat { path: path.clone(), source })?;
+    Ok(vdd_nn::io::write_atomic(&path, &json)?)
+}
+
+/// The selected snapshot of the generation `dir`, if it has one.
+fn read_selected(dir: &Path) -> Result<Option<Selected>, VddError> {
+    let path = dir.join(SELECTED.0);
+    if !path.is_file() {
+        return Ok(None);
+    }
+    let bytes = vdd_core::files::read_bounded(&path, MAX_SELECTED_BYTES)
+        .map_err(|source| VddError::CheckpointIo { path: path.clone(), source })?;
+    let (iteration, value): (usize, f64) = serde_json::from_slice(&bytes)
+        .map_err(|source| VddError::CheckpointFormat { path: path.clone(), source })?;
+    if !value.is_finite() {
+        let source = format!("selection value {value} is not finite").into();
+        return Err(VddError::CheckpointInvalid { path, what: "selected snapshot", source });
+    }
+    let student = Moe::load(&dir.join(SELECTED.1))?;
+    Ok(Some(Selected { iteration, value, student }))
+}
 
 impl Resumable<'_> {
     /// Distils `teacher` into `student` (freshly initialised) on `data` with `config`, or
@@ -69,7 +121,7 @@ impl Resumable<'_> {
     /// let teacher = GmmTeacher::fixed(Gmm::circle(2, 1.0, 0.5, 0.0)?, 1);
     /// let student = Moe::from_config(MoeConfig::toy(1, 2, 2), config.seed)?;
     /// let data = DistillData::from_states(Mat::zeros(4, 1))?;
-    /// let run = Resumable { dir: &dir, resume: false, every_seconds: 10 };
+    /// let run = Resumable { dir: &dir, resume: false, every_seconds: 10, select_by: None };
     /// // No curves over training: a probe without an evaluation.
     /// let mut probe = CurveProbe::<Moe, dyn CurveEval<Moe, Error = VddError>>::new(None, 0);
     /// let out = run.run((config, teacher, student, data), &mut probe, Ok::<_, VddError>, |_| {})?;
@@ -96,6 +148,7 @@ impl Resumable<'_> {
         }
         let iterations = config.iterations;
         let latest = store.latest().map_err(VddError::from)?;
+        let mut best: Option<Selected> = None;
         let (mut curves, mut noise_sum, mut train_seconds, mut vdd) = match latest {
             Some((_, generation)) => {
                 let path = generation.join(PROGRESS);
@@ -106,6 +159,9 @@ impl Resumable<'_> {
                         .map_err(|source| VddError::CheckpointFormat { path, source })?;
                 probe.seconds += curve_seconds; // the earlier sessions' curves
                 let vdd = Vdd::resume(&generation, teacher, data)?;
+                if self.select_by.is_some() {
+                    best = read_selected(&generation)?;
+                }
                 if vdd.config() != &config || vdd.student().config() != student.config() {
                     let source = "written with other settings or another student".into();
                     let what = "settings";
@@ -126,7 +182,15 @@ impl Resumable<'_> {
             let m = vdd.step()?;
             if at.contains(&vdd.iteration()) {
                 train_seconds += t0.elapsed().as_secs_f64();
-                probe.record(vdd.iteration(), &policy(vdd.snapshot()?)?)?;
+                let snapshot = vdd.snapshot()?;
+                let kept = self.select_by.map(|series| (series, snapshot.clone()));
+                probe.record(vdd.iteration(), &policy(snapshot)?)?;
+                if let Some((series, student)) = kept {
+                    let value = selection_value(probe, series)?;
+                    if best.as_ref().is_none_or(|b| value > b.value) {
+                        best = Some(Selected { iteration: vdd.iteration(), value, student });
+                    }
+                }
                 probe.take_into(&mut curves);
                 t0 = Instant::now(); // the curves are not training time
             }
@@ -149,6 +213,9 @@ impl Resumable<'_> {
                 let progress = (&curves, noise_sum, train_seconds, probe.seconds);
                 store.commit(vdd.iteration() as u64, |dir| -> Result<(), VddError> {
                     vdd.write_checkpoint(dir)?;
+                    if let Some(best) = &best {
+                        write_selected(dir, best)?;
+                    }
                     let path = dir.join(PROGRESS);
                     let json = serde_json::to_vec(&progress).map_err(|source| {
                         VddError::CheckpointFormat { path: path.clone(), source }
@@ -170,6 +237,30 @@ impl Resumable<'_> {
         }
         let mean_noise_level = (noise_sum / iterations.max(1) as f64) as f32;
         let student = vdd.into_student();
-        Ok(ResumableOutcome { student, train_seconds, curves, mean_noise_level })
+        Ok(ResumableOutcome { student, train_seconds, curves, mean_noise_level, selected: best })
+    }
+}
+
+/// The value `probe` just recorded in `series`, or an error naming the series it has.
+fn selection_value<P, C: ?Sized + CurveEval<P>>(
+    probe: &CurveProbe<'_, P, C>,
+    series: &str,
+) -> Result<f64, VddError> {
+    let value = probe.curves.get(series).and_then(|points| points.last()).map(|p| p.1);
+    match value {
+        Some(v) if v.is_finite() => Ok(v),
+        Some(v) => Err(vdd_core::CoreError::Config(format!(
+            "checkpoint selection: `{series}` is {v} at a checkpoint"
+        ))
+        .into()),
+        None => {
+            let names: Vec<&str> = probe.curves.keys().map(String::as_str).collect();
+            Err(vdd_core::CoreError::Config(format!(
+                "checkpoint selection: the curves over training have no series `{series}` \
+                 (they have: {})",
+                if names.is_empty() { "none".to_owned() } else { names.join(", ") }
+            ))
+            .into())
+        }
     }
 }

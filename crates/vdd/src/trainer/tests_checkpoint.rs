@@ -136,7 +136,7 @@ impl vdd_core::curves::CurveEval<Moe> for FailOnce {
 fn resumable(root: &Path, fail: bool, resume: bool) -> Result<ResumableOutcome, VddError> {
     let eval = FailOnce(fail.into());
     let mut probe = vdd_core::curves::CurveProbe::new(Some(&eval), 0);
-    let run = Resumable { dir: root, resume, every_seconds: 0 };
+    let run = Resumable { dir: root, resume, every_seconds: 0, select_by: None };
     run.run(small_run(6), &mut probe, Ok::<_, VddError>, |_| {})
 }
 
@@ -218,4 +218,69 @@ fn a_state_resume_would_refuse_is_not_committed() {
     resumed().save_checkpoint(&store).unwrap();
     drop(store);
     std::fs::remove_dir_all(&root).unwrap();
+}
+
+/// Scores the checkpoints 2, 4 and 6 with 1, 3 and 2 (the best in the middle; a resumed run
+/// starts at checkpoint `from`), and records each snapshot's parameter sum; fails at the
+/// third checkpoint when `fail` is set (a run killed after two).
+struct Scored {
+    calls: std::sync::atomic::AtomicUsize,
+    fail: bool,
+}
+
+fn sum(student: &Moe) -> f64 {
+    params(student).iter().flat_map(|(_, v)| v).map(|&p| f64::from(p)).sum()
+}
+
+impl vdd_core::curves::CurveEval<Moe> for Scored {
+    type Error = VddError;
+    fn checkpoints(&self, _iterations: usize) -> Vec<usize> {
+        vec![2, 4, 6]
+    }
+    fn evaluate(&self, student: &Moe, _: u64) -> Result<Vec<(String, f64)>, VddError> {
+        let call = self.calls.fetch_add(1, std::sync::atomic::Ordering::SeqCst);
+        if self.fail && call == 2 {
+            return Err(VddError::NonFinite { iteration: 6, quantity: "a test's curve" });
+        }
+        Ok(vec![("score".into(), [1.0, 3.0, 2.0][call]), ("sum".into(), sum(student))])
+    }
+}
+
+fn selecting(
+    root: &Path,
+    from: usize,
+    fail: bool,
+    series: &str,
+) -> Result<ResumableOutcome, VddError> {
+    let eval = Scored { calls: from.into(), fail };
+    let mut probe = vdd_core::curves::CurveProbe::new(Some(&eval), 0);
+    let run = Resumable { dir: root, resume: from > 0, every_seconds: 0, select_by: Some(series) };
+    run.run(small_run(6), &mut probe, Ok::<_, VddError>, |_| {})
+}
+
+#[test]
+fn checkpoint_selection_keeps_the_best_snapshot_and_survives_a_resume() {
+    let out = selecting(&temp("select"), 0, false, "score").unwrap();
+    let selected = out.selected.as_ref().expect("a snapshot was kept");
+    assert_eq!((selected.iteration, selected.value), (4, 3.0));
+    assert_eq!(sum(&selected.student), out.curves["sum"][1].1, "the snapshot of iteration 4");
+    assert_ne!(sum(&selected.student), sum(&out.student), "not the final iterate");
+    // Without selection nothing is kept, and the final student is the same.
+    let plain = resumable(&temp("select-none"), false, false).unwrap();
+    assert!(plain.selected.is_none());
+    assert_eq!(params(&plain.student), params(&out.student));
+    // Killed at the third checkpoint and resumed: the snapshot of iteration 4 is still kept.
+    let root = temp("select-killed");
+    assert!(selecting(&root, 0, true, "score").is_err());
+    let resumed = selecting(&root, 2, false, "score").unwrap();
+    let again = resumed.selected.expect("kept across the resume");
+    assert_eq!((again.iteration, again.value), (4, 3.0));
+    assert_eq!(params(&again.student), params(&selected.student));
+    assert_eq!(params(&resumed.student), params(&out.student));
+}
+
+#[test]
+fn checkpoint_selection_by_a_series_the_curves_lack_is_an_error_naming_them() {
+    let e = selecting(&temp("select-bad"), 0, false, "entropy").unwrap_err().to_string();
+    assert!(e.contains("`entropy`") && e.contains("score, sum"), "{e}");
 }
