@@ -8,9 +8,9 @@
 
 use std::time::Instant;
 
-use vdd_tasks::aligning::{AligningMode, EnvConfig};
-use vdd_tasks::aligning::oracle::{OracleConfig, AligningOracle};
+use vdd_tasks::aligning::oracle::{AligningOracle, OracleConfig};
 use vdd_tasks::aligning::rollout::{EvalConfig, Stepping, evaluate_parallel_with};
+use vdd_tasks::aligning::{AligningMode, EnvConfig};
 
 fn main() -> Result<(), Box<dyn std::error::Error>> {
     let (mut n, mut seed, mut threads) = (200usize, 0u64, 1usize);
@@ -50,12 +50,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     println!(
         "success {:.3}, mean distance {:.4}, mode entropy {:.3}, modes {:?}, \
          timeouts {}, faults {}",
-        m.success_rate,
-        m.mean_distance,
-        m.mode_entropy,
-        m.mode_counts,
-        m.timeouts,
-        m.faults
+        m.success_rate, m.mean_distance, m.mode_entropy, m.mode_counts, m.timeouts, m.faults
     );
     println!(
         "steps of successes: mean {:.1} / max {}; {:.1} µs per env step and thread",

@@ -54,8 +54,8 @@ use vdd_core::{CoreError, Rng, standard_normal};
 
 use super::rollout::episode_seed;
 use super::{
-    ACTION_DIM, AligningEnv, AligningMode, CONTROL_DT, EnvConfig, N_MODES, OBS_DIM,
-    PUSHER_RADIUS, TRAY_INNER_HALF, TRAY_OUTER_HALF, env_seed, wrap_angle,
+    ACTION_DIM, AligningEnv, AligningMode, CONTROL_DT, EnvConfig, N_MODES, OBS_DIM, PUSHER_RADIUS,
+    TRAY_INNER_HALF, TRAY_OUTER_HALF, env_seed, wrap_angle,
 };
 use crate::scripted::{Mode, Script, Scripted, collect};
 use crate::{Result, TaskError};
@@ -352,11 +352,8 @@ fn act(c: &OracleConfig, st: &mut EpisodeState, rng: &mut Rng, o: &[f32; OBS_DIM
     }
     let (cp, d) = contact(st.goal, inside, tray, yaw, u, e_yaw);
     // Inside, halfway between the tray's centre and the contact (clear of every wall).
-    let pre = if inside {
-        add_scaled(tray, sub(cp, tray), 0.5)
-    } else {
-        add_scaled(cp, d, -PRE_CONTACT)
-    };
+    let pre =
+        if inside { add_scaled(tray, sub(cp, tray), 0.5) } else { add_scaled(cp, d, -PRE_CONTACT) };
     // Resting on a wall top instead of the table: lift and try again.
     if matches!(st.phase, Phase::Move | Phase::Push) && o[5] > 0.5 * super::WALL_TOP {
         st.phase = Phase::Lift;

@@ -89,11 +89,7 @@ impl Env for AligningEnv {
     }
 
     fn info(&self) -> Outcome {
-        Outcome {
-            mode: self.mode(),
-            mean_distance: self.mean_distance(),
-            context: self.context(),
-        }
+        Outcome { mode: self.mode(), mean_distance: self.mean_distance(), context: self.context() }
     }
 
     fn start_of(config: &EnvConfig, seed: u64, episode: usize) -> u64 {
