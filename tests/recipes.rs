@@ -91,6 +91,24 @@ fn the_pushing_students_get_equal_budgets_in_the_default_and_the_quick_run() {
     }
 }
 
+/// So do the students of Aligning's (its defaults copy Pushing's budgets).
+#[test]
+fn the_aligning_students_get_equal_budgets_in_the_default_and_the_quick_run() {
+    for (quick, expected) in [(false, 7_680_000), (true, 1_536_000)] {
+        let t = recipe("aligning", "aligning", quick);
+        for key in [
+            "vdd.beso",
+            "vdd.ddpm",
+            "baselines.cd",
+            "baselines.ctm.base",
+            "baselines.em",
+            "baselines.imc",
+        ] {
+            assert_eq!(budget(&t, key), expected, "{key} (quick: {quick})");
+        }
+    }
+}
+
 /// The toy recipe runs the paper's configuration: VDD's and the student's library defaults
 /// for the toy ([`VddConfig::toy`], [`MoeConfig::toy`]), 5,000 data points and 100,000
 /// samples per KL estimate.

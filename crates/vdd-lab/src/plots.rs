@@ -1,6 +1,6 @@
 //! Figures, from `vdd-report`'s plots (see [`vdd_report::plots`]); this module adds what knows
 //! the tasks: Avoiding's scene and the panels built from its rollouts, Block-Push's
-//! demonstration figure, and Pushing's scene and mode-coloured panels.
+//! demonstration figure, and Pushing's and Aligning's scenes and mode-coloured panels.
 
 use std::path::Path;
 
@@ -203,27 +203,76 @@ pub fn pushing_panel(
     success_rate: f64,
     task_entropy: f64,
 ) -> vdd_report::plots::TrajectoryPanel {
-    use vdd_tasks::pushing::N_MODES;
+    mode_panel(label, paths, 2, vdd_tasks::pushing::N_MODES, (success_rate, task_entropy))
+}
+
+/// A panel of the effector's paths (observation columns `x_col`, `x_col + 1`, then the final
+/// observation's), each coloured by its mode index (`Some(0..n_modes)`) or by colour `n_modes`
+/// (a failure); `(success_rate, task_entropy)` go into its title.
+fn mode_panel(
+    label: &str,
+    paths: &[PushingPath<'_>],
+    x_col: usize,
+    n_modes: usize,
+    (success_rate, task_entropy): (f64, f64),
+) -> vdd_report::plots::TrajectoryPanel {
     let mut out = vdd_report::plots::TrajectoryPanel {
         label: label.to_owned(),
         paths: Vec::with_capacity(paths.len()),
         success: Vec::with_capacity(paths.len()),
-        experts: Some((Vec::with_capacity(paths.len()), N_MODES + 1)),
+        experts: Some((Vec::with_capacity(paths.len()), n_modes + 1)),
         success_rate,
         task_entropy,
     };
     for (o, last, mode) in paths {
-        let mut p: Vec<(f32, f32)> = (0..o.nrows()).map(|t| (o[(t, 2)], o[(t, 3)])).collect();
-        if let Some(f) = last.filter(|f| f.len() > 3) {
-            p.push((f[2], f[3]));
+        let mut p: Vec<(f32, f32)> =
+            (0..o.nrows()).map(|t| (o[(t, x_col)], o[(t, x_col + 1)])).collect();
+        if let Some(f) = last.filter(|f| f.len() > x_col + 1) {
+            p.push((f[x_col], f[x_col + 1]));
         }
         if let Some((ids, _)) = &mut out.experts {
-            ids.push(vec![mode.unwrap_or(N_MODES).min(N_MODES); p.len()]);
+            ids.push(vec![mode.unwrap_or(n_modes).min(n_modes); p.len()]);
         }
         out.paths.push(p);
         out.success.push(mode.is_some());
     }
     out
+}
+
+/// The Aligning scene: the effector's start and the region of the tray's starts and targets
+/// (the targets are drawn per episode, so no zone is drawn).
+pub fn aligning_scene() -> Scene {
+    use vdd_tasks::aligning::EFFECTOR_START;
+    Scene {
+        x_range: (0.25, 0.80),
+        y_range: (-0.42, 0.45),
+        finish_y: None,
+        obstacles: vec![],
+        zones: vec![],
+        start: Some((EFFECTOR_START[0], EFFECTOR_START[1])),
+        legend: (0.26, 0.44),
+    }
+}
+
+/// One panel of the Aligning trajectory figure: the rod's paths (observation columns 3–4, then
+/// the final observation) of `paths` (`T x 14` observations), coloured by mode index (0 inside,
+/// 1 outside) or, for a failure, by colour 2.
+pub fn aligning_panel(
+    label: &str,
+    paths: &[PushingPath<'_>],
+    success_rate: f64,
+    task_entropy: f64,
+) -> vdd_report::plots::TrajectoryPanel {
+    mode_panel(label, paths, 3, vdd_tasks::aligning::N_MODES, (success_rate, task_entropy))
+}
+
+/// Writes the Aligning trajectory figure `stem.svg` / `stem.png` (one panel per entry).
+pub fn aligning_trajectories(
+    stem: &Path,
+    panels: &[vdd_report::plots::TrajectoryPanel],
+    png: bool,
+) -> vdd_report::Result<Vec<String>> {
+    trajectories(stem, &aligning_scene(), panels, png)
 }
 
 /// Writes the Pushing trajectory figure `stem.svg` / `stem.png` (one panel per entry).

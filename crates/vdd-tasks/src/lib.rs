@@ -22,6 +22,11 @@
 //!   effector position), rollouts with success, p1, mean distance, task entropy per test context
 //!   over the 4 modes and mode histogram ([`pushing::rollout`]), and a scripted demonstrator
 //!   with human-like noise ([`pushing::oracle`]);
+//! * [`aligning`]: D3IL Aligning on `rapier2d`: the environment ([`aligning::AligningEnv`]: a
+//!   rod with a simulated height that pushes an open tray to a random target pose from inside
+//!   or outside it), rollouts with success, mean distance, task entropy per test context over
+//!   the 2 modes ([`aligning::rollout`]), and a scripted demonstrator with human-like noise
+//!   ([`aligning::oracle`]);
 //! * [`timing`]: µs per action of policies timed together ([`timing::us_per_action`]).
 //!
 //! Errors are [`TaskError`]; shape and finiteness violations found by the `vdd_core` helpers are
@@ -44,6 +49,7 @@
 //! ```
 #![warn(missing_docs)]
 
+pub mod aligning;
 pub mod avoiding;
 pub mod block_push;
 pub mod demo_data;

@@ -10,6 +10,7 @@
 
 use crate::task::Task;
 
+mod aligning;
 mod avoiding;
 mod block_push;
 mod pushing;
@@ -17,6 +18,7 @@ mod rollouts;
 mod toy;
 mod toy_eval;
 
+pub use aligning::{AligningRecipe, COLUMNS as ALIGNING_COLUMNS};
 pub use avoiding::{AvoidingRecipe, COLUMNS as AVOIDING_COLUMNS};
 pub use block_push::{BlockPushRecipe, COLUMNS as BLOCK_PUSH_COLUMNS};
 pub use pushing::{COLUMNS as PUSHING_COLUMNS, PushingRecipe};
@@ -29,4 +31,5 @@ pub static BUILTIN: &[&dyn Task] = &[
     &toy::TOY_CONDITIONAL,
     &block_push::BlockPush,
     &pushing::Pushing,
+    &aligning::Aligning,
 ];

@@ -88,7 +88,9 @@
 //! ```
 
 use rand::Rng as _;
-use rapier2d::prelude::{ColliderBuilder, PhysicsWorld, RigidBodyBuilder, RigidBodyHandle, Vector};
+use rapier2d::prelude::{
+    ColliderBuilder, PhysicsWorld, RigidBody, RigidBodyBuilder, RigidBodyHandle, Vector,
+};
 use serde::{Deserialize, Serialize};
 use vdd_core::Seeds;
 
@@ -541,23 +543,11 @@ impl PushingEnv {
         let dt = CONTROL_DT / p.substeps as f32;
         let (max_move, dv, dw) = (p.pusher_speed * dt, p.friction_decel * dt, p.spin_decel * dt);
         for _ in 0..p.substeps {
-            let d = [self.desired[0] - self.pusher_xy[0], self.desired[1] - self.pusher_xy[1]];
-            let n = d[0].hypot(d[1]);
-            self.pusher_xy = if n > max_move {
-                [self.pusher_xy[0] + d[0] * max_move / n, self.pusher_xy[1] + d[1] * max_move / n]
-            } else {
-                self.desired
-            };
+            self.pusher_xy = servo(self.pusher_xy, self.desired, max_move);
             let next = Vector::new(self.pusher_xy[0], self.pusher_xy[1]);
             self.world.bodies[self.pusher].set_next_kinematic_translation(next);
             for &h in &self.boxes {
-                let b = &mut self.world.bodies[h];
-                let v = b.linvel();
-                let s = v.length();
-                let v = if s > dv { v * (1.0 - dv / s) } else { Vector::ZERO };
-                b.set_linvel(v, true);
-                let w = b.angvel();
-                b.set_angvel(if w.abs() > dw { w - dw * w.signum() } else { 0.0 }, true);
+                table_friction(&mut self.world.bodies[h], dv, dw);
             }
             self.world.step();
         }
@@ -601,11 +591,7 @@ fn build_world(
     p: &PhysicsConfig,
     start: &StartState,
 ) -> (PhysicsWorld, [RigidBodyHandle; 2], RigidBodyHandle) {
-    let mut world = PhysicsWorld::new();
-    world.gravity = Vector::ZERO;
-    world.integration_parameters.dt = CONTROL_DT / p.substeps as f32;
-    // Tolerances (allowed penetration, prediction distance) scale with the length unit.
-    world.integration_parameters.length_unit = BOX_SIZE;
+    let mut world = planar_world(CONTROL_DT / p.substeps as f32, BOX_SIZE);
     let half = BOX_SIZE / 2.0;
     let boxes = start.boxes.map(|[x, y, yaw]| {
         let body = RigidBodyBuilder::dynamic()
@@ -623,6 +609,36 @@ fn build_world(
     let collider = ColliderBuilder::ball(PUSHER_RADIUS).friction(p.contact_friction);
     let pusher = world.insert(body, collider).0;
     (world, boxes, pusher)
+}
+
+/// A fresh top-down world: zero gravity, physics step `dt`, and the tolerances (allowed
+/// penetration, prediction distance) scaled to `length_unit` (shared with
+/// [`crate::aligning`]).
+pub(crate) fn planar_world(dt: f32, length_unit: f32) -> PhysicsWorld {
+    let mut world = PhysicsWorld::new();
+    world.gravity = Vector::ZERO;
+    world.integration_parameters.dt = dt;
+    world.integration_parameters.length_unit = length_unit;
+    world
+}
+
+/// One substep of the pusher's position servo: `at` moved straight towards `desired` by at
+/// most `max_move` (shared with [`crate::aligning`]).
+pub(crate) fn servo(at: [f32; 2], desired: [f32; 2], max_move: f32) -> [f32; 2] {
+    let d = [desired[0] - at[0], desired[1] - at[1]];
+    let n = d[0].hypot(d[1]);
+    if n > max_move { [at[0] + d[0] * max_move / n, at[1] + d[1] * max_move / n] } else { desired }
+}
+
+/// The table's sliding friction on a body for one substep: its speed reduced by `dv` and its
+/// spin by `dw`, never reversed (shared with [`crate::aligning`]).
+pub(crate) fn table_friction(b: &mut RigidBody, dv: f32, dw: f32) {
+    let v = b.linvel();
+    let s = v.length();
+    let v = if s > dv { v * (1.0 - dv / s) } else { Vector::ZERO };
+    b.set_linvel(v, true);
+    let w = b.angvel();
+    b.set_angvel(if w.abs() > dw { w - dw * w.signum() } else { 0.0 }, true);
 }
 
 /// Pushing's per-episode start seed for demonstrations: the start of episode `episode` of a

@@ -1,0 +1,114 @@
+//! The Aligning recipe end to end on a tiny budget (a few demonstrations, a few dozen training
+//! steps, 2 contexts × 2 rollouts): data, the BESO teacher, VDD-BESO and EM, the rollouts of
+//! `vdd_tasks::aligning::EvalProtocol`, the timing, `metrics.json`, `table.md`, the mode
+//! histograms and the mode-coloured trajectory figure, and a tuning run appending to its log.
+
+use std::path::{Path, PathBuf};
+
+use vdd_lab::Registry;
+use vdd_lab::experiment::{Request, run_with};
+
+/// A fresh project root with the recipe `tiny.toml` in `recipes/`.
+fn root(tag: &str) -> PathBuf {
+    let dir = std::env::temp_dir().join(format!("vdd-lab-align-{tag}-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&dir);
+    std::fs::create_dir_all(dir.join("recipes")).unwrap();
+    std::fs::create_dir_all(dir.join("docs")).unwrap();
+    std::fs::write(dir.join("recipes/tiny.toml"), TINY).unwrap();
+    dir
+}
+
+const TINY: &str = r#"
+name = "tiny"
+task = "aligning"
+description = "Aligning on a tiny budget"
+seeds = [0]
+methods = ["beso", "vdd-beso", "em"]
+
+[data]
+demonstrations = 3
+validation_fraction = 0.0
+
+[teachers.beso.train]
+steps = 30
+batch_size = 32
+log_every = 10
+
+[vdd.beso]
+iterations = 30
+batch_size = 8
+
+[baselines.em]
+iterations = 2
+expert_steps_per_iter = 3
+gating_steps_per_iter = 3
+
+[eval]
+contexts = 2
+rollouts_per_context = 2
+lockstep_batch = 4
+timing_calls = 20
+timing_warmup = 2
+timing_min_round_ms = 0.1
+
+[plots]
+png = false
+trajectories = 2
+"#;
+
+fn run(root: &Path, out: &Path, tuning: bool) -> vdd_lab::Result {
+    let shorthands = if tuning { vec![("tuning".into(), "true".into())] } else { Vec::new() };
+    let overrides =
+        vdd_lab::recipe::Overrides { seeds: tuning.then(|| vec![100]), ..Default::default() };
+    let request = Request {
+        recipe: "tiny".into(),
+        overrides,
+        shorthands,
+        out: Some(out.to_owned()),
+        command: "tests/aligning_run.rs".into(),
+        root: Some(root.to_owned()),
+        ..Default::default()
+    };
+    run_with(&Registry::builtin(), &request)
+}
+
+#[test]
+fn a_tiny_aligning_run_writes_its_metrics_and_a_tuning_run_its_log() {
+    let root = root("run");
+    let out = root.join("results/tiny");
+    run(&root, &out, false).unwrap();
+    let metrics: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(out.join("metrics.json")).unwrap()).unwrap();
+    assert_eq!(metrics["task"], "aligning");
+    let text = metrics.to_string();
+    for method in ["beso", "vdd-beso", "em"] {
+        assert!(text.contains(&format!("\"{method}\"")), "{method} missing: {text}");
+    }
+    for key in [
+        "success_rate",
+        "mean_distance",
+        "task_entropy",
+        "mode_entropy",
+        "us_per_action",
+        "mode_counts",
+        "dataset_mode_counts",
+    ] {
+        assert!(text.contains(key), "{key} missing: {text}");
+    }
+    let table = std::fs::read_to_string(out.join("table.md")).unwrap();
+    assert!(table.contains("| vdd-beso | 1 |") && table.contains("task entropy"), "{table}");
+    assert!(out.join("models/vdd-beso-s0.safetensors").is_file());
+    let modes = std::fs::read_to_string(out.join("modes.svg")).unwrap();
+    assert!(modes.contains("demonstrations"), "the demonstrations' histogram is missing");
+    let traj = std::fs::read_to_string(out.join("trajectories.svg")).unwrap();
+    for panel in ["demonstrations", "beso", "vdd-beso", "em"] {
+        assert!(traj.contains(&format!("{panel}: success")), "panel {panel} missing");
+    }
+
+    let tuning_out = root.join("results/tuning-tiny");
+    run(&root, &tuning_out, true).unwrap();
+    let log = vdd_lab::tuning::read_log(&root.join("docs/aligning-tuning-log.toml")).unwrap();
+    assert_eq!(log.len(), 3);
+    assert!(log.iter().all(|e| e.seeds == [100] && e.success_rate.len() == 1));
+    std::fs::remove_dir_all(&root).unwrap();
+}
