@@ -97,7 +97,19 @@ fn a_tiny_aligning_run_writes_its_metrics_and_a_tuning_run_its_log() {
     }
     let table = std::fs::read_to_string(out.join("table.md")).unwrap();
     assert!(table.contains("| vdd-beso | 1 |") && table.contains("task entropy"), "{table}");
-    assert!(out.join("models/vdd-beso-s0.safetensors").is_file());
+    // The saved student acts on raw observations and gives the run's figures bit for bit
+    // (what `rollout_saved --task aligning --contexts 2 --rollouts 2 --lockstep-batch 4` prints).
+    let saved = vdd_moe::load_policy(&out.join("models/vdd-beso-s0.safetensors")).unwrap();
+    let protocol = vdd_tasks::aligning::EvalProtocol {
+        contexts: 2,
+        rollouts_per_context: 2,
+        lockstep_batch: 4,
+    };
+    let m = protocol.evaluate(&saved, 0, 2, false).unwrap().metrics;
+    let row = &metrics["methods"]["vdd-beso"]["per_seed"][0];
+    assert_eq!(row["success_rate"], serde_json::json!(m.success_rate), "{row}");
+    assert_eq!(row["task_entropy"], serde_json::json!(m.task_entropy), "{row}");
+    assert_eq!(row["mean_distance"], serde_json::json!(m.mean_distance), "{row}");
     let modes = std::fs::read_to_string(out.join("modes.svg")).unwrap();
     assert!(modes.contains("demonstrations"), "the demonstrations' histogram is missing");
     let traj = std::fs::read_to_string(out.join("trajectories.svg")).unwrap();

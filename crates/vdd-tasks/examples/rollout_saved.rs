@@ -1,10 +1,11 @@
-//! Rolls out a saved policy of a task (Avoiding, the default, or Block-Push) on the
+//! Rolls out a saved policy of a task (Avoiding, the default, Block-Push, Pushing or Aligning) on the
 //! environment's raw observations and prints one JSON line with its success rate and task
-//! entropy (and, on Block-Push, p1).
+//! entropy (and p1 on Block-Push and Pushing, the mean distance on Pushing and Aligning).
 //!
 //! ```text
 //! cargo run --release -p vdd-tasks --example rollout_saved -- MODEL [--task TASK] [--seed S]
-//!     [--rollouts N] [--lockstep-batch B] [--threads T] [--hold K] [--greedy] [--temperature T]
+//!     [--rollouts N] [--contexts C] [--lockstep-batch B] [--threads T] [--hold K] [--greedy]
+//!     [--temperature T]
 //! ```
 //!
 //! `MODEL` is a mixture saved by `Moe::save`, e.g. a recipe's
@@ -13,7 +14,8 @@
 //! normalisers, the act mode and the deployment spec (observation features, window, chunk). The
 //! evaluation is the recipe's ([`EvalProtocol`]; Block-Push's is
 //! `vdd_tasks::block_push::EvalProtocol`): with the run seed `S` (default 0), `N` rollouts
-//! (default: the task's, 500 on Avoiding and 200 on Block-Push; `--quick` recipes use fewer)
+//! (default: the task's, 500 on Avoiding and 200 on Block-Push; on Pushing and Aligning, D3IL's
+//! `C` contexts × `N` rollouts each, default 30 × 16 and 60 × 8; `--quick` recipes use fewer)
 //! and the recipe's lockstep batch (default 50) it prints the recipe's figures for that student
 //! bit for bit. Threads (default: every
 //! core) do not change the figures. `--hold K` replaces the saved act mode's
@@ -34,14 +36,15 @@ struct Args {
     task: String,
     seed: u64,
     rollouts: Option<usize>,
-    lockstep_batch: usize,
+    contexts: Option<usize>,
+    lockstep_batch: Option<usize>,
     threads: usize,
     hold: Option<u32>,
     greedy: bool,
     temperature: Option<f32>,
 }
 
-const USAGE: &str = "usage: rollout_saved MODEL [--task avoiding|block-push] [--seed S] [--rollouts N] [--lockstep-batch B] [--threads T] \
+const USAGE: &str = "usage: rollout_saved MODEL [--task avoiding|block-push|pushing|aligning] [--seed S] [--rollouts N] [--contexts C] [--lockstep-batch B] [--threads T] \
      [--hold K] [--greedy] [--temperature T]";
 
 fn parse() -> Result<Args, String> {
@@ -49,7 +52,8 @@ fn parse() -> Result<Args, String> {
     let mut seed = 0;
     let mut task = "avoiding".to_owned();
     let mut rollouts = None;
-    let mut lockstep_batch = EvalProtocol::default().lockstep_batch;
+    let mut contexts = None;
+    let mut lockstep_batch = None;
     let mut threads = std::thread::available_parallelism().map_or(1, |n| n.get());
     let mut hold = None;
     let mut greedy = false;
@@ -64,7 +68,8 @@ fn parse() -> Result<Args, String> {
             "--seed" => seed = value("--seed")?,
             "--task" => task = args.next().ok_or("--task needs a value")?,
             "--rollouts" => rollouts = Some(value("--rollouts")? as usize),
-            "--lockstep-batch" => lockstep_batch = value("--lockstep-batch")? as usize,
+            "--contexts" => contexts = Some(value("--contexts")? as usize),
+            "--lockstep-batch" => lockstep_batch = Some(value("--lockstep-batch")? as usize),
             "--threads" => threads = value("--threads")? as usize,
             "--hold" => hold = Some(u32::try_from(value("--hold")?).map_err(|e| e.to_string())?),
             "--greedy" => greedy = true,
@@ -79,7 +84,18 @@ fn parse() -> Result<Args, String> {
         }
     }
     let model = model.ok_or_else(|| USAGE.to_owned())?;
-    Ok(Args { model, task, seed, rollouts, lockstep_batch, threads, hold, greedy, temperature })
+    Ok(Args {
+        model,
+        task,
+        seed,
+        rollouts,
+        contexts,
+        lockstep_batch,
+        threads,
+        hold,
+        greedy,
+        temperature,
+    })
 }
 
 fn run() -> Result<(), Box<dyn std::error::Error>> {
@@ -94,12 +110,17 @@ fn run() -> Result<(), Box<dyn std::error::Error>> {
     let hold_steps = args.hold.unwrap_or(saved.hold_steps);
     let greedy_gating = args.greedy || saved.greedy_gating;
     moe.set_act_mode(vdd_moe::ActMode { hold_steps, greedy_gating, ..saved });
-    let (seed, threads, lockstep_batch) = (args.seed, args.threads, args.lockstep_batch);
+    let (seed, threads) = (args.seed, args.threads);
+    if args.contexts.is_some() && !matches!(args.task.as_str(), "pushing" | "aligning") {
+        return Err(format!("--contexts is for --task pushing and aligning\n{USAGE}").into());
+    }
     // Numbers as serde_json writes them (as in the recipe's metrics.json), keys in this order.
     let json = |x: &f64| serde_json::to_string(x);
     match args.task.as_str() {
         "avoiding" => {
-            let rollouts = args.rollouts.unwrap_or(EvalProtocol::default().rollouts);
+            let d = EvalProtocol::default();
+            let rollouts = args.rollouts.unwrap_or(d.rollouts);
+            let lockstep_batch = args.lockstep_batch.unwrap_or(d.lockstep_batch);
             let protocol = EvalProtocol { rollouts, lockstep_batch };
             let m = protocol.evaluate(&policy, seed, threads, false)?.metrics;
             println!(
@@ -111,13 +132,48 @@ fn run() -> Result<(), Box<dyn std::error::Error>> {
         }
         "block-push" => {
             use vdd_tasks::block_push::EvalProtocol as BlockPush;
-            let rollouts = args.rollouts.unwrap_or(BlockPush::default().rollouts);
+            let d = BlockPush::default();
+            let rollouts = args.rollouts.unwrap_or(d.rollouts);
+            let lockstep_batch = args.lockstep_batch.unwrap_or(d.lockstep_batch);
             let protocol = BlockPush { rollouts, lockstep_batch };
             let m = protocol.evaluate(&policy, seed, threads, false)?.metrics;
             println!(
                 r#"{{"success_rate": {}, "p1_rate": {}, "task_entropy": {}, "rollouts": {}}}"#,
                 json(&m.success_rate)?,
                 json(&m.p1_rate)?,
+                json(&m.task_entropy)?,
+                m.rollouts
+            );
+        }
+        "pushing" => {
+            let d = vdd_tasks::pushing::EvalProtocol::default();
+            let protocol = vdd_tasks::pushing::EvalProtocol {
+                contexts: args.contexts.unwrap_or(d.contexts),
+                rollouts_per_context: args.rollouts.unwrap_or(d.rollouts_per_context),
+                lockstep_batch: args.lockstep_batch.unwrap_or(d.lockstep_batch),
+            };
+            let m = protocol.evaluate(&policy, seed, threads, false)?.metrics;
+            println!(
+                r#"{{"success_rate": {}, "p1_rate": {}, "mean_distance": {}, "task_entropy": {}, "rollouts": {}}}"#,
+                json(&m.success_rate)?,
+                json(&m.p1_rate)?,
+                json(&m.mean_distance)?,
+                json(&m.task_entropy)?,
+                m.rollouts
+            );
+        }
+        "aligning" => {
+            let d = vdd_tasks::aligning::EvalProtocol::default();
+            let protocol = vdd_tasks::aligning::EvalProtocol {
+                contexts: args.contexts.unwrap_or(d.contexts),
+                rollouts_per_context: args.rollouts.unwrap_or(d.rollouts_per_context),
+                lockstep_batch: args.lockstep_batch.unwrap_or(d.lockstep_batch),
+            };
+            let m = protocol.evaluate(&policy, seed, threads, false)?.metrics;
+            println!(
+                r#"{{"success_rate": {}, "mean_distance": {}, "task_entropy": {}, "rollouts": {}}}"#,
+                json(&m.success_rate)?,
+                json(&m.mean_distance)?,
                 json(&m.task_entropy)?,
                 m.rollouts
             );

@@ -28,7 +28,7 @@ use crate::method::{Budget, Capability, Info, Job, Method, MethodRecipe, Trained
 use crate::policy::TrainedPolicy;
 use crate::recipe;
 use crate::teachers;
-use vdd_moe::cache::{CachedStudent, STUDENT_CACHE_VERSION};
+use vdd_moe::cache::{CachedStudent, STUDENT_CACHE_VERSION, StudentCache};
 
 /// VDD distilling one teacher, with the key of its settings below `vdd`.
 pub struct VddMethod(pub(super) Info, pub(super) &'static str);
@@ -205,9 +205,22 @@ impl Method for VddMethod {
 }
 
 /// The name under which the snapshot kept by checkpoint selection is cached, beside the
-/// final student of method `name` (same key).
+/// final student of method `name`.
 pub(super) fn selected_name(name: &str) -> String {
     format!("{name}-selected")
+}
+
+/// The series checkpoint selection maximises unless told otherwise (`vdd.select_by`): the
+/// held-out task entropy, as the official code selects.
+pub(super) const DEFAULT_SELECTION: &str = "held-out task entropy";
+
+/// The cache key of the snapshot selected by `series` from the training of key `hash`: the
+/// training's own for the default series, one derived from both otherwise.
+fn selected_key(hash: &str, series: &str) -> crate::Result<String> {
+    if series == DEFAULT_SELECTION {
+        return Ok(hash.to_owned());
+    }
+    Ok(recipe::config_hash(&json!({ "training": hash, "select_by": series }))?)
 }
 
 /// The curve series holding the selected checkpoint: `(iteration, value)`.
@@ -270,8 +283,13 @@ impl VddMethod {
             _ => None,
         };
         let selected = selected_name(self.0.name);
-        let name = if select_by.is_some() { selected.as_str() } else { self.0.name };
-        let hit = cache.as_ref().map(|(c, hash)| c.load(name, hash)).transpose()?.flatten();
+        let lookup = |c: &StudentCache<'_>, hash: &str| -> crate::Result<_> {
+            Ok(match select_by {
+                Some(series) => c.load(&selected, &selected_key(hash, series)?)?,
+                None => c.load(self.0.name, hash)?,
+            })
+        };
+        let hit = cache.as_ref().map(|(c, hash)| lookup(c, hash)).transpose()?.flatten();
         let (trained, noise_level, curve_seconds) = match hit {
             Some(c) => {
                 crate::progress::log(format!("[{label}] student loaded from the cache"));
@@ -306,8 +324,8 @@ impl VddMethod {
                     crate::progress::log(format!(
                         "[{label}] trained in {secs:.1} s; cached as {path}"
                     ));
-                    if let Some(chosen) = &chosen {
-                        cache.store(&selected, hash, chosen)?;
+                    if let (Some(chosen), Some(series)) = (&chosen, select_by) {
+                        cache.store(&selected, &selected_key(hash, series)?, chosen)?;
                     }
                 }
                 let c = match (select_by, chosen) {
@@ -474,6 +492,15 @@ mod tests {
     use super::*;
     use crate::recipe;
     use crate::tasks::AvoidingRecipe;
+
+    #[test]
+    fn a_selection_by_another_series_has_a_cache_key_of_its_own() {
+        assert_eq!(selected_key("abc", DEFAULT_SELECTION).unwrap(), "abc");
+        let other = selected_key("abc", "held-out success rate").unwrap();
+        assert_ne!(other, "abc");
+        assert_eq!(other, selected_key("abc", "held-out success rate").unwrap());
+        assert_ne!(other, selected_key("abd", "held-out success rate").unwrap());
+    }
 
     #[test]
     fn a_rows_own_number_of_experts_reaches_its_student() {

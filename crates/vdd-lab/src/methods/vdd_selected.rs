@@ -20,9 +20,6 @@ pub struct VddBesoSelected;
 /// The key naming the selection's curve series.
 const SELECT_BY: &str = "vdd.select_by";
 
-/// The series the official code selects by.
-const DEFAULT_SERIES: &str = "held-out task entropy";
-
 const INFO: Info = Info {
     name: "vdd-beso-selected",
     teacher: Some(TeacherKind::Beso),
@@ -32,7 +29,9 @@ const INFO: Info = Info {
 };
 
 fn series(recipe: &MethodRecipe<'_>) -> crate::Result<String> {
-    Ok(recipe.get_opt::<String>(SELECT_BY)?.unwrap_or_else(|| DEFAULT_SERIES.to_owned()))
+    Ok(recipe
+        .get_opt::<String>(SELECT_BY)?
+        .unwrap_or_else(|| super::vdd::DEFAULT_SELECTION.to_owned()))
 }
 
 impl Method for VddBesoSelected {
