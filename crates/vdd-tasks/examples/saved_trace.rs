@@ -18,13 +18,16 @@ use std::process::ExitCode;
 use vdd_core::Policy;
 use vdd_tasks::episodes::Env;
 
+/// Observations and actions of an episode, step by step.
+type Trace = (Vec<Vec<f32>>, Vec<Vec<f32>>);
+
 /// One episode of `policy` in `E` from `seed`: observations and actions, at most `steps`.
 fn record<E: Env>(
     config: &E::Config,
     policy: &mut impl Policy,
     seed: u64,
     steps: usize,
-) -> Result<(Vec<Vec<f32>>, Vec<Vec<f32>>), Box<dyn std::error::Error>> {
+) -> Result<Trace, Box<dyn std::error::Error>> {
     let mut env = E::build(config)?;
     env.reset(seed);
     policy.seed(seed);
