@@ -212,7 +212,7 @@ pub(super) fn selected_name(name: &str) -> String {
 
 /// The series checkpoint selection maximises unless told otherwise (`vdd.select_by`): the
 /// held-out task entropy, as the official code selects.
-pub(super) const DEFAULT_SELECTION: &str = "held-out task entropy";
+pub(super) const DEFAULT_SELECTION: &str = vdd_tasks::avoiding::CURVE_ENTROPY;
 
 /// The cache key of the snapshot selected by `series` from the training of key `hash`: the
 /// training's own for the default series, one derived from both otherwise.
