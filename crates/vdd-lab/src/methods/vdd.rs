@@ -8,7 +8,9 @@
 //! in the student's normalised units, widened by this margin: [`ClampedDenoiser`]),
 //! `clamp_denoiser` (`false`: the raw score whatever `clip_margin` says), `official_init`
 //! (initialise the student as the official code does: [`vdd::init_official`]),
-//! `greedy_gating` and `sample_action` (how the student acts).
+//! `greedy_gating` and `sample_action` (how the student acts); `<teacher>_expert_visits`
+//! (continue distilling on the states the student visits: [`ExpertVisits`]) and
+//! `<teacher>_gating_fit` / `<teacher>_gating_visits` (a learned gating fitted afterwards).
 //!
 //! The student works in the teacher's normalised space (the exact teacher's is the raw one).
 //! Students of learned teachers are cached when the task gives a [`StudentCache`]
@@ -44,6 +46,7 @@ macro_rules! vdd_keys {
             concat!("vdd.", $teacher, "_experts"),
             concat!("vdd.", $teacher, "_gating_fit"),
             concat!("vdd.", $teacher, "_gating_visits"),
+            concat!("vdd.", $teacher, "_expert_visits"),
             CLIP, CLAMP, INIT, GREEDY, SAMPLE,
         ]
     }};
@@ -102,6 +105,27 @@ struct Settings {
     gating_fit: Option<GatingFitConfig>,
     /// `vdd.<teacher>_gating_visits`: that fit also on the states the student visits.
     gating_visits: Option<GatingVisits>,
+    /// `vdd.<teacher>_expert_visits`: distillation continued on the states the student visits.
+    expert_visits: Option<ExpertVisits>,
+}
+
+/// `vdd.<teacher>_expert_visits`: after the distillation of `vdd.<teacher>`, continue it on
+/// the states the student itself visits (DAgger for the experts; issue 33, "states beyond
+/// the demonstrations"). Each round rolls the current student out for `episodes` episodes
+/// (a seed stream of its own, apart from every evaluation), adds the states it acted on to
+/// the states distilled on, and runs `iterations` more VDD iterations from the current
+/// student on all of them (`vdd.<teacher>` with its iterations replaced: a learning-rate
+/// schedule of its own). The teacher labels the new states through its score, as any other.
+/// The budget counts every round: `vdd.<teacher>.iterations + rounds × iterations`.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ExpertVisits {
+    /// Student episodes per round.
+    pub episodes: usize,
+    /// Rounds of roll-out-and-distil (at least 1).
+    pub rounds: usize,
+    /// VDD iterations per round (at least 1).
+    pub iterations: usize,
 }
 
 /// `vdd.<teacher>_gating_visits`: fit the gating of `vdd.<teacher>_gating_fit` on the states
@@ -121,6 +145,8 @@ pub struct GatingVisits {
 /// Most rounds and episodes per round of [`GatingVisits`].
 const MAX_VISIT_ROUNDS: usize = 16;
 const MAX_VISIT_EPISODES: usize = 100_000;
+/// Most VDD iterations per round of [`ExpertVisits`].
+const MAX_VISIT_ITERATIONS: usize = 10_000_000;
 
 impl VddMethod {
     fn settings(&self, r: &MethodRecipe<'_>) -> crate::Result<Settings> {
@@ -144,6 +170,7 @@ impl VddMethod {
             },
             gating_fit: r.get_opt(&format!("vdd.{}_gating_fit", self.1))?,
             gating_visits: r.get_opt(&format!("vdd.{}_gating_visits", self.1))?,
+            expert_visits: r.get_opt(&format!("vdd.{}_expert_visits", self.1))?,
         })
     }
 }
@@ -183,6 +210,24 @@ impl Method for VddMethod {
                     v.rounds, v.episodes
                 )
                 .into());
+            }
+        }
+        if let Some(v) = s.expert_visits {
+            let t = self.1;
+            if !(1..=MAX_VISIT_ROUNDS).contains(&v.rounds)
+                || !(1..=MAX_VISIT_EPISODES).contains(&v.episodes)
+                || !(1..=MAX_VISIT_ITERATIONS).contains(&v.iterations)
+            {
+                return Err(format!(
+                    "vdd.{t}_expert_visits: rounds must be in 1..={MAX_VISIT_ROUNDS}, episodes \
+                     in 1..={MAX_VISIT_EPISODES} and iterations in 1..={MAX_VISIT_ITERATIONS}, \
+                     got {}, {} and {}",
+                    v.rounds, v.episodes, v.iterations
+                )
+                .into());
+            }
+            if self.0.teacher.is_none() {
+                return Err(format!("vdd.{t}_expert_visits needs a learned teacher").into());
             }
         }
         // The schedule's unit against the teacher's, before any training (its range is
@@ -237,6 +282,14 @@ impl VddMethod {
         select_by: Option<&str>,
     ) -> crate::Result<Trained> {
         let (s, d, label) = (self.settings(&job.recipe)?, job.data, job.label);
+        if select_by.is_some() && s.expert_visits.is_some() {
+            return Err(format!(
+                "checkpoint selection and vdd.{}_expert_visits do not combine (the rounds on \
+                 visited states take no checkpoints)",
+                self.1
+            )
+            .into());
+        }
         if select_by.is_some() && job.curves.is_none() {
             return Err("checkpoint selection needs curves over training, and this run takes \
                         none (eval.curve_points = 0, or the task has no curves)"
@@ -253,8 +306,12 @@ impl VddMethod {
         let mut mc = s.student.clone();
         mc.state_dim = states.ncols();
         mc.action_dim = actions.ncols();
-        let iterations = vc.iterations;
-        let budget = Budget::student(vc.expert_steps(), vc.batch_size * vc.vi_samples);
+        let extra = s.expert_visits.map_or(0, |v| v.rounds * v.iterations);
+        let iterations = vc.iterations + extra;
+        let budget = Budget::student(
+            vc.expert_steps() + (extra * vc.expert_steps_per_iter) as u64,
+            vc.batch_size * vc.vi_samples,
+        );
         let cache = match (job.students, teacher) {
             (Some(cache), Some(t)) => {
                 let teachers = &job.recipe.teachers;
@@ -278,6 +335,9 @@ impl VddMethod {
                 if s.official_init {
                     key["official_init"] = json!(true);
                 }
+                if let Some(v) = s.expert_visits {
+                    key["expert_visits"] = json!(v);
+                }
                 Some((cache, recipe::config_hash(&key)?))
             }
             _ => None,
@@ -297,27 +357,35 @@ impl VddMethod {
             }
             None => {
                 let clip = s.clip_margin;
-                let (sn, an, act) = (sn.clone(), an.clone(), s.act);
+                let (psn, pan, act) = (sn.clone(), an.clone(), s.act);
                 let policy = move |mut student: Moe| -> crate::Result<TrainedPolicy> {
-                    student.set_normalizers(Some(sn.clone()), Some(an.clone()))?;
+                    student.set_normalizers(Some(psn.clone()), Some(pan.clone()))?;
                     student.set_act_mode(act);
                     Ok(TrainedPolicy::Moe(Box::new(student)))
                 };
-                let data = (states, actions);
+                // The demonstrations again for the rounds on visited states.
+                let demos = s.expert_visits.map(|_| (states.clone(), actions.clone()));
+                let data = DistillData::new(states, Some(actions))?;
                 let mut student = Moe::from_config(mc, vc.seed)?;
                 if s.official_init {
                     vdd::init_official(&mut student, vc.seed)?;
                 }
                 let key = format!("vdd.{}", self.1);
                 let run = DistillRun { clip_margin: clip, job, policy: &policy, select_by };
-                let (c, chosen, noise, curve_seconds) = match teacher {
-                    Some(t) => distill(vc, t.teacher.clone(), student, data, run)
-                        .map_err(|e| e.context(key))?,
+                let (mut c, chosen, noise, curve_seconds) = match teacher {
+                    Some(t) => distill(vc.clone(), t.teacher.clone(), student, data, run)
+                        .map_err(|e| e.context(key.clone()))?,
                     None => {
                         let exact = d.exact.clone().ok_or("the task has no exact teacher")?;
-                        distill(vc, exact, student, data, run).map_err(|e| e.context(key))?
+                        distill(vc.clone(), exact, student, data, run)
+                            .map_err(|e| e.context(key.clone()))?
                     }
                 };
+                if let (Some(v), Some(t), Some(demos)) = (s.expert_visits, teacher, demos) {
+                    let run = DistillRun { clip_margin: clip, job, policy: &policy, select_by };
+                    c = distill_on_visits(c, (v, &vc, &sn), t, demos, run)
+                        .map_err(|e| e.context(format!("{key}_expert_visits")))?;
+                }
                 if let Some((cache, hash)) = &cache {
                     let path = cache.store(self.0.name, hash, &c)?;
                     let (secs, path) = (c.train_seconds, teachers::rel(&path));
@@ -450,15 +518,19 @@ fn distill<S: ScoreModel>(
     vc: VddConfig,
     teacher: S,
     student: Moe,
-    (states, actions): (Mat<f32>, Mat<f32>),
+    data: DistillData,
     run: DistillRun<'_>,
 ) -> crate::Result<(CachedStudent, Option<CachedStudent>, f32, f64)> {
     let DistillRun { clip_margin, job, policy, select_by } = run;
-    let teacher = match clip_margin {
-        Some(m) => ClampedDenoiser::around_data(teacher, actions.as_ref(), m)?,
-        None => ClampedDenoiser::unclamped(teacher),
+    // The demonstrations' actions: the data's own, or the gating step's pairs'.
+    let actions = data.actions().or(data.gating_pairs().map(|p| p.1));
+    let teacher = match (clip_margin, actions) {
+        (Some(m), Some(a)) => ClampedDenoiser::around_data(teacher, a, m)?,
+        (Some(_), None) => {
+            return Err("internal: clamping needs the demonstrations' actions".into());
+        }
+        (None, _) => ClampedDenoiser::unclamped(teacher),
     };
-    let data = DistillData::new(states, Some(actions))?;
     let root = job.checkpoints.0.join(job.label.replace(' ', "-"));
     let run = Resumable {
         dir: &root,
@@ -485,6 +557,67 @@ fn distill<S: ScoreModel>(
     });
     let last = CachedStudent { student, train_seconds, curves };
     Ok((last, chosen, mean_noise_level, probe.seconds))
+}
+
+/// Continues the distillation of `c` on the states the student visits ([`ExpertVisits`]):
+/// each round adds the states of `v.episodes` student episodes (raw, normalised by `sn`) to
+/// the demonstrations' `(states, actions)` and runs `v.iterations` more iterations of `vc`
+/// from the current student (the demonstrations stay the gating step's pairs). No curves or
+/// checkpoint selection; each round checkpoints under a directory of its own.
+fn distill_on_visits(
+    mut c: CachedStudent,
+    (v, vc, sn): (ExpertVisits, &VddConfig, &Affine),
+    t: &teachers::TrainedTeacher,
+    (mut states, actions): (Mat<f32>, Mat<f32>),
+    run: DistillRun<'_>,
+) -> crate::Result<CachedStudent> {
+    let DistillRun { clip_margin, job, policy, .. } = run;
+    let visits = job.visits.ok_or("the task has no rollouts to visit states")?;
+    let root = vdd_core::Seeds::new(job.seed).child("expert-visits");
+    for round in 0..v.rounds {
+        let t0 = std::time::Instant::now();
+        let visit_seed: u64 = root.stream_indexed("episodes", round as u64).random();
+        let visited = visits.visit(&policy(c.student.clone())?, visit_seed, v.episodes)?;
+        let visited = sn.normalize_rows(visited.as_ref())?;
+        if visited.ncols() != states.ncols() {
+            return Err(format!(
+                "internal: visited states have {} columns, the data {}",
+                visited.ncols(),
+                states.ncols()
+            )
+            .into());
+        }
+        let n = states.nrows();
+        states = Mat::from_fn(n + visited.nrows(), states.ncols(), |i, j| {
+            if i < n { states[(i, j)] } else { visited[(i - n, j)] }
+        });
+        crate::progress::log(format!(
+            "[{}] expert round {}: the student visited {} states in {} episodes; distilling on \
+             {} states",
+            job.label,
+            round + 1,
+            visited.nrows(),
+            v.episodes,
+            states.nrows()
+        ));
+        let label = format!("{} visits {}", job.label, round + 1);
+        let stage = Job { label: &label, students: None, curves: None, ..*job };
+        let vc = VddConfig {
+            iterations: v.iterations,
+            seed: root.stream_indexed("vdd", round as u64).random(),
+            ..vc.clone()
+        };
+        let data = DistillData::new(states.clone(), None)?
+            .with_gating_pairs(states.subrows(0, actions.nrows()).to_owned(), actions.clone())?;
+        let run = DistillRun { clip_margin, job: &stage, policy, select_by: None };
+        let (next, _, _, _) = distill(vc, t.teacher.clone(), c.student, data, run)?;
+        c = CachedStudent {
+            student: next.student,
+            train_seconds: c.train_seconds + t0.elapsed().as_secs_f64(),
+            curves: c.curves,
+        };
+    }
+    Ok(c)
 }
 
 #[cfg(test)]
