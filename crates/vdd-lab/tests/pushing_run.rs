@@ -101,11 +101,7 @@ fn a_tiny_pushing_run_writes_its_metrics_and_a_tuning_run_its_log() {
     // The saved student acts on raw observations and gives the run's figures bit for bit
     // (what `rollout_saved --task pushing --contexts 2 --rollouts 2 --lockstep-batch 4` prints).
     let saved = vdd_moe::load_policy(&out.join("models/vdd-beso-s0.safetensors")).unwrap();
-    let protocol = vdd_tasks::pushing::EvalProtocol {
-        contexts: 2,
-        rollouts_per_context: 2,
-        lockstep_batch: 4,
-    };
+    let protocol = vdd_tasks::pushing::EvalProtocol::new(2, 2, 4);
     let m = protocol.evaluate(&saved, 0, 2, false).unwrap().metrics;
     let row = &metrics["methods"]["vdd-beso"]["per_seed"][0];
     assert_eq!(row["success_rate"], serde_json::json!(m.success_rate), "{row}");

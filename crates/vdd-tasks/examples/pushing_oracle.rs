@@ -42,7 +42,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         "success {:.3}, p1 {:.3}, mean distance {:.4}, mode entropy {:.3}, modes {:?}, \
          timeouts {}, faults {}",
         m.success_rate,
-        m.p1_rate,
+        m.p1_rate.unwrap_or_default(),
         m.mean_distance,
         m.mode_entropy,
         m.mode_counts,

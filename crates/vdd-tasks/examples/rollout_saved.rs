@@ -28,7 +28,10 @@
 use std::path::PathBuf;
 use std::process::ExitCode;
 
+use vdd_tasks::aligning::AligningEnv;
 use vdd_tasks::avoiding::EvalProtocol;
+use vdd_tasks::d3il::ContextEnv;
+use vdd_tasks::pushing::PushingEnv;
 
 /// The command line.
 struct Args {
@@ -145,42 +148,39 @@ fn run() -> Result<(), Box<dyn std::error::Error>> {
                 m.rollouts
             );
         }
-        "pushing" => {
-            let d = vdd_tasks::pushing::EvalProtocol::default();
-            let protocol = vdd_tasks::pushing::EvalProtocol {
-                contexts: args.contexts.unwrap_or(d.contexts),
-                rollouts_per_context: args.rollouts.unwrap_or(d.rollouts_per_context),
-                lockstep_batch: args.lockstep_batch.unwrap_or(d.lockstep_batch),
-            };
-            let m = protocol.evaluate(&policy, seed, threads, false)?.metrics;
-            println!(
-                r#"{{"success_rate": {}, "p1_rate": {}, "mean_distance": {}, "task_entropy": {}, "rollouts": {}}}"#,
-                json(&m.success_rate)?,
-                json(&m.p1_rate)?,
-                json(&m.mean_distance)?,
-                json(&m.task_entropy)?,
-                m.rollouts
-            );
-        }
-        "aligning" => {
-            let d = vdd_tasks::aligning::EvalProtocol::default();
-            let protocol = vdd_tasks::aligning::EvalProtocol {
-                contexts: args.contexts.unwrap_or(d.contexts),
-                rollouts_per_context: args.rollouts.unwrap_or(d.rollouts_per_context),
-                lockstep_batch: args.lockstep_batch.unwrap_or(d.lockstep_batch),
-            };
-            let m = protocol.evaluate(&policy, seed, threads, false)?.metrics;
-            println!(
-                r#"{{"success_rate": {}, "mean_distance": {}, "task_entropy": {}, "rollouts": {}}}"#,
-                json(&m.success_rate)?,
-                json(&m.mean_distance)?,
-                json(&m.task_entropy)?,
-                m.rollouts
-            );
-        }
+        "pushing" => println!("{}", d3il::<PushingEnv>(&args, &policy)?),
+        "aligning" => println!("{}", d3il::<AligningEnv>(&args, &policy)?),
         other => return Err(format!("unknown task {other}\n{USAGE}").into()),
     }
     Ok(())
+}
+
+/// The JSON line of a D3IL task (Pushing, Aligning): success rate, p1 (Pushing), mean distance,
+/// task entropy and rollouts of `args.contexts × args.rollouts` episodes (default: D3IL's).
+fn d3il<E: ContextEnv>(
+    args: &Args,
+    policy: &vdd_moe::DeployedPolicy,
+) -> Result<String, Box<dyn std::error::Error>> {
+    let d = vdd_tasks::d3il::EvalProtocol::<E>::default();
+    let protocol = vdd_tasks::d3il::EvalProtocol::<E>::new(
+        args.contexts.unwrap_or(d.contexts),
+        args.rollouts.unwrap_or(d.rollouts_per_context),
+        args.lockstep_batch.unwrap_or(d.lockstep_batch),
+    );
+    let m = protocol.evaluate(policy, args.seed, args.threads, false)?.metrics;
+    // Numbers as serde_json writes them (as in the recipe's metrics.json), keys in this order.
+    let json = |x: &f64| serde_json::to_string(x);
+    let p1 = match m.p1_rate {
+        Some(p1) => format!(r#" "p1_rate": {},"#, json(&p1)?),
+        None => String::new(),
+    };
+    Ok(format!(
+        r#"{{"success_rate": {},{p1} "mean_distance": {}, "task_entropy": {}, "rollouts": {}}}"#,
+        json(&m.success_rate)?,
+        json(&m.mean_distance)?,
+        json(&m.task_entropy)?,
+        m.rollouts
+    ))
 }
 
 fn main() -> ExitCode {

@@ -27,6 +27,10 @@
 //!   or outside it), rollouts with success, mean distance, task entropy per test context over
 //!   the 2 modes ([`aligning::rollout`]), and a scripted demonstrator with human-like noise
 //!   ([`aligning::oracle`]);
+//! * [`d3il`]: what Pushing and Aligning share: the trait their environments implement
+//!   ([`d3il::ContextEnv`]), their settings, status, evaluation protocol over test contexts
+//!   ([`d3il::EvalProtocol`]), metrics and rollouts ([`d3il::rollout`]), demonstrations and the
+//!   planar physics helpers;
 //! * [`timing`]: µs per action of policies timed together ([`timing::us_per_action`]).
 //!
 //! Errors are [`TaskError`]; shape and finiteness violations found by the `vdd_core` helpers are
@@ -52,6 +56,7 @@
 pub mod aligning;
 pub mod avoiding;
 pub mod block_push;
+pub mod d3il;
 pub mod demo_data;
 pub mod episodes;
 mod error;

@@ -96,11 +96,7 @@ pub struct AligningEval {
 impl AligningEval {
     /// The rollouts' protocol (the seed comes from the run seed).
     pub fn protocol(&self) -> EvalProtocol {
-        EvalProtocol {
-            contexts: self.contexts,
-            rollouts_per_context: self.rollouts_per_context,
-            lockstep_batch: self.lockstep_batch,
-        }
+        EvalProtocol::new(self.contexts, self.rollouts_per_context, self.lockstep_batch)
     }
 
     /// The settings of `us_per_action`.

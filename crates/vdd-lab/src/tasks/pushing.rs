@@ -96,11 +96,7 @@ pub struct PushingEval {
 impl PushingEval {
     /// The rollouts' protocol (the seed comes from the run seed).
     pub fn protocol(&self) -> EvalProtocol {
-        EvalProtocol {
-            contexts: self.contexts,
-            rollouts_per_context: self.rollouts_per_context,
-            lockstep_batch: self.lockstep_batch,
-        }
+        EvalProtocol::new(self.contexts, self.rollouts_per_context, self.lockstep_batch)
     }
 
     /// The settings of `us_per_action`.
@@ -275,7 +271,7 @@ fn evaluate(
     crate::progress::log(format!(
         "[{tag}] success {:.3}, p1 {:.3}, mean distance {:.4}, task entropy {:.3}, mode entropy {:.3} (modes {:?}), trained in {:.1} s{}, evaluated in {:.1} s",
         m.success_rate,
-        m.p1_rate,
+        m.p1_rate.unwrap_or_default(),
         m.mean_distance,
         m.task_entropy,
         m.mode_entropy,

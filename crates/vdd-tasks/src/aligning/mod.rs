@@ -52,7 +52,8 @@
 //! the base plate does not touch the rod in the plane (the tip rests on the table, not 2 cm
 //! higher on the plate, inside the tray).
 //!
-//! # Other choices (as [`crate::pushing`], whose servo and table friction this module calls)
+//! # Other choices (as [`crate::pushing`]; the servo, the table friction and the world builder
+//! are the D3IL tasks' shared ones, [`crate::d3il`])
 //!
 //! * **Table friction** as a Coulomb-like deceleration of the tray's speed
 //!   ([`PhysicsConfig::friction_decel`] `= 0.3 · 9.81`) and spin ([`PhysicsConfig::spin_decel`]
@@ -86,15 +87,17 @@ use rapier2d::prelude::{
 use serde::{Deserialize, Serialize};
 use vdd_core::Seeds;
 
-use crate::pushing::{planar_world, servo, table_friction};
+use crate::d3il::{planar_world, servo, table_friction};
 use crate::{Result, TaskError};
 
-pub use crate::pushing::Status;
-pub use protocol::EvalProtocol;
+pub use crate::d3il::{PhysicsConfig, Status};
+
+/// An Aligning evaluation ([`crate::d3il::EvalProtocol`]; D3IL's `aligning_config.yaml`: 60
+/// test contexts × 8 rollouts).
+pub type EvalProtocol = crate::d3il::EvalProtocol<AligningEnv>;
 
 pub mod dataset;
 pub mod oracle;
-mod protocol;
 pub mod rollout;
 #[cfg(test)]
 mod tests;
@@ -136,93 +139,19 @@ pub const ACTION_DIM: usize = 3;
 /// Number of behaviour modes (inside, outside).
 pub const N_MODES: usize = 2;
 
-/// Physics parameters of the planar analogue (see the module docs).
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-#[serde(deny_unknown_fields)]
-pub struct PhysicsConfig {
-    /// Physics substeps per control step.
-    pub substeps: usize,
-    /// Largest pusher speed (m/s), horizontally and vertically.
-    pub pusher_speed: f32,
-    /// Sliding-friction deceleration of the tray's speed (m/s²).
-    pub friction_decel: f32,
-    /// Friction deceleration of the tray's spin (rad/s²).
-    pub spin_decel: f32,
-    /// Rapier linear damping of the tray (1/s).
-    pub linear_damping: f32,
-    /// Rapier angular damping of the tray (1/s).
-    pub angular_damping: f32,
-    /// Contact friction coefficient of the rod and the tray.
-    pub contact_friction: f32,
-}
+/// The default physics of Aligning (see the module docs): what [`EnvConfig::default`] uses.
+pub const PHYSICS: PhysicsConfig = PhysicsConfig {
+    substeps: 10,
+    pusher_speed: 0.5,
+    friction_decel: 0.3 * 9.81,
+    spin_decel: 67.6,
+    linear_damping: 2.0,
+    angular_damping: 2.0,
+    contact_friction: 0.3,
+};
 
-impl Default for PhysicsConfig {
-    fn default() -> Self {
-        Self {
-            substeps: 10,
-            pusher_speed: 0.5,
-            friction_decel: 0.3 * 9.81,
-            spin_decel: 67.6,
-            linear_damping: 2.0,
-            angular_damping: 2.0,
-            contact_friction: 0.3,
-        }
-    }
-}
-
-/// Settings of an [`AligningEnv`].
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-#[serde(deny_unknown_fields)]
-pub struct EnvConfig {
-    /// Episode step limit.
-    pub max_steps: usize,
-    /// Episodes in a row that share one start (a test context) in evaluations.
-    pub episodes_per_context: usize,
-    /// Physics parameters.
-    pub physics: PhysicsConfig,
-}
-
-impl Default for EnvConfig {
-    /// [`MAX_STEPS`] steps, one episode per start, the default physics.
-    fn default() -> Self {
-        Self { max_steps: MAX_STEPS, episodes_per_context: 1, physics: PhysicsConfig::default() }
-    }
-}
-
-impl EnvConfig {
-    /// Checks every field's range.
-    pub fn validate(&self) -> Result<()> {
-        let p = &self.physics;
-        let bad = |m: String| Err(TaskError::InvalidArgument(format!("aligning env: {m}")));
-        if self.max_steps == 0 || !(1..=1000).contains(&p.substeps) {
-            return bad(format!(
-                "max_steps {} must be >= 1 and substeps {} in 1..=1000",
-                self.max_steps, p.substeps
-            ));
-        }
-        if !(1..=100_000).contains(&self.episodes_per_context) {
-            return bad(format!(
-                "episodes_per_context {} must be in 1..=100000",
-                self.episodes_per_context
-            ));
-        }
-        let fields = [
-            ("pusher_speed", p.pusher_speed),
-            ("friction_decel", p.friction_decel),
-            ("spin_decel", p.spin_decel),
-            ("linear_damping", p.linear_damping),
-            ("angular_damping", p.angular_damping),
-            ("contact_friction", p.contact_friction),
-        ];
-        if let Some((name, v)) = fields.iter().find(|(_, v)| !(v.is_finite() && *v >= 0.0)) {
-            return bad(format!("{name} must be finite and non-negative, got {v}"));
-        }
-        if p.pusher_speed <= 0.0 {
-            return bad("pusher_speed must be positive".into());
-        }
-        Ok(())
-    }
-}
+/// Settings of an [`AligningEnv`]: [`crate::d3il::EnvConfig`] with Aligning's defaults.
+pub type EnvConfig = crate::d3il::EnvConfig<AligningEnv>;
 
 /// A behaviour mode: the rod inside the tray (index 0) or outside it (1) at the final step.
 ///
@@ -573,5 +502,5 @@ fn build_world(
 /// Aligning's per-episode start seed for demonstrations: the start of episode `episode` of a
 /// set with root seed `seed`.
 pub fn env_seed(seed: u64, episode: usize) -> u64 {
-    Seeds::new(seed).stream_indexed("aligning-env", episode as u64).random()
+    crate::d3il::env_seed::<AligningEnv>(seed, episode)
 }

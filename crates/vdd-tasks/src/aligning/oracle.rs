@@ -48,17 +48,16 @@
 //! assert_eq!(demos.mode_counts().iter().sum::<usize>(), 2);
 //! ```
 
-use rand::Rng as _;
 use serde::{Deserialize, Serialize};
-use vdd_core::{CoreError, Rng, standard_normal};
+use vdd_core::{CoreError, Rng};
 
-use super::rollout::episode_seed;
 use super::{
-    ACTION_DIM, AligningEnv, AligningMode, CONTROL_DT, EnvConfig, N_MODES, OBS_DIM, PUSHER_RADIUS,
-    TRAY_INNER_HALF, TRAY_OUTER_HALF, env_seed, wrap_angle,
+    ACTION_DIM, AligningMode, CONTROL_DT, EnvConfig, N_MODES, OBS_DIM, PUSHER_RADIUS,
+    TRAY_INNER_HALF, TRAY_OUTER_HALF, wrap_angle,
 };
-use crate::scripted::{Mode, Script, Scripted, collect};
-use crate::{Result, TaskError};
+use crate::Result;
+use crate::d3il::{check_noise, draw_episode, noisy_step};
+use crate::scripted::{Mode, Script, Scripted};
 
 /// Parameters of the demonstrator.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -89,17 +88,7 @@ impl OracleConfig {
 
     /// Checks every field's range.
     pub fn validate(&self) -> Result<()> {
-        let bad = |m: String| Err(TaskError::InvalidArgument(format!("aligning oracle: {m}")));
-        if !(self.ou_reversion > 0.0 && self.ou_reversion <= 1.0) {
-            return bad(format!("ou_reversion {} must be in (0, 1]", self.ou_reversion));
-        }
-        if !(self.ou_std >= 0.0 && self.ou_std <= 1.0) {
-            return bad(format!("ou_std {} must be in [0, 1]", self.ou_std));
-        }
-        if !(self.speed_jitter >= 0.0 && self.speed_jitter <= 0.1) {
-            return bad(format!("speed_jitter {} must be in [0, 0.1]", self.speed_jitter));
-        }
-        Ok(())
+        check_noise("aligning oracle", self.ou_reversion, self.ou_std, self.speed_jitter)
     }
 }
 
@@ -183,13 +172,9 @@ impl Script for OracleScript {
     const STREAM: &'static str = "aligning-oracle";
 
     fn start(&self, _obs: &[f32], rng: &mut Rng) -> std::result::Result<EpisodeState, CoreError> {
-        let mode = match self.config.fixed_mode {
-            Some(m) => m,
-            None => AligningMode::from_index(rng.random_range(0..N_MODES))
-                .map_err(CoreError::implementor)?,
-        };
-        let j = self.config.speed_jitter;
-        let speed_scale = 1.0 + j * (2.0 * rng.random::<f32>() - 1.0);
+        let modes = (N_MODES, AligningMode::from_index as fn(usize) -> Result<AligningMode>);
+        let (mode, speed_scale) =
+            draw_episode(self.config.fixed_mode, modes, self.config.speed_jitter, rng)?;
         Ok(EpisodeState {
             mode,
             phase: Phase::Approach,
@@ -401,22 +386,8 @@ fn act(c: &OracleConfig, st: &mut EpisodeState, rng: &mut Rng, o: &[f32; OBS_DIM
     }
     let delta = [aim.0[0] - ee[0], aim.0[1] - ee[1], aim.1 - h_des];
     let max_step = cap * st.speed_scale * CONTROL_DT;
-    let clip = |d: [f32; 3]| {
-        let n = (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt();
-        if n > max_step { d.map(|x| x * max_step / n) } else { d }
-    };
-    let delta = clip(delta);
-    if c.ou_std == 0.0 {
-        return delta;
-    }
-    // Stationary std of e = (1 − κ) e + σ ξ is σ / sqrt(1 − (1 − κ)²).
-    let keep = 1.0 - c.ou_reversion;
-    let sigma = c.ou_std * (1.0 - keep * keep).sqrt();
-    for e in &mut st.ou {
-        *e = keep * *e + sigma * standard_normal(rng);
-    }
-    let m = (delta[0] * delta[0] + delta[1] * delta[1] + delta[2] * delta[2]).sqrt();
-    clip([delta[0] + m * st.ou[0], delta[1] + m * st.ou[1], delta[2] + m * st.ou[2]])
+    let norm3 = |d: [f32; 3]| (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt();
+    noisy_step(delta, max_step, norm3, (c.ou_std, c.ou_reversion), &mut st.ou, rng)
 }
 
 /// Aligning's demonstrations: one `T x 14` observation and `T x 3` action (change of the
@@ -432,8 +403,10 @@ impl Mode for AligningMode {
 
 /// Runs the demonstrator until `n` episodes have succeeded and returns them (failed episodes
 /// are skipped; [`Demonstrations::success_rate`] reports how many). Episode `i` starts from
-/// [`env_seed`]`(seed, i)` and the demonstrator is seeded with [`episode_seed`]`(seed, i)`, so
-/// the result is deterministic. More than `2n + 16` episodes without `n` successes is an error.
+/// [`env_seed`](super::env_seed)`(seed, i)` and the demonstrator is seeded with
+/// [`episode_seed`](super::rollout::episode_seed)`(seed, i)`, so the result is deterministic
+/// ([`crate::d3il::generate_demonstrations`]). More than `2n + 16` episodes without `n`
+/// successes is an error.
 pub fn generate_demonstrations(
     n: usize,
     seed: u64,
@@ -450,8 +423,5 @@ pub fn generate_demonstrations_with(
     env: &EnvConfig,
 ) -> Result<Demonstrations> {
     let mut oracle = AligningOracle::new(config.clone())?;
-    env.validate()?;
-    let seeds = |i| (episode_seed(seed, i), env_seed(seed, i));
-    let kept = |r: &super::rollout::Rollout| r.success().then_some(r.info.mode);
-    collect::<AligningEnv, _, _>(&mut oracle, env.clone(), (n, env.max_steps), seeds, kept)
+    crate::d3il::generate_demonstrations(&mut oracle, n, seed, env)
 }

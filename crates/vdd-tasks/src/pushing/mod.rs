@@ -74,7 +74,9 @@
 //! Rollouts of any [`vdd_core::Policy`] with success, p1, mean distance, task entropy and mode
 //! histogram are in [`rollout`]; the scripted demonstrator in [`oracle`]; the training
 //! matrices in [`dataset`]; a run's evaluation ([`EvalProtocol`]: test contexts × rollouts per
-//! context, as D3IL's 30 × 16) in `protocol`.
+//! context, as D3IL's 30 × 16). The settings, the protocol, the metrics, the physics helpers and
+//! the rollout engine's [`Env`](crate::episodes::Env) are the D3IL tasks' shared ones
+//! ([`crate::d3il`]: [`PushingEnv`] is a [`crate::d3il::ContextEnv`]).
 //!
 //! ```
 //! use vdd_tasks::pushing::{PushingEnv, Status, EFFECTOR_START, OBS_DIM};
@@ -88,19 +90,21 @@
 //! ```
 
 use rand::Rng as _;
-use rapier2d::prelude::{
-    ColliderBuilder, PhysicsWorld, RigidBody, RigidBodyBuilder, RigidBodyHandle, Vector,
-};
+use rapier2d::prelude::{ColliderBuilder, PhysicsWorld, RigidBodyBuilder, RigidBodyHandle, Vector};
 use serde::{Deserialize, Serialize};
 use vdd_core::Seeds;
 
+use crate::d3il::{planar_world, servo, table_friction};
 use crate::{Result, TaskError};
 
-pub use protocol::EvalProtocol;
+pub use crate::d3il::{PhysicsConfig, Status};
+
+/// A Pushing evaluation ([`crate::d3il::EvalProtocol`]; D3IL's benchmark scripts: 30 test
+/// contexts × 16 rollouts).
+pub type EvalProtocol = crate::d3il::EvalProtocol<PushingEnv>;
 
 pub mod dataset;
 pub mod oracle;
-mod protocol;
 pub mod rollout;
 #[cfg(test)]
 mod tests;
@@ -134,95 +138,19 @@ pub const ACTION_DIM: usize = 2;
 /// Number of behaviour modes (which box first × same or swapped targets).
 pub const N_MODES: usize = 4;
 
-/// Physics parameters of the planar analogue (see the module docs).
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-#[serde(deny_unknown_fields)]
-pub struct PhysicsConfig {
-    /// Physics substeps per control step.
-    pub substeps: usize,
-    /// Largest pusher speed (m/s) while it tracks the desired position.
-    pub pusher_speed: f32,
-    /// Sliding-friction deceleration of a box's speed (m/s²).
-    pub friction_decel: f32,
-    /// Friction deceleration of a box's spin (rad/s²).
-    pub spin_decel: f32,
-    /// Rapier linear damping of the boxes (1/s).
-    pub linear_damping: f32,
-    /// Rapier angular damping of the boxes (1/s).
-    pub angular_damping: f32,
-    /// Contact friction coefficient of the pusher and the boxes.
-    pub contact_friction: f32,
-}
+/// The default physics of Pushing (see the module docs): what [`EnvConfig::default`] uses.
+pub const PHYSICS: PhysicsConfig = PhysicsConfig {
+    substeps: 10,
+    pusher_speed: 0.5,
+    friction_decel: 9.81,
+    spin_decel: 170.0,
+    linear_damping: 2.0,
+    angular_damping: 2.0,
+    contact_friction: 0.5,
+};
 
-impl Default for PhysicsConfig {
-    fn default() -> Self {
-        Self {
-            substeps: 10,
-            pusher_speed: 0.5,
-            friction_decel: 9.81,
-            spin_decel: 170.0,
-            linear_damping: 2.0,
-            angular_damping: 2.0,
-            contact_friction: 0.5,
-        }
-    }
-}
-
-/// Settings of a [`PushingEnv`].
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-#[serde(deny_unknown_fields)]
-pub struct EnvConfig {
-    /// Episode step limit.
-    pub max_steps: usize,
-    /// Episodes in a row that share one start (a test context) in evaluations
-    /// ([`crate::episodes::Env::start_of`]): episode `i` starts from context
-    /// `i / episodes_per_context`.
-    pub episodes_per_context: usize,
-    /// Physics parameters.
-    pub physics: PhysicsConfig,
-}
-
-impl Default for EnvConfig {
-    /// [`MAX_STEPS`] steps, one episode per start, the default physics.
-    fn default() -> Self {
-        Self { max_steps: MAX_STEPS, episodes_per_context: 1, physics: PhysicsConfig::default() }
-    }
-}
-
-impl EnvConfig {
-    /// Checks every field's range.
-    pub fn validate(&self) -> Result<()> {
-        let p = &self.physics;
-        let bad = |m: String| Err(TaskError::InvalidArgument(format!("pushing env: {m}")));
-        if self.max_steps == 0 || !(1..=1000).contains(&p.substeps) {
-            return bad(format!(
-                "max_steps {} must be >= 1 and substeps {} in 1..=1000",
-                self.max_steps, p.substeps
-            ));
-        }
-        if !(1..=100_000).contains(&self.episodes_per_context) {
-            return bad(format!(
-                "episodes_per_context {} must be in 1..=100000",
-                self.episodes_per_context
-            ));
-        }
-        let fields = [
-            ("pusher_speed", p.pusher_speed),
-            ("friction_decel", p.friction_decel),
-            ("spin_decel", p.spin_decel),
-            ("linear_damping", p.linear_damping),
-            ("angular_damping", p.angular_damping),
-            ("contact_friction", p.contact_friction),
-        ];
-        if let Some((name, v)) = fields.iter().find(|(_, v)| !(v.is_finite() && *v >= 0.0)) {
-            return bad(format!("{name} must be finite and non-negative, got {v}"));
-        }
-        if p.pusher_speed <= 0.0 {
-            return bad("pusher_speed must be positive".into());
-        }
-        Ok(())
-    }
-}
+/// Settings of a [`PushingEnv`]: [`crate::d3il::EnvConfig`] with Pushing's defaults.
+pub type EnvConfig = crate::d3il::EnvConfig<PushingEnv>;
 
 /// A behaviour mode: which box reached its target first, and whether the boxes went to their
 /// own colour's targets or swapped.
@@ -287,39 +215,6 @@ impl PushingMode {
     /// D3IL's index `first + 2 · swapped`.
     pub fn index(&self) -> usize {
         self.first() + 2 * usize::from(self.swapped)
-    }
-}
-
-/// State of an episode.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize, Deserialize)]
-pub enum Status {
-    /// Still going.
-    Running,
-    /// Both boxes are in distinct targets.
-    Success,
-    /// The step limit was reached without success.
-    Timeout,
-    /// A box or the pusher left the table (a failure).
-    OffTable,
-    /// A body's state became non-finite (a failure).
-    PhysicsFault,
-}
-
-impl Status {
-    /// Whether the episode has ended.
-    pub fn is_done(self) -> bool {
-        self != Status::Running
-    }
-
-    /// A short lowercase name.
-    pub fn as_str(self) -> &'static str {
-        match self {
-            Status::Running => "running",
-            Status::Success => "success",
-            Status::Timeout => "timeout",
-            Status::OffTable => "off-table",
-            Status::PhysicsFault => "physics-fault",
-        }
     }
 }
 
@@ -611,44 +506,11 @@ fn build_world(
     (world, boxes, pusher)
 }
 
-/// A fresh top-down world: zero gravity, physics step `dt`, and the tolerances (allowed
-/// penetration, prediction distance) scaled to `length_unit` (shared with
-/// [`crate::aligning`]).
-pub(crate) fn planar_world(dt: f32, length_unit: f32) -> PhysicsWorld {
-    let mut world = PhysicsWorld::new();
-    world.gravity = Vector::ZERO;
-    world.integration_parameters.dt = dt;
-    world.integration_parameters.length_unit = length_unit;
-    world
-}
-
-/// One substep of the pusher's position servo: `at` moved straight towards `desired` by at
-/// most `max_move` (shared with [`crate::aligning`]).
-pub(crate) fn servo(at: [f32; 2], desired: [f32; 2], max_move: f32) -> [f32; 2] {
-    let d = [desired[0] - at[0], desired[1] - at[1]];
-    let n = d[0].hypot(d[1]);
-    if n > max_move { [at[0] + d[0] * max_move / n, at[1] + d[1] * max_move / n] } else { desired }
-}
-
-/// The table's sliding friction on a body for one substep: its speed reduced by `dv` and its
-/// spin by `dw`, never reversed (shared with [`crate::aligning`]).
-pub(crate) fn table_friction(b: &mut RigidBody, dv: f32, dw: f32) {
-    let v = b.linvel();
-    let s = v.length();
-    let v = if s > dv { v * (1.0 - dv / s) } else { Vector::ZERO };
-    b.set_linvel(v, true);
-    let w = b.angvel();
-    b.set_angvel(if w.abs() > dw { w - dw * w.signum() } else { 0.0 }, true);
-}
-
 /// Pushing's per-episode start seed for demonstrations: the start of episode `episode` of a
 /// set with root seed `seed`.
 pub fn env_seed(seed: u64, episode: usize) -> u64 {
-    Seeds::new(seed).stream_indexed(ENV_STREAM, episode as u64).random()
+    crate::d3il::env_seed::<PushingEnv>(seed, episode)
 }
-
-/// The seed stream of the episodes' starts ([`env_seed`]).
-pub(crate) const ENV_STREAM: &str = "pushing-env";
 
 /// The box yaw modulo `π/2`, in `[−π/4, π/4]`, from its `(sin 4θ, cos 4θ)` encoding.
 pub fn yaw_from_encoding(sin4: f32, cos4: f32) -> f32 {

@@ -47,15 +47,12 @@
 //! assert_eq!(demos.mode_counts().iter().sum::<usize>(), 2);
 //! ```
 
-use rand::Rng as _;
 use serde::{Deserialize, Serialize};
-use vdd_core::{CoreError, Rng, standard_normal};
+use vdd_core::{CoreError, Rng};
 
-use super::rollout::episode_seed;
-use super::{
-    ACTION_DIM, CONTROL_DT, EnvConfig, N_MODES, OBS_DIM, PushingEnv, PushingMode, TARGETS, env_seed,
-};
-use crate::scripted::{Mode, Script, Scripted, collect};
+use super::{ACTION_DIM, CONTROL_DT, EnvConfig, N_MODES, OBS_DIM, PushingMode, TARGETS};
+use crate::d3il::{check_noise, draw_episode, noisy_step};
+use crate::scripted::{Mode, Script, Scripted};
 use crate::{Result, TaskError};
 
 /// Parameters of the demonstrator.
@@ -95,20 +92,13 @@ impl OracleConfig {
 
     /// Checks every field's range.
     pub fn validate(&self) -> Result<()> {
-        let bad = |m: String| Err(TaskError::InvalidArgument(format!("pushing oracle: {m}")));
         if !(self.switch_distance > 0.0 && self.switch_distance <= super::GOAL_TOLERANCE) {
-            return bad(format!("switch_distance {} must be in (0, 0.05]", self.switch_distance));
+            return Err(TaskError::InvalidArgument(format!(
+                "pushing oracle: switch_distance {} must be in (0, 0.05]",
+                self.switch_distance
+            )));
         }
-        if !(self.ou_reversion > 0.0 && self.ou_reversion <= 1.0) {
-            return bad(format!("ou_reversion {} must be in (0, 1]", self.ou_reversion));
-        }
-        if !(self.ou_std >= 0.0 && self.ou_std <= 1.0) {
-            return bad(format!("ou_std {} must be in [0, 1]", self.ou_std));
-        }
-        if !(self.speed_jitter >= 0.0 && self.speed_jitter <= 0.1) {
-            return bad(format!("speed_jitter {} must be in [0, 0.1]", self.speed_jitter));
-        }
-        Ok(())
+        check_noise("pushing oracle", self.ou_reversion, self.ou_std, self.speed_jitter)
     }
 }
 
@@ -183,13 +173,9 @@ impl Script for OracleScript {
     const STREAM: &'static str = "pushing-oracle";
 
     fn start(&self, _obs: &[f32], rng: &mut Rng) -> std::result::Result<EpisodeState, CoreError> {
-        let mode = match self.config.fixed_mode {
-            Some(m) => m,
-            None => PushingMode::from_index(rng.random_range(0..N_MODES))
-                .map_err(CoreError::implementor)?,
-        };
-        let j = self.config.speed_jitter;
-        let speed_scale = 1.0 + j * (2.0 * rng.random::<f32>() - 1.0);
+        let modes = (N_MODES, PushingMode::from_index as fn(usize) -> Result<PushingMode>);
+        let (mode, speed_scale) =
+            draw_episode(self.config.fixed_mode, modes, self.config.speed_jitter, rng)?;
         Ok(EpisodeState {
             mode,
             phase: Phase::MoveToPreBox,
@@ -316,22 +302,7 @@ fn act(c: &OracleConfig, s: &mut EpisodeState, rng: &mut Rng, o: &[f32; OBS_DIM]
         }
     }
     let max_step = cap * s.speed_scale * CONTROL_DT;
-    let clip = |d: [f32; 2]| {
-        let n = norm(d);
-        if n > max_step { [d[0] * max_step / n, d[1] * max_step / n] } else { d }
-    };
-    let delta = clip(delta);
-    if c.ou_std == 0.0 {
-        return delta;
-    }
-    // Stationary std of e = (1 − κ) e + σ ξ is σ / sqrt(1 − (1 − κ)²).
-    let keep = 1.0 - c.ou_reversion;
-    let sigma = c.ou_std * (1.0 - keep * keep).sqrt();
-    for e in &mut s.ou {
-        *e = keep * *e + sigma * standard_normal(rng);
-    }
-    let m = norm(delta);
-    clip([delta[0] + m * s.ou[0], delta[1] + m * s.ou[1]])
+    noisy_step(delta, max_step, norm, (c.ou_std, c.ou_reversion), &mut s.ou, rng)
 }
 
 /// Pushing's demonstrations: one `T x 12` observation (see the module docs of [`super`]) and
@@ -347,8 +318,10 @@ impl Mode for PushingMode {
 
 /// Runs the demonstrator until `n` episodes have succeeded and returns them (failed episodes
 /// are skipped; [`Demonstrations::success_rate`] reports how many). Episode `i` starts from
-/// [`env_seed`]`(seed, i)` and the demonstrator is seeded with [`episode_seed`]`(seed, i)`, so
-/// the result is deterministic. More than `2n + 16` episodes without `n` successes is an error.
+/// [`env_seed`](super::env_seed)`(seed, i)` and the demonstrator is seeded with
+/// [`episode_seed`](super::rollout::episode_seed)`(seed, i)`, so the result is deterministic
+/// ([`crate::d3il::generate_demonstrations`]). More than `2n + 16` episodes without `n`
+/// successes is an error.
 pub fn generate_demonstrations(
     n: usize,
     seed: u64,
@@ -365,8 +338,5 @@ pub fn generate_demonstrations_with(
     env: &EnvConfig,
 ) -> Result<Demonstrations> {
     let mut oracle = PushingOracle::new(config.clone())?;
-    env.validate()?;
-    let seeds = |i| (episode_seed(seed, i), env_seed(seed, i));
-    let kept = |r: &super::rollout::Rollout| r.success().then_some(r.info.mode).flatten();
-    collect::<PushingEnv, _, _>(&mut oracle, env.clone(), (n, env.max_steps), seeds, kept)
+    crate::d3il::generate_demonstrations(&mut oracle, n, seed, env)
 }
