@@ -18,7 +18,8 @@
 //!   table's sliding friction).
 //!
 //! The names of a task's seed streams are its own ([`ContextEnv::STREAMS`] and the others), so
-//! no two tasks share a stream.
+//! no two tasks share a stream. What every task must do (bit-identical episodes on any thread,
+//! bad input reported as errors) is checked on both in `crates/vdd-tasks/tests/d3il_tasks.rs`.
 
 use std::marker::PhantomData;
 
@@ -35,8 +36,6 @@ pub use protocol::EvalProtocol;
 
 mod protocol;
 pub mod rollout;
-#[cfg(test)]
-mod tests;
 
 /// An environment of a D3IL contact task, evaluated over test contexts: what the shared
 /// settings, rollouts, metrics, protocol and demonstrations need of it. Implementing it makes

@@ -1,18 +1,20 @@
-//! What every D3IL contact task must do, checked on Pushing and Aligning with their scripted
+//! What every D3IL contact task (`vdd_tasks::d3il`) must do, checked on Pushing and Aligning with their scripted
 //! demonstrators: bit-identical episodes on any thread, sequential and parallel evaluations
 //! alike, contexts shared by their episodes, and bad input reported as errors, never panics.
 
 use faer::Mat;
 use vdd_core::{CoreError, Policy};
 
-use super::rollout::{EvalConfig, Stepping, evaluate_parallel_with, evaluate_with, rollout};
-use super::{ContextEnv, ContextOutcome, EnvConfig, EvalProtocol};
-use crate::TaskError;
-use crate::aligning::AligningEnv;
-use crate::aligning::oracle::{AligningOracle, OracleConfig as AligningConfig};
-use crate::episodes::{self, Env};
-use crate::pushing::PushingEnv;
-use crate::pushing::oracle::{OracleConfig as PushingConfig, PushingOracle};
+use vdd_tasks::TaskError;
+use vdd_tasks::aligning::AligningEnv;
+use vdd_tasks::aligning::oracle::{AligningOracle, OracleConfig as AligningConfig};
+use vdd_tasks::d3il::rollout::{
+    EvalConfig, Stepping, evaluate_parallel_with, evaluate_with, rollout,
+};
+use vdd_tasks::d3il::{ContextEnv, ContextOutcome, EnvConfig, EvalProtocol};
+use vdd_tasks::episodes::{self, Env};
+use vdd_tasks::pushing::PushingEnv;
+use vdd_tasks::pushing::oracle::{OracleConfig as PushingConfig, PushingOracle};
 
 fn pushing_oracle() -> PushingOracle {
     PushingOracle::new(PushingConfig::default()).unwrap()
@@ -125,7 +127,7 @@ fn bad_input_is_an_error<E: ContextEnv, P: Policy>(mut oracle: P) {
     let err = evaluate_with(&mut Nan::<E>(Default::default()), &cfg, &EnvConfig::<E>::default())
         .unwrap_err();
     assert!(matches!(err, TaskError::Policy { episode: 0, step: 0, .. }), "{err}");
-    let mut wrong = crate::avoiding::FarLeft;
+    let mut wrong = vdd_tasks::avoiding::FarLeft;
     let err = evaluate_with(&mut wrong, &cfg, &EnvConfig::<E>::default()).unwrap_err();
     assert!(matches!(err, TaskError::PolicyDims { .. }), "{err}");
     // Bad configurations.
@@ -155,7 +157,7 @@ fn bad_input_is_an_error_and_leaves_the_episode_unchanged() {
 
 #[test]
 fn the_protocols_follow_d3il_and_keep_their_tasks_apart() {
-    use crate::{aligning, pushing};
+    use vdd_tasks::{aligning, pushing};
     let (p, a) = (pushing::EvalProtocol::default(), aligning::EvalProtocol::default());
     assert_eq!((p.contexts, p.rollouts_per_context, p.rollouts()), (30, 16, 480));
     assert_eq!((a.contexts, a.rollouts_per_context, a.rollouts()), (60, 8, 480));
