@@ -6,22 +6,26 @@
 //! data preparation, evaluation) and one line in [`BUILTIN`]; the methods whose needs it offers
 //! ([`crate::task::Task::offers`], [`crate::method::Info::needs`]) run on it (docs/recipes.md,
 //! "Adding a task"). A task outside this crate is added with
-//! [`crate::registry::Registry::with_task`].
+//! [`crate::registry::Registry::with_task`]. The D3IL contact tasks (Pushing, Aligning) share
+//! one pipeline, [`D3ilRecipe`] over a [`D3ilTask`]: each of their files says only what is its
+//! own.
 
 use crate::task::Task;
 
 mod aligning;
 mod avoiding;
 mod block_push;
+mod d3il;
 mod pushing;
 mod rollouts;
 mod toy;
 mod toy_eval;
 
-pub use aligning::{AligningRecipe, COLUMNS as ALIGNING_COLUMNS};
+pub use aligning::{Aligning, AligningRecipe, COLUMNS as ALIGNING_COLUMNS};
 pub use avoiding::{AvoidingRecipe, COLUMNS as AVOIDING_COLUMNS};
 pub use block_push::{BlockPushRecipe, COLUMNS as BLOCK_PUSH_COLUMNS};
-pub use pushing::{COLUMNS as PUSHING_COLUMNS, PushingRecipe};
+pub use d3il::{D3il, D3ilEval, D3ilPlots, D3ilRecipe, D3ilTask};
+pub use pushing::{COLUMNS as PUSHING_COLUMNS, Pushing, PushingRecipe};
 pub use toy::check_toy_gmm;
 
 /// The workspace's tasks.
@@ -30,6 +34,6 @@ pub static BUILTIN: &[&dyn Task] = &[
     &toy::TOY_GMM,
     &toy::TOY_CONDITIONAL,
     &block_push::BlockPush,
-    &pushing::Pushing,
-    &aligning::Aligning,
+    &D3il::<Pushing>::TASK,
+    &D3il::<Aligning>::TASK,
 ];

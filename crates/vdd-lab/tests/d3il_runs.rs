@@ -1,27 +1,33 @@
-//! The Aligning recipe end to end on a tiny budget (a few demonstrations, a few dozen training
-//! steps, 2 contexts × 2 rollouts): data, the BESO teacher, VDD-BESO and EM, the rollouts of
-//! `vdd_tasks::aligning::EvalProtocol`, the timing, `metrics.json`, `table.md`, the mode
-//! histograms and the mode-coloured trajectory figure, and a tuning run appending to its log.
+//! The D3IL recipes (Pushing, Aligning) end to end on a tiny budget (a few demonstrations, a few
+//! dozen training steps, 2 contexts × 2 rollouts): data, the BESO teacher, VDD-BESO and EM, the
+//! rollouts of `vdd_tasks::d3il::EvalProtocol`, the timing, `metrics.json`, `table.md`, the mode
+//! histograms and the mode-coloured trajectory figure, a saved student reproducing its row, and
+//! a tuning run appending to its log.
 
 use std::path::{Path, PathBuf};
 
 use vdd_lab::Registry;
 use vdd_lab::experiment::{Request, run_with};
+use vdd_tasks::aligning::AligningEnv;
+use vdd_tasks::d3il::{ContextEnv, EvalProtocol};
+use vdd_tasks::pushing::PushingEnv;
 
-/// A fresh project root with the recipe `tiny.toml` in `recipes/`.
-fn root(tag: &str) -> PathBuf {
-    let dir = std::env::temp_dir().join(format!("vdd-lab-align-{tag}-{}", std::process::id()));
+/// A fresh project root with the recipe `tiny.toml` of task `task` in `recipes/`.
+fn root(task: &str, tag: &str) -> PathBuf {
+    let dir = std::env::temp_dir().join(format!("vdd-lab-{task}-{tag}-{}", std::process::id()));
     let _ = std::fs::remove_dir_all(&dir);
     std::fs::create_dir_all(dir.join("recipes")).unwrap();
     std::fs::create_dir_all(dir.join("docs")).unwrap();
-    std::fs::write(dir.join("recipes/tiny.toml"), TINY).unwrap();
+    std::fs::write(dir.join("recipes/tiny.toml"), tiny(task)).unwrap();
     dir
 }
 
-const TINY: &str = r#"
+fn tiny(task: &str) -> String {
+    format!(
+        r#"
 name = "tiny"
-task = "aligning"
-description = "Aligning on a tiny budget"
+task = "{task}"
+description = "{task} on a tiny budget"
 seeds = [0]
 methods = ["beso", "vdd-beso", "em"]
 
@@ -54,7 +60,9 @@ timing_min_round_ms = 0.1
 [plots]
 png = false
 trajectories = 2
-"#;
+"#
+    )
+}
 
 fn run(root: &Path, out: &Path, tuning: bool) -> vdd_lab::Result {
     let shorthands = if tuning { vec![("tuning".into(), "true".into())] } else { Vec::new() };
@@ -65,21 +73,23 @@ fn run(root: &Path, out: &Path, tuning: bool) -> vdd_lab::Result {
         overrides,
         shorthands,
         out: Some(out.to_owned()),
-        command: "tests/aligning_run.rs".into(),
+        command: "tests/d3il_runs.rs".into(),
         root: Some(root.to_owned()),
         ..Default::default()
     };
     run_with(&Registry::builtin(), &request)
 }
 
-#[test]
-fn a_tiny_aligning_run_writes_its_metrics_and_a_tuning_run_its_log() {
-    let root = root("run");
+/// A tiny run of the task of `E` writes its metrics (with p1 when `p1`), table and figures, its
+/// saved student gives its row bit for bit, and a tuning run appends to the task's log.
+fn a_tiny_run<E: ContextEnv>(p1: bool) {
+    let task = E::NAME;
+    let root = root(task, "run");
     let out = root.join("results/tiny");
     run(&root, &out, false).unwrap();
     let metrics: serde_json::Value =
         serde_json::from_slice(&std::fs::read(out.join("metrics.json")).unwrap()).unwrap();
-    assert_eq!(metrics["task"], "aligning");
+    assert_eq!(metrics["task"], task);
     let text = metrics.to_string();
     for method in ["beso", "vdd-beso", "em"] {
         assert!(text.contains(&format!("\"{method}\"")), "{method} missing: {text}");
@@ -95,15 +105,17 @@ fn a_tiny_aligning_run_writes_its_metrics_and_a_tuning_run_its_log() {
     ] {
         assert!(text.contains(key), "{key} missing: {text}");
     }
+    assert_eq!(text.contains("p1_rate"), p1, "{text}");
     let table = std::fs::read_to_string(out.join("table.md")).unwrap();
     assert!(table.contains("| vdd-beso | 1 |") && table.contains("task entropy"), "{table}");
+    assert_eq!(table.contains("| p1 |"), p1, "{table}");
     // The saved student acts on raw observations and gives the run's figures bit for bit
-    // (what `rollout_saved --task aligning --contexts 2 --rollouts 2 --lockstep-batch 4` prints).
+    // (what `rollout_saved --task <task> --contexts 2 --rollouts 2 --lockstep-batch 4` prints).
     let saved = vdd_moe::load_policy(&out.join("models/vdd-beso-s0.safetensors")).unwrap();
-    let protocol = vdd_tasks::aligning::EvalProtocol::new(2, 2, 4);
-    let m = protocol.evaluate(&saved, 0, 2, false).unwrap().metrics;
+    let m = EvalProtocol::<E>::new(2, 2, 4).evaluate(&saved, 0, 2, false).unwrap().metrics;
     let row = &metrics["methods"]["vdd-beso"]["per_seed"][0];
     assert_eq!(row["success_rate"], serde_json::json!(m.success_rate), "{row}");
+    assert_eq!(row.get("p1_rate"), m.p1_rate.map(|p1| serde_json::json!(p1)).as_ref(), "{row}");
     assert_eq!(row["task_entropy"], serde_json::json!(m.task_entropy), "{row}");
     assert_eq!(row["mean_distance"], serde_json::json!(m.mean_distance), "{row}");
     let modes = std::fs::read_to_string(out.join("modes.svg")).unwrap();
@@ -115,8 +127,19 @@ fn a_tiny_aligning_run_writes_its_metrics_and_a_tuning_run_its_log() {
 
     let tuning_out = root.join("results/tuning-tiny");
     run(&root, &tuning_out, true).unwrap();
-    let log = vdd_lab::tuning::read_log(&root.join("docs/aligning-tuning-log.toml")).unwrap();
+    let log_path = root.join(format!("docs/{task}-tuning-log.toml"));
+    let log = vdd_lab::tuning::read_log(&log_path).unwrap();
     assert_eq!(log.len(), 3);
     assert!(log.iter().all(|e| e.seeds == [100] && e.success_rate.len() == 1));
     std::fs::remove_dir_all(&root).unwrap();
+}
+
+#[test]
+fn a_tiny_pushing_run_writes_its_metrics_and_a_tuning_run_its_log() {
+    a_tiny_run::<PushingEnv>(true);
+}
+
+#[test]
+fn a_tiny_aligning_run_writes_its_metrics_and_a_tuning_run_its_log() {
+    a_tiny_run::<AligningEnv>(false);
 }
