@@ -6,14 +6,11 @@
 //! says what is Aligning's: its environment and demonstrator, defaults, columns and trajectory
 //! panels.
 
-use std::path::Path;
-
-use vdd_report::plots::TrajectoryPanel;
 use vdd_tasks::aligning::AligningEnv;
 use vdd_tasks::aligning::oracle::OracleConfig;
 
-use super::d3il::{D3ilRecipe, D3ilTask};
-use crate::plots::{self, PushingPath};
+use super::d3il::{D3ilRecipe, D3ilTask, FigureFn, PanelFn};
+use crate::plots;
 use crate::report;
 
 /// A recipe of the Aligning task (see `recipes/aligning.toml`); the values not given there
@@ -46,27 +43,10 @@ impl D3ilTask for Aligning {
     const COLUMNS: &'static [report::Column] = &COLUMNS;
     const VISITS_STREAM: &'static str = "aligning-visits";
     const TABLE_NOTE: &'static str = "success: the tray within 0.0156 and 0.048π of the target pose; mean distance: D3IL's ½ (position error + rotation error / π) at the last step; task entropy: D3IL's, per context over the 2 modes (inside, outside) of the successes (log base 2), averaged over contexts";
-
-    fn check_oracle(oracle: &OracleConfig) -> Result<(), vdd_tasks::TaskError> {
-        oracle.validate()
-    }
-
-    fn panel(
-        label: &str,
-        paths: &[PushingPath<'_>],
-        success_rate: f64,
-        task_entropy: f64,
-    ) -> TrajectoryPanel {
-        plots::aligning_panel(label, paths, success_rate, task_entropy)
-    }
-
-    fn trajectories(
-        stem: &Path,
-        panels: &[TrajectoryPanel],
-        png: bool,
-    ) -> vdd_report::Result<Vec<String>> {
-        plots::aligning_trajectories(stem, panels, png)
-    }
+    const CHECK_ORACLE: fn(&OracleConfig) -> Result<(), vdd_tasks::TaskError> =
+        OracleConfig::validate;
+    const PANEL: PanelFn = plots::aligning_panel;
+    const TRAJECTORIES: FigureFn = plots::aligning_trajectories;
 }
 
 #[cfg(test)]

@@ -70,22 +70,20 @@ pub trait D3ilTask: Sync + 'static {
     const TABLE_NOTE: &'static str;
 
     /// Checks the demonstrator's settings.
-    fn check_oracle(oracle: &Self::Oracle) -> Result<(), vdd_tasks::TaskError>;
-    /// One panel of the trajectory figure: `paths` coloured by mode, the success rate and the
-    /// task entropy in its title.
-    fn panel(
-        label: &str,
-        paths: &[PushingPath<'_>],
-        success_rate: f64,
-        task_entropy: f64,
-    ) -> TrajectoryPanel;
-    /// Writes the trajectory figure `stem.svg` (and `stem.png` when `png`) of `panels`.
-    fn trajectories(
-        stem: &Path,
-        panels: &[TrajectoryPanel],
-        png: bool,
-    ) -> vdd_report::Result<Vec<String>>;
+    const CHECK_ORACLE: fn(&Self::Oracle) -> Result<(), vdd_tasks::TaskError>;
+    /// One panel of the trajectory figure, the paths coloured by mode.
+    const PANEL: PanelFn;
+    /// Writes the trajectory figure.
+    const TRAJECTORIES: FigureFn;
 }
+
+/// A task's trajectory panel: `(label, paths, success rate, task entropy)` → the panel, each
+/// path coloured by its mode (e.g. [`plots::pushing_panel`]).
+pub type PanelFn = fn(&str, &[PushingPath<'_>], f64, f64) -> TrajectoryPanel;
+
+/// A task's trajectory figure: `(stem, panels, png)` → writes `stem.svg` (and `stem.png` when
+/// `png`) and returns the files written (e.g. [`plots::pushing_trajectories`]).
+pub type FigureFn = fn(&Path, &[TrajectoryPanel], bool) -> vdd_report::Result<Vec<String>>;
 
 /// A recipe of a D3IL task `T` (see `recipes/<task>.toml`); the values not given there come
 /// from `recipes/defaults/<task>.toml` ([`Self::defaults`]). Unknown keys are errors.
@@ -214,7 +212,7 @@ impl<T: D3ilTask> RolloutRecipe for D3ilRecipe<T> {
         self.eval.protocol::<T::Env>().check().map_err(|e| format!("eval: {e}"))?;
         self.eval.timing().check().map_err(|e| format!("eval: {e}"))?;
         self.data.deploy_spec().validate().map_err(|e| format!("data: {e}"))?;
-        T::check_oracle(&self.data.oracle).map_err(|e| format!("data.oracle: {e}"))?;
+        (T::CHECK_ORACLE)(&self.data.oracle).map_err(|e| format!("data.oracle: {e}"))?;
         Ok(())
     }
     fn prepare(&self) -> crate::Result<Prepared> {
@@ -343,7 +341,7 @@ fn evaluate<T: D3ilTask>(
                     Some((&t.observations, Some(t.final_observation.as_slice()), mode))
                 })
                 .collect();
-            first.panels.push(T::panel(label, &paths, m.success_rate, m.task_entropy));
+            first.panels.push((T::PANEL)(label, &paths, m.success_rate, m.task_entropy));
         }
         first.curves.push((label.clone(), trained.curves));
     }
@@ -366,7 +364,7 @@ fn demonstrations_panel<T: D3ilTask>(
         .map(|(o, m)| (o, None, Some(m.index())))
         .collect();
     let entropy = f64::from(vdd_tasks::normalized_entropy(&demos.mode_counts()));
-    Ok(T::panel("demonstrations", &paths, demos.success_rate(), entropy))
+    Ok((T::PANEL)("demonstrations", &paths, demos.success_rate(), entropy))
 }
 
 /// `metrics.json`, `curves.json`, `table.md`, the figures and `run.json`; returns the
@@ -419,7 +417,7 @@ fn write_outputs<T: D3ilTask>(
         if base.plots.trajectories > 0 {
             let mut panels = vec![demonstrations_panel(base, base.plots.trajectories)?];
             panels.extend(first.panels);
-            figures.extend(T::trajectories(&dir.join("trajectories"), &panels, png)?);
+            figures.extend((T::TRAJECTORIES)(&dir.join("trajectories"), &panels, png)?);
         }
         stages.add("plots", t0.elapsed().as_secs_f64());
     }

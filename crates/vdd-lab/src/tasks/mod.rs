@@ -24,7 +24,7 @@ mod toy_eval;
 pub use aligning::{Aligning, AligningRecipe, COLUMNS as ALIGNING_COLUMNS};
 pub use avoiding::{AvoidingRecipe, COLUMNS as AVOIDING_COLUMNS};
 pub use block_push::{BlockPushRecipe, COLUMNS as BLOCK_PUSH_COLUMNS};
-pub use d3il::{D3il, D3ilEval, D3ilPlots, D3ilRecipe, D3ilTask};
+pub use d3il::{D3il, D3ilEval, D3ilPlots, D3ilRecipe, D3ilTask, FigureFn, PanelFn};
 pub use pushing::{COLUMNS as PUSHING_COLUMNS, Pushing, PushingRecipe};
 pub use toy::check_toy_gmm;
 

@@ -5,14 +5,11 @@
 //! `--tuning` appends to `docs/pushing-tuning-log.toml`. This file says what is Pushing's: its
 //! environment and demonstrator, defaults, columns (with p1) and trajectory panels.
 
-use std::path::Path;
-
-use vdd_report::plots::TrajectoryPanel;
 use vdd_tasks::pushing::PushingEnv;
 use vdd_tasks::pushing::oracle::OracleConfig;
 
-use super::d3il::{D3ilRecipe, D3ilTask};
-use crate::plots::{self, PushingPath};
+use super::d3il::{D3ilRecipe, D3ilTask, FigureFn, PanelFn};
+use crate::plots;
 use crate::report;
 
 /// A recipe of the Pushing task (see `recipes/pushing.toml`); the values not given there
@@ -46,27 +43,10 @@ impl D3ilTask for Pushing {
     const COLUMNS: &'static [report::Column] = &COLUMNS;
     const VISITS_STREAM: &'static str = "pushing-visits";
     const TABLE_NOTE: &'static str = "success: both boxes in distinct targets; p1: a box reached a target; mean distance: D3IL's ½ (min d_r + min d_g) at the last step; task entropy: D3IL's, per context over the 4 modes of the successes (log base 4), averaged over contexts";
-
-    fn check_oracle(oracle: &OracleConfig) -> Result<(), vdd_tasks::TaskError> {
-        oracle.validate()
-    }
-
-    fn panel(
-        label: &str,
-        paths: &[PushingPath<'_>],
-        success_rate: f64,
-        task_entropy: f64,
-    ) -> TrajectoryPanel {
-        plots::pushing_panel(label, paths, success_rate, task_entropy)
-    }
-
-    fn trajectories(
-        stem: &Path,
-        panels: &[TrajectoryPanel],
-        png: bool,
-    ) -> vdd_report::Result<Vec<String>> {
-        plots::pushing_trajectories(stem, panels, png)
-    }
+    const CHECK_ORACLE: fn(&OracleConfig) -> Result<(), vdd_tasks::TaskError> =
+        OracleConfig::validate;
+    const PANEL: PanelFn = plots::pushing_panel;
+    const TRAJECTORIES: FigureFn = plots::pushing_trajectories;
 }
 
 #[cfg(test)]
