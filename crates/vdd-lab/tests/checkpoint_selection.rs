@@ -4,18 +4,7 @@
 
 use std::path::{Path, PathBuf};
 
-use vdd_lab::Registry;
-use vdd_lab::experiment::{Request, run_with};
-
-/// A fresh project root with `recipe` as `recipes/tiny.toml`.
-fn root(tag: &str, recipe: &str) -> PathBuf {
-    let dir = std::env::temp_dir().join(format!("vdd-lab-select-{tag}-{}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&dir);
-    std::fs::create_dir_all(dir.join("recipes")).unwrap();
-    std::fs::create_dir_all(dir.join("docs")).unwrap();
-    std::fs::write(dir.join("recipes/tiny.toml"), recipe).unwrap();
-    dir
-}
+mod common;
 
 const TINY: &str = r#"
 name = "tiny"
@@ -51,14 +40,11 @@ enabled = false
 "#;
 
 fn run(root: &Path) -> vdd_lab::Result {
-    let request = Request {
-        recipe: "tiny".into(),
-        out: Some(root.join("results/tiny")),
-        command: "tests/checkpoint_selection.rs".into(),
-        root: Some(root.to_owned()),
-        ..Default::default()
-    };
-    run_with(&Registry::builtin(), &request)
+    common::run(root, "tests/checkpoint_selection.rs")
+}
+
+fn root(tag: &str, recipe: &str) -> PathBuf {
+    common::root(&format!("select-{tag}"), recipe)
 }
 
 #[test]

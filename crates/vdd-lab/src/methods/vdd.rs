@@ -460,18 +460,7 @@ fn fit_gating(
                 visited.nrows(),
                 v.episodes
             ));
-            if visited.ncols() != states.ncols() {
-                return Err(format!(
-                    "internal: visited states have {} columns, the data {}",
-                    visited.ncols(),
-                    states.ncols()
-                )
-                .into());
-            }
-            let n = states.nrows();
-            states = Mat::from_fn(n + visited.nrows(), states.ncols(), |i, j| {
-                if i < n { states[(i, j)] } else { visited[(i - n, j)] }
-            });
+            states = stacked(&states, &visited)?;
             seed = root.stream_indexed("fit", round as u64).random();
         }
         let fit = GatingFitConfig { seed, ..fit.clone() };
@@ -559,6 +548,22 @@ fn distill<S: ScoreModel>(
     Ok((last, chosen, mean_noise_level, probe.seconds))
 }
 
+/// `states` with the `visited` states below them (the same columns, or an internal error).
+fn stacked(states: &Mat<f32>, visited: &Mat<f32>) -> crate::Result<Mat<f32>> {
+    if visited.ncols() != states.ncols() {
+        return Err(format!(
+            "internal: visited states have {} columns, the data {}",
+            visited.ncols(),
+            states.ncols()
+        )
+        .into());
+    }
+    let n = states.nrows();
+    Ok(Mat::from_fn(n + visited.nrows(), states.ncols(), |i, j| {
+        if i < n { states[(i, j)] } else { visited[(i - n, j)] }
+    }))
+}
+
 /// Continues the distillation of `c` on the states the student visits ([`ExpertVisits`]):
 /// each round adds the states of `v.episodes` student episodes (raw, normalised by `sn`) to
 /// the demonstrations' `(states, actions)` and runs `v.iterations` more iterations of `vc`
@@ -579,18 +584,7 @@ fn distill_on_visits(
         let visit_seed: u64 = root.stream_indexed("episodes", round as u64).random();
         let visited = visits.visit(&policy(c.student.clone())?, visit_seed, v.episodes)?;
         let visited = sn.normalize_rows(visited.as_ref())?;
-        if visited.ncols() != states.ncols() {
-            return Err(format!(
-                "internal: visited states have {} columns, the data {}",
-                visited.ncols(),
-                states.ncols()
-            )
-            .into());
-        }
-        let n = states.nrows();
-        states = Mat::from_fn(n + visited.nrows(), states.ncols(), |i, j| {
-            if i < n { states[(i, j)] } else { visited[(i - n, j)] }
-        });
+        states = stacked(&states, &visited)?;
         crate::progress::log(format!(
             "[{}] expert round {}: the student visited {} states in {} episodes; distilling on \
              {} states",
