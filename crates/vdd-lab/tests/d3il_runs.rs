@@ -4,7 +4,7 @@
 //! histograms and the mode-coloured trajectory figure, a saved student reproducing its row, and
 //! a tuning run appending to its log.
 
-use std::path::{Path, PathBuf};
+use std::path::Path;
 
 use vdd_lab::Registry;
 use vdd_lab::experiment::{Request, run_with};
@@ -12,16 +12,9 @@ use vdd_tasks::aligning::AligningEnv;
 use vdd_tasks::d3il::{ContextEnv, EvalProtocol};
 use vdd_tasks::pushing::PushingEnv;
 
-/// A fresh project root with the recipe `tiny.toml` of task `task` in `recipes/`.
-fn root(task: &str, tag: &str) -> PathBuf {
-    let dir = std::env::temp_dir().join(format!("vdd-lab-{task}-{tag}-{}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&dir);
-    std::fs::create_dir_all(dir.join("recipes")).unwrap();
-    std::fs::create_dir_all(dir.join("docs")).unwrap();
-    std::fs::write(dir.join("recipes/tiny.toml"), tiny(task)).unwrap();
-    dir
-}
+mod common;
 
+/// The tiny recipe of task `task`.
 fn tiny(task: &str) -> String {
     format!(
         r#"
@@ -64,14 +57,12 @@ trajectories = 2
     )
 }
 
-fn run(root: &Path, out: &Path, tuning: bool) -> vdd_lab::Result {
-    let shorthands = if tuning { vec![("tuning".into(), "true".into())] } else { Vec::new() };
-    let overrides =
-        vdd_lab::recipe::Overrides { seeds: tuning.then(|| vec![100]), ..Default::default() };
+/// The `--tuning` run of recipe `tiny` of `root` (tuning seed 100) into `out`.
+fn tuning_run(root: &Path, out: &Path) -> vdd_lab::Result {
     let request = Request {
         recipe: "tiny".into(),
-        overrides,
-        shorthands,
+        overrides: vdd_lab::recipe::Overrides { seeds: Some(vec![100]), ..Default::default() },
+        shorthands: vec![("tuning".into(), "true".into())],
         out: Some(out.to_owned()),
         command: "tests/d3il_runs.rs".into(),
         root: Some(root.to_owned()),
@@ -84,9 +75,9 @@ fn run(root: &Path, out: &Path, tuning: bool) -> vdd_lab::Result {
 /// saved student gives its row bit for bit, and a tuning run appends to the task's log.
 fn a_tiny_run<E: ContextEnv>(p1: bool) {
     let task = E::NAME;
-    let root = root(task, "run");
+    let root = common::root(&format!("{task}-run"), &tiny(task));
     let out = root.join("results/tiny");
-    run(&root, &out, false).unwrap();
+    common::run(&root, "tests/d3il_runs.rs").unwrap();
     let metrics: serde_json::Value =
         serde_json::from_slice(&std::fs::read(out.join("metrics.json")).unwrap()).unwrap();
     assert_eq!(metrics["task"], task);
@@ -126,7 +117,7 @@ fn a_tiny_run<E: ContextEnv>(p1: bool) {
     }
 
     let tuning_out = root.join("results/tuning-tiny");
-    run(&root, &tuning_out, true).unwrap();
+    tuning_run(&root, &tuning_out).unwrap();
     let log_path = root.join(format!("docs/{task}-tuning-log.toml"));
     let log = vdd_lab::tuning::read_log(&log_path).unwrap();
     assert_eq!(log.len(), 3);
