@@ -382,7 +382,8 @@ impl VddMethod {
                     }
                 };
                 if let (Some(v), Some(t), Some(demos)) = (s.expert_visits, teacher, demos) {
-                    let run = DistillRun { clip_margin: clip, job, policy: &policy, select_by };
+                    let run =
+                        DistillRun { clip_margin: clip, job, policy: &policy, select_by: None };
                     c = distill_on_visits(c, (v, &vc, &sn), t, demos, run)
                         .map_err(|e| e.context(format!("{key}_expert_visits")))?;
                 }
