@@ -24,7 +24,7 @@ use vdd::{DistillData, Resumable, ResumableOutcome, VddConfig};
 use vdd_core::{Affine, ClampedDenoiser, NoiseConvention, ScoreModel};
 use vdd_diffusion::TeacherKind;
 use vdd_mixture::gating::{GatingFitConfig, fit_gating_to_policy};
-use vdd_moe::{ActMode, Moe, MoeConfig};
+use vdd_moe::{ActMode, GatingKind, Moe, MoeConfig, NetworkConfig};
 
 use crate::method::{Budget, Capability, Info, Job, Method, MethodRecipe, Trained};
 use crate::policy::TrainedPolicy;
@@ -323,7 +323,7 @@ impl VddMethod {
                     "version": STUDENT_CACHE_VERSION,
                     "teacher": teacher_config,
                     "teacher_hash": t.hash,
-                    "student": mc,
+                    "student": keyed_student(&mc),
                     // The unit only checks the schedule; it never changes a student.
                     "vdd": VddConfig { noise_unit: None, ..vc.clone() },
                     "clip_margin": s.clip_margin,
@@ -427,6 +427,17 @@ impl VddMethod {
             ..Trained::new(TrainedPolicy::Moe(Box::new(student)), train_seconds, curves)
         })
     }
+}
+
+/// `student` as it enters a student's cache key: a uniform gating has no network, so its
+/// architecture (which only a later gating fit uses) does not change the student and is left
+/// out; varying the fit then reuses the cached distillation.
+fn keyed_student(student: &MoeConfig) -> MoeConfig {
+    let mut keyed = student.clone();
+    if keyed.gating == GatingKind::Uniform {
+        keyed.gating_network = NetworkConfig::default();
+    }
+    keyed
 }
 
 /// Fits a learned gating of `student` (experts frozen) to samples of `t` at the demonstration
@@ -628,6 +639,21 @@ mod tests {
         assert_ne!(other, "abc");
         assert_eq!(other, selected_key("abc", "held-out success rate").unwrap());
         assert_ne!(other, selected_key("abd", "held-out success rate").unwrap());
+    }
+
+    #[test]
+    fn a_uniform_students_key_ignores_the_gating_network_and_a_learned_ones_does_not() {
+        let mut a = MoeConfig::toy(2, 2, 4);
+        a.gating = GatingKind::Uniform;
+        let mut b = a.clone();
+        b.gating_network.hidden_dim += 32;
+        assert_eq!(keyed_student(&a), keyed_student(&b));
+        a.gating = GatingKind::Learned;
+        b.gating = GatingKind::Learned;
+        assert_ne!(keyed_student(&a), keyed_student(&b));
+        let mut c = a.clone();
+        c.experts_network.hidden_dim += 32;
+        assert_ne!(keyed_student(&a), keyed_student(&c));
     }
 
     #[test]
