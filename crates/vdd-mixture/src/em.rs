@@ -25,7 +25,7 @@ use vdd_nn::{AdamConfig, LrSchedule};
 
 use crate::dataset::Dataset;
 use crate::error::MixtureError;
-use crate::fit::{self, MixtureFit};
+use crate::fit::{self, MixtureFit, RowSampler};
 
 /// Hyper-parameters of [`Em`]. [`EmConfig::toy`] is the one default used on every task.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -55,6 +55,15 @@ pub struct EmConfig {
     pub max_grad_norm: Option<f32>,
     /// Root seed of every random draw of the run.
     pub seed: u64,
+    /// The rows each iteration's E-step computes responsibilities for. `None` (the default):
+    /// every row, classic EM. `Some(k)`: `k` distinct rows drawn afresh each iteration (from
+    /// the stream `e-step-rows`), and that iteration's M-steps draw their minibatches from
+    /// them only (stochastic EM). On a large dataset the full E-step costs far more than the
+    /// M-steps it feeds (30 steps of 256 pairs use 7,680 rows); `k` a few times that keeps
+    /// each iteration's cost independent of the dataset's size. Needs minibatches
+    /// (`batch_size` and `gating_batch_size` set).
+    #[serde(default)]
+    pub e_step_rows: Option<usize>,
 }
 
 impl EmConfig {
@@ -76,12 +85,23 @@ impl EmConfig {
             gating_lr_schedule: schedule,
             max_grad_norm: None,
             seed: 0,
+            e_step_rows: None,
         }
     }
 
     /// Checks ranges.
     pub fn validate(&self) -> Result<(), CoreError> {
-        fit::validate_loop(&fit::loop_settings!(self), true)
+        fit::validate_loop(&fit::loop_settings!(self), true)?;
+        match self.e_step_rows {
+            Some(0) => Err(CoreError::Config("e_step_rows must be positive".into())),
+            Some(k) if self.batch_size.is_none() || self.gating_batch_size.is_none() => {
+                Err(CoreError::Config(format!(
+                    "e_step_rows = {k} needs minibatches (batch_size and gating_batch_size): a \
+                     whole-dataset step would use rows without responsibilities"
+                )))
+            }
+            _ => Ok(()),
+        }
     }
 }
 
@@ -228,6 +248,22 @@ impl<E: Expert> Em<E> {
         self.fit.evaluate(None, None)
     }
 
+    /// The E-step on `rows` only ([`EmConfig::e_step_rows`]): their responsibilities into
+    /// the rows' places of the responsibilities, and their mean log-likelihood.
+    fn e_step_on(&mut self, rows: &[usize]) -> Result<f64, MixtureError> {
+        let z_n = self.fit.student.num_experts();
+        let (mut states, mut actions) = (faer::Mat::zeros(0, 0), faer::Mat::zeros(0, 0));
+        fit::gather_rows(self.fit.data.states(), rows, &mut states);
+        fit::gather_rows(self.fit.data.actions(), rows, &mut actions);
+        let subset = Dataset::new(states, actions)?;
+        let mut resp = vec![0.0; rows.len() * z_n];
+        let ll = fit::evaluate_dataset(&mut self.fit.student, &subset, None, Some(&mut resp))?;
+        for (b, &o) in rows.iter().enumerate() {
+            self.resp[o * z_n..(o + 1) * z_n].copy_from_slice(&resp[b * z_n..(b + 1) * z_n]);
+        }
+        Ok(ll)
+    }
+
     /// Runs the remaining iterations, calling `callback` after each ([`Trainer::run`]).
     pub fn train(&mut self, callback: impl FnMut(&EmMetrics)) -> Result<(), MixtureError> {
         self.run(callback)
@@ -247,23 +283,36 @@ impl<E: Expert> Trainer for Em<E> {
         let it = self.fit.iteration;
         let (n, z_n) = (self.fit.data.len(), self.fit.student.num_experts());
 
-        // E-step: responsibilities of the dataset actions under the frozen current model.
-        let log_likelihood = self.fit.evaluate(None, Some(&mut self.resp))?;
+        // E-step: responsibilities of the dataset actions (or of this iteration's rows) under
+        // the frozen current model.
+        let (log_likelihood, rows) = match self.config.e_step_rows {
+            Some(k) if k < n => {
+                let mut rng = self.fit.seeds().stream_indexed("e-step-rows", it as u64);
+                let mut rows = rand::seq::index::sample(&mut rng, n, k).into_vec();
+                rows.sort_unstable();
+                (self.e_step_on(&rows)?, Some(RowSampler::subset(rows)?))
+            }
+            _ => (self.fit.evaluate(None, Some(&mut self.resp))?, None),
+        };
         if !log_likelihood.is_finite() {
             return Err(MixtureError::NonFinite { iteration: it, quantity: "log-likelihood" });
         }
-        let responsibility_entropy = -self
-            .resp
-            .iter()
-            .filter(|&&r| r > 0.0)
-            .map(|&r| f64::from(r) * f64::from(r).ln())
-            .sum::<f64>()
-            / n as f64;
+        let entropy = |r: &[f32]| {
+            -r.iter().filter(|&&r| r > 0.0).map(|&r| f64::from(r) * f64::from(r).ln()).sum::<f64>()
+        };
+        let responsibility_entropy = match &rows {
+            Some(RowSampler::Subset { rows }) => {
+                rows.iter().map(|&o| entropy(&self.resp[o * z_n..(o + 1) * z_n])).sum::<f64>()
+                    / rows.len() as f64
+            }
+            _ => entropy(&self.resp) / n as f64,
+        };
 
         let settings = fit::loop_settings!(&self.config);
         let resp = &self.resp;
         // M-step for the experts: weighted NLL with weights r(z|o)/B.
-        let (expert_loss, expert_lr) = self.fit.expert_steps(&settings, None, |row, w| {
+        let sampler = rows.as_ref();
+        let (expert_loss, expert_lr) = self.fit.expert_steps(&settings, sampler, |row, w| {
             for (z, w) in w.iter_mut().enumerate() {
                 *w = resp[row.o * z_n + z] / row.len as f32;
             }
@@ -271,7 +320,7 @@ impl<E: Expert> Trainer for Em<E> {
 
         // M-step for the gating: soft cross-entropy towards r(·|o).
         let (gating_loss, gating_lr) = if self.fit.student.has_learned_gating() {
-            self.fit.gating_steps(&settings, None, |row, t| {
+            self.fit.gating_steps(&settings, sampler, |row, t| {
                 t.copy_from_slice(&resp[row.o * z_n..(row.o + 1) * z_n]);
                 1.0 / row.len as f32
             })?

@@ -281,6 +281,11 @@ pub enum RowSampler {
         /// Running sums of the weights.
         cumulative: Vec<f64>,
     },
+    /// Every row of a subset equally likely.
+    Subset {
+        /// The rows drawn from (not empty).
+        rows: Vec<usize>,
+    },
 }
 
 impl RowSampler {
@@ -309,6 +314,14 @@ impl RowSampler {
         Ok(Self::Weighted { cumulative })
     }
 
+    /// Uniform over `rows` (not empty).
+    pub fn subset(rows: Vec<usize>) -> Result<Self, CoreError> {
+        if rows.is_empty() {
+            return Err(CoreError::Config("cannot sample from zero rows".into()));
+        }
+        Ok(Self::Subset { rows })
+    }
+
     /// Replaces the contents of `out` with `size` independent draws.
     pub fn draw(&self, rng: &mut Rng, size: usize, out: &mut Vec<usize>) {
         out.clear();
@@ -321,6 +334,9 @@ impl RowSampler {
                     let u = rng.random::<f64>() * total;
                     cumulative.partition_point(|&c| c <= u).min(last)
                 }));
+            }
+            Self::Subset { rows } => {
+                out.extend((0..size).map(|_| rows[rng.random_range(0..rows.len())]));
             }
         }
     }
@@ -585,6 +601,11 @@ pub(crate) struct MixtureFit<E: Expert> {
 }
 
 impl<E: Expert> MixtureFit<E> {
+    /// The run's seed streams.
+    pub(crate) fn seeds(&self) -> &Seeds {
+        &self.seeds
+    }
+
     /// Checks that `data` fit the mixture's dimensions and sets up the optimisers of
     /// `settings` and the random streams of `seed`.
     pub(crate) fn new(

@@ -192,6 +192,7 @@ pub fn fit_gating_to_policy<E: Expert, P: Policy + ?Sized>(
         gating_lr_schedule: schedule,
         max_grad_norm: None,
         seed: config.seed,
+        e_step_rows: None,
     };
     let mut em = Em::new(em, student, data)?;
     let log_likelihood_before = em.log_likelihood()?;

@@ -137,6 +137,67 @@ fn bad_inputs_are_rejected() {
 }
 
 #[test]
+fn an_e_step_on_a_subset_computes_only_its_rows_and_still_fits() {
+    let (data, _) = clusters([60, 120, 180], 0.3, 2);
+    let n = data.len();
+    let config = EmConfig {
+        iterations: 1,
+        batch_size: Some(32),
+        gating_batch_size: Some(32),
+        e_step_rows: Some(50),
+        ..EmConfig::toy()
+    };
+    let mut em =
+        Em::new(config.clone(), small_moe(ExpertKind::Diagonal, 3, 0), data.clone()).unwrap();
+    em.train(|_| {}).unwrap();
+    let z_n = 3;
+    let filled = (0..n)
+        .filter(|&o| em.responsibilities()[o * z_n..(o + 1) * z_n].iter().sum::<f32>() > 0.5)
+        .count();
+    assert_eq!(filled, 50, "the E-step computed {filled} rows, not 50");
+
+    // Over many iterations the subsets cover the data and EM still raises the likelihood, the
+    // same seed giving the same run.
+    let run = |seed| {
+        let config = EmConfig {
+            iterations: 60,
+            expert_steps_per_iter: 10,
+            gating_steps_per_iter: 10,
+            expert_optimizer: AdamConfig { lr: 1e-2, ..AdamConfig::default() },
+            gating_optimizer: AdamConfig { lr: 1e-2, ..AdamConfig::default() },
+            seed,
+            ..config.clone()
+        };
+        let mut em = Em::new(config, small_moe(ExpertKind::Diagonal, 3, 0), data.clone()).unwrap();
+        let before = em.log_likelihood().unwrap();
+        let mut metrics = Vec::new();
+        em.train(|m| metrics.push(*m)).unwrap();
+        (before, em.log_likelihood().unwrap(), metrics)
+    };
+    let (before, after, metrics) = run(3);
+    assert!(after > before + 1.0, "EM on subsets did not fit: {before} -> {after}");
+    assert_eq!(run(3).2, metrics);
+    assert_ne!(run(4).2, metrics);
+}
+
+#[test]
+fn an_e_step_subset_needs_minibatches_and_rows() {
+    let (data, _) = clusters([4, 3, 3], 0.3, 0);
+    let student = small_moe(ExpertKind::Diagonal, 2, 0);
+    let zero = EmConfig { e_step_rows: Some(0), ..EmConfig::toy() };
+    let err = Em::new(zero, student.clone(), data.clone()).err().unwrap().to_string();
+    assert!(err.contains("e_step_rows"), "{err}");
+    let full = EmConfig { e_step_rows: Some(4), ..full_batch_config(2, 3, 1e-3) };
+    let err = Em::new(full, student.clone(), data.clone()).err().unwrap().to_string();
+    assert!(err.contains("minibatches"), "{err}");
+    // More rows than the data: the classic E-step.
+    let all = EmConfig { e_step_rows: Some(1000), iterations: 1, ..EmConfig::toy() };
+    let mut em = Em::new(all, student, data).unwrap();
+    em.train(|_| {}).unwrap();
+    assert!(em.responsibilities().chunks(2).all(|r| (r.iter().sum::<f32>() - 1.0).abs() < 1e-4));
+}
+
+#[test]
 fn uniform_gating_stays_uniform() {
     let (data, _) = clusters([7, 7, 6], 0.3, 0);
     let mut mc = MoeConfig::toy(1, 2, 3);
