@@ -284,34 +284,32 @@ impl<E: Expert> Trainer for Em<E> {
         let (n, z_n) = (self.fit.data.len(), self.fit.student.num_experts());
 
         // E-step: responsibilities of the dataset actions (or of this iteration's rows) under
-        // the frozen current model.
-        let (log_likelihood, rows) = match self.config.e_step_rows {
+        // the frozen current model, and their mean entropy.
+        let entropy = |r: &[f32]| {
+            -r.iter().filter(|&&r| r > 0.0).map(|&r| f64::from(r) * f64::from(r).ln()).sum::<f64>()
+        };
+        let (log_likelihood, responsibility_entropy, sampler) = match self.config.e_step_rows {
             Some(k) if k < n => {
                 let mut rng = self.fit.seeds().stream_indexed("e-step-rows", it as u64);
                 let mut rows = rand::seq::index::sample(&mut rng, n, k).into_vec();
                 rows.sort_unstable();
-                (self.e_step_on(&rows)?, Some(RowSampler::subset(rows)?))
+                let ll = self.e_step_on(&rows)?;
+                let h = rows.iter().map(|&o| entropy(&self.resp[o * z_n..(o + 1) * z_n]));
+                (ll, h.sum::<f64>() / k as f64, Some(RowSampler::subset(rows)?))
             }
-            _ => (self.fit.evaluate(None, Some(&mut self.resp))?, None),
+            _ => {
+                let ll = self.fit.evaluate(None, Some(&mut self.resp))?;
+                (ll, entropy(&self.resp) / n as f64, None)
+            }
         };
         if !log_likelihood.is_finite() {
             return Err(MixtureError::NonFinite { iteration: it, quantity: "log-likelihood" });
         }
-        let entropy = |r: &[f32]| {
-            -r.iter().filter(|&&r| r > 0.0).map(|&r| f64::from(r) * f64::from(r).ln()).sum::<f64>()
-        };
-        let responsibility_entropy = match &rows {
-            Some(RowSampler::Subset { rows }) => {
-                rows.iter().map(|&o| entropy(&self.resp[o * z_n..(o + 1) * z_n])).sum::<f64>()
-                    / rows.len() as f64
-            }
-            _ => entropy(&self.resp) / n as f64,
-        };
 
         let settings = fit::loop_settings!(&self.config);
         let resp = &self.resp;
         // M-step for the experts: weighted NLL with weights r(z|o)/B.
-        let sampler = rows.as_ref();
+        let sampler = sampler.as_ref();
         let (expert_loss, expert_lr) = self.fit.expert_steps(&settings, sampler, |row, w| {
             for (z, w) in w.iter_mut().enumerate() {
                 *w = resp[row.o * z_n + z] / row.len as f32;
