@@ -1,8 +1,10 @@
-//! A method and a task added to the experiment layer from outside `vdd-lab` (issue 32): the
-//! method `bc` (behaviour cloning, EM with one expert: the worked example of docs/recipes.md)
-//! and the task `line` (a 1-D regression, actions `a = 2s` plus noise), registered with
-//! [`Registry::with_method`] / [`Registry::with_task`] and run through the driver by
-//! [`vdd_lab::experiment::run_with`], as a program using the layer would.
+//! A method, its row, a teacher source and a task added to the experiment layer from outside
+//! `vdd-lab` (issue 32): the method `bc` (behaviour cloning, EM with one expert: the worked
+//! example of docs/recipes.md) and the task `line` (a 1-D regression, actions `a = 2s` plus
+//! noise), registered with [`Registry::with_method`], [`Registry::with_rows`] and
+//! [`Registry::with_task`] and run through the driver by [`vdd_lab::experiment::run_with`], as
+//! a program using the layer would; a recipe adding a row of its own; and a teacher source
+//! ([`Registry::with_teacher`]) that rows name.
 //!
 //! This file is the working example docs/recipes.md ("Adding a method", "Adding a task")
 //! points at: everything it uses is public API of `vdd-lab`.
@@ -19,7 +21,9 @@ use vdd_lab::Registry;
 use vdd_lab::context::{RunContext, StageTimes};
 use vdd_lab::driver::{self, Datasets, Task, TaskRecipe};
 use vdd_lab::experiment::{Request, run_with};
-use vdd_lab::method::{Info, Job, Method, MethodRecipe, Trained, TrainingData};
+use vdd_lab::method::{
+    Info, Job, Method, MethodRecipe, Row as LabRow, TeacherUse, Trained, TrainingData,
+};
 use vdd_lab::recipe::{self, Header};
 use vdd_lab::report::{self, Column, Row};
 use vdd_lab::teachers::TeachersConfig;
@@ -35,13 +39,18 @@ struct Bc;
 
 static BC: Bc = Bc;
 
-/// `bc` needs nothing of a task but runs only on `line` (its settings are `line`'s).
-const BC_INFO: Info =
-    Info { name: "bc", teacher: None, needs: &[], only_on: &["line"], keys: &["baselines.bc"] };
+/// `bc` takes no teacher and needs nothing of a task.
+const BC_INFO: Info = Info { name: "bc", teacher: TeacherUse::Never, needs: &[], row_keys: &[] };
+
+/// The row `bc` runs only on `line` (its settings are `line`'s).
+const BC_ROW: &str = "[bc]\nmethod = \"bc\"\nonly_on = [\"line\"]";
 
 impl Method for Bc {
     fn info(&self) -> &Info {
         &BC_INFO
+    }
+    fn keys(&self, _: &LabRow) -> Vec<String> {
+        vec!["baselines.bc".into()]
     }
     fn check(&self, recipe: &MethodRecipe<'_>) -> vdd_lab::Result {
         recipe.get::<EmConfig>("baselines.bc").map(drop)
@@ -278,9 +287,10 @@ fn line_mse(policy: &mut dyn Policy, n: usize, seed: u64) -> vdd_core::Result<f6
 // ---------------------------------------------------------------------------------------------
 // The tests.
 
-/// The workspace's methods and tasks with `bc` and `line`.
+/// The workspace's methods, rows and tasks with `bc` (method and row) and `line`.
 fn registry() -> Registry {
-    let with = |r: Registry| r.with_method(&BC)?.with_task(&LINE);
+    let rows: Table = BC_ROW.parse().unwrap();
+    let with = |r: Registry| r.with_method(&BC)?.with_rows(&rows)?.with_task(&LINE);
     with(Registry::builtin()).unwrap_or_else(|e| panic!("{e}"))
 }
 
@@ -364,6 +374,37 @@ fn an_outside_method_and_task_run_through_the_driver() {
     // A key of a method table no method reads.
     let err = run(&registry, &dir, "[baselines.bd]\niterations = 1\n").unwrap_err().to_string();
     assert!(err.contains("baselines.bd"), "{err}");
+
+    // A recipe's own row: `bc` with settings of its own, beside `bc`; it changes `bc-short`
+    // alone, so the two fit differently.
+    let body = "methods = [\"bc\", \"bc-short\"]\n[runs.bc-short]\nmethod = \"bc\"\n\
+                set = { \"baselines.bc.iterations\" = 1, \"baselines.bc.expert_steps_per_iter\" = 1 }\n";
+    let out = run(&registry, &dir, body).unwrap_or_else(|e| panic!("{e}"));
+    let metrics: Value =
+        serde_json::from_str(&std::fs::read_to_string(out.join("metrics.json")).unwrap()).unwrap();
+    assert_eq!(metrics["method_order"], json!(["bc", "bc-short"]));
+    let short = metrics["methods"]["bc-short"]["mse"].as_f64().unwrap();
+    assert!(short > 2.0 * metrics["methods"]["bc"]["mse"].as_f64().unwrap(), "{metrics}");
+    let resolved = std::fs::read_to_string(out.join("resolved.toml")).unwrap();
+    assert!(resolved.contains("[runs.bc-short]"), "{resolved}");
+    // A `--set` of a key the row sets itself would not reach it, and is refused.
+    let recipe = dir.join("line-test.toml");
+    let request = Request {
+        recipe: recipe.to_str().unwrap().to_owned(),
+        overrides: vdd_lab::recipe::Overrides {
+            sets: vec![("baselines.bc.iterations".into(), "3".into())],
+            ..Default::default()
+        },
+        out: Some(dir.join("run-set")),
+        root: Some(dir.clone()),
+        ..Default::default()
+    };
+    let err = run_with(&registry, &request).unwrap_err().to_string();
+    assert!(err.contains("does not reach bc-short"), "{err}");
+    // A row setting a key its method does not read.
+    let body = "methods = [\"bc-x\"]\n[runs.bc-x]\nmethod = \"bc\"\nset = { \"baselines.em.iterations\" = 1 }\n";
+    let err = run(&registry, &dir, body).unwrap_err().to_string();
+    assert!(err.contains("row `bc-x`") && err.contains("does not read"), "{err}");
     std::fs::remove_dir_all(&dir).unwrap();
 }
 
@@ -371,7 +412,10 @@ fn an_outside_method_and_task_run_through_the_driver() {
 fn a_name_is_registered_once() {
     let registry = registry();
     assert_eq!(registry.method("bc").unwrap().name(), "bc");
-    assert_eq!(registry.methods_of("line").iter().map(|m| m.name()).collect::<Vec<_>>(), ["bc"]);
+    assert_eq!(
+        registry.rows_of("line").iter().map(|r| r.name.as_str()).collect::<Vec<_>>(),
+        ["bc"]
+    );
     assert_eq!(registry.columns_of("line")[0].key, "mse");
     let err = registry.clone().with_method(&BC).unwrap_err().to_string();
     assert!(err.contains("a method `bc` is registered already"), "{err}");
@@ -379,4 +423,24 @@ fn a_name_is_registered_once() {
     assert!(err.contains("a task `line` is registered already"), "{err}");
     let err = Registry::builtin().with_task(vdd_lab::tasks::BUILTIN[0]).unwrap_err();
     assert!(err.to_string().contains("avoiding"), "{err}");
+}
+
+/// A teacher source of one's own: a wider BESO teacher read from a recipe key of its own, and
+/// a row distilling it with VDD (`vdd.beso_wide` holds that row's VDD settings).
+static BESO_WIDE: vdd_lab::teachers::Learned = vdd_lab::teachers::Learned {
+    name: "beso-wide",
+    kind: vdd_lab::teachers::TeacherKind::Beso,
+    key: &["baselines.beso_wide"],
+};
+
+#[test]
+fn an_outside_teacher_source_is_named_by_rows() {
+    let rows: Table = "[vdd-beso-wide]\nmethod = \"vdd\"\nteacher = \"beso-wide\"".parse().unwrap();
+    let err = Registry::builtin().with_rows(&rows).unwrap_err().to_string();
+    assert!(err.contains("unknown teacher `beso-wide`"), "{err}");
+    let registry = Registry::builtin().with_teacher(&BESO_WIDE).unwrap().with_rows(&rows).unwrap();
+    let row = registry.row("vdd-beso-wide").unwrap();
+    assert_eq!(row.keys()[..2], ["baselines.beso_wide", "vdd.beso_wide"]);
+    let err = registry.with_teacher(&BESO_WIDE).unwrap_err().to_string();
+    assert!(err.contains("registered already"), "{err}");
 }

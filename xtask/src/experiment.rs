@@ -22,9 +22,10 @@ pub struct ExperimentArgs {
     /// Run seeds: N, a list 0,1,2 or a range 0..3 (default: the recipe's).
     #[arg(long, visible_alias = "seed", value_name = "SEEDS", value_parser = seed_list)]
     pub seeds: Option<SeedList>,
-    /// Methods, comma-separated, or `all` (ddpm, beso, ddpm-1, beso-1, cd, ctm, em, imc,
-    /// vdd-ddpm, vdd-beso, then beso-d3il, beso-d3il-1, vdd-beso-learned, vdd-beso-d3il,
-    /// imc-authors; toys: vdd-exact; the registry is vdd_lab::methods::BUILTIN).
+    /// Rows to run (a method from a teacher), comma-separated, or `all` (ddpm, beso, ddpm-1,
+    /// beso-1, cd, ctm, em, imc, vdd-ddpm, vdd-beso, then beso-d3il, beso-d3il-1,
+    /// vdd-beso-learned, vdd-beso-d3il, imc-authors; toys: vdd-exact; the rows are
+    /// recipes/defaults/runs.toml and the recipe's own [runs.<name>]).
     #[arg(long, value_name = "A,B")]
     pub methods: Option<String>,
     /// Override any recipe key; the value is parsed as TOML, a bare word is a string

@@ -1,5 +1,5 @@
 //! The stages every task pipeline shares (a [`crate::task::Task`] runs them): the run's
-//! plan (methods × variants, [`plan`]), its datasets ([`Datasets`]), the training phases with
+//! plan (rows × variants, [`plan`]), its datasets ([`Datasets`]), the training phases with
 //! the teacher store and the student cache ([`train_all`]), and writing the results
 //! ([`write_results`]). The tasks themselves are in [`crate::tasks`].
 //!
@@ -15,39 +15,46 @@ use toml::Table;
 use vdd_diffusion::TeacherKind;
 
 use crate::context::{RunContext, StageTimes};
-use crate::method::{CurveEval, Job, Method, MethodRecipe, StateVisits, Trained, TrainingData};
+use crate::method::{CurveEval, Job, MethodRecipe, StateVisits, Trained, TrainingData};
 use crate::recipe::{self, Resolved};
 use crate::report::Row;
+use crate::row::Row as PlanRow;
 pub use crate::task::{Task, TaskRecipe};
 use crate::teachers::{self, TeachersConfig, TrainedTeacher};
 use crate::{Registry, Result as XResult};
 use vdd_moe::cache::StudentCache;
 
-/// One method of one variant of the recipe.
+/// One row of one variant of the recipe.
 pub struct Entry<'r, R> {
     /// `vdd-beso`, `vdd-beso-z4`.
     pub label: String,
-    /// The method.
-    pub method: &'static dyn Method,
+    /// The row: its method and teacher.
+    pub row: PlanRow,
     /// The variant's configuration.
     pub cfg: &'r R,
-    /// `cfg` as a TOML tree, for the method's own keys.
+    /// `cfg` as a TOML tree with the row's own settings, for the method's keys.
     tree: Table,
-    /// The teachers of the method ([`Method::teachers`]).
+    /// The learned teachers of the row ([`crate::teachers::TeacherSource::teachers`]).
     teachers: TeachersConfig,
 }
 
 impl<R: TaskRecipe> Entry<'_, R> {
     /// The method's view of the configuration.
     pub fn recipe(&self) -> MethodRecipe<'_> {
-        MethodRecipe { teachers: &self.teachers, student: self.cfg.student(), tree: &self.tree }
+        let (teachers, student, tree) = (&self.teachers, self.cfg.student(), &self.tree);
+        MethodRecipe { teachers, student, tree, row: &self.row }
+    }
+
+    /// The family of the row's learned teacher, if it has one.
+    pub fn teacher_kind(&self) -> Option<TeacherKind> {
+        self.row.teacher.and_then(|t| t.kind())
     }
 }
 
-/// The methods of every variant of `resolved`, in order, after checking the task, the seeds,
-/// the method sections (every key claimed by a method; every method of the task reads its
-/// settings) and that every `--set` of `sets` reaches the methods it names
-/// ([`Method::shadowed_keys`]).
+/// The rows of every variant of `resolved` (the registry's and the recipe's own `runs`), in
+/// order, after checking the task, the seeds, the method sections (every key claimed by a
+/// row; every row of the task reads its settings), the rows' own `set` keys and that every
+/// `--set` of `sets` reaches the rows it names ([`crate::method::Method::shadowed_keys`]).
 pub fn plan<'r, R: TaskRecipe>(
     registry: &Registry,
     resolved: &'r Resolved<R>,
@@ -63,25 +70,56 @@ pub fn plan<'r, R: TaskRecipe>(
     }
     let mut out = Vec::new();
     for (variant, cfg) in resolved.configs() {
+        let registry = registry.clone().with_rows(&cfg.header().runs)?;
         let tree = recipe::to_tree(cfg)?;
         cfg.student().check(1).map_err(|e| format!("student: {e}"))?;
-        check_method_sections::<R>(registry, task, &tree, cfg)?;
-        for method in registry.parse_methods(&cfg.header().methods, task)? {
-            let label = crate::registry::label(method, variant.map(|v| v.name.as_str()));
+        check_method_sections::<R>(&registry, task, &tree, cfg)?;
+        for row in registry.parse_rows(&cfg.header().methods, task)? {
+            let label = crate::row::label(&row.name, variant.map(|v| v.name.as_str()));
+            let (tree, teachers) = row_view(row, &tree, cfg)?;
             let view =
-                MethodRecipe { teachers: cfg.teachers(), student: cfg.student(), tree: &tree };
-            let teachers = method.teachers(&view).map_err(|e| format!("{label}: {e}"))?;
-            check_sets_reach(method, &label, &view, sets)?;
-            out.push(Entry { label, method, cfg, tree: tree.clone(), teachers });
+                MethodRecipe { teachers: &teachers, student: cfg.student(), tree: &tree, row };
+            check_sets_reach(row, &label, &view, sets)?;
+            out.push(Entry { label, row: row.clone(), cfg, tree, teachers });
         }
     }
     Ok(out)
 }
 
-/// Refuses a `--set` of a shared key that `method` would not read (see
-/// [`Method::shadowed_keys`]), naming both keys.
+/// The tree (`tree` with the row's `set`) and the learned teachers of `row`, after checking
+/// that the row sets only keys of the methods' tables that it reads.
+fn row_view<R: TaskRecipe>(
+    row: &PlanRow,
+    tree: &Table,
+    cfg: &R,
+) -> XResult<(Table, TeachersConfig)> {
+    let fail = |e: String| -> crate::LabError { format!("row `{}`: {e}", row.name).into() };
+    let keys = row.keys();
+    for p in row.set_paths() {
+        let top = p.split('.').next().unwrap_or_default();
+        if !R::METHOD_SECTIONS.contains(&top) {
+            let sections = R::METHOD_SECTIONS.join(", ");
+            return Err(fail(format!(
+                "`set` may change the methods' tables ({sections}), not `{p}`"
+            )));
+        }
+        if !keys.iter().any(|k| p == *k || p.starts_with(&format!("{k}."))) {
+            return Err(fail(format!("`set` names `{p}`, which the row does not read")));
+        }
+    }
+    let tree = row.apply_set(tree);
+    let view = MethodRecipe { teachers: cfg.teachers(), student: cfg.student(), tree: &tree, row };
+    let teachers = match row.teacher {
+        Some(t) => t.teachers(&view).map_err(|e| fail(e.to_string()))?,
+        None => cfg.teachers().clone(),
+    };
+    Ok((tree, teachers))
+}
+
+/// Refuses a `--set` of a shared key that `row` would not read (see
+/// [`crate::method::Method::shadowed_keys`]) or that the row sets itself, naming both keys.
 fn check_sets_reach(
-    method: &dyn Method,
+    row: &PlanRow,
     label: &str,
     view: &MethodRecipe<'_>,
     sets: &[(String, String)],
@@ -89,8 +127,10 @@ fn check_sets_reach(
     // The `--set` that sets `path` (the key itself or a table holding it), if any.
     let set_of =
         |path: &str| sets.iter().find(|(k, _)| path == k || path.starts_with(&format!("{k}.")));
-    for (shared, own) in method.shadowed_keys() {
-        let Some((k, _)) = set_of(shared) else { continue };
+    let mut shadowed = row.method.shadowed_keys(row);
+    shadowed.extend(row.set_paths().into_iter().map(|p| (p, None)));
+    for (shared, own) in shadowed {
+        let Some((k, _)) = set_of(&shared) else { continue };
         let message = match own {
             None => format!("`--set {k}` does not reach {label}, which fixes `{shared}` itself"),
             // Set too: the method takes its own key's value.
@@ -114,7 +154,7 @@ fn check_method_sections<R: TaskRecipe>(
     tree: &Table,
     cfg: &R,
 ) -> XResult {
-    let claimed = |key: &str| registry.methods().iter().any(|m| m.info().keys.contains(&key));
+    let claimed = |key: &str| registry.rows().iter().any(|r| r.keys().iter().any(|k| k == key));
     for section in R::METHOD_SECTIONS {
         let keys = tree.get(*section).and_then(|v| v.as_table()).into_iter().flatten();
         for (k, _) in keys {
@@ -124,9 +164,10 @@ fn check_method_sections<R: TaskRecipe>(
             }
         }
     }
-    let view = MethodRecipe { teachers: cfg.teachers(), student: cfg.student(), tree };
-    for m in registry.methods_of(task) {
-        m.check(&view).map_err(|e| format!("{}: {e}", m.name()))?;
+    for row in registry.rows_of(task) {
+        let (tree, teachers) = row_view(row, tree, cfg)?;
+        let view = MethodRecipe { teachers: &teachers, student: cfg.student(), tree: &tree, row };
+        row.method.check(&view).map_err(|e| format!("{}: {e}", row.name))?;
     }
     Ok(())
 }
@@ -211,7 +252,7 @@ pub fn train_all<R: TaskRecipe, P: AsRef<TrainingData> + Sync>(
     let mut teacher_jobs: Vec<(String, TeacherKind, usize, usize)> = Vec::new();
     for (si, &seed) in seeds.iter().enumerate() {
         for (pi, e) in plan.iter().enumerate() {
-            if let Some(kind) = e.method.info().teacher {
+            if let Some(kind) = e.teacher_kind() {
                 let key = teacher_key(kind, &e.teachers, data.get(si, pi).as_ref(), seed)?;
                 if !teacher_jobs.iter().any(|j| j.0 == key) {
                     teacher_jobs.push((key, kind, si, pi));
@@ -221,7 +262,7 @@ pub fn train_all<R: TaskRecipe, P: AsRef<TrainingData> + Sync>(
     }
     let (free, dependent): (Vec<_>, Vec<_>) = (0..seeds.len())
         .flat_map(|si| (0..plan.len()).map(move |pi| (si, pi)))
-        .partition(|&(_, pi)| plan[pi].method.info().teacher.is_none());
+        .partition(|&(_, pi)| plan[pi].teacher_kind().is_none());
     enum Work {
         Teacher(usize),
         Method(usize, usize),
@@ -246,7 +287,7 @@ pub fn train_all<R: TaskRecipe, P: AsRef<TrainingData> + Sync>(
             return Ok(Done::Teacher(i, Box::new(t.map_err(|e| e.to_string())?)));
         }
         let label = format!("{} s{seed}", e.label);
-        let teacher = e.method.info().teacher.map(|kind| store.get(kind, cfg, d, seed));
+        let teacher = e.teacher_kind().map(|kind| store.get(kind, cfg, d, seed));
         let teacher = teacher.transpose().map_err(|e| e.to_string())?;
         let checkpoints = (ck.as_path(), ctx.resume);
         let (data, recipe) = (d, e.recipe());
@@ -263,7 +304,7 @@ pub fn train_all<R: TaskRecipe, P: AsRef<TrainingData> + Sync>(
             curves,
             visits,
         };
-        let t = e.method.train(&job).map_err(|e| format!("{label}: {e}"))?;
+        let t = e.row.method.train(&job).map_err(|e| format!("{label}: {e}"))?;
         Ok(Done::Method((si, pi), Box::new(t)))
     };
     let mut out = Trainings { trained: HashMap::new(), teachers: TeacherStore::default() };

@@ -1,61 +1,73 @@
-//! What a method is to the recipes: the [`Method`] trait, the task-agnostic [`Job`] it trains
-//! from, and the [`Trained`] policy it returns. The methods themselves, one file each, and their
-//! registry are in [`crate::methods`].
+//! What a method is to the recipes: the [`Method`] trait (an algorithm, run by the rows of
+//! [`crate::row`] from a teacher), the task-agnostic [`Job`] it trains from, and the
+//! [`Trained`] policy it returns. The methods themselves, one file each, and their list are in
+//! [`crate::methods`].
 //!
 //! A method reads its own settings from the recipe by key path ([`MethodRecipe::get`]), so its
 //! defaults live in `recipes/defaults/<task>.toml` under the keys it declares
-//! ([`Info::keys`]); the recipe types hold those tables without knowing their contents.
+//! ([`Method::keys`]); the recipe types hold those tables without knowing their contents.
 
 use serde::Serialize;
 use serde::de::DeserializeOwned;
 use toml::Table;
-use vdd_diffusion::TeacherKind;
 use vdd_moe::MoeConfig;
 
 use crate::plots::Curves;
 use crate::policy::TrainedPolicy;
 use crate::recipe;
+pub use crate::row::Row;
 pub use crate::task::Capability;
 use crate::teachers::{TeachersConfig, TrainedTeacher};
 pub use vdd_data::TrainingData;
 use vdd_moe::cache::StudentCache;
 pub use vdd_report::budget::{Budget, BudgetRole};
 
-/// What a method is: its name, its teacher, where it runs and what it reads.
-#[derive(Debug, Clone, Copy)]
-pub struct Info {
-    /// The lower-case hyphenated name (`vdd-beso`), as in `--methods` and `metrics.json`.
-    pub name: &'static str,
-    /// The learned teacher the method needs (trained, or loaded from the cache, before it).
-    pub teacher: Option<TeacherKind>,
-    /// What it needs of a task: it runs on every task that offers all of it
-    /// ([`crate::task::Task::offers`]).
-    pub needs: &'static [Capability],
-    /// When not empty, the only tasks it runs on (rows tied to one task's settings, such as
-    /// the D3IL configurations of Avoiding).
-    pub only_on: &'static [&'static str],
-    /// The recipe keys (dotted paths below a task's method sections) it reads.
-    pub keys: &'static [&'static str],
+/// Whether a method is distilled from (or is) a teacher, and which: what a row of it must
+/// name ([`crate::row::Row`]).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum TeacherUse {
+    /// It takes none (a row naming one is refused).
+    Never,
+    /// Any teacher source: a learned one or the task's exact mixture.
+    Any,
+    /// A learned teacher (trained, or loaded from the cache, before the method).
+    Learned,
 }
 
-/// One method of the comparison (a row of the results table).
+/// What a method is: its name, what it takes and needs.
+#[derive(Debug, Clone, Copy)]
+pub struct Info {
+    /// The lower-case hyphenated algorithm name (`vdd`), as in a row's `method`.
+    pub name: &'static str,
+    /// The teacher a row of it names.
+    pub teacher: TeacherUse,
+    /// What it needs of a task (its teacher source adds its own): a row runs on every task
+    /// that offers all of it ([`crate::task::Task::offers`]).
+    pub needs: &'static [Capability],
+    /// The keys of a row's `with` table it reads ([`crate::row::Row::settings`]).
+    pub row_keys: &'static [&'static str],
+}
+
+/// One method of the comparison: an algorithm that a row of the results table runs from a
+/// teacher ([`crate::row`]). Its own settings are recipe keys ([`Method::keys`]) and the row's
+/// `with` table.
 pub trait Method: Sync {
-    /// Name, teacher, tasks and keys.
+    /// Name, teacher, needs and row keys.
     fn info(&self) -> &Info;
-    /// Reads its settings from `recipe`, failing as training would on a missing or bad one.
+    /// The recipe keys (dotted paths below a task's method sections) `row` reads, e.g.
+    /// `vdd.beso` for VDD from the BESO teacher.
+    fn keys(&self, row: &Row) -> Vec<String>;
+    /// Reads its settings from `recipe` (and `recipe.row`), failing as training would on a
+    /// missing or bad one.
     fn check(&self, recipe: &MethodRecipe<'_>) -> crate::Result;
     /// Trains on `job`.
     fn train(&self, job: &Job<'_>) -> crate::Result<Trained>;
-    /// The learned teachers it is distilled from or is: the recipe's `teachers` unless the
-    /// method brings its own (the D3IL-style BESO rows). Their cache keys follow from it.
-    fn teachers(&self, recipe: &MethodRecipe<'_>) -> crate::Result<TeachersConfig> {
-        Ok(recipe.teachers.clone())
-    }
-    /// The shared recipe keys this method does not read, as `(shared key, the key it reads
+    /// The shared recipe keys `row` does not read, as `(shared key, the key it reads
     /// instead)`; `None` when the method fixes the value itself. A `--set` of such a shared key
-    /// is refused for the method while its own key is set ([`crate::driver::plan`]): it would
-    /// not take effect.
-    fn shadowed_keys(&self) -> Vec<(&'static str, Option<String>)> {
+    /// is refused for the row while its own key is set ([`crate::driver::plan`]): it would
+    /// not take effect. (The keys a row sets itself, [`crate::row::Row::set`], are refused
+    /// alike.)
+    fn shadowed_keys(&self, _row: &Row) -> Vec<(String, Option<String>)> {
         Vec::new()
     }
     /// [`Info::name`].
@@ -71,8 +83,10 @@ pub struct MethodRecipe<'a> {
     pub teachers: &'a TeachersConfig,
     /// The mixture of experts of the students (`state_dim` / `action_dim` come from the data).
     pub student: &'a MoeConfig,
-    /// The whole resolved recipe.
+    /// The whole resolved recipe, with the row's own settings ([`Row::set`]) merged in.
     pub tree: &'a Table,
+    /// The row being run.
+    pub row: &'a Row,
 }
 
 impl MethodRecipe<'_> {
@@ -96,7 +110,7 @@ pub struct Job<'a> {
     pub label: &'a str,
     /// The training data.
     pub data: &'a TrainingData,
-    /// The trained teacher of [`Info::teacher`].
+    /// The trained teacher of the row's learned teacher source.
     pub teacher: Option<&'a TrainedTeacher>,
     /// The recipe.
     pub recipe: MethodRecipe<'a>,

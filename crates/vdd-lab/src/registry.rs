@@ -1,32 +1,51 @@
-//! The methods and tasks a run can name: `Registry::builtin` (in the crate root) holds the
-//! workspace's own (`methods::BUILTIN`, `tasks::BUILTIN`); a program adds its own with
-//! [`Registry::with_method`] and [`Registry::with_task`] and runs recipes through them with
-//! [`crate::experiment::run_with`]. The order of the methods is the table order and what
-//! `all` expands to.
+//! What a run can name: the methods (algorithms), the teacher sources, the rows of the
+//! results tables built from them ([`crate::row`]) and the tasks. `Registry::builtin` (in the
+//! crate root) holds the workspace's own (`methods::BUILTIN`, `teachers::BUILTIN`, the rows of
+//! `recipes/defaults/runs.toml`, `tasks::BUILTIN`); a program adds its own with
+//! [`Registry::with_method`], [`Registry::with_teacher`], [`Registry::with_rows`] and
+//! [`Registry::with_task`] and runs recipes through them with
+//! [`crate::experiment::run_with`]. The order of the rows is the table order and what `all`
+//! expands to.
 
 use crate::method::Method;
 use crate::report::Column;
+use crate::row::{self, Row};
 use crate::task::Task;
+use crate::teachers::TeacherSource;
 
-/// The methods and tasks of a run.
+/// The methods, teacher sources, rows and tasks of a run.
 #[derive(Clone)]
 pub struct Registry {
     methods: Vec<&'static dyn Method>,
+    teachers: Vec<&'static dyn TeacherSource>,
+    rows: Vec<Row>,
     tasks: Vec<&'static dyn Task>,
 }
 
 impl std::fmt::Debug for Registry {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
         let methods: Vec<_> = self.methods.iter().map(|m| m.name()).collect();
+        let teachers: Vec<_> = self.teachers.iter().map(|t| t.name()).collect();
+        let rows: Vec<_> = self.rows.iter().map(|r| r.name.as_str()).collect();
         let tasks: Vec<_> = self.tasks.iter().map(|t| t.name()).collect();
-        f.debug_struct("Registry").field("methods", &methods).field("tasks", &tasks).finish()
+        f.debug_struct("Registry")
+            .field("methods", &methods)
+            .field("teachers", &teachers)
+            .field("rows", &rows)
+            .field("tasks", &tasks)
+            .finish()
     }
 }
 
 impl Registry {
-    /// A registry of `methods` (in table order) and `tasks`.
-    pub fn new(methods: Vec<&'static dyn Method>, tasks: Vec<&'static dyn Task>) -> Self {
-        Self { methods, tasks }
+    /// A registry of `methods`, teacher sources and `tasks`, with no rows yet
+    /// ([`Registry::with_rows`]).
+    pub fn new(
+        methods: Vec<&'static dyn Method>,
+        teachers: Vec<&'static dyn TeacherSource>,
+        tasks: Vec<&'static dyn Task>,
+    ) -> Self {
+        Self { methods, teachers, rows: Vec::new(), tasks }
     }
 }
 
@@ -36,37 +55,82 @@ fn valid_name(name: &str) -> bool {
         && name.chars().all(|c| c.is_ascii_lowercase() || c.is_ascii_digit() || c == '-')
 }
 
+/// `Err` unless `name` is a valid, new name of a `what`.
+fn check_new(what: &str, name: &str, taken: bool) -> crate::Result {
+    if !valid_name(name) {
+        return Err(format!("{what} name `{name}` is not lower-case-hyphenated").into());
+    }
+    if taken {
+        return Err(format!("a {what} `{name}` is registered already").into());
+    }
+    Ok(())
+}
+
+/// The one of `items` called `name`, or an error listing the known ones.
+fn find<T: Copy>(
+    what: &str,
+    items: &[T],
+    name: &str,
+    name_of: impl Fn(&T) -> &str,
+) -> crate::Result<T> {
+    items.iter().find(|i| name_of(i) == name).copied().ok_or_else(|| {
+        let names: Vec<&str> = items.iter().map(&name_of).collect();
+        format!("unknown {what} `{name}` (known: {})", names.join(", ")).into()
+    })
+}
+
 impl Registry {
-    /// Adds `method` after the others (its place in tables); an error for a name taken or not
-    /// lower-case hyphenated.
+    /// Adds `method` (an algorithm rows can name); an error for a name taken or not lower-case
+    /// hyphenated.
     pub fn with_method(mut self, method: &'static dyn Method) -> crate::Result<Self> {
         let name = method.name();
-        if !valid_name(name) {
-            return Err(format!("method name `{name}` is not lower-case-hyphenated").into());
-        }
-        if self.methods.iter().any(|m| m.name() == name) {
-            return Err(format!("a method `{name}` is registered already").into());
-        }
+        check_new("method", name, self.methods.iter().any(|m| m.name() == name))?;
         self.methods.push(method);
+        Ok(self)
+    }
+
+    /// Adds a teacher source rows can name; an error for a name taken or not lower-case
+    /// hyphenated.
+    pub fn with_teacher(mut self, teacher: &'static dyn TeacherSource) -> crate::Result<Self> {
+        let name = teacher.name();
+        check_new("teacher source", name, self.teachers.iter().any(|t| t.name() == name))?;
+        self.teachers.push(teacher);
+        Ok(self)
+    }
+
+    /// Adds the rows of `runs` (`[runs.<name>]` tables, [`crate::row::RowSpec`]) after the
+    /// others, in order; an error names a malformed row, a name taken, an unknown method or
+    /// teacher, or a teacher the method does not take.
+    pub fn with_rows(mut self, runs: &toml::Table) -> crate::Result<Self> {
+        for (name, spec) in row::parse_specs(runs)? {
+            check_new("row", &name, self.rows.iter().any(|r| r.name == name))?;
+            let r = Row::new(&name, spec, |m| self.method(m), |t| self.teacher(t))?;
+            self.rows.push(r);
+        }
         Ok(self)
     }
 
     /// Adds `task`; an error for a name taken or not lower-case hyphenated.
     pub fn with_task(mut self, task: &'static dyn Task) -> crate::Result<Self> {
         let name = task.name();
-        if !valid_name(name) {
-            return Err(format!("task name `{name}` is not lower-case-hyphenated").into());
-        }
-        if self.tasks.iter().any(|t| t.name() == name) {
-            return Err(format!("a task `{name}` is registered already").into());
-        }
+        check_new("task", name, self.tasks.iter().any(|t| t.name() == name))?;
         self.tasks.push(task);
         Ok(self)
     }
 
-    /// Every method, in table order.
+    /// Every method.
     pub fn methods(&self) -> &[&'static dyn Method] {
         &self.methods
+    }
+
+    /// Every teacher source.
+    pub fn teachers(&self) -> &[&'static dyn TeacherSource] {
+        &self.teachers
+    }
+
+    /// Every row, in table order.
+    pub fn rows(&self) -> &[Row] {
+        &self.rows
     }
 
     /// Every task.
@@ -76,8 +140,18 @@ impl Registry {
 
     /// The method called `name`, or an error listing the known ones.
     pub fn method(&self, name: &str) -> crate::Result<&'static dyn Method> {
-        self.methods.iter().copied().find(|m| m.name() == name).ok_or_else(|| {
-            let names: Vec<&str> = self.methods.iter().map(|m| m.name()).collect();
+        find("method", &self.methods, name, |m| m.name())
+    }
+
+    /// The teacher source called `name`, or an error listing the known ones.
+    pub fn teacher(&self, name: &str) -> crate::Result<&'static dyn TeacherSource> {
+        find("teacher", &self.teachers, name, |t| t.name())
+    }
+
+    /// The row called `name`, or an error listing the known ones.
+    pub fn row(&self, name: &str) -> crate::Result<&Row> {
+        self.rows.iter().find(|r| r.name == name).ok_or_else(|| {
+            let names: Vec<&str> = self.rows.iter().map(|r| r.name.as_str()).collect();
             format!("unknown method `{name}` (known: {})", names.join(", ")).into()
         })
     }
@@ -90,44 +164,38 @@ impl Registry {
         })
     }
 
-    /// The methods that run on `task`, in table order.
-    pub fn methods_of(&self, task: &str) -> Vec<&'static dyn Method> {
-        self.methods.iter().copied().filter(|m| self.supports(*m, task)).collect()
+    /// The rows that run on `task`, in table order.
+    pub fn rows_of(&self, task: &str) -> Vec<&Row> {
+        self.rows.iter().filter(|r| self.supports(r, task)).collect()
     }
 
-    /// Whether `method` runs on `task`: the task is registered, offers everything the method
-    /// needs ([`Task::offers`], [`crate::method::Info::needs`]) and is not excluded by the
-    /// method's [`crate::method::Info::only_on`].
-    pub fn supports(&self, method: &dyn Method, task: &str) -> bool {
-        let info = method.info();
+    /// Whether `row` runs on `task`: the task is registered, offers everything the row needs
+    /// ([`Task::offers`], [`Row::needs`]) and is not excluded by the row's `only_on`.
+    pub fn supports(&self, row: &Row, task: &str) -> bool {
         let Ok(t) = self.task(task) else { return false };
-        (info.only_on.is_empty() || info.only_on.contains(&task))
-            && info.needs.iter().all(|n| t.offers().contains(n))
+        (row.only_on.is_empty() || row.only_on.iter().any(|o| o == task))
+            && row.needs().iter().all(|n| t.offers().contains(n))
     }
 
-    /// Parses and checks a recipe's method list: known names available on `task`, no
-    /// duplicates. `all` stands for every method the task supports, in table order.
-    pub fn parse_methods(
-        &self,
-        names: &[String],
-        task: &str,
-    ) -> crate::Result<Vec<&'static dyn Method>> {
+    /// Parses and checks a recipe's row list (`methods`): known names available on `task`, no
+    /// duplicates. `all` stands for every row the task supports, in table order.
+    pub fn parse_rows(&self, names: &[String], task: &str) -> crate::Result<Vec<&Row>> {
         if names.is_empty() {
             return Err("the recipe lists no methods".into());
         }
         if names.len() == 1 && names[0] == "all" {
-            return Ok(self.methods_of(task));
+            return Ok(self.rows_of(task));
         }
-        let mut out: Vec<&'static dyn Method> = Vec::with_capacity(names.len());
+        let mut out: Vec<&Row> = Vec::with_capacity(names.len());
         for n in names {
-            let m = self.method(n)?;
-            if !self.supports(m, task) {
+            let r = self.row(n)?;
+            if !self.supports(r, task) {
                 return Err(format!("method `{n}` is not available on task `{task}`").into());
             }
-            if out.iter().any(|o| o.name() == m.name()) {
+            if out.iter().any(|o| o.name == r.name) {
                 return Err(format!("method `{n}` is listed twice").into());
             }
-            out.push(m);
+            out.push(r);
         }
         Ok(out)
     }
@@ -136,13 +204,5 @@ impl Registry {
     /// [`vdd_report::table::table_of_runs`].
     pub fn columns_of(&self, task: &str) -> Vec<Column> {
         self.task(task).map(|t| t.columns()).unwrap_or_default()
-    }
-}
-
-/// The label of a method in results: `vdd-beso`, or `vdd-beso-z4` under variant `z4`.
-pub fn label(method: &dyn Method, variant: Option<&str>) -> String {
-    match variant {
-        Some(v) => format!("{}-{v}", method.name()),
-        None => method.name().to_owned(),
     }
 }

@@ -11,8 +11,9 @@ use crate::recipe::{Header, Overrides};
 use crate::teachers::TeachersConfig;
 
 /// What a task offers its methods ([`Task::offers`]) and a method needs
-/// ([`crate::method::Info::needs`]): a method runs on every task that offers all it needs.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+/// ([`crate::method::Info::needs`], [`crate::teachers::TeacherSource::needs`], a row's `needs`): a method runs on every task that offers all it needs.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "snake_case")]
 pub enum Capability {
     /// Episodes to roll a policy out in, from raw observations (success, task entropy): any
     /// policy can be evaluated.
@@ -52,7 +53,8 @@ pub trait Task: Sync {
 
 /// What the shared stages need of a task's recipe type.
 pub trait TaskRecipe: Serialize + DeserializeOwned + Sync {
-    /// The top-level tables read by the methods ([`crate::method::Info::keys`] lists their keys).
+    /// The top-level tables read by the methods ([`crate::method::Method::keys`] lists their
+    /// keys); a row's `set` may only touch these.
     const METHOD_SECTIONS: &'static [&'static str];
     /// Name, description, task, seeds and methods.
     fn header(&self) -> &Header;

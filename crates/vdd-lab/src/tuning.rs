@@ -30,7 +30,7 @@ use std::path::{Path, PathBuf};
 
 use serde::{Deserialize, Serialize};
 
-use crate::method::{Method, MethodRecipe};
+use crate::method::MethodRecipe;
 
 /// A run that breaks the tuning protocol, or a tuning log that cannot be read or written.
 #[derive(Debug, thiserror::Error)]
@@ -317,21 +317,20 @@ pub fn log_path(root: &std::path::Path, task: &str) -> PathBuf {
     root.join("docs").join(format!("{task}-tuning-log.toml"))
 }
 
-/// [`config_hash`] of `method`: `data`, its teachers (when it has one), the student mixture and
-/// the values of its recipe keys.
+/// [`config_hash`] of the row of `recipe`: `data`, its learned teachers (when it has one), the
+/// student mixture and the values of its recipe keys.
 pub fn method_config_hash<D: serde::Serialize>(
-    method: &dyn Method,
     recipe: &MethodRecipe<'_>,
     data: &D,
 ) -> crate::Result<String> {
-    let info = method.info();
+    let row = recipe.row;
     let mut keys = serde_json::Map::new();
-    for k in info.keys {
-        let v: Option<toml::Value> = recipe.get_opt(k)?;
-        keys.insert((*k).to_owned(), serde_json::to_value(v)?);
+    for k in row.keys() {
+        let v: Option<toml::Value> = recipe.get_opt(&k)?;
+        keys.insert(k, serde_json::to_value(v)?);
     }
-    let teachers = info.teacher.map(|_| recipe.teachers);
-    Ok(config_hash(info.name, data, teachers, recipe.student, keys)?)
+    let teachers = row.teacher.and_then(|t| t.kind()).map(|_| recipe.teachers);
+    Ok(config_hash(&row.name, data, teachers, recipe.student, keys)?)
 }
 
 #[cfg(test)]

@@ -32,7 +32,7 @@ use serde::{Deserialize, Serialize};
 /// assert!(err.to_string().contains("iteration"), "{err}");
 /// # Ok::<(), Box<dyn std::error::Error>>(())
 /// ```
-#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct Header {
     /// Recipe name (results go to `results/<name>/`).
     pub name: String,
@@ -42,6 +42,11 @@ pub struct Header {
     pub task: String,
     /// Run seeds.
     pub seeds: Vec<u64>,
-    /// Methods to run.
+    /// The rows to run: names of rows (each a method run from a teacher; `vdd_lab`'s built-in
+    /// rows or this recipe's own `runs`).
     pub methods: Vec<String>,
+    /// The recipe's own rows, `[runs.<name>]` tables (their fields are the experiment layer's,
+    /// `vdd_lab::row::RowSpec`), beside the built-in ones; absent when the recipe adds none.
+    #[serde(default, skip_serializing_if = "toml::Table::is_empty")]
+    pub runs: toml::Table,
 }

@@ -7,9 +7,11 @@ use std::time::Instant;
 
 use vdd_consistency::{CdConfig, CdTrainer, ConsistencyProgress, ConsistencyStep, LossMeter};
 use vdd_core::Snapshot;
-use vdd_diffusion::{Beso, BesoConfig, DiffusionTeacher, TeacherKind};
+use vdd_diffusion::{Beso, BesoConfig, DiffusionTeacher};
 
-use crate::method::{Budget, Capability, CurveProbe, Info, Job, Method, MethodRecipe, Trained};
+use crate::method::{
+    Budget, Capability, CurveProbe, Info, Job, Method, MethodRecipe, Row, TeacherUse, Trained,
+};
 use crate::plots::Curves;
 use crate::policy::TrainedPolicy;
 
@@ -18,10 +20,9 @@ pub struct Cd;
 
 const INFO: Info = Info {
     name: "cd",
-    teacher: Some(TeacherKind::Beso),
-    needs: &[Capability::Rollouts, Capability::LearnedTeachers],
-    only_on: &[],
-    keys: &["baselines.cd", FOLLOW],
+    teacher: TeacherUse::Learned,
+    needs: &[Capability::Rollouts],
+    row_keys: &[],
 };
 
 /// The key of `consistency_follows_teacher` (CD and CTM).
@@ -30,6 +31,9 @@ pub const FOLLOW: &str = "baselines.consistency_follows_teacher";
 impl Method for Cd {
     fn info(&self) -> &Info {
         &INFO
+    }
+    fn keys(&self, _: &Row) -> Vec<String> {
+        vec!["baselines.cd".into(), FOLLOW.into()]
     }
     fn check(&self, recipe: &MethodRecipe<'_>) -> crate::Result {
         recipe.get::<CdConfig>("baselines.cd")?;

@@ -3,10 +3,11 @@
 //! `baselines.consistency_follows_teacher`.
 
 use vdd_consistency::{CtmConfig, CtmTrainer};
-use vdd_diffusion::TeacherKind;
 
 use super::cd;
-use crate::method::{Budget, Capability, Info, Job, Method, MethodRecipe, Trained};
+use crate::method::{
+    Budget, Capability, Info, Job, Method, MethodRecipe, Row, TeacherUse, Trained,
+};
 use crate::policy::TrainedPolicy;
 
 /// CTM.
@@ -14,15 +15,17 @@ pub struct Ctm;
 
 const INFO: Info = Info {
     name: "ctm",
-    teacher: Some(TeacherKind::Beso),
-    needs: &[Capability::Rollouts, Capability::LearnedTeachers],
-    only_on: &[],
-    keys: &["baselines.ctm", cd::FOLLOW],
+    teacher: TeacherUse::Learned,
+    needs: &[Capability::Rollouts],
+    row_keys: &[],
 };
 
 impl Method for Ctm {
     fn info(&self) -> &Info {
         &INFO
+    }
+    fn keys(&self, _: &Row) -> Vec<String> {
+        vec!["baselines.ctm".into(), cd::FOLLOW.into()]
     }
     fn check(&self, recipe: &MethodRecipe<'_>) -> crate::Result {
         recipe.get::<CtmConfig>("baselines.ctm")?;

@@ -7,24 +7,24 @@ use crate::progress::Bar;
 use vdd_mixture::{Dataset, EmConfig};
 use vdd_moe::{Moe, MoeConfig};
 
-use crate::method::{Budget, Capability, CurveProbe, Info, Job, Method, MethodRecipe, Trained};
+use crate::method::{
+    Budget, Capability, CurveProbe, Info, Job, Method, MethodRecipe, Row, TeacherUse, Trained,
+};
 use crate::plots::Curves;
 use crate::policy::TrainedPolicy;
 
 /// EM.
 pub struct Em;
 
-const INFO: Info = Info {
-    name: "em",
-    teacher: None,
-    needs: &[Capability::Rollouts],
-    only_on: &[],
-    keys: &["baselines.em"],
-};
+const INFO: Info =
+    Info { name: "em", teacher: TeacherUse::Never, needs: &[Capability::Rollouts], row_keys: &[] };
 
 impl Method for Em {
     fn info(&self) -> &Info {
         &INFO
+    }
+    fn keys(&self, _: &Row) -> Vec<String> {
+        vec!["baselines.em".into()]
     }
     fn check(&self, recipe: &MethodRecipe<'_>) -> crate::Result {
         recipe.get::<EmConfig>("baselines.em").map(drop)

@@ -1,76 +1,68 @@
 //! `imc`: Information Maximizing Curriculum, the mixture of experts fitted to the
-//! demonstrations with a curriculum per expert, and `imc-authors`: IMC as in the authors' code
-//! ([`ImcVariant::Authors`]: unit-variance experts, curricula normalised per data point, the
-//! gating fitted at the end), beside the paper-literal `imc`. Keys: `baselines.imc` and
-//! `baselines.imc_authors` (an [`ImcConfig`] each, the latter's `variant` must be
-//! `"authors"`; the `seed` is replaced by the run seed).
+//! demonstrations with a curriculum per expert; with `with.authors = true` (row
+//! `imc-authors`), IMC as in the authors' code ([`ImcVariant::Authors`]: unit-variance experts,
+//! curricula normalised per data point, the gating fitted at the end), beside the
+//! paper-literal `imc`. Keys: `baselines.imc`, or for the authors' `baselines.imc_authors`
+//! (an [`ImcConfig`] each, the latter's `variant` must be `"authors"`; the `seed` is replaced
+//! by the run seed).
 
+use serde::Deserialize;
 use vdd_mixture::{ImcConfig, ImcMetrics, ImcVariant};
 
-use crate::method::{Capability, Info, Job, Method, MethodRecipe, Trained};
+use crate::method::{Capability, Info, Job, Method, MethodRecipe, Row, TeacherUse, Trained};
 use crate::plots::Curves;
 
-/// An IMC row: the method's info, the key of its [`ImcConfig`] and the variant it requires
-/// (the authors' row: its curves are the unit-variance log-likelihood and the effective data
-/// fraction; the paper's: the log-likelihood and the IMC objective).
-pub struct Imc {
-    info: Info,
-    key: &'static str,
-    variant: Option<ImcVariant>,
+/// IMC.
+pub struct Imc;
+
+const INFO: Info = Info {
+    name: "imc",
+    teacher: TeacherUse::Never,
+    needs: &[Capability::Rollouts],
+    row_keys: &["authors"],
+};
+
+/// A row's settings.
+#[derive(Debug, Default, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct Settings {
+    /// The authors' IMC (its curves are the unit-variance log-likelihood and the effective
+    /// data fraction; the paper's: the log-likelihood and the IMC objective).
+    #[serde(default)]
+    authors: bool,
 }
 
-/// The paper's IMC.
-pub const IMC: Imc = Imc {
-    info: Info {
-        name: "imc",
-        teacher: None,
-        needs: &[Capability::Rollouts],
-        only_on: &[],
-        keys: &["baselines.imc"],
-    },
-    key: "baselines.imc",
-    variant: None,
-};
+/// The key of the row's [`ImcConfig`] and whether it is the authors' variant.
+fn key(row: &Row) -> crate::Result<(&'static str, bool)> {
+    let s: Settings = row.settings()?;
+    Ok(if s.authors { ("baselines.imc_authors", true) } else { ("baselines.imc", false) })
+}
 
-/// The authors' IMC.
-pub const IMC_AUTHORS: Imc = Imc {
-    info: Info {
-        name: "imc-authors",
-        teacher: None,
-        needs: &[Capability::Rollouts],
-        only_on: &["avoiding"],
-        keys: &["baselines.imc_authors"],
-    },
-    key: "baselines.imc_authors",
-    variant: Some(ImcVariant::Authors),
-};
-
-impl Imc {
-    fn config(&self, recipe: &MethodRecipe<'_>) -> crate::Result<ImcConfig> {
-        let c: ImcConfig = recipe.get(self.key)?;
-        match self.variant {
-            Some(v) if c.variant != v => {
-                Err(format!("`{}.variant` must be \"authors\", got {:?}", self.key, c.variant)
-                    .into())
-            }
-            _ => Ok(c),
-        }
+fn config(recipe: &MethodRecipe<'_>) -> crate::Result<(ImcConfig, bool)> {
+    let (key, authors) = key(recipe.row)?;
+    let c: ImcConfig = recipe.get(key)?;
+    if authors && c.variant != ImcVariant::Authors {
+        return Err(format!("`{key}.variant` must be \"authors\", got {:?}", c.variant).into());
     }
+    Ok((c, authors))
 }
 
 impl Method for Imc {
     fn info(&self) -> &Info {
-        &self.info
+        &INFO
+    }
+    fn keys(&self, row: &Row) -> Vec<String> {
+        key(row).map(|(k, _)| vec![k.to_owned()]).unwrap_or_default()
     }
     fn check(&self, recipe: &MethodRecipe<'_>) -> crate::Result {
-        self.config(recipe).map(drop)
+        config(recipe).map(drop)
     }
     fn train(&self, job: &Job<'_>) -> crate::Result<Trained> {
-        let config = ImcConfig { seed: job.seed, ..self.config(&job.recipe)? };
+        let (config, authors) = config(&job.recipe)?;
+        let config = ImcConfig { seed: job.seed, ..config };
         let (its, steps, batch) =
             (config.iterations, config.expert_steps_per_iter, config.batch_size);
         let budget = super::em::mixture_budget(job, its, steps, batch);
-        let authors = self.variant.is_some();
         let record = |curves: &mut Curves, m: &ImcMetrics| {
             let x = m.iteration as f64;
             let (ll, (other, y)) = if authors {

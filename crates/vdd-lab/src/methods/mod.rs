@@ -1,10 +1,11 @@
-//! The methods an experiment can run, one file each, and their list [`BUILTIN`] (what
-//! [`crate::registry::Registry::builtin`] holds): the source of the names `--methods` accepts,
-//! of `all` and of the table order.
+//! The methods (algorithms) an experiment can run, one file each, and their list [`BUILTIN`]
+//! (what [`crate::registry::Registry::builtin`] holds). The rows of the results tables, a
+//! method run from a teacher, are data: `recipes/defaults/runs.toml` ([`crate::row`]).
 //!
 //! Adding a method: a new file here implementing [`crate::method::Method`], one line in
-//! [`BUILTIN`], and its settings in `recipes/defaults/<task>.toml` under the keys it declares
-//! (docs/recipes.md, "Adding a method", walks through an example).
+//! [`BUILTIN`], its settings in `recipes/defaults/<task>.toml` under the keys it declares, and
+//! a row naming it in `recipes/defaults/runs.toml` (docs/recipes.md, "Adding a method", walks
+//! through an example).
 //!
 //! [`em`] is public for its helpers: [`em::fit`] (fit a mixture to a job's normalised data,
 //! timed, normalisers set), [`em::snapshot_policy`] and [`em::mixture_budget`], which methods
@@ -13,47 +14,33 @@
 
 use crate::method::Method;
 
-mod beso_d3il;
 mod cd;
 mod ctm;
 pub mod em;
 mod imc;
 mod teacher;
 mod vdd;
-mod vdd_learned;
 mod vdd_oracle;
-mod vdd_selected;
 
-/// Every method, in the paper's table order, then the paper's own configurations beside ours
-/// (D3IL's BESO teacher and its rows, VDD-BESO with a learned gating, the authors' IMC).
+/// Every method.
 pub static BUILTIN: &[&dyn Method] = &[
-    &teacher::DDPM,
-    &teacher::BESO,
-    &teacher::DDPM_1,
-    &teacher::BESO_1,
+    &teacher::TeacherRow,
     &cd::Cd,
     &ctm::Ctm,
     &em::Em,
-    &imc::IMC,
-    &vdd::VDD_DDPM,
-    &vdd::VDD_BESO,
-    &vdd::VDD_EXACT,
-    &beso_d3il::BESO_D3IL,
-    &beso_d3il::BESO_D3IL_1,
-    &vdd_learned::VddBesoLearned,
-    &beso_d3il::VDD_BESO_D3IL,
-    &imc::IMC_AUTHORS,
-    &vdd_oracle::VddBesoOracle,
-    &vdd_selected::VddBesoSelected,
+    &imc::Imc,
+    &vdd::Vdd,
+    &vdd_oracle::VddOracle,
 ];
 
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::registry::{Registry, label};
+    use crate::registry::Registry;
+    use crate::row::{Row, label};
 
-    fn names(ms: &[&dyn Method]) -> Vec<&'static str> {
-        ms.iter().map(|m| m.name()).collect()
+    fn names(rows: &[&Row]) -> Vec<String> {
+        rows.iter().map(|r| r.name.clone()).collect()
     }
 
     #[test]
@@ -62,20 +49,62 @@ mod tests {
         for (i, m) in BUILTIN.iter().enumerate() {
             let n = m.name();
             assert_eq!(r.method(n).unwrap().name(), n);
-            assert!(n.chars().all(|c| c.is_ascii_lowercase() || c.is_ascii_digit() || c == '-'));
             assert!(BUILTIN[..i].iter().all(|o| o.name() != n), "{n} twice");
-            let tasks = r.tasks().iter().filter(|t| r.supports(*m, t.name())).count();
+            assert!(r.rows().iter().any(|row| row.method.name() == n), "no row runs {n}");
+        }
+        for (i, row) in r.rows().iter().enumerate() {
+            let n = &row.name;
+            assert_eq!(&r.row(n).unwrap().name, n);
+            assert!(n.chars().all(|c| c.is_ascii_lowercase() || c.is_ascii_digit() || c == '-'));
+            assert!(r.rows()[..i].iter().all(|o| &o.name != n), "{n} twice");
+            let tasks = r.tasks().iter().filter(|t| r.supports(row, t.name())).count();
             assert!(tasks > 0, "{n} runs nowhere");
         }
-        assert!(r.method("VDD-BESO").is_err());
-        assert!(r.method("vdd").err().unwrap().to_string().contains("known: ddpm, beso"));
+        assert!(r.row("VDD-BESO").is_err());
+        assert!(r.row("vdd").err().unwrap().to_string().contains("known: ddpm, beso"));
+    }
+
+    #[test]
+    fn rows_name_their_method_and_teacher() {
+        let r = Registry::builtin();
+        let row = |n: &str| r.row(n).unwrap();
+        assert_eq!(
+            (row("vdd-beso").method.name(), row("vdd-beso").teacher_name()),
+            ("vdd", Some("beso"))
+        );
+        assert_eq!(row("vdd-exact").teacher_name(), Some("exact"));
+        assert_eq!(row("beso-1").method.name(), "teacher");
+        assert_eq!(row("vdd-beso-d3il").teacher_key().unwrap(), "beso_d3il");
+        assert_eq!(row("em").teacher_name(), None);
+        // The paper's configurations are rows of the same methods with settings.
+        assert_eq!(row("vdd-beso-learned").set_paths(), ["vdd.beso_gating"]);
+        assert_eq!(row("imc-authors").keys(), ["baselines.imc_authors"]);
+        assert_eq!(row("imc").keys(), ["baselines.imc"]);
+        assert_eq!(row("vdd-beso-selected").keys()[0], "vdd.select_by");
+        assert_eq!(row("vdd-beso-d3il").keys()[..2], ["baselines.beso_d3il", "vdd.beso_d3il"]);
+        // Bad rows are refused with their name.
+        let bad = |text: &str| {
+            let runs: toml::Table = text.parse().unwrap();
+            Registry::builtin().with_rows(&runs).unwrap_err().to_string()
+        };
+        let e = bad("[x]\nmethod = \"vdd\"");
+        assert!(e.contains("row `x`") && e.contains("needs a `teacher`"), "{e}");
+        let e = bad("[x]\nmethod = \"cd\"\nteacher = \"exact\"");
+        assert!(e.contains("needs a learned teacher"), "{e}");
+        let e = bad("[x]\nmethod = \"vdd\"\nteacher = \"nope\"");
+        assert!(e.contains("unknown teacher `nope`"), "{e}");
+        let e = bad("[x]\nmethod = \"teacher\"\nteacher = \"beso\"\nwith = { stepz = 1 }");
+        assert!(e.contains("with.stepz") && e.contains("steps"), "{e}");
+        let e = bad("[x]\nmethod = \"em\"\ntypo = 1");
+        assert!(e.contains("typo"), "{e}");
+        let e = bad("[vdd-beso]\nmethod = \"vdd\"\nteacher = \"beso\"");
+        assert!(e.contains("registered already"), "{e}");
     }
 
     #[test]
     fn unavailable_methods_fail_clearly() {
         let r = Registry::builtin();
-        let parse_methods = |names: &[String], task: &str| r.parse_methods(names, task);
-        let find = |name: &str| r.method(name);
+        let parse_methods = |names: &[String], task: &str| r.parse_rows(names, task);
         let e = parse_methods(&["beso".into(), "cd".into()], "toy-gmm").err().unwrap().to_string();
         assert!(e.contains("not available on task `toy-gmm`"), "{e}");
         let all = parse_methods(&["all".into()], "avoiding").unwrap();
@@ -101,6 +130,6 @@ mod tests {
         assert!(parse_methods(&[], "avoiding").is_err());
         let ok = parse_methods(&["beso".into(), "vdd-beso".into(), "em".into()], "avoiding");
         assert_eq!(names(&ok.unwrap()), ["beso", "vdd-beso", "em"]);
-        assert_eq!(label(find("vdd-beso").unwrap(), Some("z4")), "vdd-beso-z4");
+        assert_eq!(label("vdd-beso", Some("z4")), "vdd-beso-z4");
     }
 }

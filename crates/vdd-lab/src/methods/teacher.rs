@@ -1,51 +1,65 @@
-//! The learned teachers as rows of the table: `ddpm` and `beso` with their default sampling
-//! steps, `ddpm-1` and `beso-1` with one step. Their training is the teacher's (shared with
-//! every method distilled from it).
+//! `teacher`: a learned teacher as a row of the table (`ddpm`, `beso`), sampling with its
+//! default steps, or with `with.steps` of them (`ddpm-1`, `beso-1`: one step). Its training is
+//! the teacher's (shared with every row distilled from it). Keys: none of its own.
 
-use vdd_diffusion::TeacherKind;
+use serde::Deserialize;
 
-use crate::method::{Budget, BudgetRole, Capability, Info, Job, Method, MethodRecipe, Trained};
+use crate::method::{
+    Budget, BudgetRole, Capability, Info, Job, Method, MethodRecipe, Row, TeacherUse, Trained,
+};
 use crate::plots::Curves;
 use crate::policy::TrainedPolicy;
 use crate::teachers;
 
-/// A learned teacher sampling with its default steps, or with one.
-pub struct TeacherRow(pub(super) Info, pub(super) bool);
+/// The teacher itself as a policy.
+pub struct TeacherRow;
 
-const fn row(name: &'static str, kind: TeacherKind, one_step: bool) -> TeacherRow {
-    let needs = &[Capability::Rollouts, Capability::LearnedTeachers];
-    TeacherRow(Info { name, teacher: Some(kind), needs, only_on: &[], keys: &[] }, one_step)
+const INFO: Info = Info {
+    name: "teacher",
+    teacher: TeacherUse::Learned,
+    needs: &[Capability::Rollouts],
+    row_keys: &["steps"],
+};
+
+/// A row's settings: the sampling steps (default: the teacher's own).
+#[derive(Debug, Default, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct Settings {
+    steps: Option<usize>,
 }
 
-/// `ddpm`, `beso`, `ddpm-1`, `beso-1`.
-pub const DDPM: TeacherRow = row("ddpm", TeacherKind::Ddpm, false);
-#[allow(missing_docs)]
-pub const BESO: TeacherRow = row("beso", TeacherKind::Beso, false);
-#[allow(missing_docs)]
-pub const DDPM_1: TeacherRow = row("ddpm-1", TeacherKind::Ddpm, true);
-#[allow(missing_docs)]
-pub const BESO_1: TeacherRow = row("beso-1", TeacherKind::Beso, true);
+fn settings(row: &Row) -> crate::Result<Settings> {
+    let s: Settings = row.settings()?;
+    if s.steps == Some(0) {
+        return Err(format!("row `{}`: `with.steps` must be at least 1", row.name).into());
+    }
+    Ok(s)
+}
 
 impl Method for TeacherRow {
     fn info(&self) -> &Info {
-        &self.0
+        &INFO
     }
-    fn check(&self, _: &MethodRecipe<'_>) -> crate::Result {
-        Ok(())
+    fn keys(&self, _: &Row) -> Vec<String> {
+        Vec::new()
+    }
+    fn check(&self, recipe: &MethodRecipe<'_>) -> crate::Result {
+        settings(recipe.row).map(drop)
     }
     fn train(&self, job: &Job<'_>) -> crate::Result<Trained> {
+        let steps = settings(job.recipe.row)?.steps;
         let t = job.teacher()?;
         let mut teacher = t.teacher.clone();
-        if self.1 {
-            teacher.set_steps(1)?;
+        if let Some(steps) = steps {
+            teacher.set_steps(steps)?;
         }
         let loss = t.losses.iter().map(|&(s, l)| (s as f64, f64::from(l))).collect();
-        let kind = teachers::kind_name(teacher.kind());
-        let curves = Curves::from([(format!("{kind} teacher loss"), loss)]);
+        let kind = teacher.kind();
+        let curves = Curves::from([(format!("{} teacher loss", teachers::kind_name(kind)), loss)]);
         let steps = teacher.steps();
-        let train = match teacher.kind() {
-            TeacherKind::Beso => &job.recipe.teachers.beso.train,
-            TeacherKind::Ddpm => &job.recipe.teachers.ddpm.train,
+        let train = match kind {
+            vdd_diffusion::TeacherKind::Beso => &job.recipe.teachers.beso.train,
+            vdd_diffusion::TeacherKind::Ddpm => &job.recipe.teachers.ddpm.train,
         };
         let budget =
             Budget { steps: train.steps, batch: train.batch_size, role: BudgetRole::Teacher };

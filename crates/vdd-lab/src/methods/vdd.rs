@@ -1,7 +1,13 @@
-//! VDD: `vdd-ddpm` and `vdd-beso` distil the learned teachers, `vdd-exact` the task's exact
-//! mixture (toys).
+//! `vdd`: VDD distilling a row's teacher: rows `vdd-ddpm` and `vdd-beso` distil the learned
+//! teachers, `vdd-exact` the task's exact mixture (toys). With `with.select_checkpoint = true`
+//! (row `vdd-beso-selected`) the row's policy is the snapshot with the highest value of the
+//! curve series `vdd.select_by` (default: the held-out task entropy, as the official code
+//! selects) among the curves' checkpoints instead of the final iterate, from the same training
+//! (and cache key); the chosen iteration and its value are the `selected checkpoint` series of
+//! its curves.
 //!
-//! Keys (below `vdd`): `<teacher>` (the [`VddConfig`]; its `seed` is replaced by the run seed),
+//! Keys (below `vdd`, `<teacher>` the row's teacher with `-` as `_`): `<teacher>` (the
+//! [`VddConfig`]; its `seed` is replaced by the run seed),
 //! optional `<teacher>_gating` and `<teacher>_experts` (the student's gating and number of
 //! experts when they differ from `student.gating` and `student.num_experts`),
 //! `clip_margin` (clamp the teacher's denoised estimate to the training actions' bounding box,
@@ -26,66 +32,56 @@ use vdd_diffusion::TeacherKind;
 use vdd_mixture::gating::{GatingFitConfig, fit_gating_to_policy};
 use vdd_moe::{ActMode, GatingKind, Moe, MoeConfig, NetworkConfig};
 
-use crate::method::{Budget, Capability, Info, Job, Method, MethodRecipe, Trained};
+use crate::method::{Budget, Info, Job, Method, MethodRecipe, TeacherUse, Trained};
 use crate::policy::TrainedPolicy;
 use crate::recipe;
 use crate::teachers;
 use vdd_moe::cache::{CachedStudent, STUDENT_CACHE_VERSION, StudentCache};
 
-/// VDD distilling one teacher, with the key of its settings below `vdd`.
-pub struct VddMethod(pub(super) Info, pub(super) &'static str);
+/// VDD.
+pub struct Vdd;
 
-/// The recipe keys of the VDD method whose settings are `vdd.<teacher>`, after `extra` keys.
-macro_rules! vdd_keys {
-    ($teacher:literal $(, $extra:expr)*) => {{
-        use $crate::methods::vdd::{CLAMP, CLIP, GREEDY, INIT, SAMPLE};
-        &[
-            $($extra,)*
-            concat!("vdd.", $teacher),
-            concat!("vdd.", $teacher, "_gating"),
-            concat!("vdd.", $teacher, "_experts"),
-            concat!("vdd.", $teacher, "_gating_fit"),
-            concat!("vdd.", $teacher, "_gating_visits"),
-            concat!("vdd.", $teacher, "_expert_visits"),
-            CLIP, CLAMP, INIT, GREEDY, SAMPLE,
-        ]
-    }};
+const INFO: Info =
+    Info { name: "vdd", teacher: TeacherUse::Any, needs: &[], row_keys: &["select_checkpoint"] };
+
+/// The key naming the curve series of checkpoint selection.
+const SELECT_BY: &str = "vdd.select_by";
+
+/// The recipe keys of VDD with its settings at `vdd.<t>`.
+fn vdd_keys(t: &str) -> Vec<String> {
+    let own = ["", "_gating", "_experts", "_gating_fit", "_gating_visits", "_expert_visits"];
+    let mut keys: Vec<String> = own.iter().map(|k| format!("vdd.{t}{k}")).collect();
+    keys.extend([CLIP, CLAMP, INIT, GREEDY, SAMPLE].map(String::from));
+    keys
 }
-pub(super) use vdd_keys;
 
-/// `vdd-ddpm`.
-pub const VDD_DDPM: VddMethod = VddMethod(
-    Info {
-        name: "vdd-ddpm",
-        teacher: Some(TeacherKind::Ddpm),
-        needs: &[Capability::LearnedTeachers],
-        only_on: &[],
-        keys: vdd_keys!("ddpm"),
-    },
-    "ddpm",
-);
-/// `vdd-beso`.
-pub const VDD_BESO: VddMethod = VddMethod(
-    Info {
-        name: "vdd-beso",
-        teacher: Some(TeacherKind::Beso),
-        needs: &[Capability::LearnedTeachers],
-        only_on: &[],
-        keys: vdd_keys!("beso"),
-    },
-    "beso",
-);
-/// `vdd-exact`.
-pub const VDD_EXACT: VddMethod = VddMethod(
-    Info {
-        name: "vdd-exact",
-        teacher: None,
-        needs: &[Capability::ExactMixture],
-        only_on: &[],
-        keys: vdd_keys!("exact"),
-    },
-    "exact",
-);
+/// A row's settings.
+#[derive(Debug, Default, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct RowSettings {
+    /// Report the snapshot chosen by `vdd.select_by` (the paper's checkpoint selection).
+    #[serde(default)]
+    select_checkpoint: bool,
+}
+
+/// The curve series `row` selects its checkpoint by, if it does.
+fn select_by(recipe: &MethodRecipe<'_>) -> crate::Result<Option<String>> {
+    let s: RowSettings = recipe.row.settings()?;
+    if !s.select_checkpoint {
+        return Ok(None);
+    }
+    Ok(Some(recipe.get_opt::<String>(SELECT_BY)?.unwrap_or_else(|| DEFAULT_SELECTION.to_owned())))
+}
+
+/// Whether the row's teacher is a learned one (not the task's exact mixture).
+fn learned(row: &crate::row::Row) -> bool {
+    row.teacher.and_then(|t| t.kind()).is_some()
+}
+
+/// The name students of `row` are cached under: `vdd-<teacher>` (whatever the row is called).
+fn cache_name(row: &crate::row::Row) -> String {
+    format!("vdd-{}", row.teacher_name().unwrap_or("none"))
+}
 
 pub(super) const CLIP: &str = "vdd.clip_margin";
 pub(super) const CLAMP: &str = "vdd.clamp_denoiser";
@@ -148,16 +144,17 @@ const MAX_VISIT_EPISODES: usize = 100_000;
 /// Most VDD iterations per round of [`ExpertVisits`].
 const MAX_VISIT_ITERATIONS: usize = 10_000_000;
 
-impl VddMethod {
+impl Vdd {
     fn settings(&self, r: &MethodRecipe<'_>) -> crate::Result<Settings> {
+        let t = r.row.teacher_key()?;
         let flag = |k: &str| r.get_opt::<bool>(k).map(|b| b.unwrap_or(false));
         let clamp = r.get_opt::<bool>(CLAMP)?.unwrap_or(true);
         Ok(Settings {
-            vdd: r.get(&format!("vdd.{}", self.1))?,
+            vdd: r.get(&format!("vdd.{t}"))?,
             student: MoeConfig {
-                gating: r.get_opt(&format!("vdd.{}_gating", self.1))?.unwrap_or(r.student.gating),
+                gating: r.get_opt(&format!("vdd.{t}_gating"))?.unwrap_or(r.student.gating),
                 num_experts: r
-                    .get_opt(&format!("vdd.{}_experts", self.1))?
+                    .get_opt(&format!("vdd.{t}_experts"))?
                     .unwrap_or(r.student.num_experts),
                 ..r.student.clone()
             },
@@ -168,33 +165,41 @@ impl VddMethod {
                 sample_action: flag(SAMPLE)?,
                 hold_steps: 0,
             },
-            gating_fit: r.get_opt(&format!("vdd.{}_gating_fit", self.1))?,
-            gating_visits: r.get_opt(&format!("vdd.{}_gating_visits", self.1))?,
-            expert_visits: r.get_opt(&format!("vdd.{}_expert_visits", self.1))?,
+            gating_fit: r.get_opt(&format!("vdd.{t}_gating_fit"))?,
+            gating_visits: r.get_opt(&format!("vdd.{t}_gating_visits"))?,
+            expert_visits: r.get_opt(&format!("vdd.{t}_expert_visits"))?,
         })
     }
 }
 
-impl Method for VddMethod {
+impl Method for Vdd {
     fn info(&self) -> &Info {
-        &self.0
+        &INFO
     }
-    fn shadowed_keys(&self) -> Vec<(&'static str, Option<String>)> {
+    fn keys(&self, row: &crate::row::Row) -> Vec<String> {
+        let Ok(t) = row.teacher_key() else { return Vec::new() };
+        let select = row.settings::<RowSettings>().is_ok_and(|s| s.select_checkpoint);
+        let mut keys = if select { vec![SELECT_BY.to_owned()] } else { Vec::new() };
+        keys.extend(vdd_keys(&t));
+        keys
+    }
+    fn shadowed_keys(&self, row: &crate::row::Row) -> Vec<(String, Option<String>)> {
+        let Ok(t) = row.teacher_key() else { return Vec::new() };
         vec![
-            ("student.num_experts", Some(format!("vdd.{}_experts", self.1))),
-            ("student.gating", Some(format!("vdd.{}_gating", self.1))),
+            ("student.num_experts".into(), Some(format!("vdd.{t}_experts"))),
+            ("student.gating".into(), Some(format!("vdd.{t}_gating"))),
         ]
     }
     fn check(&self, recipe: &MethodRecipe<'_>) -> crate::Result {
         let s = self.settings(recipe)?;
-        if s.gating_fit.is_some() && self.0.teacher.is_none() {
-            let t = self.1;
+        let (t, learned) = (recipe.row.teacher_key()?, learned(recipe.row));
+        select_by(recipe)?;
+        if s.gating_fit.is_some() && !learned {
             return Err(
                 format!("vdd.{t}_gating_fit needs a teacher that acts; {t} does not").into()
             );
         }
         if let Some(v) = s.gating_visits {
-            let t = self.1;
             if s.gating_fit.is_none() {
                 return Err(format!(
                     "vdd.{t}_gating_visits needs vdd.{t}_gating_fit (the fit it feeds)"
@@ -213,7 +218,6 @@ impl Method for VddMethod {
             }
         }
         if let Some(v) = s.expert_visits {
-            let t = self.1;
             if !(1..=MAX_VISIT_ROUNDS).contains(&v.rounds)
                 || !(1..=MAX_VISIT_EPISODES).contains(&v.episodes)
                 || !(1..=MAX_VISIT_ITERATIONS).contains(&v.iterations)
@@ -226,38 +230,36 @@ impl Method for VddMethod {
                 )
                 .into());
             }
-            if self.0.teacher.is_none() {
+            if !learned {
                 return Err(format!("vdd.{t}_expert_visits needs a learned teacher").into());
             }
         }
         // The schedule's unit against the teacher's, before any training (its range is
         // checked against the trained teacher's when VDD starts).
-        let unit = match self.0.teacher {
-            Some(TeacherKind::Ddpm) => NoiseConvention::Time,
-            Some(TeacherKind::Beso) | None => NoiseConvention::Sigma,
-        };
+        let unit = recipe.row.teacher.map_or(NoiseConvention::Sigma, |t| t.noise_unit());
         s.vdd
             .noise
             .check_teacher(s.vdd.noise_unit, unit, None)
             .and_then(|()| s.vdd.check(&s.student))
-            .map_err(|e| format!("vdd.{}: {e}", self.1))?;
+            .map_err(|e| format!("vdd.{t}: {e}"))?;
         Ok(())
     }
 
     fn train(&self, job: &Job<'_>) -> crate::Result<Trained> {
-        self.train_selecting(job, None)
+        let series = select_by(&job.recipe)?;
+        self.train_selecting(job, series.as_deref())
     }
 }
 
 /// The name under which the snapshot kept by checkpoint selection is cached, beside the
-/// final student of method `name`.
-pub(super) fn selected_name(name: &str) -> String {
+/// final student cached as `name`.
+fn selected_name(name: &str) -> String {
     format!("{name}-selected")
 }
 
 /// The series checkpoint selection maximises unless told otherwise (`vdd.select_by`): the
 /// held-out task entropy, as the official code selects.
-pub(super) const DEFAULT_SELECTION: &str = vdd_tasks::avoiding::CURVE_ENTROPY;
+const DEFAULT_SELECTION: &str = vdd_tasks::avoiding::CURVE_ENTROPY;
 
 /// The cache key of the snapshot selected by `series` from the training of key `hash`: the
 /// training's own for the default series, one derived from both otherwise.
@@ -271,22 +273,19 @@ fn selected_key(hash: &str, series: &str) -> crate::Result<String> {
 /// The curve series holding the selected checkpoint: `(iteration, value)`.
 pub(super) const SELECTED_SERIES: &str = "selected checkpoint";
 
-impl VddMethod {
+impl Vdd {
     /// Trains (or loads) the student; with `select_by`, the row's policy is the snapshot with
     /// the highest value of that curve series among the curves' checkpoints (the paper's
     /// checkpoint selection, [`vdd::Resumable::select_by`]) instead of the final iterate, and
     /// its curves gain [`SELECTED_SERIES`]. A training stores both in the student cache.
-    pub(super) fn train_selecting(
-        &self,
-        job: &Job<'_>,
-        select_by: Option<&str>,
-    ) -> crate::Result<Trained> {
+    fn train_selecting(&self, job: &Job<'_>, select_by: Option<&str>) -> crate::Result<Trained> {
         let (s, d, label) = (self.settings(&job.recipe)?, job.data, job.label);
+        let row = job.recipe.row;
+        let (t, name) = (row.teacher_key()?, cache_name(row));
         if select_by.is_some() && s.expert_visits.is_some() {
             return Err(format!(
-                "checkpoint selection and vdd.{}_expert_visits do not combine (the rounds on \
-                 visited states take no checkpoints)",
-                self.1
+                "checkpoint selection and vdd.{t}_expert_visits do not combine (the rounds on \
+                 visited states take no checkpoints)"
             )
             .into());
         }
@@ -296,7 +295,7 @@ impl VddMethod {
                 .into());
         }
         let vc = VddConfig { seed: job.seed, ..s.vdd.clone() };
-        let teacher = self.0.teacher.map(|_| job.teacher()).transpose()?;
+        let teacher = if learned(row) { Some(job.teacher()?) } else { None };
         let (sn, an) = match teacher {
             Some(t) => (t.teacher.normalizers().0.clone(), t.teacher.normalizers().1.clone()),
             None => (Affine::identity(d.states.ncols()), Affine::identity(d.actions.ncols())),
@@ -342,11 +341,11 @@ impl VddMethod {
             }
             _ => None,
         };
-        let selected = selected_name(self.0.name);
+        let selected = selected_name(&name);
         let lookup = |c: &StudentCache<'_>, hash: &str| -> crate::Result<_> {
             Ok(match select_by {
                 Some(series) => c.load(&selected, &selected_key(hash, series)?)?,
-                None => c.load(self.0.name, hash)?,
+                None => c.load(&name, hash)?,
             })
         };
         let hit = cache.as_ref().map(|(c, hash)| lookup(c, hash)).transpose()?.flatten();
@@ -370,7 +369,7 @@ impl VddMethod {
                 if s.official_init {
                     vdd::init_official(&mut student, vc.seed)?;
                 }
-                let key = format!("vdd.{}", self.1);
+                let key = format!("vdd.{t}");
                 let run = DistillRun { clip_margin: clip, job, policy: &policy, select_by };
                 let (mut c, chosen, noise, curve_seconds) = match teacher {
                     Some(t) => distill(vc.clone(), t.teacher.clone(), student, data, run)
@@ -388,7 +387,7 @@ impl VddMethod {
                         .map_err(|e| e.context(format!("{key}_expert_visits")))?;
                 }
                 if let Some((cache, hash)) = &cache {
-                    let path = cache.store(self.0.name, hash, &c)?;
+                    let path = cache.store(&name, hash, &c)?;
                     let (secs, path) = (c.train_seconds, teachers::rel(&path));
                     crate::progress::log(format!(
                         "[{label}] trained in {secs:.1} s; cached as {path}"
@@ -412,9 +411,9 @@ impl VddMethod {
         };
         let CachedStudent { mut student, mut train_seconds, curves } = trained;
         student.set_normalizers(Some(sn), Some(an))?;
-        if let (Some(fit), Some(t)) = (&s.gating_fit, teacher) {
+        if let (Some(fit), Some(trained_teacher)) = (&s.gating_fit, teacher) {
             let t0 = std::time::Instant::now();
-            student = fit_gating(student, (self.1, &s), fit, t, job)?;
+            student = fit_gating(student, (&t, &s), fit, trained_teacher, job)?;
             train_seconds += t0.elapsed().as_secs_f64();
         }
         student.set_act_mode(s.act);
@@ -663,9 +662,14 @@ mod tests {
         let o = recipe::Overrides { sets, ..Default::default() };
         let r = recipe::resolve(&AvoidingRecipe::defaults().unwrap(), &file, &o).unwrap();
         let tree = recipe::to_tree(&r.base).unwrap();
-        let view =
-            MethodRecipe { teachers: &r.base.teachers, student: &r.base.student, tree: &tree };
-        assert_eq!(VDD_BESO.settings(&view).unwrap().student.num_experts, 4);
-        assert_eq!(VDD_DDPM.settings(&view).unwrap().student.num_experts, 16);
+        let registry = crate::Registry::builtin();
+        let experts = |row: &str| {
+            let row = registry.row(row).unwrap();
+            let (teachers, student) = (&r.base.teachers, &r.base.student);
+            let view = MethodRecipe { teachers, student, tree: &tree, row };
+            Vdd.settings(&view).unwrap().student.num_experts
+        };
+        assert_eq!(experts("vdd-beso"), 4);
+        assert_eq!(experts("vdd-ddpm"), 16);
     }
 }

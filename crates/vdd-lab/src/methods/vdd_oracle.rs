@@ -1,44 +1,46 @@
-//! `vdd-beso-oracle`, a diagnostic row: `vdd-beso`'s student (the same training, so the
-//! cached student when there is one) acting with its gating replaced by the responsibilities
-//! of a BESO sample at each step ([`OracleGating`]). Beside `vdd-beso` it tells whether the
-//! experts or the weights lose success: if the oracle reaches the teacher's success, the
-//! experts hold the teacher's good actions and only the weights are wrong. It reads no key of
-//! its own; its keys are `vdd-beso`'s.
+//! `vdd-oracle`, a diagnostic method (row `vdd-beso-oracle`): VDD's student from the row's
+//! teacher (the same training as the `vdd` row, so the cached student when there is one)
+//! acting with its gating replaced by the responsibilities of a teacher sample at each step
+//! ([`OracleGating`]). Beside `vdd-beso` it tells whether the experts or the weights lose
+//! success: if the oracle reaches the teacher's success, the experts hold the teacher's good
+//! actions and only the weights are wrong. Its keys are VDD's.
 
 use faer::MatRef;
 use vdd_core::Policy;
-use vdd_diffusion::{DiffusionTeacher, TeacherKind};
+use vdd_diffusion::DiffusionTeacher;
 use vdd_moe::Moe;
 
-use super::vdd::VDD_BESO;
-use crate::method::{Capability, Info, Job, Method, MethodRecipe, Trained};
+use super::vdd::Vdd;
+use crate::method::{Capability, Info, Job, Method, MethodRecipe, Row, TeacherUse, Trained};
 use crate::policy::TrainedPolicy;
 
-/// `vdd-beso-oracle`.
-pub struct VddBesoOracle;
+/// VDD's student with an oracle gating.
+pub struct VddOracle;
 
 const INFO: Info = Info {
-    name: "vdd-beso-oracle",
-    teacher: Some(TeacherKind::Beso),
-    needs: &[Capability::Rollouts, Capability::LearnedTeachers],
-    only_on: &[],
-    keys: VDD_BESO.0.keys,
+    name: "vdd-oracle",
+    teacher: TeacherUse::Learned,
+    needs: &[Capability::Rollouts],
+    row_keys: &[],
 };
 
-impl Method for VddBesoOracle {
+impl Method for VddOracle {
     fn info(&self) -> &Info {
         &INFO
     }
-    fn shadowed_keys(&self) -> Vec<(&'static str, Option<String>)> {
-        VDD_BESO.shadowed_keys()
+    fn keys(&self, row: &Row) -> Vec<String> {
+        Vdd.keys(row)
+    }
+    fn shadowed_keys(&self, row: &Row) -> Vec<(String, Option<String>)> {
+        Vdd.shadowed_keys(row)
     }
     fn check(&self, recipe: &MethodRecipe<'_>) -> crate::Result {
-        VDD_BESO.check(recipe)
+        Vdd.check(recipe)
     }
     fn train(&self, job: &Job<'_>) -> crate::Result<Trained> {
-        let mut trained = VDD_BESO.train(job)?;
+        let mut trained = Vdd.train(job)?;
         let TrainedPolicy::Moe(student) = trained.policy else {
-            return Err("vdd-beso did not train a mixture".into());
+            return Err("VDD did not train a mixture".into());
         };
         let teacher = job.teacher()?.teacher.clone();
         trained.policy = TrainedPolicy::Other(Box::new(OracleGating::new(*student, teacher)?));

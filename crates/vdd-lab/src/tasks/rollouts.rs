@@ -171,7 +171,7 @@ pub(crate) fn tuning_entries<R: RolloutRecipe>(
         rows.iter_mut().for_each(|r| drop(r.insert("tuning_configs".into(), json!(n))));
         let id = tuning::RunId {
             method: e.label.clone(),
-            config: tuning::method_config_hash(e.method, &e.recipe(), e.cfg.data())?,
+            config: tuning::method_config_hash(&e.recipe(), e.cfg.data())?,
             recipe: ctx.name.clone(),
             command: ctx.command.clone(),
             revision: revision.clone(),

@@ -363,7 +363,7 @@ fn student(
     let (sn, an) = student.normalizers();
     let state_norm = sn.cloned().unwrap_or_else(|| Affine::identity(1));
     let action_norm = an.cloned().unwrap_or_else(|| Affine::identity(2));
-    let teacher: Box<dyn ScoreModel> = match e.method.info().teacher {
+    let teacher: Box<dyn ScoreModel> = match e.teacher_kind() {
         Some(kind) => {
             Box::new(trainings.teachers.get(kind, e.cfg.teachers(), d, seed)?.teacher.clone())
         }

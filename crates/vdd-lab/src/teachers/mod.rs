@@ -1,13 +1,60 @@
-//! Learned diffusion teachers for recipes and benchmarks: the progress bar and log lines around
+//! The teachers of the rows: the [`TeacherSource`] trait (what a row's `teacher` names), the
+//! built-in sources, one file each, and their list [`BUILTIN`]; and, for recipes and
+//! benchmarks, the learned diffusion teachers' training: the progress bar and log lines around
 //! the teacher cache of [`vdd_diffusion::cache`] (keyed by the hash of
 //! [`vdd_diffusion::cache::TeacherCacheKey`]); the recipes' cache directory is
 //! `results/cache/teachers`, `cargo xtask bench teachers` uses its own, and `--fresh`
 //! (`--retrain`) retrains and overwrites.
+//!
+//! Adding a teacher source: a new file here implementing [`TeacherSource`] and one line in
+//! [`BUILTIN`] (or [`crate::Registry::with_teacher`] from outside the crate).
 
 use std::path::{Path, PathBuf};
 
 use faer::MatRef;
-use vdd_diffusion::TeacherKind;
+use vdd_core::NoiseConvention;
+pub use vdd_diffusion::TeacherKind;
+
+use crate::method::MethodRecipe;
+use crate::task::Capability;
+
+mod exact;
+mod learned;
+
+pub use exact::EXACT;
+pub use learned::{BESO, BESO_D3IL, DDPM, Learned};
+
+/// Every built-in teacher source.
+pub static BUILTIN: &[&dyn TeacherSource] = &[&BESO, &DDPM, &BESO_D3IL, &EXACT];
+
+/// Where a row's teacher comes from (a row's `teacher` names it): a learned diffusion teacher
+/// trained on the task's demonstrations (and cached), or the task's exact mixture.
+pub trait TeacherSource: Sync {
+    /// The lower-case hyphenated name (`beso`), as in a row's `teacher`.
+    fn name(&self) -> &'static str;
+    /// The diffusion family it trains, which keys its training in the run and the cache;
+    /// `None`: the task's exact mixture ([`Capability::ExactMixture`]), nothing to train.
+    fn kind(&self) -> Option<TeacherKind>;
+    /// What it needs of a task.
+    fn needs(&self) -> &'static [Capability];
+    /// The recipe keys it reads beside the shared `teachers` table.
+    fn keys(&self) -> &'static [&'static str] {
+        &[]
+    }
+    /// The learned teachers' configuration of rows from this source: the recipe's
+    /// `teachers`, or with this source's own settings in its family's place. Checked: an
+    /// error names the key.
+    fn teachers(&self, recipe: &MethodRecipe<'_>) -> crate::Result<TeachersConfig> {
+        Ok(recipe.teachers.clone())
+    }
+    /// The unit of its noise levels (a VDD schedule's `noise_unit` must match it).
+    fn noise_unit(&self) -> NoiseConvention {
+        match self.kind() {
+            Some(TeacherKind::Ddpm) => NoiseConvention::Time,
+            Some(TeacherKind::Beso) | None => NoiseConvention::Sigma,
+        }
+    }
+}
 pub use vdd_diffusion::cache::{CachedTeacher as TrainedTeacher, TeachersConfig, kind_name};
 use vdd_diffusion::cache::{TeacherCache, TeacherCacheKey};
 
