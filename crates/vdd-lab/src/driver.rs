@@ -108,9 +108,8 @@ fn row_view<R: TaskRecipe>(
         }
     }
     let tree = row.apply_set(tree);
-    let view = MethodRecipe { teachers: cfg.teachers(), student: cfg.student(), tree: &tree, row };
     let teachers = match row.teacher {
-        Some(t) => t.teachers(&view).map_err(|e| fail(e.to_string()))?,
+        Some(t) => t.teachers(cfg.teachers(), &tree).map_err(|e| fail(e.to_string()))?,
         None => cfg.teachers().clone(),
     };
     Ok((tree, teachers))

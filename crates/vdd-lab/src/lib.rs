@@ -37,6 +37,7 @@
 
 pub mod acceptance;
 pub mod bench;
+pub mod capability;
 pub mod context;
 pub mod driver;
 mod error;

@@ -9,15 +9,14 @@
 
 use serde::Serialize;
 use serde::de::DeserializeOwned;
-use toml::Table;
+use toml::{Table, Value};
 use vdd_moe::MoeConfig;
 
+pub use crate::capability::Capability;
 use crate::plots::Curves;
 use crate::policy::TrainedPolicy;
 use crate::recipe;
-pub use crate::row::Row;
-pub use crate::task::Capability;
-use crate::teachers::{TeachersConfig, TrainedTeacher};
+use crate::teachers::{TeacherSource, TeachersConfig, TrainedTeacher};
 pub use vdd_data::TrainingData;
 use vdd_moe::cache::StudentCache;
 pub use vdd_report::budget::{Budget, BudgetRole};
@@ -199,5 +198,99 @@ impl Trained {
             budget: None,
             curve_seconds: 0.0,
         }
+    }
+}
+
+/// A row of the results tables, resolved against the registry's methods and teacher sources
+/// (written as a [`crate::row::RowSpec`]; [`crate::row`]).
+#[derive(Clone)]
+pub struct Row {
+    /// The lower-case hyphenated name (`vdd-beso`): `--methods`, tables, `metrics.json`.
+    pub name: String,
+    /// The method.
+    pub method: &'static dyn Method,
+    /// The teacher source.
+    pub teacher: Option<&'static dyn TeacherSource>,
+    /// The method's row settings ([`crate::row::RowSpec::with`]).
+    pub with: Table,
+    /// The recipe keys set for this row ([`crate::row::RowSpec::set`], dotted keys expanded).
+    pub set: Table,
+    /// [`crate::row::RowSpec::needs`].
+    pub needs: Vec<Capability>,
+    /// [`crate::row::RowSpec::only_on`].
+    pub only_on: Vec<String>,
+}
+
+impl std::fmt::Debug for Row {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("Row")
+            .field("name", &self.name)
+            .field("method", &self.method.name())
+            .field("teacher", &self.teacher_name())
+            .field("with", &self.with)
+            .field("set", &self.set)
+            .finish()
+    }
+}
+
+impl Row {
+    /// The teacher source's name.
+    pub fn teacher_name(&self) -> Option<&'static str> {
+        self.teacher.map(|t| t.name())
+    }
+
+    /// The teacher's name as a recipe key segment (`beso-d3il` → `beso_d3il`), for methods
+    /// whose settings are per teacher (`vdd.<teacher>`); an error for a row without one.
+    pub fn teacher_key(&self) -> crate::Result<String> {
+        let t = self.teacher.ok_or_else(|| format!("row `{}` has no teacher", self.name))?;
+        Ok(t.name().replace('-', "_"))
+    }
+
+    /// The method's row settings, typed (`T` should deny unknown fields).
+    pub fn settings<T: DeserializeOwned>(&self) -> crate::Result<T> {
+        Value::Table(self.with.clone())
+            .try_into()
+            .map_err(|e| format!("row `{}`: `with`: {e}", self.name).into())
+    }
+
+    /// The recipe keys the row reads: its teacher source's, then its method's.
+    pub fn keys(&self) -> Vec<String> {
+        let mut keys: Vec<String> = self
+            .teacher
+            .map(|t| t.keys().iter().map(|k| (*k).to_owned()).collect())
+            .unwrap_or_default();
+        keys.extend(self.method.keys(self));
+        keys
+    }
+
+    /// Everything the row needs of a task: its method's, its teacher's and its own.
+    pub fn needs(&self) -> Vec<Capability> {
+        let mut needs = self.method.info().needs.to_vec();
+        needs.extend(self.teacher.iter().flat_map(|t| t.needs().iter().copied()));
+        needs.extend(self.needs.iter().copied());
+        needs
+    }
+
+    /// The dotted paths of [`Row::set`].
+    pub fn set_paths(&self) -> Vec<String> {
+        fn walk(prefix: &str, t: &Table, out: &mut Vec<String>) {
+            for (k, v) in t {
+                let path = if prefix.is_empty() { k.clone() } else { format!("{prefix}.{k}") };
+                match v {
+                    Value::Table(inner) if !inner.is_empty() => walk(&path, inner, out),
+                    _ => out.push(path),
+                }
+            }
+        }
+        let mut out = Vec::new();
+        walk("", &self.set, &mut out);
+        out
+    }
+
+    /// `tree` with the row's [`Row::set`] merged in.
+    pub fn apply_set(&self, tree: &Table) -> Table {
+        let mut tree = tree.clone();
+        crate::recipe::merge(&mut tree, &self.set);
+        tree
     }
 }

@@ -10,20 +10,7 @@ use crate::context::RunContext;
 use crate::recipe::{Header, Overrides};
 use crate::teachers::TeachersConfig;
 
-/// What a task offers its methods ([`Task::offers`]) and a method needs
-/// ([`crate::method::Info::needs`], [`crate::teachers::TeacherSource::needs`], a row's `needs`): a method runs on every task that offers all it needs.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
-#[serde(rename_all = "snake_case")]
-pub enum Capability {
-    /// Episodes to roll a policy out in, from raw observations (success, task entropy): any
-    /// policy can be evaluated.
-    Rollouts,
-    /// The learned diffusion teachers (`teachers.beso`, `teachers.ddpm`), trained on the
-    /// task's demonstrations.
-    LearnedTeachers,
-    /// The exact mixture the data come from (the toys), as a teacher and a reference.
-    ExactMixture,
-}
+pub use crate::capability::Capability;
 
 /// A task of `cargo xtask experiment` (the `task` key of a recipe).
 pub trait Task: Sync {

@@ -4,7 +4,7 @@
 use vdd_diffusion::TeacherKind;
 
 use super::TeacherSource;
-use crate::task::Capability;
+use crate::capability::Capability;
 
 /// The exact-mixture source.
 pub struct Exact;

@@ -9,8 +9,8 @@ use vdd_diffusion::TeacherKind;
 use vdd_diffusion::cache::{BesoTeacherConfig, DdpmTeacherConfig};
 
 use super::{TeacherSource, TeachersConfig};
-use crate::method::MethodRecipe;
-use crate::task::Capability;
+use crate::capability::Capability;
+use crate::recipe;
 
 /// A learned teacher of family `kind`, configured by the recipe's `teachers.<kind>` or, with
 /// a `key`, by that recipe key (a configuration of the same family).
@@ -44,18 +44,23 @@ impl TeacherSource for Learned {
     fn keys(&self) -> &'static [&'static str] {
         self.key
     }
-    fn teachers(&self, recipe: &MethodRecipe<'_>) -> crate::Result<TeachersConfig> {
-        let Some(&key) = self.key.first() else { return Ok(recipe.teachers.clone()) };
+    fn teachers(
+        &self,
+        shared: &TeachersConfig,
+        tree: &toml::Table,
+    ) -> crate::Result<TeachersConfig> {
+        let Some(&key) = self.key.first() else { return Ok(shared.clone()) };
+        let missing = || format!("the recipe has no `{key}`");
         Ok(match self.kind {
             TeacherKind::Beso => {
-                let beso: BesoTeacherConfig = recipe.get(key)?;
+                let beso: BesoTeacherConfig = recipe::get_path(tree, key)?.ok_or_else(missing)?;
                 beso.config.validate().map_err(|e| format!("`{key}`: {e}"))?;
-                TeachersConfig { beso, ..recipe.teachers.clone() }
+                TeachersConfig { beso, ..shared.clone() }
             }
             TeacherKind::Ddpm => {
-                let ddpm: DdpmTeacherConfig = recipe.get(key)?;
+                let ddpm: DdpmTeacherConfig = recipe::get_path(tree, key)?.ok_or_else(missing)?;
                 ddpm.config.validate().map_err(|e| format!("`{key}`: {e}"))?;
-                TeachersConfig { ddpm, ..recipe.teachers.clone() }
+                TeachersConfig { ddpm, ..shared.clone() }
             }
         })
     }

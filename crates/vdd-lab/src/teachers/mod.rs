@@ -15,8 +15,7 @@ use faer::MatRef;
 use vdd_core::NoiseConvention;
 pub use vdd_diffusion::TeacherKind;
 
-use crate::method::MethodRecipe;
-use crate::task::Capability;
+use crate::capability::Capability;
 
 mod exact;
 mod learned;
@@ -41,11 +40,15 @@ pub trait TeacherSource: Sync {
     fn keys(&self) -> &'static [&'static str] {
         &[]
     }
-    /// The learned teachers' configuration of rows from this source: the recipe's
-    /// `teachers`, or with this source's own settings in its family's place. Checked: an
-    /// error names the key.
-    fn teachers(&self, recipe: &MethodRecipe<'_>) -> crate::Result<TeachersConfig> {
-        Ok(recipe.teachers.clone())
+    /// The learned teachers' configuration of rows from this source, given the recipe's
+    /// `shared` teachers and its whole `tree`: `shared`, or with this source's own settings in
+    /// its family's place. Checked: an error names the key.
+    fn teachers(
+        &self,
+        shared: &TeachersConfig,
+        _tree: &toml::Table,
+    ) -> crate::Result<TeachersConfig> {
+        Ok(shared.clone())
     }
     /// The unit of its noise levels (a VDD schedule's `noise_unit` must match it).
     fn noise_unit(&self) -> NoiseConvention {
