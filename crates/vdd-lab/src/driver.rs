@@ -45,9 +45,9 @@ impl<R: TaskRecipe> Entry<'_, R> {
         MethodRecipe { teachers, student, tree, row: &self.row }
     }
 
-    /// The family of the row's learned teacher, if it has one.
+    /// The family of the row's learned teacher, if it has one ([`PlanRow::teacher_kind`]).
     pub fn teacher_kind(&self) -> Option<TeacherKind> {
-        self.row.teacher.and_then(|t| t.kind())
+        self.row.teacher_kind()
     }
 }
 

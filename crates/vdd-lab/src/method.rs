@@ -234,6 +234,12 @@ impl std::fmt::Debug for Row {
 }
 
 impl Row {
+    /// The family of the row's learned teacher; `None` without a teacher or for the task's
+    /// exact mixture.
+    pub fn teacher_kind(&self) -> Option<crate::teachers::TeacherKind> {
+        self.teacher.and_then(|t| t.kind())
+    }
+
     /// The teacher source's name.
     pub fn teacher_name(&self) -> Option<&'static str> {
         self.teacher.map(|t| t.name())

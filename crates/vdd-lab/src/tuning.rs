@@ -329,7 +329,7 @@ pub fn method_config_hash<D: serde::Serialize>(
         let v: Option<toml::Value> = recipe.get_opt(&k)?;
         keys.insert(k, serde_json::to_value(v)?);
     }
-    let teachers = row.teacher.and_then(|t| t.kind()).map(|_| recipe.teachers);
+    let teachers = row.teacher_kind().map(|_| recipe.teachers);
     Ok(config_hash(&row.name, data, teachers, recipe.student, keys)?)
 }
 

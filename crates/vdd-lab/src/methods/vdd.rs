@@ -75,7 +75,7 @@ fn select_by(recipe: &MethodRecipe<'_>) -> crate::Result<Option<String>> {
 
 /// Whether the row's teacher is a learned one (not the task's exact mixture).
 fn learned(row: &crate::row::Row) -> bool {
-    row.teacher.and_then(|t| t.kind()).is_some()
+    row.teacher_kind().is_some()
 }
 
 /// The name students of `row` are cached under: `vdd-<teacher>` (whatever the row is called).
