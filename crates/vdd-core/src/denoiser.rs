@@ -138,6 +138,9 @@ impl<S: ScoreModel> ScoreModel for ClampedDenoiser<S> {
     fn state_dim(&self) -> usize {
         self.inner.state_dim()
     }
+    fn noise_process(&self) -> Option<&dyn crate::NoiseProcess> {
+        self.inner.noise_process()
+    }
     fn noise_convention(&self) -> NoiseConvention {
         self.inner.noise_convention()
     }

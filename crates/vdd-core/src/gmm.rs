@@ -20,9 +20,7 @@ use std::sync::Arc;
 
 use crate::gaussian::{self, LN_2PI};
 use crate::lanes;
-use crate::{
-    CoreError, DenoiserForm, Result, ScoreModel, check_finite, check_score_args, check_shape,
-};
+use crate::{CoreError, Result, ScoreModel, check_finite, check_score_args, check_shape};
 use faer::{Mat, MatMut, MatRef};
 use rand::{Rng as _, RngCore};
 
@@ -721,14 +719,11 @@ impl ScoreModel for GmmTeacher {
         Ok(())
     }
 
-    /// `D = a + σ² s` (the mixture smoothed by `N(0, σ² I)` is a VE marginal).
-    fn denoiser_form(&self, sigma: f32) -> Option<DenoiserForm> {
-        Some(DenoiserForm::ve(sigma))
-    }
-
-    /// `(0, ∞)`: the score is exact at every level.
-    fn noise_range(&self) -> Option<(f32, f32)> {
-        Some((0.0, f32::INFINITY))
+    /// VE levels on `(0, ∞)`: the mixture smoothed by `N(0, σ² I)` is a VE marginal
+    /// (`D = a + σ² s`), and the score is exact at every level.
+    fn noise_process(&self) -> Option<&dyn crate::NoiseProcess> {
+        static EXACT: crate::VeProcess = crate::VeProcess { min: 0.0, max: f32::INFINITY };
+        Some(&EXACT)
     }
     fn fork(&self) -> Option<Box<dyn ScoreModel + Send>> {
         Some(Box::new(self.clone()))

@@ -8,6 +8,9 @@
 //! * [`gmm`]: the exact Gaussian mixture ([`gmm::GmmTeacher`]), a `ScoreModel` known in closed
 //!   form at every noise level: the toys' teacher and the reference the learned teachers and
 //!   the trainers are tested against;
+//! * [`NoiseProcess`]: what a teacher's noise levels mean, stated once (unit, trained range,
+//!   valid levels, denoiser form, `σ` conversion), with the VE form [`VeProcess`] and the
+//!   interpolated VP grid [`VpGrid`] shared by in-house and imported DDPM teachers;
 //! * [`ClampedDenoiser`]: a teacher whose denoised estimate is clamped to a box (a deviation
 //!   from the paper, for learned teachers that extrapolate far from their data);
 //! * shared helpers: [`files`] (the one bounded reader of regular files), [`Seeds`] (independent ChaCha streams per purpose), the stable hash
@@ -28,6 +31,7 @@ pub mod gmm;
 pub mod hash;
 pub mod lanes;
 pub mod memory;
+mod noise;
 mod normalize;
 pub mod parallel;
 mod policy;
@@ -38,6 +42,7 @@ pub mod trainer;
 pub use denoiser::{ClampedDenoiser, data_box};
 pub use error::{CoreError, Result, check_finite, check_finite_slice, check_len, check_shape};
 pub use expert::{Expert, ScaleActivation, sigmoid, softplus};
+pub use noise::{NoiseProcess, VeProcess, VpGrid};
 pub use normalize::{
     Affine, MAX_ABS_NORMALIZER_OFFSET, MAX_NORMALIZER_SCALE, MIN_NORMALIZER_SCALE,
 };

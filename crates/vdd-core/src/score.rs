@@ -5,6 +5,7 @@ use rand::{Rng as _, RngCore};
 use serde::{Deserialize, Serialize};
 
 use crate::error::{CoreError, Result, check_len, check_shape};
+use crate::noise::NoiseProcess;
 
 /// How a teacher's score at one noise level relates to its denoised estimate `D` of the clean
 /// action (Tweedie's formula): `D = (a + variance · score) / scale`, and back,
@@ -241,9 +242,19 @@ pub trait ScoreModel {
     /// Dimension of one (flattened) state / observation.
     fn state_dim(&self) -> usize;
 
-    /// Whether noise levels are VE `σ` or VP `t`. Defaults to [`NoiseConvention::Sigma`].
+    /// The teacher's noise process ([`NoiseProcess`]): its levels' unit, trained range, valid
+    /// levels, denoiser form and `σ` conversion, stated once. [`ScoreModel::noise_convention`],
+    /// [`ScoreModel::noise_range`], [`ScoreModel::denoiser_form`] and
+    /// [`ScoreModel::draw_noise_levels`] follow from it unless a teacher overrides them. The
+    /// default is `None` (a teacher of VE levels that states nothing else).
+    fn noise_process(&self) -> Option<&dyn NoiseProcess> {
+        None
+    }
+
+    /// Whether noise levels are VE `σ` or VP `t`: the [`ScoreModel::noise_process`]'s, else
+    /// [`NoiseConvention::Sigma`].
     fn noise_convention(&self) -> NoiseConvention {
-        NoiseConvention::Sigma
+        self.noise_process().map_or(NoiseConvention::Sigma, |p| p.convention())
     }
 
     /// Writes `∇_a log π_level(a|s)` for each row into `out`.
@@ -274,8 +285,9 @@ pub trait ScoreModel {
 
     /// Fills `out` with noise levels drawn from `schedule` at training progress `progress`.
     ///
-    /// The default draws each level independently with [`NoiseSchedule::draw`]; teachers with
-    /// discrete levels (DDPM) override it to round onto their grid.
+    /// The default draws each level independently with [`NoiseSchedule::draw`] and maps it
+    /// through the [`ScoreModel::noise_process`]'s [`NoiseProcess::valid_level`] (a teacher
+    /// with discrete levels rounds onto its grid), if it states one.
     fn draw_noise_levels(
         &self,
         schedule: &NoiseSchedule,
@@ -283,25 +295,28 @@ pub trait ScoreModel {
         rng: &mut dyn RngCore,
         out: &mut [f32],
     ) {
+        let process = self.noise_process();
         for x in out {
-            *x = schedule.draw(progress, rng);
+            let level = schedule.draw(progress, rng);
+            *x = process.map_or(level, |p| p.valid_level(level));
         }
     }
 
     /// How the score at `level` relates to the teacher's denoised estimate of the clean action
     /// (VE: `D = a + σ² s`; VP: `x̂₀ = (a + (1 − ᾱ) s)/√ᾱ`), for teachers that have one.
     ///
-    /// [`crate::ClampedDenoiser`] needs it. The default is `None`.
-    fn denoiser_form(&self, _level: f32) -> Option<DenoiserForm> {
-        None
+    /// [`crate::ClampedDenoiser`] needs it. The default is the
+    /// [`ScoreModel::noise_process`]'s, or `None`.
+    fn denoiser_form(&self, level: f32) -> Option<DenoiserForm> {
+        self.noise_process().map(|p| p.denoiser_form(level))
     }
 
     /// The range `(min, max)` of noise levels (in the teacher's [`NoiseConvention`]) at which
     /// the score is trustworthy: the levels a learned teacher was trained at, or `(0, ∞)` for
     /// an exact score. Automatic schedules (`vdd::VddConfig::for_teacher`) end at `min`.
-    /// The default is `None` (unknown).
+    /// The default is the [`ScoreModel::noise_process`]'s, or `None` (unknown).
     fn noise_range(&self) -> Option<(f32, f32)> {
-        None
+        self.noise_process().map(|p| p.range())
     }
 
     /// An independent copy of this teacher that computes the same scores, bit for bit, so
@@ -322,6 +337,9 @@ macro_rules! forward_score_model {
             }
             fn state_dim(&self) -> usize {
                 (**self).state_dim()
+            }
+            fn noise_process(&self) -> Option<&dyn NoiseProcess> {
+                (**self).noise_process()
             }
             fn noise_convention(&self) -> NoiseConvention {
                 (**self).noise_convention()

@@ -5,7 +5,7 @@ use faer::reborrow::Reborrow;
 use faer::{MatMut, MatRef};
 use rand::{Rng as _, RngCore};
 use serde::{Deserialize, Serialize};
-use vdd_core::{CoreError, DenoiserForm, NoiseConvention};
+use vdd_core::{CoreError, DenoiserForm, NoiseConvention, NoiseProcess};
 
 use crate::error::{DiffusionError, Result};
 use crate::learned::{LearnedTeacher, Process};
@@ -220,7 +220,6 @@ impl Process for BesoProcess {
     type Sampler = KarrasSampler;
     const KIND: &'static str = "beso";
     const POLICY_STREAM: &'static str = "beso-policy";
-    const NOISE_CONVENTION: NoiseConvention = NoiseConvention::Sigma;
 
     fn validate(config: &BesoConfig) -> Result<()> {
         config.validate()
@@ -329,20 +328,36 @@ impl Process for BesoProcess {
         sampling::sample_karras(&mut f, sampler, grid, out.as_mut(), rng, buf)
             .map_err(CoreError::from)
     }
+}
+
+/// BESO's levels are VE `σ`, trained on `[σ_min, σ_max]`.
+impl NoiseProcess for BesoProcess {
+    fn convention(&self) -> NoiseConvention {
+        NoiseConvention::Sigma
+    }
+
+    /// `[σ_min, σ_max]`.
+    fn range(&self) -> (f32, f32) {
+        (self.config.sigma_min, self.config.sigma_max)
+    }
 
     /// Clamped to `[σ_min, σ_max]` (a VE score needs `σ > 0`).
     fn valid_level(&self, drawn: f32) -> f32 {
         drawn.clamp(self.config.sigma_min, self.config.sigma_max)
     }
 
-    /// `[σ_min, σ_max]`.
-    fn level_range(&self) -> (f32, f32) {
-        (self.config.sigma_min, self.config.sigma_max)
-    }
-
     /// `D = a + σ² s`.
     fn denoiser_form(&self, sigma: f32) -> DenoiserForm {
         DenoiserForm::ve(sigma)
+    }
+
+    fn sigma(&self, level: f32) -> f32 {
+        level
+    }
+
+    /// `σ` clamped to `[σ_min, σ_max]`.
+    fn level_for_sigma(&self, sigma: f32) -> f32 {
+        self.valid_level(sigma)
     }
 }
 

@@ -5,7 +5,7 @@ use faer::reborrow::Reborrow;
 use faer::{Mat, MatMut, MatRef};
 use rand::{Rng as _, RngCore};
 use serde::{Deserialize, Serialize};
-use vdd_core::{CoreError, DenoiserForm, NoiseConvention, check_len, check_shape};
+use vdd_core::{CoreError, DenoiserForm, NoiseConvention, NoiseProcess, check_len, check_shape};
 
 use crate::error::{DiffusionError, Result};
 use crate::learned::{LearnedTeacher, Process};
@@ -148,7 +148,8 @@ impl DsmNoise for DdpmProcess {
             TimeSampling::Continuous => (big_n as f32 * (1.0 - rng.random::<f32>())).max(MIN_TIME),
             TimeSampling::LogNormal { mean, std } => {
                 let sigma = (mean + std * vdd_core::standard_normal(rng)).exp();
-                self.schedule.time_for_sigma(sigma).clamp(MIN_TIME, big_n as f32)
+                // The log-normal times are continuous: the trained range is [MIN_TIME, N].
+                self.level_for_sigma(sigma)
             }
         }
     }
@@ -170,7 +171,6 @@ impl Process for DdpmProcess {
     type Sampler = VpSampler;
     const KIND: &'static str = "ddpm";
     const POLICY_STREAM: &'static str = "ddpm-policy";
-    const NOISE_CONVENTION: NoiseConvention = NoiseConvention::Time;
 
     fn validate(config: &DdpmConfig) -> Result<()> {
         config.validate()
@@ -279,6 +279,22 @@ impl Process for DdpmProcess {
         )
         .map_err(CoreError::from)
     }
+}
+
+/// DDPM's levels are the diffusion time `t` of its [`VpSchedule`].
+impl NoiseProcess for DdpmProcess {
+    fn convention(&self) -> NoiseConvention {
+        NoiseConvention::Time
+    }
+
+    /// `[MIN_TIME, N]`, or `[1, N]` with [`TimeSampling::Discrete`] training.
+    fn range(&self) -> (f32, f32) {
+        let n = self.schedule.num_steps() as f32;
+        match self.config.time_sampling {
+            TimeSampling::Discrete => (1.0, n),
+            _ => (MIN_TIME, n),
+        }
+    }
 
     /// Clamped to `[MIN_TIME, N]`; rounded to the grid `{1, …, N}` with
     /// [`TimeSampling::Discrete`] training.
@@ -290,18 +306,20 @@ impl Process for DdpmProcess {
         }
     }
 
-    /// `[MIN_TIME, N]`, or `[1, N]` with [`TimeSampling::Discrete`] training.
-    fn level_range(&self) -> (f32, f32) {
-        let n = self.schedule.num_steps() as f32;
-        match self.config.time_sampling {
-            TimeSampling::Discrete => (1.0, n),
-            _ => (MIN_TIME, n),
-        }
-    }
-
     /// `x̂₀ = (a + (1 − ᾱ(t)) s)/√ᾱ(t)`, `a` fed as `x_t`.
     fn denoiser_form(&self, t: f32) -> DenoiserForm {
         DenoiserForm::vp(self.schedule.alpha_bar(t))
+    }
+
+    /// [`VpSchedule::sigma`].
+    fn sigma(&self, t: f32) -> f32 {
+        self.schedule.sigma(t)
+    }
+
+    /// [`VpSchedule::time_for_sigma`], clamped to the trained range.
+    fn level_for_sigma(&self, sigma: f32) -> f32 {
+        let (lo, hi) = self.range();
+        self.schedule.time_for_sigma(sigma).clamp(lo, hi)
     }
 }
 

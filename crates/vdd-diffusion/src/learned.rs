@@ -13,8 +13,8 @@ use rand::RngCore;
 use serde::Serialize;
 use serde::de::DeserializeOwned;
 use vdd_core::{
-    Affine, CoreError, DenoiserForm, NoiseConvention, NoiseSchedule, Policy, ScoreModel, Seeds,
-    Trainer, check_act_args, check_len, check_score_args, check_shape,
+    Affine, CoreError, NoiseProcess, Policy, ScoreModel, Seeds, Trainer, check_act_args, check_len,
+    check_score_args, check_shape,
 };
 
 use crate::common::{self, PolicyIo, SavedShape, check_batch};
@@ -29,7 +29,7 @@ use crate::train::{self, DsmNoise, TrainConfig, TrainProgress};
 ///
 /// Sealed: implemented by the DDPM (VP, `ε`-prediction) and BESO (VE, EDM denoiser)
 /// processes of this crate only.
-pub trait Process: DsmNoise + Clone + Debug + Send + Sized + 'static {
+pub trait Process: DsmNoise + NoiseProcess + Clone + Debug + Send + Sized + 'static {
     /// The teacher's configuration (saved with the weights).
     type Config: Clone + Debug + PartialEq + Serialize + DeserializeOwned;
     /// The samplers it offers.
@@ -38,9 +38,6 @@ pub trait Process: DsmNoise + Clone + Debug + Send + Sized + 'static {
     const KIND: &'static str;
     /// Name of the policy's random stream.
     const POLICY_STREAM: &'static str;
-    /// What a noise level means for the score model.
-    const NOISE_CONVENTION: NoiseConvention;
-
     /// Checks a configuration.
     fn validate(config: &Self::Config) -> Result<()>;
     /// The denoiser network's architecture.
@@ -81,14 +78,6 @@ pub trait Process: DsmNoise + Clone + Debug + Send + Sized + 'static {
         rng: &mut dyn RngCore,
         out: MatMut<'_, f32>,
     ) -> Result<(), CoreError>;
-    /// Maps a level drawn from a distillation noise schedule onto a valid query level.
-    fn valid_level(&self, drawn: f32) -> f32;
-    /// The noise levels the network was trained on, `(lowest, highest)`, in the process's
-    /// convention ([`vdd_core::ScoreModel::noise_range`]).
-    fn level_range(&self) -> (f32, f32);
-    /// How the score at `level` relates to the denoised estimate (VE: `D = a + σ² s`; VP:
-    /// `x̂₀ = (a + (1 − ᾱ) s)/√ᾱ`).
-    fn denoiser_form(&self, level: f32) -> DenoiserForm;
 }
 
 /// A learned diffusion teacher: a [`DenoiserNet`] trained by denoising score matching on
@@ -448,8 +437,11 @@ impl<P: Process> ScoreModel for LearnedTeacher<P> {
         self.state_norm.dim()
     }
 
-    fn noise_convention(&self) -> NoiseConvention {
-        P::NOISE_CONVENTION
+    /// The process's: BESO's levels are `σ ∈ [σ_min, σ_max]`, clamped when drawn; DDPM's are
+    /// the time `t ∈ [MIN_TIME, N]` (or `[1, N]`, rounded onto the grid, with discrete
+    /// training times), its denoiser form `x̂₀ = (a + (1 − ᾱ(t)) s)/√ᾱ(t)`.
+    fn noise_process(&self) -> Option<&dyn NoiseProcess> {
+        Some(&self.process)
     }
 
     /// The score in the normalised space: `(D(a; σ, s) − a)/σ²` (BESO) or
@@ -478,35 +470,9 @@ impl<P: Process> ScoreModel for LearnedTeacher<P> {
         vdd_core::check_finite("sampled actions", out.rb())
     }
 
-    /// Draws from `schedule` and maps each draw onto a valid level (BESO: clamped to
-    /// `[σ_min, σ_max]`; DDPM: clamped to `[MIN_TIME, N]`, rounded to the grid with discrete
-    /// training times).
-    fn draw_noise_levels(
-        &self,
-        schedule: &NoiseSchedule,
-        progress: f32,
-        rng: &mut dyn RngCore,
-        out: &mut [f32],
-    ) {
-        for x in out {
-            *x = self.process.valid_level(schedule.draw(progress, rng));
-        }
-    }
-
-    /// VE (BESO): `D = a + σ² s`; VP (DDPM): `x̂₀ = (a + (1 − ᾱ(t)) s)/√ᾱ(t)`.
-    fn denoiser_form(&self, level: f32) -> Option<DenoiserForm> {
-        Some(self.process.denoiser_form(level))
-    }
-
     /// A copy of the teacher (its network, normalisers and buffers).
     fn fork(&self) -> Option<Box<dyn ScoreModel + Send>> {
         Some(Box::new(self.clone()))
-    }
-
-    /// The levels it was trained on (BESO: `[σ_min, σ_max]`; DDPM: `[MIN_TIME, N]`, or
-    /// `[1, N]` with discrete training times).
-    fn noise_range(&self) -> Option<(f32, f32)> {
-        Some(self.process.level_range())
     }
 }
 

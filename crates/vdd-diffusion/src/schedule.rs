@@ -2,6 +2,7 @@
 //! and preconditioning of EDM / BESO.
 
 use serde::{Deserialize, Serialize};
+use vdd_core::VpGrid;
 
 use crate::error::{DiffusionError, Result};
 use crate::net::RowCoefficients;
@@ -66,8 +67,8 @@ pub struct VpSchedule {
     kind: BetaSchedule,
     /// `ᾱ_i` for `i = 0..=N` (`ᾱ_0 = 1`).
     alpha_bars: Vec<f32>,
-    /// `log ᾱ_i`, in f64 for an accurate interpolation near `t = 0`.
-    log_alpha_bars: Vec<f64>,
+    /// `log ᾱ_i` and the conversions between `t` and `σ` ([`vdd_core::VpGrid`]).
+    grid: VpGrid,
 }
 
 /// Largest number of discrete steps `N` of a VP schedule (DDPM uses 16 to 1000).
@@ -139,7 +140,8 @@ impl VpSchedule {
             }
         }
         let alpha_bars = log_ab.iter().map(|l| l.exp() as f32).collect();
-        Ok(Self { kind, alpha_bars, log_alpha_bars: log_ab })
+        let grid = VpGrid::new(log_ab).map_err(|e| DiffusionError::Config(e.to_string()))?;
+        Ok(Self { kind, alpha_bars, grid })
     }
 
     /// The `β` schedule it was built from.
@@ -159,21 +161,23 @@ impl VpSchedule {
 
     /// `β_i = 1 − ᾱ_i / ᾱ_{i−1}` for `i = 1..=N` (index 0 of the result is `β_1`).
     pub fn betas(&self) -> Vec<f32> {
-        self.log_alpha_bars.windows(2).map(|w| (1.0 - (w[1] - w[0]).exp()) as f32).collect()
+        let la = self.grid.log_alpha_bars();
+        la.windows(2).map(|w| (1.0 - (w[1] - w[0]).exp()) as f32).collect()
+    }
+
+    /// The grid of `log ᾱ` and its conversions ([`VpGrid`]).
+    pub fn grid(&self) -> &VpGrid {
+        &self.grid
     }
 
     /// `log ᾱ(t)` for continuous `t`, clamped to `[0, N]`.
     pub fn log_alpha_bar(&self, t: f32) -> f64 {
-        let n = self.num_steps();
-        let t = f64::from(t).clamp(0.0, n as f64);
-        let i = (t.floor() as usize).min(n - 1);
-        let w = t - i as f64;
-        (1.0 - w) * self.log_alpha_bars[i] + w * self.log_alpha_bars[i + 1]
+        self.grid.log_alpha_bar(t)
     }
 
     /// `ᾱ(t)` for continuous `t ∈ [0, N]` (log-linear between grid points).
     pub fn alpha_bar(&self, t: f32) -> f32 {
-        self.log_alpha_bar(t).exp() as f32
+        self.grid.alpha_bar(t)
     }
 
     /// `sqrt(1 − ᾱ(t))`, the noise standard deviation of `x_t`, computed without cancellation.
@@ -189,28 +193,14 @@ impl VpSchedule {
 
     /// The equivalent VE noise level `σ(t) = sqrt((1 − ᾱ)/ᾱ)` (`x_t / sqrt(ᾱ) = a + σ ε`).
     pub fn sigma(&self, t: f32) -> f32 {
-        let l = self.log_alpha_bar(t);
-        ((-l).exp_m1()).sqrt() as f32
+        self.grid.sigma(t)
     }
 
     /// The continuous time `t` whose [`VpSchedule::sigma`] equals `sigma` (the exact inverse of
     /// the log-linear interpolation; clamped to `[0, N]`). Lets a VP teacher be queried at the
     /// noise level a VE teacher would use.
     pub fn time_for_sigma(&self, sigma: f32) -> f32 {
-        if sigma.is_nan() || sigma <= 0.0 {
-            return 0.0;
-        }
-        let s = f64::from(sigma);
-        let target = -(s * s).ln_1p(); // log ᾱ = −log(1 + σ²)
-        let la = &self.log_alpha_bars;
-        let n = la.len() - 1;
-        if target <= la[n] {
-            return n as f32;
-        }
-        // First grid point at or below the target (log ᾱ decreases strictly).
-        let i = la.partition_point(|&l| l > target).max(1);
-        let (hi, lo) = (la[i - 1], la[i]);
-        ((i - 1) as f64 + (hi - target) / (hi - lo)) as f32
+        self.grid.time_for_sigma(sigma)
     }
 
     /// The `k + 1` times `τ_0 = 0 < τ_1 < … < τ_k = N` a `k`-step sampler visits (in increasing

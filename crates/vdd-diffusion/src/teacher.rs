@@ -140,6 +140,9 @@ impl ScoreModel for DiffusionTeacher {
     fn state_dim(&self) -> usize {
         delegate!(self, t => t.state_dim())
     }
+    fn noise_process(&self) -> Option<&dyn vdd_core::NoiseProcess> {
+        delegate!(self, t => t.noise_process())
+    }
     fn noise_convention(&self) -> NoiseConvention {
         delegate!(self, t => t.noise_convention())
     }

@@ -7,7 +7,7 @@ use std::path::Path;
 
 use faer::{Mat, MatMut, MatRef};
 use serde::{Deserialize, Serialize};
-use vdd_core::{Affine, DenoiserForm, ScoreModel, check_score_args};
+use vdd_core::{Affine, NoiseProcess, ScoreModel, VeProcess, check_score_args};
 use vdd_diffusion::{KarrasSampler, Preconditioning};
 use vdd_nn::{Param, Parameters};
 use vdd_torch::{
@@ -221,6 +221,8 @@ pub struct BesoTeacher {
     scaled: Mat<f32>,
     inner: Mat<f32>,
     coef: Vec<[f32; 3]>,
+    /// The VE levels `[σ_min, σ_max]` of `config`.
+    process: VeProcess,
 }
 
 impl BesoTeacher {
@@ -230,6 +232,7 @@ impl BesoTeacher {
         Ok(Self {
             net: Net::new(&config.network)?,
             precond: Preconditioning::new(config.sigma_data)?,
+            process: VeProcess { min: config.sigma_min, max: config.sigma_max },
             config,
             scaled: Mat::zeros(0, 0),
             inner: Mat::zeros(0, 0),
@@ -453,14 +456,11 @@ impl ScoreModel for BesoTeacher {
         Ok(())
     }
 
-    fn denoiser_form(&self, level: f32) -> Option<DenoiserForm> {
-        Some(DenoiserForm::ve(level))
-    }
-
-    /// `[σ_min, σ_max]`: the range BESO and D3IL draw their training levels from (unless the
-    /// agent's `sigma_sample_density` config sets its own `min_value`/`max_value`).
-    fn noise_range(&self) -> Option<(f32, f32)> {
-        Some((self.config.sigma_min, self.config.sigma_max))
+    /// VE levels on `[σ_min, σ_max]`, the range BESO and D3IL draw their training levels from
+    /// (unless the agent's `sigma_sample_density` config sets its own `min_value`/`max_value`);
+    /// drawn levels are kept as drawn.
+    fn noise_process(&self) -> Option<&dyn NoiseProcess> {
+        Some(&self.process)
     }
 
     /// A copy: the score keeps no state between calls beyond scratch buffers.

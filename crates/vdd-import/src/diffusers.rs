@@ -4,6 +4,8 @@
 
 use serde::{Deserialize, Serialize};
 
+use vdd_core::{DenoiserForm, NoiseConvention, NoiseProcess, VpGrid};
+
 use crate::error::ImportError;
 
 /// diffusers' `beta_schedule`.
@@ -104,8 +106,9 @@ impl SchedulerConfig {
 pub struct Scheduler {
     config: SchedulerConfig,
     alphas_cumprod: Vec<f32>,
-    /// `log ᾱ` on our time grid `t = 0..=N` (`t = k + 1` is diffusers' step `k`; `ᾱ(0) = 1`).
-    log_ab: Vec<f64>,
+    /// `log ᾱ` on our time grid `t = 0..=N` (`t = k + 1` is diffusers' step `k`; `ᾱ(0) = 1`)
+    /// and its conversions.
+    grid: VpGrid,
     timesteps: Vec<usize>,
 }
 
@@ -143,11 +146,20 @@ impl Scheduler {
             .collect();
         let mut log_ab = vec![0.0f64];
         log_ab.extend(alphas_cumprod.iter().map(|&a| f64::from(a).ln()));
+        // ᾱ underflows to 0 in f32 when the β are large for many steps.
+        let grid = VpGrid::new(log_ab).map_err(|e| {
+            let value = format!("{:?} over {n} steps ({e})", config.beta_schedule);
+            ImportError::BadValue {
+                file: "scheduler config".into(),
+                key: "beta_schedule".into(),
+                value,
+            }
+        })?;
         // "leading" spacing: (arange(0, k) · (N // k)) reversed.
         let k = config.num_inference_steps;
         let ratio = n / k;
         let timesteps = (0..k).rev().map(|i| i * ratio).collect();
-        Ok(Self { config, alphas_cumprod, log_ab, timesteps })
+        Ok(Self { config, alphas_cumprod, grid, timesteps })
     }
 
     /// The configuration.
@@ -166,30 +178,18 @@ impl Scheduler {
     }
 
     /// `ᾱ` at our continuous time `t ∈ [0, N]` (log-linear between grid points; `t = k + 1` is
-    /// diffusers' step `k`, `t = 0` the clean data).
+    /// diffusers' step `k`, `t = 0` the clean data; [`VpGrid::alpha_bar`]).
     pub fn alpha_bar(&self, t: f32) -> f32 {
-        let n = self.config.num_train_timesteps;
-        let t = f64::from(t).clamp(0.0, n as f64);
-        let i = (t.floor() as usize).min(n - 1);
-        let w = t - i as f64;
-        ((1.0 - w) * self.log_ab[i] + w * self.log_ab[i + 1]).exp() as f32
+        self.grid.alpha_bar(t)
     }
 
     /// The time `t` (our convention) whose VE level `√((1 − ᾱ)/ᾱ)` is `sigma`, clamped to the
-    /// trained range `[1, N]`.
+    /// trained range `[1, N]` ([`VpGrid::time_for_sigma`]).
     pub fn time_for_sigma(&self, sigma: f32) -> f32 {
-        let n = self.config.num_train_timesteps;
-        let target = -(f64::from(sigma).powi(2)).ln_1p();
-        if !(target.is_finite()) || target >= self.log_ab[1] {
+        if sigma.is_nan() {
             return 1.0;
         }
-        for i in 1..n {
-            let (a, b) = (self.log_ab[i], self.log_ab[i + 1]);
-            if target >= b {
-                return (i as f64 + (a - target) / (a - b)) as f32;
-            }
-        }
-        n as f32
+        self.grid.time_for_sigma(sigma.abs()).max(1.0)
     }
 
     /// The previous timestep of `t` in the inference grid (negative: the end).
@@ -257,6 +257,39 @@ impl Scheduler {
                 }
             }
         }
+    }
+}
+
+/// An imported teacher's levels: diffusers' timesteps as our time `t ∈ [1, N]` (`t = k + 1` is
+/// step `k`), drawn levels rounded onto the trained grid, queries outside it clamped.
+impl NoiseProcess for Scheduler {
+    fn convention(&self) -> NoiseConvention {
+        NoiseConvention::Time
+    }
+
+    /// The trained steps `[1, N]` (`N = num_train_timesteps`).
+    fn range(&self) -> (f32, f32) {
+        (1.0, self.config.num_train_timesteps as f32)
+    }
+
+    /// Rounded onto the trained grid `{1, …, N}`.
+    fn valid_level(&self, t: f32) -> f32 {
+        t.round().clamp(1.0, self.config.num_train_timesteps as f32)
+    }
+
+    /// `x̂₀ = (a + (1 − ᾱ(t)) s)/√ᾱ(t)` at `t` clamped to `[1, N]`.
+    fn denoiser_form(&self, t: f32) -> DenoiserForm {
+        let n = self.config.num_train_timesteps as f32;
+        DenoiserForm::vp(self.alpha_bar(t.clamp(1.0, n)))
+    }
+
+    fn sigma(&self, t: f32) -> f32 {
+        self.grid.sigma(t)
+    }
+
+    /// [`Scheduler::time_for_sigma`].
+    fn level_for_sigma(&self, sigma: f32) -> f32 {
+        self.time_for_sigma(sigma)
     }
 }
 

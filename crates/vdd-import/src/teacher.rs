@@ -85,6 +85,9 @@ impl ScoreModel for ImportedTeacher {
     fn state_dim(&self) -> usize {
         self.score_model_ref().state_dim()
     }
+    fn noise_process(&self) -> Option<&dyn vdd_core::NoiseProcess> {
+        self.score_model_ref().noise_process()
+    }
     fn noise_convention(&self) -> NoiseConvention {
         self.score_model_ref().noise_convention()
     }

@@ -6,9 +6,7 @@ use rand::SeedableRng as _;
 use rand_chacha::ChaCha8Rng;
 use rand_distr::{Distribution as _, StandardNormal};
 use serde::{Deserialize, Serialize};
-use vdd_core::{
-    CoreError, DenoiserForm, NoiseConvention, NoiseSchedule, Policy, ScoreModel, check_score_args,
-};
+use vdd_core::{CoreError, NoiseProcess, Policy, ScoreModel, check_score_args};
 use vdd_data::features::FeatureMapId;
 use vdd_data::{DeploySpec, Windowed};
 use vdd_nn::{Param, Parameters, join_name};
@@ -475,8 +473,10 @@ impl ScoreModel for UnetTeacher {
         self.spec.unet.global_cond_dim
     }
 
-    fn noise_convention(&self) -> NoiseConvention {
-        NoiseConvention::Time
+    /// diffusers' timesteps ([`Scheduler`]'s [`NoiseProcess`]): time `t ∈ [1, N]`, drawn
+    /// levels rounded onto the trained grid, queries outside it clamped.
+    fn noise_process(&self) -> Option<&dyn NoiseProcess> {
+        Some(&self.scheduler)
     }
 
     fn score(
@@ -496,7 +496,7 @@ impl ScoreModel for UnetTeacher {
         self.predict(actions, &steps, states, out.as_mut())?;
         let eps = self.spec.scheduler.prediction == Prediction::Epsilon;
         for (i, &t) in times.iter().enumerate() {
-            let form = self.denoiser_form(t).unwrap_or(DenoiserForm::vp(0.5));
+            let form = NoiseProcess::denoiser_form(&self.scheduler, t);
             let sd = form.variance.sqrt();
             for j in 0..out.ncols() {
                 let p = out[(i, j)];
@@ -513,30 +513,6 @@ impl ScoreModel for UnetTeacher {
         out: MatMut<'_, f32>,
     ) -> vdd_core::Result<()> {
         Ok(self.sample_rng(states, rng, out)?)
-    }
-
-    /// Rounded onto the trained grid `{1, …, N}`.
-    fn draw_noise_levels(
-        &self,
-        schedule: &NoiseSchedule,
-        progress: f32,
-        rng: &mut dyn rand::RngCore,
-        out: &mut [f32],
-    ) {
-        let n = self.spec.scheduler.num_train_timesteps as f32;
-        for x in out {
-            *x = schedule.draw(progress, rng).round().clamp(1.0, n);
-        }
-    }
-
-    fn denoiser_form(&self, t: f32) -> Option<DenoiserForm> {
-        let n = self.spec.scheduler.num_train_timesteps as f32;
-        Some(DenoiserForm::vp(self.scheduler.alpha_bar(t.clamp(1.0, n))))
-    }
-
-    /// The trained steps `t ∈ [1, N]` (`N = num_train_timesteps`; levels outside are clamped).
-    fn noise_range(&self) -> Option<(f32, f32)> {
-        Some((1.0, self.spec.scheduler.num_train_timesteps as f32))
     }
 
     /// A copy: the score uses neither the policy's random stream nor state kept between calls.

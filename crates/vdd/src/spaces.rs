@@ -183,6 +183,11 @@ impl<S: ScoreModel + ?Sized> ScoreModel for MappedTeacher<'_, S> {
     fn noise_range(&self) -> Option<(f32, f32)> {
         self.teacher.noise_range()
     }
+    /// None: the process's denoiser form does not hold in the student's space (below); its
+    /// convention, range and levels are forwarded one by one.
+    fn noise_process(&self) -> Option<&dyn vdd_core::NoiseProcess> {
+        None
+    }
     /// None: the map scales the actions, so the teacher's relation between score and denoised
     /// estimate does not hold in the student's space (a clamp works in the teacher's own space).
     fn denoiser_form(&self, _level: f32) -> Option<vdd_core::DenoiserForm> {

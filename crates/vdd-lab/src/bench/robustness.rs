@@ -103,6 +103,9 @@ impl<S: ScoreModel> ScoreModel for ScoreOnly<S> {
     fn state_dim(&self) -> usize {
         self.0.state_dim()
     }
+    fn noise_process(&self) -> Option<&dyn vdd_core::NoiseProcess> {
+        self.0.noise_process()
+    }
     fn noise_convention(&self) -> NoiseConvention {
         self.0.noise_convention()
     }
