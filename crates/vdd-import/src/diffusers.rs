@@ -322,6 +322,18 @@ mod tests {
     }
 
     #[test]
+    fn a_schedule_whose_alpha_bar_underflows_is_refused_by_name() {
+        let c = SchedulerConfig {
+            num_train_timesteps: 2000,
+            beta_start: 0.5,
+            beta_end: 0.9,
+            ..config(SamplerKind::Ddpm, BetaSchedule::Linear)
+        };
+        let e = Scheduler::new(c).unwrap_err().to_string();
+        assert!(e.contains("beta_schedule") && e.contains("2000 steps"), "{e}");
+    }
+
+    #[test]
     fn time_for_sigma_inverts_the_interpolated_alpha_bar() {
         let s = Scheduler::new(config(SamplerKind::Ddpm, BetaSchedule::SquaredcosCapV2)).unwrap();
         for &t in &[1.0f32, 1.5, 7.25, 50.0, 99.9] {
