@@ -17,7 +17,8 @@ use faer::{MatMut, MatRef};
 use rand::RngCore;
 
 use crate::error::{CoreError, Result, check_len};
-use crate::score::{DenoiserForm, NoiseConvention, NoiseSchedule, ScoreModel};
+use crate::noise::{DenoiserForm, NoiseConvention};
+use crate::score::{NoiseSchedule, ScoreModel};
 
 /// The bounding box of the rows of `actions` widened by `margin` on each side, as per-column
 /// `(lower, upper)` bounds.

@@ -42,12 +42,12 @@ pub mod trainer;
 pub use denoiser::{ClampedDenoiser, data_box};
 pub use error::{CoreError, Result, check_finite, check_finite_slice, check_len, check_shape};
 pub use expert::{Expert, ScaleActivation, sigmoid, softplus};
-pub use noise::{NoiseProcess, VeProcess, VpGrid};
+pub use noise::{DenoiserForm, NoiseConvention, NoiseProcess, VeProcess, VpGrid};
 pub use normalize::{
     Affine, MAX_ABS_NORMALIZER_OFFSET, MAX_NORMALIZER_SCALE, MIN_NORMALIZER_SCALE,
 };
 pub use policy::{Policy, check_act_args};
-pub use score::{DenoiserForm, NoiseConvention, NoiseSchedule, ScoreModel, check_score_args};
+pub use score::{NoiseSchedule, ScoreModel, check_score_args};
 pub use seed::{Rng, Seeds, fill_standard_normal, standard_normal};
 pub use trainer::{Snapshot, Trainer};
 

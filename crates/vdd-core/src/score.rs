@@ -5,70 +5,7 @@ use rand::{Rng as _, RngCore};
 use serde::{Deserialize, Serialize};
 
 use crate::error::{CoreError, Result, check_len, check_shape};
-use crate::noise::NoiseProcess;
-
-/// How a teacher's score at one noise level relates to its denoised estimate `D` of the clean
-/// action (Tweedie's formula): `D = (a + variance · score) / scale`, and back,
-/// `score = (scale · D − a) / variance`.
-///
-/// * Variance exploding (VE, BESO / EDM) at `σ`: `D = a + σ² s` ([`DenoiserForm::ve`]).
-/// * Variance preserving (VP, DDPM) at a time with `ᾱ`: `x̂₀ = (a + (1 − ᾱ) s) / √ᾱ`
-///   ([`DenoiserForm::vp`]).
-///
-/// ```
-/// use vdd_core::DenoiserForm;
-/// let f = DenoiserForm::ve(0.5);
-/// assert_eq!(f.denoise(1.0, -2.0), 0.5);
-/// assert_eq!(f.score(1.0, 0.5), -2.0);
-/// ```
-#[derive(Debug, Clone, Copy, PartialEq)]
-pub struct DenoiserForm {
-    /// `k` in `D = (a + v s) / k`: 1 for VE, `√ᾱ` for VP.
-    pub scale: f32,
-    /// `v` in `D = (a + v s) / k`: `σ²` for VE, `1 − ᾱ` for VP.
-    pub variance: f32,
-}
-
-impl DenoiserForm {
-    /// The variance-exploding form at noise level `σ`: scale 1, variance `σ²`.
-    pub fn ve(sigma: f32) -> Self {
-        Self { scale: 1.0, variance: sigma * sigma }
-    }
-
-    /// The variance-preserving form at a time whose cumulative signal fraction is `ᾱ`: scale
-    /// `√ᾱ`, variance `1 − ᾱ`.
-    pub fn vp(alpha_bar: f32) -> Self {
-        Self { scale: alpha_bar.sqrt(), variance: 1.0 - alpha_bar }
-    }
-
-    /// Whether both coefficients are positive (at level 0 the score does not determine `D`).
-    pub fn is_proper(&self) -> bool {
-        self.variance > 0.0 && self.scale > 0.0
-    }
-
-    /// The denoised estimate `(a + variance · score) / scale` of one coordinate.
-    #[inline]
-    pub fn denoise(&self, a: f32, score: f32) -> f32 {
-        (a + self.variance * score) / self.scale
-    }
-
-    /// The score `(scale · D − a) / variance` of one coordinate with denoised estimate `d`.
-    #[inline]
-    pub fn score(&self, a: f32, d: f32) -> f32 {
-        (self.scale * d - a) / self.variance
-    }
-}
-
-/// How a teacher names its noise levels.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
-#[serde(rename_all = "snake_case")]
-pub enum NoiseConvention {
-    /// Variance-exploding (VE / EDM / BESO): the level is the noise standard deviation `σ`.
-    Sigma,
-    /// Variance-preserving (VP / DDPM): the level is the diffusion time `t` (an index into the
-    /// discrete schedule, stored as `f32`).
-    Time,
-}
+use crate::noise::{DenoiserForm, NoiseConvention, NoiseProcess};
 
 /// How the expert step picks the teacher's noise level for each sample.
 ///
