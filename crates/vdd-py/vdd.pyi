@@ -276,7 +276,11 @@ def distill(
     unknown key raises ``ValueError`` naming it (before the teacher is called).
     ``action_dim`` is required for a callable; for a :class:`Teacher` it is the teacher's
     (given, it must match). ``teacher_samples=N`` sets how many teacher actions the plan
-    inspects (8192 by default; 2048 for an imported teacher).
+    inspects (8192 by default; 2048 for an imported teacher). ``noise_range=(min, max)`` states
+    the VE levels a Python ``score_fn`` is trustworthy at (the range it was trained on; ``max``
+    may be ``inf``): the plan anneals the noise down to ``min`` instead of below it, and a
+    ``noise`` setting outside the range raises :class:`VddError`; a :class:`Teacher` states its
+    own.
 
     **An imported teacher** (:func:`import_lerobot`): ``states`` are raw observation windows
     and ``actions`` raw chunks, from :meth:`Teacher.training_windows` on the user's episodes

@@ -25,6 +25,8 @@ pub struct PyScore {
     sample_fn: Option<Py<PyAny>>,
     state_dim: usize,
     action_dim: usize,
+    /// `noise_range=(min, max)`, if given: VE levels trusted on `[min, max]`.
+    process: Option<vdd_core::VeProcess>,
 }
 
 impl PyScore {
@@ -107,6 +109,11 @@ impl PyScore {
 impl ScoreModel for PyScore {
     fn action_dim(&self) -> usize {
         self.action_dim
+    }
+    /// VE levels; trusted on `noise_range` when it was given (then `Vdd::auto` anneals down to
+    /// its `min`, and a noise setting outside it is refused).
+    fn noise_process(&self) -> Option<&dyn vdd_core::NoiseProcess> {
+        self.process.as_ref().map(|p| p as &dyn vdd_core::NoiseProcess)
     }
     fn state_dim(&self) -> usize {
         self.state_dim
@@ -310,6 +317,7 @@ pub fn distill(
                     "sample_fn is for a Python score_fn; a vdd.Teacher samples itself",
                 ));
             }
+            extra.refuse_score_fn_only()?;
             match teacher {
                 TeacherModel::Diffusion(inner) => {
                     extra.refuse_imported_only()?;
@@ -353,6 +361,7 @@ pub fn distill(
                 sample_fn: sample_fn.map(Bound::unbind),
                 state_dim,
                 action_dim,
+                process: extra.noise_range,
             };
             run_train(py, || train(&request, &extra, teacher, data, actions.as_ref()))
         }

@@ -113,6 +113,8 @@ pub(crate) struct Request {
 pub(crate) struct Extra {
     pub(crate) teacher_samples: Option<usize>,
     pub(crate) clip_margin: Option<Option<f32>>,
+    /// `noise_range=(min, max)`: the VE levels a Python `score_fn` is trustworthy at.
+    pub(crate) noise_range: Option<vdd_core::VeProcess>,
 }
 
 impl Extra {
@@ -143,8 +145,34 @@ impl Extra {
                 self.clip_margin = Some(m);
                 Ok(true)
             }
+            "noise_range" => {
+                let bad = || {
+                    PyValueError::new_err(format!(
+                        "setting `noise_range`: expected (min, max) with 0 <= min < max, min \
+                         finite (max may be inf), got {}",
+                        v.repr().map(|r| r.to_string()).unwrap_or_default()
+                    ))
+                };
+                let (min, max): (f32, f32) = v.extract().map_err(|_| bad())?;
+                if !(min.is_finite() && min >= 0.0 && max > min) {
+                    return Err(bad());
+                }
+                self.noise_range = Some(vdd_core::VeProcess { min, max });
+                Ok(true)
+            }
             _ => Ok(false),
         }
+    }
+
+    /// Errors if a setting only a Python `score_fn` reads was given (a `vdd.Teacher` states
+    /// its own noise range).
+    pub(crate) fn refuse_score_fn_only(&self) -> PyResult<()> {
+        if self.noise_range.is_some() {
+            return Err(PyValueError::new_err(
+                "setting `noise_range` is for a Python score_fn; a vdd.Teacher states its own",
+            ));
+        }
+        Ok(())
     }
 
     /// Errors if a setting only an imported teacher reads was given.

@@ -86,3 +86,33 @@ def test_toy_defaults_stay_reachable_and_trainer_settings_are_accepted():
     assert both.num_experts == 2
     with pytest.raises(ValueError, match="setting `defaults`: expected 'auto' or 'toy'"):
         vdd.distill(four_modes_score, np.zeros((4, 1)), action_dim=2, defaults="paper")
+
+
+def test_noise_range_bounds_the_levels_a_python_teacher_is_asked_at():
+    """`noise_range=(min, max)` states the levels a score_fn is trustworthy at: the automatic
+    plan anneals down to `min` (without it, further), and a noise setting outside is refused (`VddError`)."""
+    rng = np.random.default_rng(0)
+
+    def sample_fn(states):
+        return MODES[rng.integers(4, size=len(states))] + 0.1 * rng.standard_normal(
+            (len(states), 2)
+        )
+
+    def lowest_level(**settings):
+        seen = []
+
+        def score(actions, states, sigma):
+            seen.append(float(sigma.min()))
+            return four_modes_score(actions, states, sigma)
+
+        vdd.distill(score, np.zeros((8, 1)), action_dim=2, experts=4, iterations=40,
+                    sample_fn=sample_fn, **settings)
+        return min(seen)
+
+    assert lowest_level(noise_range=(0.3, 5.0)) >= 0.3 - 1e-6
+    assert lowest_level() < 0.3
+    with pytest.raises(vdd.VddError, match="outside the teacher's range"):
+        vdd.distill(four_modes_score, np.zeros((4, 1)), action_dim=2, iterations=2,
+                    noise={"kind": "fixed", "level": 0.1}, noise_range=(0.3, 5.0))
+    with pytest.raises(ValueError, match="setting `noise_range`"):
+        vdd.distill(four_modes_score, np.zeros((4, 1)), action_dim=2, noise_range=(1.0, 0.5))
