@@ -295,8 +295,8 @@ def distill(
     DDPM schedule); VDD then runs with noise on both sides (``score_at='noised_sample'``),
     levels uniform over the teacher's steps ``[1, 0.3 N]``, batch 32, one sample per state,
     the batch in two chunks on forks of the teacher (both cores), as the recipe's
-    ``[imported.vdd]``; ``settings`` override these. Rust's default start, EM on the teacher's
-    samples (``imported.init = "samples"``), is not available from Python. The student emits
+    ``[vdd.imported]``; ``settings`` override these. Rust's default start, EM on the teacher's
+    samples (``vdd.imported_init = "samples"``), is not available from Python. The student emits
     the teacher's whole chunk and acts like the teacher's package: ``act`` takes one raw
     observation and keeps the window and the chunk queue (``obs_window``, ``action_chunk``,
     the executed steps). A teacher imported with an ``obs_map`` is refused (the student cannot

@@ -51,8 +51,8 @@ pub struct ExperimentArgs {
     #[arg(long)]
     pub tuning: bool,
     /// toy-gmm: the teacher VDD distils (exact, ddpm, beso; shorthand for `--methods
-    /// vdd-<teacher>`). avoiding: a teacher file of `cargo xtask import`, rolled out and
-    /// distilled (methods teacher, vdd).
+    /// vdd-<teacher>`). avoiding: a teacher file of `cargo xtask import` (`imported.teacher`),
+    /// rolled out and distilled (rows imported, vdd-imported; `teacher` and `vdd` name them).
     #[arg(long, value_name = "TEACHER")]
     pub teacher: Option<String>,
     /// Toys: VDD iterations of the distilled teacher.

@@ -15,4 +15,7 @@ pub enum Capability {
     LearnedTeachers,
     /// The exact mixture the data come from (the toys), as a teacher and a reference.
     ExactMixture,
+    /// The training episodes' raw observations and actions, which a teacher imported with
+    /// windows, chunks and features of its own cuts itself (`teachers::imported`).
+    RawEpisodes,
 }

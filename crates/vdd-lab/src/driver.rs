@@ -8,6 +8,7 @@
 //! seeded on its own, so the results do not depend on the number of jobs.
 
 use std::collections::HashMap;
+use std::sync::Arc;
 use std::time::Instant;
 
 use serde_json::Value;
@@ -20,7 +21,7 @@ use crate::recipe::{self, Resolved};
 use crate::report::Row;
 use crate::row::Row as PlanRow;
 pub use crate::task::{Task, TaskRecipe};
-use crate::teachers::{self, TeachersConfig, TrainedTeacher};
+use crate::teachers::{self, LoadedTeacher, TeacherSource, TeachersConfig, TrainedTeacher};
 use crate::{Registry, Result as XResult};
 use vdd_moe::cache::StudentCache;
 
@@ -36,6 +37,8 @@ pub struct Entry<'r, R> {
     tree: Table,
     /// The learned teachers of the row ([`crate::teachers::TeacherSource::teachers`]).
     teachers: TeachersConfig,
+    /// The teacher of a file source, loaded once per run ([`TeacherSource::load`]).
+    pub loaded: Option<Arc<LoadedTeacher>>,
 }
 
 impl<R: TaskRecipe> Entry<'_, R> {
@@ -69,6 +72,7 @@ pub fn plan<'r, R: TaskRecipe>(
         return Err("the recipe lists no seeds".into());
     }
     let mut out = Vec::new();
+    let mut files: HashMap<String, Arc<LoadedTeacher>> = HashMap::new();
     for (variant, cfg) in resolved.configs() {
         let registry = registry.clone().with_rows(&cfg.header().runs)?;
         let tree = recipe::to_tree(cfg)?;
@@ -80,10 +84,35 @@ pub fn plan<'r, R: TaskRecipe>(
             let view =
                 MethodRecipe { teachers: &teachers, student: cfg.student(), tree: &tree, row };
             check_sets_reach(row, &label, &view, sets)?;
-            out.push(Entry { label, row: row.clone(), cfg, tree, teachers });
+            let loaded = match row.teacher {
+                Some(t) => load_once(t, &tree, &mut files).map_err(|e| format!("{label}: {e}"))?,
+                None => None,
+            };
+            let mut label = label;
+            if let Some(t) = &loaded {
+                row.method.check_loaded(row, t).map_err(|e| format!("{label}: {e}"))?;
+                // The file's own source names its rows: `imported` → `lerobot`.
+                label = label.replacen("imported", t.source(), 1);
+            }
+            out.push(Entry { label, row: row.clone(), cfg, tree, teachers, loaded });
         }
     }
     Ok(out)
+}
+
+/// The teacher `source` loads from the file `tree` names, loaded once per file (`files`).
+fn load_once(
+    source: &dyn TeacherSource,
+    tree: &Table,
+    files: &mut HashMap<String, Arc<LoadedTeacher>>,
+) -> XResult<Option<Arc<LoadedTeacher>>> {
+    let Some(file) = source.file(tree)? else { return Ok(None) };
+    if let Some(t) = files.get(&file) {
+        return Ok(Some(t.clone()));
+    }
+    let t = Arc::new(source.load(&file)?);
+    files.insert(file, t.clone());
+    Ok(Some(t))
 }
 
 /// The tree (`tree` with the row's `set`) and the learned teachers of `row`, after checking
@@ -290,13 +319,15 @@ pub fn train_all<R: TaskRecipe, P: AsRef<TrainingData> + Sync>(
         let teacher = teacher.transpose().map_err(|e| e.to_string())?;
         let checkpoints = (ck.as_path(), ctx.resume);
         let (data, recipe) = (d, e.recipe());
-        let probe = probes(e.cfg);
+        // The task's curves and visits act through its own windows, not a file teacher's.
+        let probe = if e.loaded.is_some() { Probes::default() } else { probes(e.cfg) };
         let (curves, visits) = (probe.curves.as_deref(), probe.visits.as_deref());
         let job = Job {
             seed,
             label: &label,
             data,
             teacher,
+            loaded: e.loaded.as_deref(),
             recipe,
             students,
             checkpoints,

@@ -16,7 +16,7 @@ pub use crate::capability::Capability;
 use crate::plots::Curves;
 use crate::policy::TrainedPolicy;
 use crate::recipe;
-use crate::teachers::{TeacherSource, TeachersConfig, TrainedTeacher};
+use crate::teachers::{LoadedTeacher, TeacherSource, TeachersConfig, TrainedTeacher};
 pub use vdd_data::TrainingData;
 use vdd_moe::cache::StudentCache;
 pub use vdd_report::budget::{Budget, BudgetRole};
@@ -31,6 +31,9 @@ pub enum TeacherUse {
     Any,
     /// A learned teacher (trained, or loaded from the cache, before the method).
     Learned,
+    /// A teacher that acts: a learned one or one loaded from a file
+    /// ([`crate::teachers::TeacherSource::load`]).
+    Acting,
 }
 
 /// What a method is: its name, what it takes and needs.
@@ -68,6 +71,11 @@ pub trait Method: Sync {
     /// alike.)
     fn shadowed_keys(&self, _row: &Row) -> Vec<(String, Option<String>)> {
         Vec::new()
+    }
+    /// Checks a row of a teacher loaded from a file against that teacher, before anything
+    /// trains (by default: any loaded teacher).
+    fn check_loaded(&self, _row: &Row, _teacher: &LoadedTeacher) -> crate::Result {
+        Ok(())
     }
     /// [`Info::name`].
     fn name(&self) -> &'static str {
@@ -111,6 +119,9 @@ pub struct Job<'a> {
     pub data: &'a TrainingData,
     /// The trained teacher of the row's learned teacher source.
     pub teacher: Option<&'a TrainedTeacher>,
+    /// The teacher of the row's file source ([`crate::teachers::TeacherSource::load`]); the
+    /// job's `data` are then cut in its windows and chunks, in its normalised space.
+    pub loaded: Option<&'a LoadedTeacher>,
     /// The recipe.
     pub recipe: MethodRecipe<'a>,
     /// Where students are cached, for tasks that cache them.
@@ -182,6 +193,9 @@ pub struct Trained {
     pub budget: Option<Budget>,
     /// Seconds spent on the curves over training (not in `train_seconds`).
     pub curve_seconds: f64,
+    /// How the policy acts on raw observations (features, window, chunk) when it is not the
+    /// task's own (a policy of a file teacher's windows and chunks); `None`: the task's.
+    pub deploy: Option<vdd_data::DeploySpec>,
 }
 
 impl Trained {
@@ -197,6 +211,7 @@ impl Trained {
             curves,
             budget: None,
             curve_seconds: 0.0,
+            deploy: None,
         }
     }
 }

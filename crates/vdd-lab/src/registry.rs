@@ -178,13 +178,16 @@ impl Registry {
     }
 
     /// Parses and checks a recipe's row list (`methods`): known names available on `task`, no
-    /// duplicates. `all` stands for every row the task supports, in table order.
+    /// duplicates. `all` stands for every row the task supports, in table order, but those of
+    /// a teacher file ([`crate::teachers::TeacherSource::loads_file`]).
     pub fn parse_rows(&self, names: &[String], task: &str) -> crate::Result<Vec<&Row>> {
         if names.is_empty() {
             return Err("the recipe lists no methods".into());
         }
         if names.len() == 1 && names[0] == "all" {
-            return Ok(self.rows_of(task));
+            // Rows of a teacher file run only when named: `all` needs no file.
+            let from_file = |r: &&Row| r.teacher.is_some_and(|t| t.loads_file());
+            return Ok(self.rows_of(task).into_iter().filter(|r| !from_file(r)).collect());
         }
         let mut out: Vec<&Row> = Vec::with_capacity(names.len());
         for n in names {

@@ -80,12 +80,20 @@ impl Row {
                     t.name()
                 )));
             }
-            (TeacherUse::Any | TeacherUse::Learned, None) => {
+            (TeacherUse::Any | TeacherUse::Learned | TeacherUse::Acting, None) => {
                 return Err(fail(format!("method `{}` needs a `teacher`", m.name())));
             }
             (TeacherUse::Learned, Some(t)) if t.kind().is_none() => {
                 return Err(fail(format!(
                     "method `{}` needs a learned teacher; `{}` is not one",
+                    m.name(),
+                    t.name()
+                )));
+            }
+            (TeacherUse::Acting, Some(t)) if t.kind().is_none() && !t.loads_file() => {
+                return Err(fail(format!(
+                    "method `{}` needs a teacher that acts (learned or from a file); `{}` is \
+                     not one",
                     m.name(),
                     t.name()
                 )));

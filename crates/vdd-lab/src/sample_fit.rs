@@ -1,5 +1,6 @@
 //! A student fitted to its teacher's own samples before VDD refines it through the score
-//! (`[imported.fit]` of the Avoiding recipes).
+//! (`vdd.<teacher>_init_fit` of the recipes: the default of the imported
+//! teacher's rows).
 //!
 //! For a teacher whose actions are whole chunks (an imported U-Net: 16 steps × 2 dimensions),
 //! the paper's start (every expert at the origin with unit scale, queried at small noise)
@@ -44,7 +45,7 @@ impl SampleFit {
         let per = self.samples_per_state;
         if !(1..=MAX_SAMPLES_PER_STATE).contains(&per) || !(1..=4096).contains(&self.blocks) {
             return Err(format!(
-                "imported.fit: samples_per_state must be in 1..={MAX_SAMPLES_PER_STATE} and blocks \
+                "samples_per_state must be in 1..={MAX_SAMPLES_PER_STATE} and blocks \
                  in 1..=4096 (got {per} and {})",
                 self.blocks
             )
@@ -69,15 +70,12 @@ impl SampleFit {
         let n = states.nrows();
         let m = if self.states == 0 { n } else { self.states.min(n) };
         if m == 0 {
-            return Err("imported.fit: no states to sample the teacher at".into());
+            return Err("no states to sample the teacher at".into());
         }
         self.validate()?;
         let rows =
             m.checked_mul(self.samples_per_state).filter(|&r| r <= MAX_PAIRS).ok_or_else(|| {
-                format!(
-                    "imported.fit: {m} states × {} samples is over {MAX_PAIRS} pairs",
-                    self.samples_per_state
-                )
+                format!("{m} states × {} samples is over {MAX_PAIRS} pairs", self.samples_per_state)
             })?;
         let picked = Mat::from_fn(rows, states.ncols(), |r, j| {
             states[((r / self.samples_per_state) * n / m, j)]
@@ -106,7 +104,7 @@ impl SampleFit {
             actions.as_mut().subrows_mut(range.start, range.len()).copy_from(out.as_ref());
         }
         if actions.col_iter().any(|c| c.iter().any(|v| !v.is_finite())) {
-            return Err("imported.fit: the teacher's samples are not finite".into());
+            return Err("the teacher's samples are not finite".into());
         }
         Ok((picked, actions))
     }

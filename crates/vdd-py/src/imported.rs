@@ -1,15 +1,15 @@
 //! `vdd.distill` with a teacher imported from PyTorch (`vdd.import_lerobot`): the wiring of
-//! the Rust experiment path (`vdd-lab`'s `tasks/avoiding/imported.rs`) without the experiment
-//! layer, which this binding may not depend on (docs/architecture.md).
+//! the Rust experiment path (`vdd-lab`'s imported teacher source and its VDD rows) without the
+//! experiment layer, which this binding may not depend on (docs/architecture.md).
 //!
 //! The teacher works in its own normalised chunk space ([`vdd::TeacherSpace`] from
 //! [`UnetTeacher::teacher_space`]); its denoised chunk is clamped to the box of the training
-//! chunks (`actions`) widened by a margin, as the recipe's `imported.clamp_denoiser`; the
+//! chunks (`actions`) widened by a margin, as the recipe's `vdd.clamp_denoiser`; the
 //! student starts from a mixture fitted to the teacher's own samples ([`AutoPlan`], as
 //! `Vdd::in_teacher_space` with `init_from_teacher`; the recipe's default start, EM on the
 //! teacher's samples, is `vdd_lab::sample_fit`, which needs `vdd-mixture`); VDD then runs with
 //! noise on both sides over the lower 30 % of the teacher's trained steps, as the recipe's
-//! `[imported.vdd]`; the student emits the teacher's whole chunk and acts as the teacher's
+//! `[vdd.imported]`; the student emits the teacher's whole chunk and acts as the teacher's
 //! package does ([`UnetTeacher::chunk_deploy_spec`]).
 
 use faer::Mat;
@@ -20,7 +20,7 @@ use vdd_import::UnetTeacher;
 use crate::settings::{Extra, Request, RunError, apply_settings};
 
 /// The clamp's margin around the training chunks' box (the teacher's normalised units), as the
-/// recipe's `imported.clip_margin`.
+/// recipe's `vdd.clip_margin`.
 pub const CLIP_MARGIN: f32 = 0.5;
 /// Teacher samples the plan fits the student's start to (as `Vdd::in_teacher_space`).
 pub const TEACHER_SAMPLES: usize = 2048;
@@ -68,7 +68,7 @@ pub(crate) fn train(
         ..AutoOptions::new(request.experts, request.seed)
     };
     let mut plan = AutoPlan::inspect(&mut clamped, &data, &options)?;
-    // The recipe's `[imported.vdd]` (recipes/defaults/avoiding.toml), then the user's settings.
+    // The recipe's `[vdd.imported]` (recipes/defaults/avoiding.toml), then the user's settings.
     let v = &mut plan.vdd;
     v.score_at = ScoreAt::NoisedSample;
     v.noise =

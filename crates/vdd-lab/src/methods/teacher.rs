@@ -1,6 +1,8 @@
 //! `teacher`: a learned teacher as a row of the table (`ddpm`, `beso`), sampling with its
 //! default steps, or with `with.steps` of them (`ddpm-1`, `beso-1`: one step). Its training is
-//! the teacher's (shared with every row distilled from it). Keys: none of its own.
+//! the teacher's (shared with every row distilled from it). A teacher loaded from a file
+//! (`imported`) acts as its package does, through its own window, chunk and features (its
+//! sampler's steps as imported; `with.steps` is refused). Keys: none of its own.
 
 use serde::Deserialize;
 
@@ -16,7 +18,7 @@ pub struct TeacherRow;
 
 const INFO: Info = Info {
     name: "teacher",
-    teacher: TeacherUse::Learned,
+    teacher: TeacherUse::Acting,
     needs: &[Capability::Rollouts],
     row_keys: &["steps"],
 };
@@ -48,6 +50,21 @@ impl Method for TeacherRow {
     }
     fn train(&self, job: &Job<'_>) -> crate::Result<Trained> {
         let steps = settings(job.recipe.row)?.steps;
+        if let Some(loaded) = job.loaded {
+            if steps.is_some() {
+                return Err(format!(
+                    "row `{}`: `with.steps` of a teacher from a file (it samples as imported)",
+                    job.recipe.row.name
+                )
+                .into());
+            }
+            let policy = TrainedPolicy::Other(Box::new(loaded.teacher.clone()));
+            // Trained elsewhere: no training time here (`null` in the results).
+            return Ok(Trained {
+                deploy: Some(loaded.deploy_spec()),
+                ..Trained::new(policy, f64::NAN, Curves::new())
+            });
+        }
         let t = job.teacher()?;
         let mut teacher = t.teacher.clone();
         if let Some(steps) = steps {

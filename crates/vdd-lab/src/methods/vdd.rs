@@ -16,13 +16,17 @@
 //! (initialise the student as the official code does: [`vdd::init_official`]),
 //! `greedy_gating` and `sample_action` (how the student acts); `<teacher>_expert_visits`
 //! (continue distilling on the states the student visits: [`ExpertVisits`]) and
-//! `<teacher>_gating_fit` / `<teacher>_gating_visits` (a learned gating fitted afterwards).
+//! `<teacher>_gating_fit` / `<teacher>_gating_visits` (a learned gating fitted afterwards);
+//! `<teacher>_init = "samples"` (start from a mixture fitted by EM to the teacher's samples,
+//! with the fit `<teacher>_init_fit`: [`SampleFit`]; `"paper"`, the default: a new mixture) and `<teacher>_gating_temperature` (a learned gating sharpened after
+//! training: [`Moe::sharpen_gating`]).
 //!
-//! The student works in the teacher's normalised space (the exact teacher's is the raw one).
-//! Students of learned teachers are cached when the task gives a [`StudentCache`]
-//! ([`vdd_moe::cache`]).
+//! The student works in the teacher's normalised space (the exact teacher's is the raw one; a
+//! file teacher's data come in its space, [`crate::teachers::LoadedTeacher::training_data`],
+//! and its student acts through the teacher's windows and chunk). Students of learned and
+//! file teachers are cached when the task gives a [`StudentCache`] ([`vdd_moe::cache`]).
 
-use faer::Mat;
+use faer::{Mat, MatRef};
 use rand::Rng as _;
 use serde::{Deserialize, Serialize};
 use serde_json::json;
@@ -35,6 +39,7 @@ use vdd_moe::{ActMode, GatingKind, Moe, MoeConfig, NetworkConfig};
 use crate::method::{Budget, Info, Job, Method, MethodRecipe, TeacherUse, Trained};
 use crate::policy::TrainedPolicy;
 use crate::recipe;
+use crate::sample_fit::SampleFit;
 use crate::teachers;
 use vdd_moe::cache::{CachedStudent, STUDENT_CACHE_VERSION, StudentCache};
 
@@ -49,7 +54,17 @@ const SELECT_BY: &str = "vdd.select_by";
 
 /// The recipe keys of VDD with its settings at `vdd.<t>`.
 fn vdd_keys(t: &str) -> Vec<String> {
-    let own = ["", "_gating", "_experts", "_gating_fit", "_gating_visits", "_expert_visits"];
+    let own = [
+        "",
+        "_gating",
+        "_experts",
+        "_gating_fit",
+        "_gating_visits",
+        "_expert_visits",
+        "_init",
+        "_init_fit",
+        "_gating_temperature",
+    ];
     let mut keys: Vec<String> = own.iter().map(|k| format!("vdd.{t}{k}")).collect();
     keys.extend([CLIP, CLAMP, INIT, GREEDY, SAMPLE].map(String::from));
     keys
@@ -103,6 +118,11 @@ struct Settings {
     gating_visits: Option<GatingVisits>,
     /// `vdd.<teacher>_expert_visits`: distillation continued on the states the student visits.
     expert_visits: Option<ExpertVisits>,
+    /// `vdd.<teacher>_init` = `samples`: the student starts from a mixture fitted to teacher
+    /// samples by `vdd.<teacher>_init_fit`.
+    init_fit: Option<SampleFit>,
+    /// `vdd.<teacher>_gating_temperature`: a learned gating sharpened after training.
+    gating_temperature: Option<f32>,
 }
 
 /// `vdd.<teacher>_expert_visits`: after the distillation of `vdd.<teacher>`, continue it on
@@ -138,6 +158,17 @@ pub struct GatingVisits {
     pub rounds: usize,
 }
 
+/// `vdd.<teacher>_init`: how the student starts.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Init {
+    /// The paper's start: a new mixture of the student's configuration, seeded by the run.
+    Paper,
+    /// The whole mixture fitted by EM to the teacher's samples (`vdd.<teacher>_init_fit`,
+    /// [`SampleFit`]), then VDD from there.
+    Samples,
+}
+
 /// Most rounds and episodes per round of [`GatingVisits`].
 const MAX_VISIT_ROUNDS: usize = 16;
 const MAX_VISIT_EPISODES: usize = 100_000;
@@ -168,6 +199,15 @@ impl Vdd {
             gating_fit: r.get_opt(&format!("vdd.{t}_gating_fit"))?,
             gating_visits: r.get_opt(&format!("vdd.{t}_gating_visits"))?,
             expert_visits: r.get_opt(&format!("vdd.{t}_expert_visits"))?,
+            init_fit: match r.get_opt(&format!("vdd.{t}_init"))?.unwrap_or(Init::Paper) {
+                Init::Paper => None,
+                Init::Samples => {
+                    Some(r.get_opt(&format!("vdd.{t}_init_fit"))?.ok_or_else(|| {
+                        format!("vdd.{t}_init = \"samples\" needs its fit, vdd.{t}_init_fit")
+                    })?)
+                }
+            },
+            gating_temperature: r.get_opt(&format!("vdd.{t}_gating_temperature"))?,
         })
     }
 }
@@ -193,11 +233,31 @@ impl Method for Vdd {
     fn check(&self, recipe: &MethodRecipe<'_>) -> crate::Result {
         let s = self.settings(recipe)?;
         let (t, learned) = (recipe.row.teacher_key()?, learned(recipe.row));
+        let acts = learned || recipe.row.teacher.is_some_and(|t| t.loads_file());
         select_by(recipe)?;
         if s.gating_fit.is_some() && !learned {
             return Err(
-                format!("vdd.{t}_gating_fit needs a teacher that acts; {t} does not").into()
+                format!("vdd.{t}_gating_fit needs a learned teacher; {t} is not one").into()
             );
+        }
+        if let Some(fit) = &s.init_fit {
+            if !acts {
+                return Err(
+                    format!("vdd.{t}_init = \"samples\" needs a teacher that samples").into()
+                );
+            }
+            fit.validate().map_err(|e| format!("vdd.{t}_init_fit: {e}"))?;
+        }
+        if let Some(temp) = s.gating_temperature {
+            // Checked before any training: `Moe::sharpen_gating` would refuse it only after.
+            let learned_gating = s.student.gating == GatingKind::Learned;
+            if !(temp.is_finite() && temp > 0.0) || (temp != 1.0 && !learned_gating) {
+                return Err(format!(
+                    "vdd.{t}_gating_temperature = {temp}: a finite positive temperature of a \
+                     learned gating (vdd.{t}_gating = \"learned\"), or 1"
+                )
+                .into());
+            }
         }
         if let Some(v) = s.gating_visits {
             if s.gating_fit.is_none() {
@@ -243,6 +303,20 @@ impl Method for Vdd {
             .and_then(|()| s.vdd.check(&s.student))
             .map_err(|e| format!("vdd.{t}: {e}"))?;
         Ok(())
+    }
+
+    fn check_loaded(&self, _row: &crate::row::Row, t: &teachers::LoadedTeacher) -> crate::Result {
+        match t.obs_map() {
+            // The student's deployment spec cannot carry the map yet: it would act on the
+            // mapped observation and refuse the task's raw one.
+            Some(m) => Err(format!(
+                "{}: the teacher was imported with the observation map `{m}`, which a VDD \
+                 student cannot carry yet; roll the teacher out alone with --methods teacher",
+                t.file
+            )
+            .into()),
+            None => Ok(()),
+        }
     }
 
     fn train(&self, job: &Job<'_>) -> crate::Result<Trained> {
@@ -296,9 +370,13 @@ impl Vdd {
         }
         let vc = VddConfig { seed: job.seed, ..s.vdd.clone() };
         let teacher = if learned(row) { Some(job.teacher()?) } else { None };
-        let (sn, an) = match teacher {
-            Some(t) => (t.teacher.normalizers().0.clone(), t.teacher.normalizers().1.clone()),
-            None => (Affine::identity(d.states.ncols()), Affine::identity(d.actions.ncols())),
+        let (sn, an) = match (teacher, job.loaded) {
+            (Some(t), _) => (t.teacher.normalizers().0.clone(), t.teacher.normalizers().1.clone()),
+            // A file teacher's data come with its space.
+            (None, Some(_)) => (d.state_normalizer.clone(), d.action_normalizer.clone()),
+            (None, None) => {
+                (Affine::identity(d.states.ncols()), Affine::identity(d.actions.ncols()))
+            }
         };
         let states = sn.normalize_rows(d.states.as_ref())?;
         let actions = an.normalize_rows(d.actions.as_ref())?;
@@ -311,17 +389,24 @@ impl Vdd {
             vc.expert_steps() + (extra * vc.expert_steps_per_iter) as u64,
             vc.batch_size * vc.vi_samples,
         );
-        let cache = match (job.students, teacher) {
-            (Some(cache), Some(t)) => {
+        let teacher_id = match (teacher, job.loaded) {
+            (Some(t), _) => {
                 let teachers = &job.recipe.teachers;
                 let teacher_config = match t.teacher.kind() {
                     TeacherKind::Beso => serde_json::to_value(&teachers.beso)?,
                     TeacherKind::Ddpm => serde_json::to_value(&teachers.ddpm)?,
                 };
+                Some((teacher_config, t.hash.clone()))
+            }
+            (None, Some(l)) => Some((json!({ "file": l.file }), l.hash.clone())),
+            (None, None) => None,
+        };
+        let cache = match (job.students, teacher_id) {
+            (Some(cache), Some((teacher_config, teacher_hash))) => {
                 let mut key = json!({
                     "version": STUDENT_CACHE_VERSION,
                     "teacher": teacher_config,
-                    "teacher_hash": t.hash,
+                    "teacher_hash": teacher_hash,
                     "student": keyed_student(&mc),
                     // The unit only checks the schedule; it never changes a student.
                     "vdd": VddConfig { noise_unit: None, ..vc.clone() },
@@ -336,6 +421,9 @@ impl Vdd {
                 }
                 if let Some(v) = s.expert_visits {
                     key["expert_visits"] = json!(v);
+                }
+                if let Some(fit) = &s.init_fit {
+                    key["init_fit"] = json!(fit);
                 }
                 Some((cache, recipe::config_hash(&key)?))
             }
@@ -370,16 +458,29 @@ impl Vdd {
                     vdd::init_official(&mut student, vc.seed)?;
                 }
                 let key = format!("vdd.{t}");
+                let fit = s.init_fit.as_ref().map(|f| (f, data.states(), job));
                 let run = DistillRun { clip_margin: clip, job, policy: &policy, select_by };
-                let (mut c, chosen, noise, curve_seconds) = match teacher {
-                    Some(t) => distill(vc.clone(), t.teacher.clone(), student, data, run)
-                        .map_err(|e| e.context(key.clone()))?,
-                    None => {
+                let mut fit_seconds = 0.0;
+                let (mut c, mut chosen, noise, curve_seconds) = match (teacher, job.loaded) {
+                    (Some(tt), _) => {
+                        let student = fitted(fit, &tt.teacher, student, &t, &mut fit_seconds)?;
+                        distill(vc.clone(), tt.teacher.clone(), student, data, run)
+                            .map_err(|e| e.context(key.clone()))?
+                    }
+                    (None, Some(l)) => {
+                        let student = fitted(fit, &l.teacher, student, &t, &mut fit_seconds)?;
+                        distill(vc.clone(), l.teacher.clone(), student, data, run)
+                            .map_err(|e| e.context(key.clone()))?
+                    }
+                    (None, None) => {
                         let exact = d.exact.clone().ok_or("the task has no exact teacher")?;
                         distill(vc.clone(), exact, student, data, run)
                             .map_err(|e| e.context(key.clone()))?
                     }
                 };
+                // The fit to the teacher's samples is part of the training.
+                c.train_seconds += fit_seconds;
+                chosen.iter_mut().for_each(|x| x.train_seconds += fit_seconds);
                 if let (Some(v), Some(t), Some(demos)) = (s.expert_visits, teacher, demos) {
                     let run =
                         DistillRun { clip_margin: clip, job, policy: &policy, select_by: None };
@@ -416,6 +517,11 @@ impl Vdd {
             student = fit_gating(student, (&t, &s), fit, trained_teacher, job)?;
             train_seconds += t0.elapsed().as_secs_f64();
         }
+        if let Some(temp) = s.gating_temperature.filter(|&temp| temp != 1.0) {
+            student
+                .sharpen_gating(temp)
+                .map_err(|e| format!("vdd.{t}_gating_temperature = {temp}: {e}"))?;
+        }
         student.set_act_mode(s.act);
         Ok(Trained {
             teacher_seconds: teacher.map(|t| t.train_seconds),
@@ -423,9 +529,40 @@ impl Vdd {
             noise_level,
             budget: Some(budget),
             curve_seconds,
+            deploy: job.loaded.map(|l| l.chunk_deploy_spec()),
             ..Trained::new(TrainedPolicy::Moe(Box::new(student)), train_seconds, curves)
         })
     }
+}
+
+/// `student` fitted by EM to samples of `teacher` at the distillation's states (normalised;
+/// `fit`: `vdd.<key>_init_fit`, the states and the job), or `student` as it is without a fit;
+/// the fit's wall-clock seconds in `seconds`.
+fn fitted<T: ScoreModel + Clone + Send>(
+    fit: Option<(&SampleFit, MatRef<'_, f32>, &Job<'_>)>,
+    teacher: &T,
+    student: Moe,
+    key: &str,
+    seconds: &mut f64,
+) -> crate::Result<Moe> {
+    let Some((fit, states, job)) = fit else { return Ok(student) };
+    let t0 = std::time::Instant::now();
+    let context = |e: crate::LabError| e.context(format!("vdd.{key}_init_fit"));
+    let (label, seed) = (job.label, job.seed);
+    let bar = crate::progress::bar(fit.blocks as u64, &format!("{label}: teacher samples"));
+    let workers = vdd_nn::parallel::Workers::new(0)?;
+    let (s, a) = fit.draw(teacher, states, seed, &workers, &|| bar.inc(1)).map_err(context)?;
+    bar.finish_and_clear();
+    let bar = crate::progress::bar(fit.em.iterations as u64, &format!("{label}: EM fit"));
+    let student = fit
+        .fit(student, s, a, seed, |ll| {
+            bar.inc(1);
+            bar.set_message(format!("log-lik {ll:.3}"));
+        })
+        .map_err(context)?;
+    bar.finish_and_clear();
+    *seconds = t0.elapsed().as_secs_f64();
+    Ok(student)
 }
 
 /// `student` as it enters a student's cache key: a uniform gating has no network, so its
@@ -626,50 +763,4 @@ fn distill_on_visits(
 }
 
 #[cfg(test)]
-mod tests {
-    use super::*;
-    use crate::recipe;
-    use crate::tasks::AvoidingRecipe;
-
-    #[test]
-    fn a_selection_by_another_series_has_a_cache_key_of_its_own() {
-        assert_eq!(selected_key("abc", DEFAULT_SELECTION).unwrap(), "abc");
-        let other = selected_key("abc", "held-out success rate").unwrap();
-        assert_ne!(other, "abc");
-        assert_eq!(other, selected_key("abc", "held-out success rate").unwrap());
-        assert_ne!(other, selected_key("abd", "held-out success rate").unwrap());
-    }
-
-    #[test]
-    fn a_uniform_students_key_ignores_the_gating_network_and_a_learned_ones_does_not() {
-        let mut a = MoeConfig::toy(2, 2, 4);
-        a.gating = GatingKind::Uniform;
-        let mut b = a.clone();
-        b.gating_network.hidden_dim += 32;
-        assert_eq!(keyed_student(&a), keyed_student(&b));
-        a.gating = GatingKind::Learned;
-        b.gating = GatingKind::Learned;
-        assert_ne!(keyed_student(&a), keyed_student(&b));
-        let mut c = a.clone();
-        c.experts_network.hidden_dim += 32;
-        assert_ne!(keyed_student(&a), keyed_student(&c));
-    }
-
-    #[test]
-    fn a_rows_own_number_of_experts_reaches_its_student() {
-        let file = recipe::read_recipe(&recipe::recipe_path("avoiding").unwrap()).unwrap();
-        let sets = vec![("vdd.beso_experts".to_owned(), "4".to_owned())];
-        let o = recipe::Overrides { sets, ..Default::default() };
-        let r = recipe::resolve(&AvoidingRecipe::defaults().unwrap(), &file, &o).unwrap();
-        let tree = recipe::to_tree(&r.base).unwrap();
-        let registry = crate::Registry::builtin();
-        let experts = |row: &str| {
-            let row = registry.row(row).unwrap();
-            let (teachers, student) = (&r.base.teachers, &r.base.student);
-            let view = MethodRecipe { teachers, student, tree: &tree, row };
-            Vdd.settings(&view).unwrap().student.num_experts
-        };
-        assert_eq!(experts("vdd-beso"), 4);
-        assert_eq!(experts("vdd-ddpm"), 16);
-    }
-}
+mod tests;

@@ -51,6 +51,33 @@ pub(crate) trait RolloutRecipe: TaskRecipe {
     fn check_before_training(&self) -> crate::Result;
     /// Builds the dataset of this configuration.
     fn prepare(&self) -> crate::Result<Prepared>;
+    /// The training episodes' raw observations and actions, one matrix per episode (what a
+    /// teacher loaded from a file cuts into its own windows: [`Capability::RawEpisodes`]).
+    ///
+    /// [`Capability::RawEpisodes`]: crate::capability::Capability::RawEpisodes
+    fn raw_train_episodes(&self) -> crate::Result<RawEpisodes> {
+        Err(format!("task `{}` gives no raw episodes to a teacher file", Self::TASK).into())
+    }
+}
+
+/// The training episodes' raw observations and their actions, one matrix per episode each.
+pub(crate) type RawEpisodes = (Vec<Mat<f32>>, Vec<Mat<f32>>);
+
+/// The dataset of `e`: its configuration's, or for a row of a teacher file the same
+/// episodes cut into the teacher's windows and chunks ([`teachers::LoadedTeacher`]).
+fn prepare_entry<R: RolloutRecipe>(e: &Entry<'_, R>) -> crate::Result<Prepared> {
+    let mut prepared = e.cfg.prepare()?;
+    if let Some(t) = &e.loaded {
+        let (raw_obs, actions) = e.cfg.raw_train_episodes()?;
+        prepared.training = t.training_data(&raw_obs, actions)?;
+        crate::progress::log(format!(
+            "data: {} windows and chunks of the {} teacher {}",
+            prepared.training.states.nrows(),
+            t.source(),
+            t.file
+        ));
+    }
+    Ok(prepared)
 }
 
 /// `--tuning`: the tuning seeds (unless given) and the tuning demonstrations.
@@ -295,9 +322,12 @@ pub(crate) fn train_and_evaluate<R: RolloutRecipe>(
     let jobs = if base.jobs() == 0 { cores } else { base.jobs() };
     let seeds = &base.header().seeds;
 
-    // One dataset per distinct `data` table (usually one), whatever the seed.
-    let key = |_, pi: usize| -> crate::Result<_> { Ok(recipe::config_hash(plan[pi].cfg.data())?) };
-    let prepare = |_, pi: usize| stages.time("data", || plan[pi].cfg.prepare());
+    // One dataset per distinct `data` table and teacher file (usually one), whatever the seed.
+    let key = |_, pi: usize| -> crate::Result<_> {
+        let file = plan[pi].loaded.as_ref().map(|t| t.hash.clone());
+        Ok(recipe::config_hash(&(plan[pi].cfg.data(), file))?)
+    };
+    let prepare = |_, pi: usize| stages.time("data", || prepare_entry(&plan[pi]));
     let data = Datasets::build(seeds.len(), plan.len(), key, prepare)?;
     let students = StudentCache { dir: &ctx.student_cache_dir, fresh: ctx.fresh };
     let mut trainings =
@@ -392,6 +422,15 @@ pub(crate) fn trained_row(mut row: Row, trained: &Trained, seed: u64) -> Row {
         row.insert("curve_seconds".into(), report::json_f64(trained.curve_seconds));
     }
     row
+}
+
+/// `trained in N s` for a log line, or `trained elsewhere` for a policy loaded from a file
+/// (no training time).
+pub(crate) fn trained_note(trained: &Trained) -> String {
+    match trained.train_seconds {
+        s if s.is_finite() => format!("trained in {s:.1} s"),
+        _ => "trained elsewhere".to_owned(),
+    }
 }
 
 /// The training time of `trained` for a log line: ` (+ teacher N s)` when it has a teacher.

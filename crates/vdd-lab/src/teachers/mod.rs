@@ -18,16 +18,19 @@ pub use vdd_diffusion::TeacherKind;
 use crate::capability::Capability;
 
 mod exact;
+mod imported;
 mod learned;
 
 pub use exact::EXACT;
+pub use imported::{IMPORTED, Imported, LoadedTeacher};
 pub use learned::{BESO, BESO_D3IL, DDPM, Learned};
 
 /// Every built-in teacher source.
-pub static BUILTIN: &[&dyn TeacherSource] = &[&BESO, &DDPM, &BESO_D3IL, &EXACT];
+pub static BUILTIN: &[&dyn TeacherSource] = &[&BESO, &DDPM, &BESO_D3IL, &EXACT, &IMPORTED];
 
 /// Where a row's teacher comes from (a row's `teacher` names it): a learned diffusion teacher
-/// trained on the task's demonstrations (and cached), or the task's exact mixture.
+/// trained on the task's demonstrations (and cached), the task's exact mixture, or a file
+/// (a teacher imported from PyTorch, [`TeacherSource::load`]).
 pub trait TeacherSource: Sync {
     /// The lower-case hyphenated name (`beso`), as in a row's `teacher`.
     fn name(&self) -> &'static str;
@@ -56,6 +59,22 @@ pub trait TeacherSource: Sync {
             Some(TeacherKind::Ddpm) => NoiseConvention::Time,
             Some(TeacherKind::Beso) | None => NoiseConvention::Sigma,
         }
+    }
+    /// Whether its teacher is a file named in the recipe ([`TeacherSource::file`]): its rows
+    /// run only when asked for by name (`all` leaves them out).
+    fn loads_file(&self) -> bool {
+        false
+    }
+    /// The teacher file the resolved recipe `tree` names, for a source that
+    /// [`loads_file`](TeacherSource::loads_file) (an error names the key when it is missing);
+    /// `None` for sources that train or are the task's.
+    fn file(&self, _tree: &toml::Table) -> crate::Result<Option<String>> {
+        Ok(None)
+    }
+    /// Loads the teacher `file` (once per run, when a row of it is planned). An error names
+    /// the file.
+    fn load(&self, file: &str) -> crate::Result<LoadedTeacher> {
+        Err(format!("teacher source `{}` loads no file (asked for {file})", self.name()).into())
     }
 }
 pub use vdd_diffusion::cache::{CachedTeacher as TrainedTeacher, TeachersConfig, kind_name};

@@ -22,8 +22,6 @@ use vdd_tasks::avoiding::{AvoidingEval, DeployedCurves, EvalProtocol, PlotSettin
 use vdd_tasks::timing::Timing;
 use vdd_tasks::{AvoidingEnv, Metrics};
 
-mod imported;
-
 use super::rollouts::{self, Prepared, RolloutRecipe, Visits};
 use crate::context::{RunContext, StageTimes};
 use crate::driver::{self, Entry, Probes, Task, TaskRecipe};
@@ -32,9 +30,9 @@ use crate::plots::{self, Curves, TrajectoryPanel};
 use crate::policy::TrainedPolicy;
 use crate::recipe::{self, Overrides};
 use crate::report::{self, Row};
+use crate::task::Capability;
 use crate::teachers::TeachersConfig;
 use crate::tuning;
-use imported::ImportedSettings;
 
 /// A recipe of the Avoiding task (see `recipes/avoiding.toml`): the schema of the recipe files;
 /// the values not given there come from `recipes/defaults/avoiding.toml` ([`Self::defaults`]).
@@ -61,8 +59,17 @@ pub struct AvoidingRecipe {
     pub eval: AvoidingEval,
     /// Figures.
     pub plots: PlotSettings,
-    /// A teacher imported from PyTorch (`--teacher FILE`; the `imported` module).
+    /// A teacher imported from PyTorch (`--teacher FILE`): the file of the rows `imported`
+    /// and `vdd-imported` ([`crate::teachers::Imported`]).
     pub imported: ImportedSettings,
+}
+
+/// The `[imported]` table of the Avoiding recipes.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ImportedSettings {
+    /// The teacher file (a `cargo xtask import` file; `--teacher FILE`); empty: none.
+    pub teacher: String,
 }
 
 /// `recipes/defaults/avoiding.toml`, embedded so that the binary is self-contained.
@@ -119,6 +126,10 @@ impl RolloutRecipe for AvoidingRecipe {
         let d = self.data.build()?;
         Ok(Prepared::new(d, self.data.demonstrations, 24, t0))
     }
+    fn raw_train_episodes(&self) -> crate::Result<rollouts::RawEpisodes> {
+        let (train, raw_obs) = self.data.train_episodes()?;
+        Ok((raw_obs, train.to_episode_matrices().1))
+    }
 }
 
 /// What Avoiding's episodes give a training, through the recipe's features and windows: curves
@@ -163,8 +174,13 @@ impl Task for Avoiding {
         COLUMNS.to_vec()
     }
 
+    fn offers(&self) -> &'static [Capability] {
+        &[Capability::Rollouts, Capability::LearnedTeachers, Capability::RawEpisodes]
+    }
+
     /// `--tuning`: the tuning seeds (unless given) and the tuning demonstrations; `--teacher
-    /// FILE`: an imported teacher and its VDD student (methods `teacher,vdd` unless given).
+    /// FILE`: an imported teacher and its VDD student (rows `imported,vdd-imported` unless
+    /// `--methods` names others; `teacher` and `vdd` there stand for those two).
     fn apply_shorthands(
         &self,
         given: &[(String, String)],
@@ -173,7 +189,14 @@ impl Task for Avoiding {
         for (k, v) in given {
             if k == "teacher" {
                 o.sets.insert(0, ("imported.teacher".into(), format!("{v:?}")));
-                o.methods.get_or_insert_with(|| vec!["teacher".into(), "vdd".into()]);
+                let methods = o.methods.get_or_insert_with(|| vec!["teacher".into(), "vdd".into()]);
+                for m in methods.iter_mut() {
+                    match m.as_str() {
+                        "teacher" => *m = "imported".into(),
+                        "vdd" => *m = "vdd-imported".into(),
+                        _ => {}
+                    }
+                }
                 continue;
             }
             rollouts::tuning_shorthand(self.name(), k, o)?;
@@ -184,9 +207,6 @@ impl Task for Avoiding {
     fn run(&self, ctx: &RunContext) -> crate::Result {
         let resolved = recipe::resolve(&AvoidingRecipe::defaults()?, &ctx.file, &ctx.overrides)?;
         let base = &resolved.base;
-        if !base.imported.teacher.is_empty() {
-            return imported::run(ctx, &resolved);
-        }
         let plan = driver::plan(&ctx.registry, &resolved, "avoiding", &ctx.overrides.sets)?;
         rollouts::run_logged(ctx, &resolved, &plan, |dir, log, tuning_log| {
             run_plan(ctx, base, &plan, dir, log, tuning_log)
@@ -230,7 +250,9 @@ fn evaluate(
     let (label, cfg) = (&e.label, e.cfg);
     let protocol = cfg.eval.protocol();
     let record = first_seed && cfg.plots.enabled;
-    let (spec, n) = (cfg.data.deploy_spec(), cfg.eval.rollouts);
+    // The task's features and windows, or those of a policy of a file teacher's windows.
+    let spec = trained.deploy.clone().unwrap_or_else(|| cfg.data.deploy_spec());
+    let n = cfg.eval.rollouts;
     let (wrapped, ev, eval_seconds) =
         rollouts::roll_out(&mut trained, spec, label, seed, n, dir, stages, |w| {
             Ok(protocol.evaluate(w, seed, threads, record)?)
@@ -239,11 +261,11 @@ fn evaluate(
 
     let m = &ev.metrics;
     crate::progress::log(format!(
-        "[{tag}] success {:.3}, entropy {:.3} ({} modes), trained in {:.1} s{}, evaluated in {:.1} s",
+        "[{tag}] success {:.3}, entropy {:.3} ({} modes), {}{}, evaluated in {:.1} s",
         m.success_rate,
         m.task_entropy,
         m.modes_reached,
-        trained.train_seconds,
+        rollouts::trained_note(&trained),
         rollouts::teacher_note(&trained),
         eval_seconds
     ));
@@ -254,7 +276,7 @@ fn evaluate(
         let t0 = Instant::now();
         let n = cfg.plots.trajectories;
         let experts = match &trained.policy {
-            TrainedPolicy::Moe(moe) if cfg.data.obs_window == 1 && cfg.data.action_chunk == 1 => {
+            TrainedPolicy::Moe(moe) if spec_is_single_step(&trained, cfg) => {
                 Some((protocol.replay_experts(&wrapped, seed, &ev, n)?, moe.num_experts()))
             }
             _ => None,
@@ -265,6 +287,15 @@ fn evaluate(
         stages.add("plots", t0.elapsed().as_secs_f64());
     }
     Ok((row, wrapped))
+}
+
+/// Whether `trained` acts on one observation per action (no window, no chunk): the expert
+/// replay of the figures needs it.
+fn spec_is_single_step(trained: &Trained, cfg: &AvoidingRecipe) -> bool {
+    match &trained.deploy {
+        Some(s) => s.obs_window == 1 && s.action_chunk == 1,
+        None => cfg.data.obs_window == 1 && cfg.data.action_chunk == 1,
+    }
 }
 
 /// `metrics.json`, `curves.json`, `table.md`, the figures and `run.json`; returns the tuning-log
@@ -311,6 +342,58 @@ fn write_outputs(
 mod tests {
     use super::*;
     use crate::Registry;
+
+    fn resolved(shorthands: &[(String, String)], mut o: Overrides) -> AvoidingRecipe {
+        Avoiding.apply_shorthands(shorthands, &mut o).unwrap();
+        let file = recipe::read_recipe(&recipe::recipe_path("avoiding").unwrap()).unwrap();
+        recipe::resolve(&AvoidingRecipe::defaults().unwrap(), &file, &o).unwrap().base
+    }
+
+    #[test]
+    fn the_teacher_option_names_the_file_and_its_rows() {
+        let plain = resolved(&[], Overrides::default());
+        assert!(plain.imported.teacher.is_empty(), "no teacher file by default");
+        let given = [("teacher".to_owned(), r"dir with space/t\1.safetensors".to_owned())];
+        let r = resolved(&given, Overrides::default());
+        assert_eq!(r.imported.teacher, r"dir with space/t\1.safetensors");
+        assert_eq!(r.header.methods, ["imported", "vdd-imported"]);
+        // `teacher` and `vdd` stand for the file's rows; other rows stay as named.
+        let only =
+            Overrides { methods: Some(vec!["vdd".into(), "beso".into()]), ..Default::default() };
+        assert_eq!(resolved(&given, only).header.methods, ["vdd-imported", "beso"]);
+    }
+
+    #[test]
+    fn rows_of_a_teacher_file_need_the_file_and_all_leaves_them_out() {
+        let plan = |methods: &[&str]| {
+            let methods = Some(methods.iter().map(|m| (*m).to_owned()).collect());
+            let r = recipe::resolve(
+                &AvoidingRecipe::defaults().unwrap(),
+                &recipe::read_recipe(&recipe::recipe_path("avoiding").unwrap()).unwrap(),
+                &Overrides { quick: true, methods, ..Default::default() },
+            )
+            .unwrap();
+            driver::plan(&Registry::builtin(), &r, "avoiding", &[])
+                .map(|p| p.iter().map(|e| e.label.clone()).collect::<Vec<_>>())
+                .map_err(|e| e.to_string())
+        };
+        let all = plan(&["all"]).unwrap();
+        assert!(all.iter().all(|l| !l.contains("imported")), "{all:?}");
+        let e = plan(&["vdd-imported"]).unwrap_err();
+        assert!(e.contains("--teacher FILE") && e.contains("imported.teacher"), "{e}");
+        // A file that is not there is named.
+        let e = {
+            let file = recipe::read_recipe(&recipe::recipe_path("avoiding").unwrap()).unwrap();
+            let o = Overrides {
+                methods: Some(vec!["imported".into()]),
+                sets: vec![("imported.teacher".into(), "\"/nonexistent/t.safetensors\"".into())],
+                ..Default::default()
+            };
+            let r = recipe::resolve(&AvoidingRecipe::defaults().unwrap(), &file, &o).unwrap();
+            driver::plan(&Registry::builtin(), &r, "avoiding", &o.sets).err().unwrap().to_string()
+        };
+        assert!(e.contains("/nonexistent/t.safetensors"), "{e}");
+    }
 
     #[test]
     fn the_defaults_file_is_complete_and_valid() {
