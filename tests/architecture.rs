@@ -81,7 +81,7 @@ fn crate_dependency_rules_hold() {
         // Datasets and the observation pipeline serve any model and any task.
         ("vdd-data", &["vdd-core"]),
         // A teacher is trained and used on its own.
-        ("vdd-diffusion", &["vdd-core", "vdd-nn"]),
+        ("vdd-diffusion", &["vdd-core", "vdd-nn", "vdd-data"]),
         // The deployed student loads without any training code.
         ("vdd-moe", &["vdd-core", "vdd-nn", "vdd-data"]),
         // A teacher is any ScoreModel: the trainer never knows diffusion.

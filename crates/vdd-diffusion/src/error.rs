@@ -17,6 +17,10 @@ pub enum DiffusionError {
     /// A configuration value is invalid.
     #[error("invalid diffusion configuration: {0}")]
     Config(String),
+    /// A deployment spec does not fit the teacher (its window, chunk or features against the
+    /// teacher's state and action dimensions).
+    #[error("the deployment spec does not fit the teacher: {0}")]
+    Deploy(#[from] vdd_data::DataError),
     /// The training data cannot be used (empty, mismatched rows, non-finite values).
     #[error("invalid training data: {0}")]
     Data(String),

@@ -23,6 +23,10 @@ use crate::net::{DenoiserNet, NetConfig};
 use crate::normalize::NormalizerKind;
 use crate::sampling::SamplerBuffers;
 use crate::train::{self, DsmNoise, TrainConfig, TrainProgress};
+use vdd_data::DeploySpec;
+
+/// The metadata key of a saved teacher's deployment spec (absent: the identity).
+const DEPLOY_SPEC_KEY: &str = "deploy_spec";
 
 /// The part of a learned teacher that depends on the diffusion: its configuration, noise
 /// schedule, network parameterisation, training noise and samplers.
@@ -97,6 +101,7 @@ pub struct LearnedTeacher<P: Process> {
     pub(crate) sampler_buf: SamplerBuffers,
     io: PolicyIo,
     rng: vdd_core::Rng,
+    deploy_spec: DeploySpec,
 }
 
 impl<P: Process> LearnedTeacher<P> {
@@ -135,7 +140,22 @@ impl<P: Process> LearnedTeacher<P> {
             sampler_buf: SamplerBuffers::default(),
             io: PolicyIo::default(),
             rng: Seeds::new(seed).stream(P::POLICY_STREAM),
+            deploy_spec: DeploySpec::identity(),
         })
+    }
+
+    /// How the teacher acts on raw observations (features, observation window, action chunk):
+    /// saved with it; the identity (one featureless observation per action) unless set.
+    pub fn deploy_spec(&self) -> &DeploySpec {
+        &self.deploy_spec
+    }
+
+    /// Sets [`LearnedTeacher::deploy_spec`], checked against the teacher's state and action
+    /// dimensions (a window must divide the state, a chunk the action).
+    pub fn set_deploy_spec(&mut self, spec: DeploySpec) -> Result<()> {
+        spec.check_policy_dims(self.state_dim(), self.action_dim())?;
+        self.deploy_spec = spec;
+        Ok(())
     }
 
     /// Trains a teacher on raw `states` (`n x d_s`) and `actions` (`n x d_a`, action chunks
@@ -277,7 +297,14 @@ impl<P: Process> LearnedTeacher<P> {
             state_normalizer: self.state_norm.clone(),
             action_normalizer: self.action_norm.clone(),
         };
-        let meta = common::metadata(P::KIND, self.config(), &shape, self.train_config.as_ref())?;
+        let mut meta =
+            common::metadata(P::KIND, self.config(), &shape, self.train_config.as_ref())?;
+        if self.deploy_spec != DeploySpec::identity() {
+            let spec = serde_json::to_string(&self.deploy_spec).map_err(|source| {
+                DiffusionError::SerializeMetadata { key: DEPLOY_SPEC_KEY, source }
+            })?;
+            meta.insert(DEPLOY_SPEC_KEY.to_owned(), spec);
+        }
         vdd_nn::io::save_safetensors(path, &self.net, &meta)?;
         Ok(())
     }
@@ -308,7 +335,19 @@ impl<P: Process> LearnedTeacher<P> {
             &mut Seeds::new(0).stream("init"),
         )?;
         vdd_nn::io::load_safetensors(path, &mut net)?;
-        Self::from_parts(config, train, shape.state_normalizer, shape.action_normalizer, net, seed)
+        let (sn, an) = (shape.state_normalizer, shape.action_normalizer);
+        let mut teacher = Self::from_parts(config, train, sn, an, net, seed)?;
+        if let Some(json) = meta.get(DEPLOY_SPEC_KEY) {
+            let bad = |e: Box<dyn std::error::Error + Send + Sync>| DiffusionError::BadMetadata {
+                path: path.to_owned(),
+                key: DEPLOY_SPEC_KEY,
+                source: e,
+            };
+            let spec: DeploySpec = serde_json::from_str(json).map_err(|e| bad(Box::new(e)))?;
+            spec.validate().map_err(|e| bad(Box::new(e)))?;
+            teacher.set_deploy_spec(spec).map_err(|e| bad(Box::new(e)))?;
+        }
+        Ok(teacher)
     }
 
     pub(crate) fn kind() -> &'static str {

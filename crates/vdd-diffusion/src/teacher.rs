@@ -119,6 +119,36 @@ impl DiffusionTeacher {
     pub fn steps(&self) -> usize {
         delegate!(self, t => t.sampler().1)
     }
+
+    /// How the teacher acts on raw observations (see [`Ddpm::deploy_spec`]): saved with it.
+    pub fn deploy_spec(&self) -> &vdd_data::DeploySpec {
+        delegate!(self, t => t.deploy_spec())
+    }
+
+    /// Sets the deployment spec, checked against the teacher's dimensions (see
+    /// [`Ddpm::set_deploy_spec`]).
+    pub fn set_deploy_spec(&mut self, spec: vdd_data::DeploySpec) -> Result<()> {
+        delegate!(self, t => t.set_deploy_spec(spec))
+    }
+
+    /// The teacher as a policy on raw observations, by its [`DiffusionTeacher::deploy_spec`].
+    pub fn into_policy(self) -> Result<vdd_data::Windowed<Self>> {
+        let spec = self.deploy_spec().clone();
+        Ok(vdd_data::Windowed::new(self, spec)?)
+    }
+
+    /// A saved teacher (any kind) as a policy on raw observations, through the deployment
+    /// spec saved with it; its sampling stream is seeded with `seed`.
+    ///
+    /// ```no_run
+    /// use vdd_core::Policy;
+    /// let mut policy = vdd_diffusion::DiffusionTeacher::load_policy("beso-s0.safetensors".as_ref(), 0)?;
+    /// let action = policy.act(&[0.5, 0.1, 0.5, 0.1])?;
+    /// # Ok::<(), Box<dyn std::error::Error>>(())
+    /// ```
+    pub fn load_policy(path: &Path, seed: u64) -> Result<vdd_data::Windowed<Self>> {
+        Self::load(path, seed)?.into_policy()
+    }
 }
 
 impl From<Ddpm> for DiffusionTeacher {

@@ -723,3 +723,45 @@ fn hostile_teacher_metadata_is_refused_before_work() {
     assert!(e.contains("t.safetensors"), "{e}");
     let _ = std::fs::remove_dir_all(&dir);
 }
+
+#[test]
+fn a_saved_teacher_keeps_its_deployment_and_acts_on_raw_observations() {
+    // States are windows of 2 observations of 1 value; actions chunks of 2 steps of 1 value.
+    let s = Mat::from_fn(64, 2, |i, j| (i + j) as f32 * 0.1);
+    let a = Mat::from_fn(64, 2, |i, j| (i * (j + 1)) as f32 * 0.05 - 1.0);
+    let train = TrainConfig { steps: 5, batch_size: 16, ..Default::default() };
+    let cfg = BesoConfig { net: tiny_net(), sampling_steps: 2, ..Default::default() };
+    let mut beso = Beso::train(&cfg, &train, s.as_ref(), a.as_ref(), 0, &mut |_| {}).unwrap();
+    assert_eq!(beso.deploy_spec(), &vdd_data::DeploySpec::identity());
+    let spec = vdd_data::DeploySpec {
+        obs_window: 2,
+        action_chunk: 2,
+        execute_steps: 2,
+        ..vdd_data::DeploySpec::identity()
+    };
+    // A window that does not divide the state is refused, and the spec is kept.
+    let odd = vdd_data::DeploySpec { obs_window: 3, ..spec.clone() };
+    assert!(matches!(beso.set_deploy_spec(odd), Err(DiffusionError::Deploy(_))));
+    beso.set_deploy_spec(spec.clone()).unwrap();
+    let path = tmp("deploy");
+    beso.save(&path).unwrap();
+    let mut policy = DiffusionTeacher::load_policy(&path, 7).unwrap();
+    assert_eq!(policy.obs_dim(), 1, "one raw observation per step");
+    assert_eq!(policy.action_dim(), 1, "one action per step");
+    let mut by_hand = DiffusionTeacher::from(Beso::load(&path, 7).unwrap()).into_policy().unwrap();
+    for t in 0..4 {
+        let o = [t as f32 * 0.1];
+        assert_eq!(policy.act(&o).unwrap(), by_hand.act(&o).unwrap());
+    }
+    // A spec in the file that does not fit the teacher is an error naming the key.
+    let (meta, _) = vdd_nn::io::read_header(&path).unwrap();
+    let mut meta = meta.clone();
+    meta.insert(
+        "deploy_spec".into(),
+        serde_json::to_string(&vdd_data::DeploySpec { obs_window: 3, ..spec }).unwrap(),
+    );
+    let bad = tmp("deploy-bad");
+    vdd_nn::io::save_safetensors(&bad, beso.net(), &meta).unwrap();
+    let e = DiffusionTeacher::load_policy(&bad, 0).unwrap_err().to_string();
+    assert!(e.contains("deploy_spec"), "{e}");
+}

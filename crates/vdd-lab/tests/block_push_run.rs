@@ -96,6 +96,13 @@ fn a_tiny_block_push_run_writes_its_metrics_and_a_tuning_run_its_log() {
     assert_eq!(row["success_rate"], serde_json::json!(m.success_rate), "{row}");
     assert_eq!(row["p1_rate"], serde_json::json!(m.p1_rate), "{row}");
     assert_eq!(row["task_entropy"], serde_json::json!(m.task_entropy), "{row}");
+    // The teacher is saved with its deployment too, and gives its figures bit for bit.
+    let path = out.join("models/beso-s0.safetensors");
+    let teacher = vdd_diffusion::DiffusionTeacher::load_policy(&path, 0).unwrap();
+    let m = protocol.evaluate(&teacher, 0, 2, false).unwrap().metrics;
+    let row = &metrics["methods"]["beso"]["per_seed"][0];
+    assert_eq!(row["success_rate"], serde_json::json!(m.success_rate), "{row}");
+    assert_eq!(row["task_entropy"], serde_json::json!(m.task_entropy), "{row}");
 
     let tuning_out = root.join("results/tuning-tiny");
     run(&root, &tuning_out, true).unwrap();

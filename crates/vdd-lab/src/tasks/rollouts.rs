@@ -381,25 +381,34 @@ fn time_seed<R: RolloutRecipe>(
     Ok(())
 }
 
-/// The policy of `trained` acting on raw observations through `spec` (a mixture also keeps the
-/// spec, so that its saved file loads as a deployed policy).
+/// The policy of `trained` acting on raw observations through `spec` (a mixture or a diffusion
+/// teacher also keeps the spec, so that its saved file loads as a deployed policy).
 pub(crate) fn deploy(
     trained: &mut Trained,
     spec: DeploySpec,
 ) -> crate::Result<Windowed<TrainedPolicy>> {
-    if let TrainedPolicy::Moe(moe) = &mut trained.policy {
-        moe.set_deploy_spec(spec.clone())?;
+    match &mut trained.policy {
+        TrainedPolicy::Moe(moe) => moe.set_deploy_spec(spec.clone())?,
+        TrainedPolicy::Teacher(t) => t.set_deploy_spec(spec.clone())?,
+        _ => {}
     }
     Ok(Windowed::new(trained.policy.clone(), spec)?)
 }
 
-/// Saves a mixture's policy as `<dir>/models/<label>-s<seed>.safetensors` (`vdd_moe::load_policy`
-/// gives a policy on raw observations); other policies are not saved.
+/// Saves a mixture's or a diffusion teacher's policy as
+/// `<dir>/models/<label>-s<seed>.safetensors` with its deployment (`vdd_moe::load_policy`,
+/// `vdd_diffusion::DiffusionTeacher::load_policy` give a policy on raw observations); other
+/// policies are not saved.
 pub(crate) fn save_model(trained: &Trained, dir: &Path, label: &str, seed: u64) -> crate::Result {
-    if let TrainedPolicy::Moe(moe) = &trained.policy {
+    let path = |dir: &Path| -> crate::Result<std::path::PathBuf> {
         let models = dir.join("models");
         std::fs::create_dir_all(&models)?;
-        moe.save(&models.join(format!("{label}-s{seed}.safetensors")))?;
+        Ok(models.join(format!("{label}-s{seed}.safetensors")))
+    };
+    match &trained.policy {
+        TrainedPolicy::Moe(moe) => moe.save(&path(dir)?)?,
+        TrainedPolicy::Teacher(t) => t.save(&path(dir)?)?,
+        _ => {}
     }
     Ok(())
 }
