@@ -89,7 +89,7 @@ fn crate_dependency_rules_hold() {
         // A user who wants EM does not compile the diffusion stack.
         ("vdd-mixture", &["vdd-core", "vdd-nn", "vdd-moe"]),
         // CD and CTM are diffusion models of their own.
-        ("vdd-consistency", &["vdd-core", "vdd-nn", "vdd-diffusion"]),
+        ("vdd-consistency", &["vdd-core", "vdd-nn", "vdd-diffusion", "vdd-data"]),
         // Tasks roll out any Policy; they know no teacher, student or trainer.
         ("vdd-tasks", &["vdd-core", "vdd-data"]),
         // Plain data in, files and strings out.

@@ -15,6 +15,20 @@ pub enum ConsistencyError {
     /// The moving averages of the network's weights failed.
     #[error(transparent)]
     Nn(#[from] vdd_nn::NnError),
+    /// A deployment spec does not fit the policy (its window, chunk or features against the
+    /// policy's state and action dimensions).
+    #[error("the deployment spec does not fit the policy: {0}")]
+    Deploy(#[from] vdd_data::DataError),
+    /// A saved policy's metadata is missing, malformed, of another kind or out of range.
+    #[error("cannot load a distilled policy from {path}: `{key}`: {reason}")]
+    Format {
+        /// The file.
+        path: std::path::PathBuf,
+        /// The metadata key (or the value inside it) that is wrong.
+        key: String,
+        /// What is wrong.
+        reason: String,
+    },
     /// A loss or a gradient became NaN or infinite; the update of that step was not applied.
     #[error("non-finite {quantity} at step {iteration}; the update was not applied")]
     NonFinite {

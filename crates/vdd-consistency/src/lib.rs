@@ -74,6 +74,6 @@ pub use config::{ConsistencyConfig, ConsistencyProgress, ConsistencyStep, Consis
 pub use ctm::{CtmConfig, CtmMatching, CtmTrainer, DsmWeighting, TrajectoryModel};
 pub use error::ConsistencyError;
 pub use network::{BoundaryPreconditioning, network_from_teacher};
-pub use policy::{DistilledPolicy, SampleScratch, Sampling};
+pub use policy::{DistilledPolicy, SampleScratch, Sampling, SavedKind};
 pub use teacher::{ConsistencyTeacher, DenoiserFn, ScoreTeacher};
 pub use trainer::{ConsistencyTrainer, LossMeter};

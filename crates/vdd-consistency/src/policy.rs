@@ -13,6 +13,9 @@ use crate::config::ConsistencyConfig;
 use crate::error::ConsistencyError;
 use crate::network::{ensure, fill_normal};
 
+mod io;
+pub use io::SavedKind;
+
 /// The `n ≥ 1` Karras levels from `σ_max` down to `σ_min` (without the trailing 0).
 pub(crate) fn karras_levels(
     n: usize,
@@ -137,6 +140,7 @@ pub struct DistilledPolicy<P> {
     obs: Mat<f32>,
     act: Mat<f32>,
     pub(crate) scratch: SampleScratch,
+    deploy_spec: vdd_data::DeploySpec,
 }
 
 impl<P: Sampling> DistilledPolicy<P> {
@@ -166,9 +170,24 @@ impl<P: Sampling> DistilledPolicy<P> {
             obs: Mat::zeros(0, 0),
             act: Mat::zeros(0, 0),
             scratch: SampleScratch::default(),
+            deploy_spec: vdd_data::DeploySpec::identity(),
         };
         policy.set_sampling_steps(config.sampling_steps)?;
         Ok(policy)
+    }
+
+    /// How the policy acts on raw observations (features, observation window, action chunk):
+    /// saved with it ([`DistilledPolicy::save`]); the identity unless set.
+    pub fn deploy_spec(&self) -> &vdd_data::DeploySpec {
+        &self.deploy_spec
+    }
+
+    /// Sets [`DistilledPolicy::deploy_spec`], checked against the policy's state and action
+    /// dimensions.
+    pub fn set_deploy_spec(&mut self, spec: vdd_data::DeploySpec) -> Result<(), ConsistencyError> {
+        spec.check_policy_dims(self.net.state_dim(), self.net.action_dim())?;
+        self.deploy_spec = spec;
+        Ok(())
     }
 
     /// The network `F`.

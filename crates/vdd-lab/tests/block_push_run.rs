@@ -23,7 +23,7 @@ name = "tiny"
 task = "block-push"
 description = "Block-Push on a tiny budget"
 seeds = [0]
-methods = ["beso", "vdd-beso", "em"]
+methods = ["beso", "vdd-beso", "em", "cd"]
 
 [data]
 demonstrations = 3
@@ -37,6 +37,11 @@ log_every = 10
 [vdd.beso]
 iterations = 30
 batch_size = 8
+
+[baselines.cd.train]
+steps = 20
+batch_size = 16
+log_every = 10
 
 [baselines.em]
 iterations = 2
@@ -103,11 +108,18 @@ fn a_tiny_block_push_run_writes_its_metrics_and_a_tuning_run_its_log() {
     let row = &metrics["methods"]["beso"]["per_seed"][0];
     assert_eq!(row["success_rate"], serde_json::json!(m.success_rate), "{row}");
     assert_eq!(row["task_entropy"], serde_json::json!(m.task_entropy), "{row}");
+    // So is the consistency model.
+    let path = out.join("models/cd-s0.safetensors");
+    let cd = vdd_consistency::ConsistencyModel::load_policy(&path, 0).unwrap();
+    let m = protocol.evaluate(&cd, 0, 2, false).unwrap().metrics;
+    let row = &metrics["methods"]["cd"]["per_seed"][0];
+    assert_eq!(row["success_rate"], serde_json::json!(m.success_rate), "{row}");
+    assert_eq!(row["task_entropy"], serde_json::json!(m.task_entropy), "{row}");
 
     let tuning_out = root.join("results/tuning-tiny");
     run(&root, &tuning_out, true).unwrap();
     let log = vdd_lab::tuning::read_log(&root.join("docs/block-push-tuning-log.toml")).unwrap();
-    assert_eq!(log.len(), 3);
+    assert_eq!(log.len(), 4);
     assert!(log.iter().all(|e| e.seeds == [100] && e.success_rate.len() == 1));
     std::fs::remove_dir_all(&root).unwrap();
 }
@@ -117,7 +129,8 @@ fn a_tiny_block_push_run_writes_its_metrics_and_a_tuning_run_its_log() {
 #[test]
 fn a_gating_fitted_on_visited_states_runs_end_to_end() {
     let root = root("visits");
-    let tiny = TINY.replace(r#"methods = ["beso", "vdd-beso", "em"]"#, r#"methods = ["vdd-beso"]"#)
+    let tiny = TINY
+        .replace(r#"methods = ["beso", "vdd-beso", "em", "cd"]"#, r#"methods = ["vdd-beso"]"#)
         + r#"
 [vdd]
 beso_gating_fit = { samples_per_state = 1, iterations = 2, steps_per_iter = 2, batch_size = 16 }

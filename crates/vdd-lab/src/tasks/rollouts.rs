@@ -381,8 +381,9 @@ fn time_seed<R: RolloutRecipe>(
     Ok(())
 }
 
-/// The policy of `trained` acting on raw observations through `spec` (a mixture or a diffusion
-/// teacher also keeps the spec, so that its saved file loads as a deployed policy).
+/// The policy of `trained` acting on raw observations through `spec` (a mixture, a diffusion
+/// teacher or a consistency model also keeps the spec, so that its saved file loads as a
+/// deployed policy).
 pub(crate) fn deploy(
     trained: &mut Trained,
     spec: DeploySpec,
@@ -390,15 +391,18 @@ pub(crate) fn deploy(
     match &mut trained.policy {
         TrainedPolicy::Moe(moe) => moe.set_deploy_spec(spec.clone())?,
         TrainedPolicy::Teacher(t) => t.set_deploy_spec(spec.clone())?,
-        _ => {}
+        TrainedPolicy::Consistency(m) => m.set_deploy_spec(spec.clone())?,
+        TrainedPolicy::Trajectory(m) => m.set_deploy_spec(spec.clone())?,
+        TrainedPolicy::Other(_) => {}
     }
     Ok(Windowed::new(trained.policy.clone(), spec)?)
 }
 
-/// Saves a mixture's or a diffusion teacher's policy as
+/// Saves the policy of a mixture, a diffusion teacher or a consistency model (CD, CTM) as
 /// `<dir>/models/<label>-s<seed>.safetensors` with its deployment (`vdd_moe::load_policy`,
-/// `vdd_diffusion::DiffusionTeacher::load_policy` give a policy on raw observations); other
-/// policies are not saved.
+/// `vdd_diffusion::DiffusionTeacher::load_policy`, `vdd_consistency::ConsistencyModel::load_policy`
+/// give a policy on raw observations); a policy of another type ([`TrainedPolicy::Other`]) is
+/// not saved.
 pub(crate) fn save_model(trained: &Trained, dir: &Path, label: &str, seed: u64) -> crate::Result {
     let path = |dir: &Path| -> crate::Result<std::path::PathBuf> {
         let models = dir.join("models");
@@ -408,7 +412,9 @@ pub(crate) fn save_model(trained: &Trained, dir: &Path, label: &str, seed: u64) 
     match &trained.policy {
         TrainedPolicy::Moe(moe) => moe.save(&path(dir)?)?,
         TrainedPolicy::Teacher(t) => t.save(&path(dir)?)?,
-        _ => {}
+        TrainedPolicy::Consistency(m) => m.save(&path(dir)?)?,
+        TrainedPolicy::Trajectory(m) => m.save(&path(dir)?)?,
+        TrainedPolicy::Other(_) => {}
     }
     Ok(())
 }
