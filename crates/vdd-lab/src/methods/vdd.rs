@@ -18,8 +18,9 @@
 //! (continue distilling on the states the student visits: [`ExpertVisits`]) and
 //! `<teacher>_gating_fit` / `<teacher>_gating_visits` (a learned gating fitted afterwards);
 //! `<teacher>_init = "samples"` (start from a mixture fitted by EM to the teacher's samples,
-//! with the fit `<teacher>_init_fit`: [`SampleFit`]; `"paper"`, the default: a new mixture) and `<teacher>_gating_temperature` (a learned gating sharpened after
-//! training: [`Moe::sharpen_gating`]).
+//! with the fit `<teacher>_init_fit`: [`SampleFit`]; `"paper"`, the default: a new mixture)
+//! and `<teacher>_gating_temperature` (a learned gating sharpened after training:
+//! [`Moe::sharpen_gating`]).
 //!
 //! The student works in the teacher's normalised space (the exact teacher's is the raw one; a
 //! file teacher's data come in its space, [`crate::teachers::LoadedTeacher::training_data`],
@@ -398,7 +399,8 @@ impl Vdd {
                 };
                 Some((teacher_config, t.hash.clone()))
             }
-            (None, Some(l)) => Some((json!({ "file": l.file }), l.hash.clone())),
+            // The file's bytes determine the teacher, wherever it lies.
+            (None, Some(l)) => Some((json!("file"), l.hash.clone())),
             (None, None) => None,
         };
         let cache = match (job.students, teacher_id) {

@@ -3,8 +3,9 @@
 //! Nothing is trained: the driver loads the file once per run ([`TeacherSource::load`]), cuts
 //! the task's raw training episodes into the teacher's own windows and chunks through its
 //! feature map ([`LoadedTeacher::training_data`], the data of its rows), and its rows act
-//! through the teacher's own deployment (window, chunk, features: [`LoadedTeacher::deploy_spec`]).
-//! Rows: `imported` (the teacher rolled out) and `vdd-imported` (VDD with `vdd.imported`).
+//! through the teacher's own deployment (window, chunk, features:
+//! [`LoadedTeacher::deploy_spec`]). Rows: `imported` (the teacher rolled out) and
+//! `vdd-imported` (VDD with `vdd.imported`).
 
 use std::path::Path;
 
@@ -76,7 +77,8 @@ impl LoadedTeacher {
     /// Loads the teacher file `file` (a `cargo xtask import` file).
     pub fn load(file: &str) -> crate::Result<Self> {
         let ImportedTeacher::Unet1d(teacher) = vdd_import::load_teacher(Path::new(file))?;
-        let bytes = std::fs::read(file)?;
+        // The loader has read it within its bound; the hash reads it again within the same.
+        let bytes = vdd_nn::io::read_bounded(Path::new(file), vdd_nn::io::MAX_FILE_BYTES)?;
         let hash = format!("{:016x}", vdd_core::hash::fnv1a(&bytes));
         Ok(Self { file: file.to_owned(), teacher: *teacher, hash })
     }
@@ -88,9 +90,13 @@ impl LoadedTeacher {
     }
 
     /// The source name its file states (`lerobot`, `diffusion_policy`): its rows are labelled
-    /// with it (`imported` → `lerobot`, `vdd-imported` → `vdd-lerobot`).
+    /// with it (`imported` → `lerobot`, `vdd-imported` → `vdd-lerobot`). A name that is not
+    /// lower-case letters, digits, `_` and `-` (at most 32), which would not do in a file name,
+    /// reads `imported`.
     pub fn source(&self) -> &str {
-        &self.teacher.spec().source
+        let s = self.teacher.spec().source.as_str();
+        let plain = |c: char| c.is_ascii_lowercase() || c.is_ascii_digit() || c == '_' || c == '-';
+        if !s.is_empty() && s.len() <= 32 && s.chars().all(plain) { s } else { "imported" }
     }
 
     /// The data of its rows: the raw training episodes (`raw_obs` per episode, with the
