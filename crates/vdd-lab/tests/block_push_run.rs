@@ -92,29 +92,24 @@ fn a_tiny_block_push_run_writes_its_metrics_and_a_tuning_run_its_log() {
     }
     let table = std::fs::read_to_string(out.join("table.md")).unwrap();
     assert!(table.contains("| vdd-beso | 1 |") && table.contains("p1"), "{table}");
-    // The saved student acts on raw observations and gives the run's figures bit for bit
-    // (what `rollout_saved --task block-push` prints).
-    let saved = vdd_moe::load_policy(&out.join("models/vdd-beso-s0.safetensors")).unwrap();
+    // Every saved policy (student, teacher, consistency model) acts on raw observations and
+    // gives the run's figures bit for bit (what `rollout_saved --task block-push` prints).
     let protocol = vdd_tasks::block_push::EvalProtocol { rollouts: 4, lockstep_batch: 2 };
-    let m = protocol.evaluate(&saved, 0, 2, false).unwrap().metrics;
-    let row = &metrics["methods"]["vdd-beso"]["per_seed"][0];
-    assert_eq!(row["success_rate"], serde_json::json!(m.success_rate), "{row}");
-    assert_eq!(row["p1_rate"], serde_json::json!(m.p1_rate), "{row}");
-    assert_eq!(row["task_entropy"], serde_json::json!(m.task_entropy), "{row}");
-    // The teacher is saved with its deployment too, and gives its figures bit for bit.
-    let path = out.join("models/beso-s0.safetensors");
-    let teacher = vdd_diffusion::DiffusionTeacher::load_policy(&path, 0).unwrap();
-    let m = protocol.evaluate(&teacher, 0, 2, false).unwrap().metrics;
-    let row = &metrics["methods"]["beso"]["per_seed"][0];
-    assert_eq!(row["success_rate"], serde_json::json!(m.success_rate), "{row}");
-    assert_eq!(row["task_entropy"], serde_json::json!(m.task_entropy), "{row}");
-    // So is the consistency model.
-    let path = out.join("models/cd-s0.safetensors");
-    let cd = vdd_consistency::ConsistencyModel::load_policy(&path, 0).unwrap();
-    let m = protocol.evaluate(&cd, 0, 2, false).unwrap().metrics;
-    let row = &metrics["methods"]["cd"]["per_seed"][0];
-    assert_eq!(row["success_rate"], serde_json::json!(m.success_rate), "{row}");
-    assert_eq!(row["task_entropy"], serde_json::json!(m.task_entropy), "{row}");
+    let figures = |m: vdd_tasks::block_push::rollout::Metrics| {
+        serde_json::json!([m.success_rate, m.p1_rate, m.task_entropy])
+    };
+    let same_figures = |method: &str, got: serde_json::Value| {
+        let row = &metrics["methods"][method]["per_seed"][0];
+        let want = serde_json::json!([row["success_rate"], row["p1_rate"], row["task_entropy"]]);
+        assert_eq!(got, want, "{method}: {row}");
+    };
+    let model = |name: &str| out.join(format!("models/{name}-s0.safetensors"));
+    let saved = vdd_moe::load_policy(&model("vdd-beso")).unwrap();
+    same_figures("vdd-beso", figures(protocol.evaluate(&saved, 0, 2, false).unwrap().metrics));
+    let saved = vdd_diffusion::DiffusionTeacher::load_policy(&model("beso"), 0).unwrap();
+    same_figures("beso", figures(protocol.evaluate(&saved, 0, 2, false).unwrap().metrics));
+    let saved = vdd_consistency::ConsistencyModel::load_policy(&model("cd"), 0).unwrap();
+    same_figures("cd", figures(protocol.evaluate(&saved, 0, 2, false).unwrap().metrics));
 
     let tuning_out = root.join("results/tuning-tiny");
     run(&root, &tuning_out, true).unwrap();
