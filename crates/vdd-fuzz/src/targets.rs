@@ -102,7 +102,14 @@ pub(crate) fn write_seeds(target: Target, dir: &Path) -> Result<Vec<PathBuf>> {
             let (s, a) = (Affine::identity(1), Affine::new(vec![0.1, -0.2], vec![1.0, 2.0])?);
             let beso = BesoConfig { net: net.clone(), sampling_steps: 4, ..Default::default() };
             let d = seed_dir(0)?;
-            Beso::new(&beso, s.clone(), a.clone(), 0)?.save(&d.join("teacher.safetensors"))?;
+            let mut t = Beso::new(&beso, s.clone(), a.clone(), 0)?;
+            // Its deployment (2-D actions as chunks of two 1-D steps) is in the file too.
+            t.set_deploy_spec(DeploySpec {
+                action_chunk: 2,
+                execute_steps: 2,
+                ..DeploySpec::identity()
+            })?;
+            t.save(&d.join("teacher.safetensors"))?;
             out.push(d);
             let ddpm = DdpmConfig { net, sampling_steps: 4, ..Default::default() };
             let d = seed_dir(1)?;
@@ -584,6 +591,12 @@ pub(crate) fn run_case(
             outputs.extend((0..n).flat_map(|i| (0..da).map(move |j| (i, j))).map(|ij| out[ij]));
             let obs: Vec<f32> = (0..Policy::obs_dim(&t)).map(|j| j as f32 * 0.1).collect();
             outputs.extend(t.act(&obs)?);
+            // Through its saved deployment, on raw observations.
+            let mut policy = t.into_policy()?;
+            for step in 0..3 {
+                let o: Vec<f32> = (0..policy.obs_dim()).map(|j| (step + j) as f32 * 0.2).collect();
+                outputs.extend(policy.act(&o)?);
+            }
         }
         Target::Checkpoint => {
             let (_, teacher, data) = checkpoint_run()?;
