@@ -55,6 +55,33 @@ impl SampleFit {
         Ok(())
     }
 
+    /// The rows the fit's expert steps process on a dataset of `data_states` states
+    /// (`em.iterations × em.expert_steps_per_iter ×` the batch, the pairs when the batch is
+    /// unset or larger): what it adds to the student's budget.
+    ///
+    /// ```
+    /// # use vdd_lab::sample_fit::SampleFit;
+    /// # use vdd_mixture::EmConfig;
+    /// let em = EmConfig {
+    ///     iterations: 500,
+    ///     expert_steps_per_iter: 30,
+    ///     batch_size: Some(256),
+    ///     ..EmConfig::default()
+    /// };
+    /// let fit = SampleFit { states: 8192, samples_per_state: 2, blocks: 16, em };
+    /// assert_eq!(fit.budget_samples(24_266), 500 * 30 * 256);
+    /// // Four states, eight pairs: a batch of 256 is the whole set.
+    /// assert_eq!(fit.budget_samples(4), 500 * 30 * 8);
+    /// ```
+    pub fn budget_samples(&self, data_states: usize) -> u64 {
+        let m = if self.states == 0 { data_states } else { self.states.min(data_states) };
+        let pairs = m.saturating_mul(self.samples_per_state);
+        let batch = self.em.batch_size.unwrap_or(pairs).min(pairs) as u64;
+        (self.em.iterations as u64)
+            .saturating_mul(self.em.expert_steps_per_iter as u64)
+            .saturating_mul(batch)
+    }
+
     /// Draws the teacher's samples at `states` (the teacher's space, one row per state) and
     /// returns the pairs: every selected state repeated `samples_per_state` times, beside one
     /// sample each. The blocks run on `workers` (the same pairs for any number of threads);

@@ -1,5 +1,6 @@
 //! Training budgets in the per-seed rows: `train_steps` (optimiser steps), `train_batch` (rows
-//! per step), `train_samples` (their product, the budget compared) and `train_role`
+//! per step), `train_samples` (their product, plus `train_prefit_samples` when the student
+//! starts from a fit of its own; the budget compared) and `train_role`
 //! (`"teacher"`: a teacher's own budget; `"student"`: a method trained from a teacher or the
 //! data, whose budget must equal every other student's in a comparison).
 
@@ -27,6 +28,10 @@ pub struct Budget {
     pub batch: usize,
     /// A teacher's budget (its own) or a student's (equal across a comparison's students).
     pub role: BudgetRole,
+    /// Rows processed by the optimiser steps of a fit the training starts from (EM on the
+    /// teacher's samples before VDD: its expert steps × its batch), counted in
+    /// `train_samples`; 0 without one.
+    pub prefit_samples: u64,
 }
 
 /// Whose budget a [`Budget`] is.
@@ -41,12 +46,37 @@ pub enum BudgetRole {
 impl Budget {
     /// A student's budget.
     pub fn student(steps: u64, batch: usize) -> Self {
-        Self { steps, batch, role: BudgetRole::Student }
+        Self { steps, batch, role: BudgetRole::Student, prefit_samples: 0 }
     }
 
-    /// Its [`budget_fields`].
+    /// A teacher's budget.
+    pub fn teacher(steps: u64, batch: usize) -> Self {
+        Self { steps, batch, role: BudgetRole::Teacher, prefit_samples: 0 }
+    }
+
+    /// The budget with `samples` more rows of a fit the training starts from (`train_samples`
+    /// counts them; `train_prefit_samples` says how many).
+    ///
+    /// ```
+    /// use vdd_report::budget::Budget;
+    /// // 30,000 VDD steps of 128 after 500 EM iterations × 30 expert steps of 256 pairs.
+    /// let b = Budget::student(30_000, 128).with_prefit(500 * 30 * 256);
+    /// assert_eq!(b.fields()["train_samples"], serde_json::json!(7_680_000));
+    /// assert_eq!(b.fields()["train_prefit_samples"], serde_json::json!(3_840_000));
+    /// ```
+    pub fn with_prefit(self, samples: u64) -> Self {
+        Self { prefit_samples: self.prefit_samples.saturating_add(samples), ..self }
+    }
+
+    /// Its [`budget_fields`], with `train_prefit_samples` when there is a fit to start from.
     pub fn fields(&self) -> Row {
-        budget_fields(self.steps, self.batch, self.role == BudgetRole::Student)
+        let mut r = budget_fields(self.steps, self.batch, self.role == BudgetRole::Student);
+        if self.prefit_samples > 0 {
+            let own = self.steps.saturating_mul(self.batch as u64);
+            r.insert("train_samples".into(), Value::from(own.saturating_add(self.prefit_samples)));
+            r.insert("train_prefit_samples".into(), Value::from(self.prefit_samples));
+        }
+        r
     }
 }
 
@@ -105,7 +135,11 @@ pub fn unequal_budgets(rows: &[(String, Vec<Row>)]) -> Option<String> {
             if mine.insert(s as u64) {
                 let n = |k: &str| r.get(k).and_then(Value::as_u64).unwrap_or(0);
                 let (steps, batch) = (n("train_steps"), n("train_batch"));
-                parts.push(format!("{label} {steps} × {batch} = {}", s as u64));
+                let prefit = match n("train_prefit_samples") {
+                    0 => String::new(),
+                    p => format!(" + {p} (fit)"),
+                };
+                parts.push(format!("{label} {steps} × {batch}{prefit} = {}", s as u64));
             }
         }
         seen.extend(mine);
@@ -134,5 +168,22 @@ mod tests {
         let w = unequal_budgets(&uneven).unwrap();
         assert!(w.contains("vdd 60000 × 64 = 3840000"), "{w}");
         assert!(!w.contains("beso"), "{w}");
+    }
+
+    #[test]
+    fn a_fit_to_start_from_counts_in_the_budget() {
+        let half = Budget::student(30_000, 128);
+        let rows = |b: Budget| {
+            vec![
+                ("cd".to_string(), vec![budget_fields(30_000, 256, true)]),
+                ("vdd".to_string(), vec![b.fields()]),
+            ]
+        };
+        let w = unequal_budgets(&rows(half)).unwrap();
+        assert!(w.contains("vdd 30000 × 128 = 3840000"), "{w}");
+        assert_eq!(unequal_budgets(&rows(half.with_prefit(3_840_000))), None);
+        let w = unequal_budgets(&rows(half.with_prefit(1_000))).unwrap();
+        assert!(w.contains("vdd 30000 × 128 + 1000 (fit) = 3841000"), "{w}");
+        assert!(!half.fields().contains_key("train_prefit_samples"));
     }
 }

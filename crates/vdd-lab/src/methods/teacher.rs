@@ -7,7 +7,7 @@
 use serde::Deserialize;
 
 use crate::method::{
-    Budget, BudgetRole, Capability, Info, Job, Method, MethodRecipe, Row, TeacherUse, Trained,
+    Budget, Capability, Info, Job, Method, MethodRecipe, Row, TeacherUse, Trained,
 };
 use crate::plots::Curves;
 use crate::policy::TrainedPolicy;
@@ -78,8 +78,7 @@ impl Method for TeacherRow {
             vdd_diffusion::TeacherKind::Beso => &job.recipe.teachers.beso.train,
             vdd_diffusion::TeacherKind::Ddpm => &job.recipe.teachers.ddpm.train,
         };
-        let budget =
-            Budget { steps: train.steps, batch: train.batch_size, role: BudgetRole::Teacher };
+        let budget = Budget::teacher(train.steps, train.batch_size);
         let policy = TrainedPolicy::Teacher(Box::new(teacher));
         Ok(Trained {
             sampling_steps: Some(steps),

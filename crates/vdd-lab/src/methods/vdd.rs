@@ -389,7 +389,8 @@ impl Vdd {
         let budget = Budget::student(
             vc.expert_steps() + (extra * vc.expert_steps_per_iter) as u64,
             vc.batch_size * vc.vi_samples,
-        );
+        )
+        .with_prefit(s.init_fit.as_ref().map_or(0, |f| f.budget_samples(states.nrows())));
         let teacher_id = match (teacher, job.loaded) {
             (Some(t), _) => {
                 let teachers = &job.recipe.teachers;
