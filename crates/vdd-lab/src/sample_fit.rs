@@ -55,6 +55,11 @@ impl SampleFit {
         Ok(())
     }
 
+    /// The states sampled at out of `n` data states (`states`; 0 or more than `n`: all).
+    fn states_used(&self, n: usize) -> usize {
+        if self.states == 0 { n } else { self.states.min(n) }
+    }
+
     /// The rows the fit's expert steps process on a dataset of `data_states` states
     /// (`em.iterations × em.expert_steps_per_iter ×` the batch, the pairs when the batch is
     /// unset or larger): what it adds to the student's budget.
@@ -74,7 +79,7 @@ impl SampleFit {
     /// assert_eq!(fit.budget_samples(4), 500 * 30 * 8);
     /// ```
     pub fn budget_samples(&self, data_states: usize) -> u64 {
-        let m = if self.states == 0 { data_states } else { self.states.min(data_states) };
+        let m = self.states_used(data_states);
         let pairs = m.saturating_mul(self.samples_per_state);
         let batch = self.em.batch_size.unwrap_or(pairs).min(pairs) as u64;
         (self.em.iterations as u64)
@@ -95,7 +100,7 @@ impl SampleFit {
         progress: &(dyn Fn() + Sync),
     ) -> crate::Result<(Mat<f32>, Mat<f32>)> {
         let n = states.nrows();
-        let m = if self.states == 0 { n } else { self.states.min(n) };
+        let m = self.states_used(n);
         if m == 0 {
             return Err("no states to sample the teacher at".into());
         }
