@@ -381,14 +381,23 @@ mod tests {
 
     #[test]
     fn the_simd_and_portable_kernels_give_the_same_bits() {
-        let (k, m) = (70, 9);
-        let l = layer(k, m);
-        let x: Vec<f32> = (0..k).map(|i| (i as f32 * 0.37).sin()).collect();
-        let mut a = vec![0.0; m];
-        let mut b = vec![0.0; m];
-        affine_row(&l.weight.value, &l.bias.value, &x, &mut a);
-        affine_row_portable(&l.weight.value, &l.bias.value, &x, &mut b);
-        assert_eq!(a, b);
+        // Rows in groups of four and past them; inputs shorter than, a multiple of and past
+        // the lanes.
+        for (k, m) in [(70, 9), (64, 64), (64, 5), (4, 64), (16, 3), (33, 12), (48, 8)] {
+            let l = layer(k, m);
+            let x: Vec<f32> = (0..k)
+                .map(|i| (i as f32 * 0.37).sin() * 1e3f32.powf((i % 3) as f32 - 1.0))
+                .collect();
+            let mut a = vec![0.0; m];
+            let mut b = vec![0.0; m];
+            affine_row(&l.weight.value, &l.bias.value, &x, &mut a);
+            affine_row_portable(&l.weight.value, &l.bias.value, &x, &mut b);
+            assert_eq!(
+                a.iter().map(|v| v.to_bits()).collect::<Vec<_>>(),
+                b.iter().map(|v| v.to_bits()).collect::<Vec<_>>(),
+                "k {k}, m {m}"
+            );
+        }
     }
 
     #[test]
