@@ -37,7 +37,9 @@ pub enum ScoreAt {
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct StateNoise {
-    /// Fraction of the batch's states perturbed, in `(0, 1]`; each state independently.
+    /// Fraction of the batch's states perturbed, in `[0, 1]`; each state independently. `0`
+    /// turns the perturbation off: the same training, bit for bit, as no `state_noise` (what
+    /// `--set vdd.<teacher>.state_noise.share=0` gives a recipe whose default perturbs).
     pub share: f32,
     /// Standard deviation of the perturbation in the student's (normalised) state units,
     /// finite and positive.
@@ -231,9 +233,9 @@ impl VddConfig {
             }
         }
         if let Some(n) = self.state_noise {
-            if !(n.share > 0.0 && n.share <= 1.0 && n.std.is_finite() && n.std > 0.0) {
+            if !((0.0..=1.0).contains(&n.share) && n.std.is_finite() && n.std > 0.0) {
                 return Err(CoreError::Config(format!(
-                    "state_noise needs share in (0, 1] and a finite std > 0, got share {} and \
+                    "state_noise needs share in [0, 1] and a finite std > 0, got share {} and \
                      std {}",
                     n.share, n.std
                 )));

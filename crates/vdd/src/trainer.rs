@@ -458,7 +458,7 @@ impl<S: ScoreModel, E: Expert> Vdd<S, E> {
                 }
             }
         }
-        if let Some(noise) = self.config.state_noise {
+        if let Some(noise) = self.config.state_noise.filter(|n| n.share > 0.0) {
             self.perturb_states(it, noise);
         }
 

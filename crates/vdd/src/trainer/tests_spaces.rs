@@ -182,8 +182,27 @@ fn perturbed_states_agree_between_the_spaces() {
 
 #[test]
 fn a_state_noise_out_of_range_is_refused() {
-    for (share, std) in [(0.0, 0.1), (1.5, 0.1), (0.5, 0.0), (0.5, f32::NAN)] {
+    for (share, std) in [(-0.1, 0.1), (1.5, 0.1), (f32::NAN, 0.1), (0.5, 0.0), (0.5, f32::NAN)] {
         let c = VddConfig { state_noise: Some(crate::StateNoise { share, std }), ..config() };
         assert!(c.validate().unwrap_err().to_string().contains("state_noise"));
     }
+}
+
+/// A share of 0 turns the perturbation off: the same training as no `state_noise`, bit for bit.
+#[test]
+fn a_state_noise_share_of_zero_trains_as_none() {
+    let data = DistillData::from_states(Mat::from_fn(64, 1, |i, _| i as f32)).unwrap();
+    let s = student(GatingKind::Uniform, None);
+    let off = crate::StateNoise { share: 0.0, std: 0.3 };
+    let run = |state_noise| {
+        let config = VddConfig { iterations: 5, state_noise, ..config() };
+        let mut vdd = Vdd::new(config, offset_teacher(), s.clone(), data.clone()).unwrap();
+        let mut metrics = Vec::new();
+        vdd.train(|m| metrics.push(*m)).unwrap();
+        let mut p = Vec::new();
+        vdd.student().visit_params("", &mut |_, t| p.push(t.value.clone()));
+        (metrics, p)
+    };
+    assert_eq!(run(Some(off)), run(None));
+    assert_ne!(run(Some(crate::StateNoise { share: 0.5, std: 0.3 })), run(None));
 }
