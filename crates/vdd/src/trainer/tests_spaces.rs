@@ -6,6 +6,16 @@ use crate::test_support::IsoGmm;
 use vdd_core::{Affine, Policy};
 use vdd_moe::{GatingKind, MoeConfig};
 
+/// Trains to the end: every iteration's metrics and the student's parameters, to compare runs
+/// bit for bit.
+fn trained<S: ScoreModel>(mut vdd: Vdd<S>) -> (Vec<IterationMetrics>, Vec<Vec<f32>>) {
+    let mut metrics = Vec::new();
+    vdd.train(|m| metrics.push(*m)).unwrap();
+    let mut p = Vec::new();
+    vdd.student().visit_params("", &mut |_, t| p.push(t.value.clone()));
+    (metrics, p)
+}
+
 /// `N((10, 10), 0.5² I)` in raw units.
 fn offset_teacher() -> IsoGmm {
     IsoGmm { means: vec![vec![10.0, 10.0]], std: 0.5, state_dim: 1 }
@@ -123,12 +133,7 @@ fn coinciding_spaces_change_no_number() {
     let mut c = config();
     c.iterations = 5;
     let run = |student: Moe, data: DistillData| {
-        let mut vdd = Vdd::new(c.clone(), teacher(), student, data).unwrap();
-        let mut metrics = Vec::new();
-        vdd.train(|m| metrics.push(*m)).unwrap();
-        let mut p = Vec::new();
-        vdd.student().visit_params("", &mut |_, t| p.push(t.value.clone()));
-        (metrics, p)
+        trained(Vdd::new(c.clone(), teacher(), student, data).unwrap())
     };
     let plain = run(
         student(GatingKind::Learned, None),
@@ -196,12 +201,7 @@ fn a_state_noise_share_of_zero_trains_as_none() {
     let off = crate::StateNoise { share: 0.0, std: 0.3 };
     let run = |state_noise| {
         let config = VddConfig { iterations: 5, state_noise, ..config() };
-        let mut vdd = Vdd::new(config, offset_teacher(), s.clone(), data.clone()).unwrap();
-        let mut metrics = Vec::new();
-        vdd.train(|m| metrics.push(*m)).unwrap();
-        let mut p = Vec::new();
-        vdd.student().visit_params("", &mut |_, t| p.push(t.value.clone()));
-        (metrics, p)
+        trained(Vdd::new(config, offset_teacher(), s.clone(), data.clone()).unwrap())
     };
     assert_eq!(run(Some(off)), run(None));
     assert_ne!(run(Some(crate::StateNoise { share: 0.5, std: 0.3 })), run(None));
