@@ -212,94 +212,108 @@ impl Module for Linear {
     }
 }
 
-/// Accumulator lanes of [`affine_row`]: two AVX registers.
-const LANES: usize = 16;
+/// Accumulator lanes of [`affine_row`]: one AVX register.
+const LANES: usize = 8;
 
 /// `y[j] = b[j] + Σ_i w[j, i] x[i]` for a row-major `w` of `y.len()` rows of `x.len()`.
 ///
-/// Each dot product runs in [`LANES`] independent partial sums combined in a fixed order, with
-/// no fused multiply-adds: the AVX2 and the portable versions compute the same bits.
+/// Each dot product runs in [`LANES`] independent partial sums of fused multiply-adds (exact
+/// `f32::mul_add`), combined in a fixed order ([`reduce_lanes`]): the AVX2 + FMA and the
+/// portable versions compute the same bits.
 fn affine_row(w: &[f32], b: &[f32], x: &[f32], y: &mut [f32]) {
     debug_assert_eq!(w.len(), x.len() * y.len());
     debug_assert_eq!(b.len(), y.len());
     #[cfg(target_arch = "x86_64")]
-    if std::arch::is_x86_feature_detected!("avx2") {
-        // SAFETY: the CPU supports AVX2, checked just above.
-        unsafe { affine_row_avx2(w, b, x, y) };
+    if std::arch::is_x86_feature_detected!("avx2") && std::arch::is_x86_feature_detected!("fma") {
+        // SAFETY: the CPU supports AVX2 and FMA, checked just above.
+        unsafe { affine_row_fma(w, b, x, y) };
         return;
     }
     affine_row_portable(w, b, x, y)
 }
 
-/// [`affine_row`] with AVX2 registers for the lanes.
+/// [`affine_row`] in AVX2 registers with FMA: eight rows of `w` at a time (eight independent
+/// sums, each input chunk loaded once, the eight folds done together), then the rows past the
+/// last group of eight one by one.
 ///
 /// # Safety
-/// The CPU must support AVX2.
+/// The CPU must support AVX2 and FMA.
 #[cfg(target_arch = "x86_64")]
-#[target_feature(enable = "avx2")]
-unsafe fn affine_row_avx2(w: &[f32], b: &[f32], x: &[f32], y: &mut [f32]) {
-    // SAFETY: this function runs only where the CPU supports AVX2.
-    affine_row_with(w, b, x, y, |r, v| unsafe { lane_sums_avx2(r, v) })
-}
-
-/// [`lane_sums`] in two AVX registers.
-///
-/// # Safety
-/// The CPU must support AVX2.
-#[cfg(target_arch = "x86_64")]
-#[target_feature(enable = "avx2")]
-#[inline]
-unsafe fn lane_sums_avx2(r: &[f32], v: &[f32]) -> [f32; LANES] {
+#[target_feature(enable = "avx2,fma")]
+unsafe fn affine_row_fma(w: &[f32], b: &[f32], x: &[f32], y: &mut [f32]) {
     use std::arch::x86_64::{
-        _mm256_add_ps, _mm256_loadu_ps, _mm256_mul_ps, _mm256_setzero_ps, _mm256_storeu_ps,
+        __m256, _mm_add_ps, _mm_cvtss_f32, _mm256_add_ps, _mm256_castps256_ps128,
+        _mm256_extractf128_ps, _mm256_fmadd_ps, _mm256_hadd_ps, _mm256_loadu_ps,
+        _mm256_permute2f128_ps, _mm256_setzero_ps, _mm256_storeu_ps,
     };
-    debug_assert!(r.len() == v.len() && r.len() % LANES == 0);
-    let mut acc = [0.0f32; LANES];
-    // SAFETY: every load reads 8 floats at `c` or `c + 8` with `c + 16 <= len` of both `r` and
-    // `v`; the stores write the 16 floats of `acc`.
-    unsafe {
-        let (mut a0, mut a1) = (_mm256_setzero_ps(), _mm256_setzero_ps());
-        let (rp, vp) = (r.as_ptr(), v.as_ptr());
+    let k = x.len();
+    if k == 0 {
+        y.copy_from_slice(b);
+        return;
+    }
+    let split = k - k % LANES;
+    let (xp, rest_x) = (x.as_ptr(), &x[split..]);
+    // The lane sums of `rows` rows from row `j`.
+    let lane_sums = |j: usize, acc: &mut [__m256]| {
         let mut c = 0;
-        while c + LANES <= r.len().min(v.len()) {
-            let p0 = _mm256_mul_ps(_mm256_loadu_ps(rp.add(c)), _mm256_loadu_ps(vp.add(c)));
-            let p1 = _mm256_mul_ps(_mm256_loadu_ps(rp.add(c + 8)), _mm256_loadu_ps(vp.add(c + 8)));
-            a0 = _mm256_add_ps(a0, p0);
-            a1 = _mm256_add_ps(a1, p1);
+        while c < split {
+            // SAFETY: AVX2 and FMA, as this function's; the loads read 8 floats at `c` with
+            // `c + 8 <= split <= k` of `x` and of row `j + r` of `w` (`y.len()` rows of `k`).
+            unsafe {
+                let xv = _mm256_loadu_ps(xp.add(c));
+                for (r, a) in acc.iter_mut().enumerate() {
+                    *a = _mm256_fmadd_ps(_mm256_loadu_ps(w.as_ptr().add((j + r) * k + c)), xv, *a);
+                }
+            }
             c += LANES;
         }
-        _mm256_storeu_ps(acc.as_mut_ptr(), a0);
-        _mm256_storeu_ps(acc.as_mut_ptr().add(8), a1);
+    };
+    // The remainder of row `j` on its folded sum, then the bias.
+    let finish = |j: usize, s: f32| {
+        let s =
+            w[j * k + split..(j + 1) * k].iter().zip(rest_x).fold(s, |s, (w, x)| w.mul_add(*x, s));
+        b[j] + s
+    };
+    let groups = y.len() / 8;
+    for g in 0..groups {
+        let j = 8 * g;
+        let mut acc = [_mm256_setzero_ps(); 8];
+        lane_sums(j, &mut acc);
+        // `reduce_lanes` for eight rows at once: pairs, then pairs of pairs (both within each
+        // 128-bit half), then the two halves.
+        let q0 = _mm256_hadd_ps(_mm256_hadd_ps(acc[0], acc[1]), _mm256_hadd_ps(acc[2], acc[3]));
+        let q1 = _mm256_hadd_ps(_mm256_hadd_ps(acc[4], acc[5]), _mm256_hadd_ps(acc[6], acc[7]));
+        let sums = _mm256_add_ps(
+            _mm256_permute2f128_ps::<0x20>(q0, q1),
+            _mm256_permute2f128_ps::<0x31>(q0, q1),
+        );
+        if split == k {
+            // SAFETY: `b` and `y` hold 8 floats from `j` (`j + 8 <= y.len() == b.len()`).
+            unsafe {
+                let v = _mm256_add_ps(_mm256_loadu_ps(b.as_ptr().add(j)), sums);
+                _mm256_storeu_ps(y.as_mut_ptr().add(j), v);
+            }
+        } else {
+            let mut s = [0.0f32; 8];
+            // SAFETY: `s` holds 8 floats.
+            unsafe { _mm256_storeu_ps(s.as_mut_ptr(), sums) };
+            for (r, s) in s.into_iter().enumerate() {
+                y[j + r] = finish(j + r, s);
+            }
+        }
     }
-    acc
+    for j in 8 * groups..y.len() {
+        let mut acc = [_mm256_setzero_ps()];
+        lane_sums(j, &mut acc);
+        let p = _mm256_hadd_ps(acc[0], acc[0]);
+        let q = _mm256_hadd_ps(p, p);
+        let s = _mm_add_ps(_mm256_castps256_ps128(q), _mm256_extractf128_ps::<1>(q));
+        y[j] = finish(j, _mm_cvtss_f32(s));
+    }
 }
 
 /// [`affine_row`] in portable code.
 fn affine_row_portable(w: &[f32], b: &[f32], x: &[f32], y: &mut [f32]) {
-    affine_row_with(w, b, x, y, lane_sums)
-}
-
-/// `acc[l] = Σ_c r[c·LANES + l] · v[c·LANES + l]` (lengths a multiple of [`LANES`]).
-#[inline(always)]
-fn lane_sums(r: &[f32], v: &[f32]) -> [f32; LANES] {
-    let mut acc = [0.0f32; LANES];
-    for (r, v) in r.chunks_exact(LANES).zip(v.chunks_exact(LANES)) {
-        for l in 0..LANES {
-            acc[l] += r[l] * v[l];
-        }
-    }
-    acc
-}
-
-/// The row loop of [`affine_row`], with `lanes` for the dot products' lane sums.
-#[inline(always)]
-fn affine_row_with(
-    w: &[f32],
-    b: &[f32],
-    x: &[f32],
-    y: &mut [f32],
-    lanes: impl Fn(&[f32], &[f32]) -> [f32; LANES],
-) {
     let k = x.len();
     if k == 0 {
         y.copy_from_slice(b);
@@ -307,27 +321,30 @@ fn affine_row_with(
     }
     let split = k - k % LANES;
     for ((yj, bj), row) in y.iter_mut().zip(b).zip(w.chunks_exact(k)) {
-        let acc = lanes(&row[..split], &x[..split]);
+        let acc = lane_sums(&row[..split], &x[..split]);
         *yj = bj + reduce_lanes(acc, &row[split..], &x[split..]);
     }
 }
 
-/// The lanes' partial sums folded pairwise (lane `l` with `l + w/2`, halving `w`), plus the
-/// remainder's products in order: the one summation order both versions share.
+/// `acc[l] = Σ_c r[c·LANES + l] · v[c·LANES + l]` (lengths a multiple of [`LANES`]), each
+/// term a fused multiply-add in `c` order.
 #[inline(always)]
-fn reduce_lanes(mut acc: [f32; LANES], rest_w: &[f32], rest_x: &[f32]) -> f32 {
-    let mut width = LANES;
-    while width > 1 {
-        width /= 2;
-        for l in 0..width {
-            acc[l] += acc[l + width];
+fn lane_sums(r: &[f32], v: &[f32]) -> [f32; LANES] {
+    let mut acc = [0.0f32; LANES];
+    for (r, v) in r.chunks_exact(LANES).zip(v.chunks_exact(LANES)) {
+        for l in 0..LANES {
+            acc[l] = r[l].mul_add(v[l], acc[l]);
         }
     }
-    let mut s = acc[0];
-    for (r, v) in rest_w.iter().zip(rest_x) {
-        s += r * v;
-    }
-    s
+    acc
+}
+
+/// The lanes' partial sums folded as `((a0 + a1) + (a2 + a3)) + ((a4 + a5) + (a6 + a7))`, then
+/// the remainder's products in order (fused): the one summation order both versions share.
+#[inline(always)]
+fn reduce_lanes(a: [f32; LANES], rest_w: &[f32], rest_x: &[f32]) -> f32 {
+    let s = ((a[0] + a[1]) + (a[2] + a[3])) + ((a[4] + a[5]) + (a[6] + a[7]));
+    rest_w.iter().zip(rest_x).fold(s, |s, (w, x)| w.mul_add(*x, s))
 }
 
 #[cfg(test)]
@@ -381,9 +398,9 @@ mod tests {
 
     #[test]
     fn the_simd_and_portable_kernels_give_the_same_bits() {
-        // Rows in groups of four and past them; inputs shorter than, a multiple of and past
+        // Rows in groups of eight and past them; inputs shorter than, a multiple of and past
         // the lanes.
-        for (k, m) in [(70, 9), (64, 64), (64, 5), (4, 64), (16, 3), (33, 12), (48, 8)] {
+        for (k, m) in [(70, 9), (64, 64), (64, 5), (4, 64), (16, 3), (33, 12), (48, 8), (7, 17)] {
             let l = layer(k, m);
             let x: Vec<f32> = (0..k)
                 .map(|i| (i as f32 * 0.37).sin() * 1e3f32.powf((i % 3) as f32 - 1.0))
