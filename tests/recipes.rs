@@ -23,12 +23,23 @@ fn get(tree: &Table, path: &str) -> u64 {
 }
 
 /// The product of each student's optimiser steps × batch in `t`, by the key of its settings:
-/// `vdd.<k>` (iterations × batch × samples), `baselines.<k>` of a mixture (iterations × expert
-/// steps × batch) or of a consistency model (`train.steps` × `train.batch_size`).
+/// `vdd.<k>` ((iterations + the rounds' iterations of `vdd.<k>_expert_visits`) × batch ×
+/// samples), `baselines.<k>` of a mixture (iterations × expert steps × batch) or of a
+/// consistency model (`train.steps` × `train.batch_size`).
 fn budget(t: &Table, key: &str) -> u64 {
     let product = |fields: &[&str]| fields.iter().map(|f| get(t, &format!("{key}.{f}"))).product();
     match key {
-        _ if key.starts_with("vdd.") => product(&["iterations", "batch_size", "vi_samples"]),
+        _ if key.starts_with("vdd.") => {
+            let visits = format!("{key}_expert_visits");
+            let rounds = match get_path::<toml::Value>(t, &visits).unwrap() {
+                Some(_) => {
+                    get(t, &format!("{visits}.rounds")) * get(t, &format!("{visits}.iterations"))
+                }
+                None => 0,
+            };
+            let iterations = get(t, &format!("{key}.iterations")) + rounds;
+            iterations * product(&["batch_size", "vi_samples"])
+        }
         "baselines.cd" | "baselines.ctm.base" => product(&["train.steps", "train.batch_size"]),
         _ => product(&["iterations", "expert_steps_per_iter", "batch_size"]),
     }

@@ -1,5 +1,6 @@
 //! `vdd-beso-selected` end to end on a tiny Avoiding budget: the row is the snapshot with the
-//! highest held-out task entropy among the curves' checkpoints, its curves say which, and on
+//! highest held-out task entropy among the curves' checkpoints, its curves say which, rounds on
+//! visited states become iterations on the demonstrations' states (the same budget), and on
 //! a task without curves over training the row is refused with the reason.
 
 use std::path::{Path, PathBuf};
@@ -21,6 +22,9 @@ validation_fraction = 0.0
 steps = 30
 batch_size = 32
 log_every = 10
+
+[vdd]
+beso_expert_visits = { episodes = 2, rounds = 2, iterations = 10 }
 
 [vdd.beso]
 iterations = 30
@@ -54,6 +58,11 @@ fn the_selected_row_is_the_checkpoint_with_the_highest_held_out_entropy() {
     let out = root.join("results/tiny");
     let metrics = std::fs::read_to_string(out.join("metrics.json")).unwrap();
     assert!(metrics.contains("\"vdd-beso-selected\""), "{metrics}");
+    // The rounds on visited states take no checkpoints: their iterations run on the
+    // demonstrations' states, the same budget.
+    let m: serde_json::Value = serde_json::from_str(&metrics).unwrap();
+    let steps = &m["methods"]["vdd-beso-selected"]["per_seed"][0]["train_steps"];
+    assert_eq!(steps.as_u64(), Some(30 + 2 * 10), "{metrics}");
     let curves: serde_json::Value =
         serde_json::from_slice(&std::fs::read(out.join("curves.json")).unwrap()).unwrap();
     let text = curves.to_string();

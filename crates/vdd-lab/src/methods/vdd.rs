@@ -126,6 +126,18 @@ struct Settings {
     gating_temperature: Option<f32>,
 }
 
+/// An optional settings table that `false` switches off: a recipe cannot remove a table its
+/// defaults set (`vdd.beso_expert_visits = false` trains without the rounds).
+fn switchable<T: Serialize + serde::de::DeserializeOwned>(
+    r: &MethodRecipe<'_>,
+    key: &str,
+) -> crate::Result<Option<T>> {
+    match r.get_opt::<toml::Value>(key)? {
+        None | Some(toml::Value::Boolean(false)) => Ok(None),
+        Some(_) => r.get_opt(key),
+    }
+}
+
 /// `vdd.<teacher>_expert_visits`: after the distillation of `vdd.<teacher>`, continue it on
 /// the states the student itself visits (DAgger for the experts; issue 33, "states beyond
 /// the demonstrations"). Each round rolls the current student out for `episodes` episodes
@@ -199,7 +211,7 @@ impl Vdd {
             },
             gating_fit: r.get_opt(&format!("vdd.{t}_gating_fit"))?,
             gating_visits: r.get_opt(&format!("vdd.{t}_gating_visits"))?,
-            expert_visits: r.get_opt(&format!("vdd.{t}_expert_visits"))?,
+            expert_visits: switchable(r, &format!("vdd.{t}_expert_visits"))?,
             init_fit: match r.get_opt(&format!("vdd.{t}_init"))?.unwrap_or(Init::Paper) {
                 Init::Paper => None,
                 Init::Samples => {
@@ -354,15 +366,19 @@ impl Vdd {
     /// checkpoint selection, [`vdd::Resumable::select_by`]) instead of the final iterate, and
     /// its curves gain [`SELECTED_SERIES`]. A training stores both in the student cache.
     fn train_selecting(&self, job: &Job<'_>, select_by: Option<&str>) -> crate::Result<Trained> {
-        let (s, d, label) = (self.settings(&job.recipe)?, job.data, job.label);
+        let (mut s, d, label) = (self.settings(&job.recipe)?, job.data, job.label);
         let row = job.recipe.row;
         let (t, name) = (row.teacher_key()?, cache_name(row));
-        if select_by.is_some() && s.expert_visits.is_some() {
-            return Err(format!(
-                "checkpoint selection and vdd.{t}_expert_visits do not combine (the rounds on \
-                 visited states take no checkpoints)"
-            )
-            .into());
+        if let (Some(_), Some(v)) = (select_by, s.expert_visits) {
+            // The rounds on visited states take no checkpoints: the same budget, all of it on
+            // the demonstrations' states.
+            s.expert_visits = None;
+            s.vdd.iterations += v.rounds * v.iterations;
+            crate::progress::log(format!(
+                "[{label}] checkpoint selection: vdd.{t}_expert_visits's rounds take no \
+                 checkpoints, so all {} iterations run on the demonstrations' states",
+                s.vdd.iterations
+            ));
         }
         if select_by.is_some() && job.curves.is_none() {
             return Err("checkpoint selection needs curves over training, and this run takes \
