@@ -412,6 +412,7 @@ mod tests {
             "avoiding-ablation-gating",
             "avoiding-ablation-noise",
             "avoiding-deviations",
+            "avoiding-table",
         ] {
             let path = recipe::recipe_path(name).unwrap();
             let file = recipe::read_recipe(&path).unwrap();
