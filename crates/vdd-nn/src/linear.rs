@@ -247,6 +247,8 @@ unsafe fn affine_row_fma(w: &[f32], b: &[f32], x: &[f32], y: &mut [f32]) {
         _mm256_permute2f128_ps, _mm256_setzero_ps, _mm256_storeu_ps,
     };
     let k = x.len();
+    // The loads below read through raw pointers: the shapes must hold in release builds too.
+    assert!(w.len() == k * y.len() && b.len() == y.len(), "affine_row: shapes");
     if k == 0 {
         y.copy_from_slice(b);
         return;
