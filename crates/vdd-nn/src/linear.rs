@@ -255,7 +255,7 @@ unsafe fn affine_row_fma(w: &[f32], b: &[f32], x: &[f32], y: &mut [f32]) {
     }
     let split = k - k % LANES;
     let (xp, rest_x) = (x.as_ptr(), &x[split..]);
-    // The lane sums of `rows` rows from row `j`.
+    // The lane sums of `acc.len()` rows from row `j`.
     let lane_sums = |j: usize, acc: &mut [__m256]| {
         let mut c = 0;
         while c < split {
@@ -271,11 +271,7 @@ unsafe fn affine_row_fma(w: &[f32], b: &[f32], x: &[f32], y: &mut [f32]) {
         }
     };
     // The remainder of row `j` on its folded sum, then the bias.
-    let finish = |j: usize, s: f32| {
-        let s =
-            w[j * k + split..(j + 1) * k].iter().zip(rest_x).fold(s, |s, (w, x)| w.mul_add(*x, s));
-        b[j] + s
-    };
+    let finish = |j: usize, s: f32| b[j] + add_rest(s, &w[j * k + split..(j + 1) * k], rest_x);
     let groups = y.len() / 8;
     for g in 0..groups {
         let j = 8 * g;
@@ -346,6 +342,13 @@ fn lane_sums(r: &[f32], v: &[f32]) -> [f32; LANES] {
 #[inline(always)]
 fn reduce_lanes(a: [f32; LANES], rest_w: &[f32], rest_x: &[f32]) -> f32 {
     let s = ((a[0] + a[1]) + (a[2] + a[3])) + ((a[4] + a[5]) + (a[6] + a[7]));
+    add_rest(s, rest_w, rest_x)
+}
+
+/// `s` plus the remainder's products `rest_w[i] · rest_x[i]`, fused, in order: the tail both
+/// versions of [`affine_row`] share.
+#[inline(always)]
+fn add_rest(s: f32, rest_w: &[f32], rest_x: &[f32]) -> f32 {
     rest_w.iter().zip(rest_x).fold(s, |s, (w, x)| w.mul_add(*x, s))
 }
 
