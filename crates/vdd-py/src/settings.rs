@@ -32,6 +32,7 @@ pub fn apply_settings(
         noise_anneal_until: Some(0.0),
         score_at: vdd::ScoreAt::NoisedSample,
         state_noise: Some(vdd::StateNoise { share: 1.0, std: 1.0 }),
+        experts_per_state: Some(1),
         ..vdd.clone()
     };
     let trainer_fields = serde_json::to_value(&probe).map_err(|e| e.to_string())?;

@@ -82,7 +82,7 @@ def test_toy_defaults_stay_reachable_and_trainer_settings_are_accepted():
     # Settings that a default configuration leaves out of its serialised form.
     both = vdd.distill(four_modes_score, np.zeros((4, 1)), action_dim=2, experts=2,
                        iterations=2, score_at="noised_sample",
-                       state_noise={"share": 0.5, "std": 0.1})
+                       state_noise={"share": 0.5, "std": 0.1}, experts_per_state=1)
     assert both.num_experts == 2
     with pytest.raises(ValueError, match="setting `defaults`: expected 'auto' or 'toy'"):
         vdd.distill(four_modes_score, np.zeros((4, 1)), action_dim=2, defaults="paper")

@@ -74,6 +74,14 @@ pub struct VddConfig {
     /// only).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub state_noise: Option<StateNoise>,
+    /// Experts trained at each state of an expert step, `k` (`None`, the default: all `Z`).
+    /// With `k < Z` every expert step draws, for each state, `k` distinct experts (a random
+    /// permutation of the experts dealt out to the batch's states in turn, so each expert
+    /// gets `B·k/Z` states, up to rounding), samples and scores only those `B·k·V` pairs, and
+    /// weights their gradients by `Z/k`: an unbiased estimate of the full step at `k/Z` of its
+    /// teacher evaluations. `k >= Z` is the full step, bit for bit.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub experts_per_state: Option<usize>,
     /// Weighting of the experts' objectives.
     pub expert_weighting: ExpertWeighting,
     /// Expert updates per iteration (all against the same E-step snapshot).
@@ -133,6 +141,7 @@ impl VddConfig {
             noise_unit: None,
             score_at: ScoreAt::CleanSample,
             state_noise: None,
+            experts_per_state: None,
             expert_weighting: ExpertWeighting::Gating,
             expert_steps_per_iter: 1,
             gating_steps_per_iter: 1,
@@ -204,6 +213,9 @@ impl VddConfig {
             if v > max {
                 return Err(CoreError::Config(format!("{name} must be <= {max}, got {v}")));
             }
+        }
+        if self.experts_per_state == Some(0) {
+            return Err(CoreError::Config("experts_per_state must be positive".into()));
         }
         if self.batch_size * self.vi_samples > MAX_SAMPLES_PER_EXPERT {
             return Err(CoreError::Config(format!(

@@ -23,11 +23,35 @@ use vdd_moe::MoeOutput;
 
 use crate::both_sides::{BothSidesView, fold_into_moments, noised_cholesky};
 
+/// The experts each state of an expert step trains, when not all of them do
+/// ([`crate::VddConfig::experts_per_state`]): state `b`'s `k = per_state` experts are
+/// `experts[b·k..(b + 1)·k]`, distinct, each below `Z`. The samples of the step are then
+/// `B·k·V`, sample `(b, j, v)` of expert `experts[b·k + j]` at `(b·k + j)·V + v`, and the
+/// moments of the other (state, expert) pairs are zero.
+#[derive(Debug, Clone, Copy)]
+pub struct ExpertSubset<'a> {
+    /// The chosen experts, `B·k`.
+    pub experts: &'a [u32],
+    /// `k`, the experts per state.
+    pub per_state: usize,
+}
+
+impl ExpertSubset<'_> {
+    /// Checks the lengths against `b_n` states and the indices against `z_n` experts.
+    fn check(&self, b_n: usize, z_n: usize) -> Result<(), CoreError> {
+        vdd_core::check_len("expert subset", self.experts.len(), b_n * self.per_state)?;
+        match self.experts.iter().find(|&&z| z as usize >= z_n) {
+            Some(z) => Err(CoreError::Config(format!("expert subset names expert {z} of {z_n}"))),
+            None => Ok(()),
+        }
+    }
+}
+
 /// Buffers reused across expert steps (no allocation in the steady state).
 #[derive(Debug, Default, Clone)]
 pub struct ExpertStepBuffers {
     /// `ε` per sample, row-major `N x d` with `N = B·Z·V`, sample `(b, z, v)` at
-    /// `(b·Z + z)·V + v`.
+    /// `(b·Z + z)·V + v` (with an [`ExpertSubset`] of `k` experts per state, `N = B·k·V`).
     pub eps: Vec<f32>,
     /// `a = μ + L ε` per sample.
     pub actions: Vec<f32>,
@@ -48,6 +72,8 @@ pub struct ExpertStepBuffers {
     snap_linv: Vec<f32>,
     snap_log_norm: Vec<f32>,
     snap_means: Vec<f32>,
+    /// `0..Z`: every expert of a state, when there is no [`ExpertSubset`].
+    all_experts: Vec<u32>,
     diff_dd: Vec<f32>,
     /// Scratch of the noised covariances ([`crate::both_sides`]): a Cholesky factor, a column.
     chol_dd: Vec<f32>,
@@ -93,11 +119,15 @@ impl LaneScratch {
     }
 }
 
-/// Inputs of the corrected-score kernel for one state: its `Z·V` samples (row-major, sample
-/// `(z, v)` at `z·V + v`) and the frozen experts prepared for that state.
+/// Inputs of the corrected-score kernel for one state: its `K·V` samples (row-major, sample
+/// `(j, v)` of slot `j`'s expert at `j·V + v`; `K = Z` without an [`ExpertSubset`]) and the
+/// frozen experts prepared for that state.
 struct StateBlock<'a> {
     z_n: usize,
     v_n: usize,
+    /// The experts this state's samples belong to, slot by slot (`0..Z` without a subset): the
+    /// samples of slot `j` are `j·V..(j + 1)·V`.
+    experts: &'a [u32],
     actions: &'a [f32],
     eps: &'a [f32],
     score: &'a [f32],
@@ -129,9 +159,9 @@ fn experts_per_pass(v_n: usize, z_n: usize) -> usize {
 }
 
 impl StateBlock<'_> {
-    /// Experts per pass of the kernel ([`experts_per_pass`]).
+    /// Slots per pass of the kernel ([`experts_per_pass`]).
     fn group(&self) -> usize {
-        experts_per_pass(self.v_n, self.z_n)
+        experts_per_pass(self.v_n, self.experts.len())
     }
 
     /// Accumulates `E_ε[g]` and `E_ε[g εᵀ]` for every expert at this state; returns the sums
@@ -142,23 +172,24 @@ impl StateBlock<'_> {
         let (v_n, inv_v) = (self.v_n, 1.0 / self.v_n as f32);
         let (mut sum_log_resp, mut sum_g2) = (0.0f64, 0.0f64);
         let c = out.lanes;
-        let group = self.group();
-        let mut z0 = 0;
-        while z0 < z_n {
-            let z1 = (z0 + group).min(z_n);
-            let n = (z1 - z0) * v_n;
-            // Gather the samples of experts z0..z1 into `[j][t]`, `t = (z − z0)·V + v`.
+        let (group, slots) = (self.group(), self.experts.len());
+        let mut s0 = 0;
+        while s0 < slots {
+            let s1 = (s0 + group).min(slots);
+            let n = (s1 - s0) * v_n;
+            // Gather the samples of slots s0..s1 into `[j][t]`, `t = (slot − s0)·V + v`.
             for t in 0..n {
-                let i = z0 * v_n + t;
+                let i = s0 * v_n + t;
                 for j in 0..d {
                     c.actions[j * n + t] = self.actions[i * d + j];
                     c.eps[j * n + t] = self.eps[i * d + j];
                     c.score[j * n + t] = self.score[i * d + j];
                 }
             }
-            self.corrected_scores(d, z_n, z0, z1, c);
-            for z in z0..z1 {
-                let r = (z - z0) * v_n..(z - z0 + 1) * v_n;
+            self.corrected_scores(d, z_n, s0, s1, c);
+            for slot in s0..s1 {
+                let (z, r) =
+                    (self.experts[slot] as usize, (slot - s0) * v_n..(slot - s0 + 1) * v_n);
                 // Σ log q̃(z|a) = Σ (joint_z − max) − ln Π total: the logs of the totals are
                 // taken once per many samples (each total is in [1, Z], so the f64 product
                 // stays finite).
@@ -187,17 +218,17 @@ impl StateBlock<'_> {
                 }
                 sum_g2 += f64::from(g2);
             }
-            z0 = z1;
+            s0 = s1;
         }
         (sum_log_resp, sum_g2)
     }
 
-    /// The corrected scores `g` of the samples of experts `z0..z1` (gathered in `c`, `n` of
+    /// The corrected scores `g` of the samples of slots `s0..s1` (gathered in `c`, `n` of
     /// them) into `c.g`, with `log q̃(z|a) + ln(total)` in `c.log_resp` and the totals of the
     /// unnormalised responsibilities in `c.total`.
     #[inline(always)]
-    fn corrected_scores(&self, d: usize, z_n: usize, z0: usize, z1: usize, c: &mut LaneScratch) {
-        let (v_n, n) = (self.v_n, (z1 - z0) * self.v_n);
+    fn corrected_scores(&self, d: usize, z_n: usize, s0: usize, s1: usize, c: &mut LaneScratch) {
+        let (v_n, n) = (self.v_n, (s1 - s0) * self.v_n);
         let lane = |i: usize| i * n..(i + 1) * n;
         // Per frozen expert k: y = L̃_k⁻¹ (a − μ̃_k), log q̃(k) N(a; μ̃_k, Σ̃_k) = c_k − ½|y|²,
         // ∇_a log N = −L̃_k⁻ᵀ y.
@@ -228,8 +259,8 @@ impl StateBlock<'_> {
         for k in 0..z_n {
             max_into(&mut c.max[..n], &c.joint[lane(k)]);
         }
-        for z in z0..z1 {
-            let r = (z - z0) * v_n..(z - z0 + 1) * v_n;
+        for slot in s0..s1 {
+            let (z, r) = (self.experts[slot] as usize, (slot - s0) * v_n..(slot - s0 + 1) * v_n);
             let own = &c.joint[lane(z)][r.clone()];
             c.log_resp[r.clone()].copy_from_slice(own);
             add_scaled(&mut c.log_resp[r.clone()], -1.0, &c.max[r]);
@@ -245,8 +276,9 @@ impl StateBlock<'_> {
             for k in 0..z_n {
                 add_product(g, &c.joint[lane(k)], &c.grad[lane(k * d + j)]);
             }
-            for z in z0..z1 {
-                let r = (z - z0) * v_n..(z - z0 + 1) * v_n;
+            for slot in s0..s1 {
+                let (z, r) =
+                    (self.experts[slot] as usize, (slot - s0) * v_n..(slot - s0 + 1) * v_n);
                 let gz = &c.grad[lane(z * d + j)][r.clone()];
                 let (score, total) = (&c.score[lane(j)][r.clone()], &c.total[r.clone()]);
                 let g = &mut g[r];
@@ -294,7 +326,7 @@ pub fn corrected_score_moments<S: ScoreModel + ?Sized>(
     let n = current.n * current.num_experts * vi_samples;
     let (eps, levels) = (&mut buf.eps, &mut buf.noise_levels);
     draw_sample_noise(&*teacher, noise, progress, rng, n, current.action_dim, eps, levels);
-    let sums = moments_from_noise(teacher, current, snapshot, states, vi_samples, None, buf)?;
+    let sums = moments_from_noise(teacher, current, snapshot, states, vi_samples, None, None, buf)?;
     Ok(sums.stats(&buf.noise_levels, current.n * current.num_experts))
 }
 
@@ -357,6 +389,9 @@ impl MomentSums {
 /// samples, one batched teacher call, and the moments into `buf.mean_g` and
 /// `buf.mean_g_eps`. Returns the sums of the step's statistics.
 ///
+/// With `subset`, only the chosen (state, expert) pairs are sampled and scored (`B·k·V`
+/// samples); the other pairs' moments are zero.
+///
 /// With `both` (noise on both sides, [`crate::both_sides`]), the samples are noised, the
 /// snapshot's responsibilities are those of the noised snapshot, and the moments are folded
 /// so that [`Expert::expert_step_grad`] gives the gradient of the noised objective.
@@ -368,11 +403,68 @@ pub fn moments_from_noise<S: ScoreModel + ?Sized>(
     states: MatRef<'_, f32>,
     vi_samples: usize,
     both: Option<BothSidesView<'_>>,
+    subset: Option<ExpertSubset<'_>>,
+    buf: &mut ExpertStepBuffers,
+) -> Result<MomentSums, CoreError> {
+    let z_n = current.num_experts;
+    if let Some(subset) = &subset {
+        subset.check(current.n, z_n)?;
+    }
+    let mut all = std::mem::take(&mut buf.all_experts);
+    all.clear();
+    all.extend(0..z_n as u32);
+    let slots = match subset {
+        Some(s) => Slots::Subset(s),
+        None => Slots::All(&all),
+    };
+    let sums = moments_of_slots(teacher, current, snapshot, states, vi_samples, both, slots, buf);
+    buf.all_experts = all;
+    sums
+}
+
+/// The experts whose moments an expert step computes: all of them at every state, or an
+/// [`ExpertSubset`].
+#[derive(Clone, Copy)]
+enum Slots<'a> {
+    All(&'a [u32]),
+    Subset(ExpertSubset<'a>),
+}
+
+impl Slots<'_> {
+    /// Experts per state.
+    fn per_state(&self) -> usize {
+        match self {
+            Slots::All(all) => all.len(),
+            Slots::Subset(s) => s.per_state,
+        }
+    }
+
+    /// The experts of state `b`, slot by slot.
+    fn of(&self, b: usize) -> &[u32] {
+        match self {
+            Slots::All(all) => all,
+            Slots::Subset(s) => &s.experts[b * s.per_state..(b + 1) * s.per_state],
+        }
+    }
+}
+
+/// [`moments_from_noise`] for the experts of `slots`.
+#[allow(clippy::too_many_arguments)]
+fn moments_of_slots<S: ScoreModel + ?Sized>(
+    teacher: &mut S,
+    current: &MoeOutput,
+    snapshot: &MoeOutput,
+    states: MatRef<'_, f32>,
+    vi_samples: usize,
+    both: Option<BothSidesView<'_>>,
+    slots: Slots<'_>,
     buf: &mut ExpertStepBuffers,
 ) -> Result<MomentSums, CoreError> {
     let (b_n, z_n, d, v_n) = (current.n, current.num_experts, current.action_dim, vi_samples);
     let ds = states.ncols();
-    let n = b_n * z_n * v_n;
+    let k_n = slots.per_state();
+    let experts_of = |b: usize| slots.of(b);
+    let n = b_n * k_n * v_n;
     vdd_core::check_len("expert step noise", buf.eps.len(), n * d)?;
     vdd_core::check_len("expert step noise levels", buf.noise_levels.len(), n)?;
     buf.actions.resize(n * d, 0.0);
@@ -382,7 +474,7 @@ pub fn moments_from_noise<S: ScoreModel + ?Sized>(
     buf.mean_g_eps.resize(b_n * z_n * d * d, 0.0);
     buf.snap_linv.resize(z_n * d * d, 0.0);
     buf.snap_log_norm.resize(z_n, 0.0);
-    buf.lanes.resize(d, z_n, experts_per_pass(v_n, z_n) * v_n);
+    buf.lanes.resize(d, z_n, experts_per_pass(v_n, k_n) * v_n);
     buf.diff_dd.resize(d * d, 0.0);
     buf.chol_dd.resize(d * d, 0.0);
     buf.col_d.resize(d, 0.0);
@@ -393,10 +485,10 @@ pub fn moments_from_noise<S: ScoreModel + ?Sized>(
 
     // Reparameterised samples a = μ_z(s) + L_z(s) ε (noised: k a + β + γ ⊙ η) and their states.
     for b in 0..b_n {
-        for z in 0..z_n {
-            let (mu, l) = (current.mean(b, z), current.scale(b, z));
+        for (j, &z) in experts_of(b).iter().enumerate() {
+            let (mu, l) = (current.mean(b, z as usize), current.scale(b, z as usize));
             for v in 0..v_n {
-                let i = (b * z_n + z) * v_n + v;
+                let i = (b * k_n + j) * v_n + v;
                 gaussian::sample_into(
                     mu,
                     l,
@@ -468,10 +560,11 @@ pub fn moments_from_noise<S: ScoreModel + ?Sized>(
                 };
             }
         }
-        let rows = b * z_n * v_n..(b + 1) * z_n * v_n;
+        let rows = b * k_n * v_n..(b + 1) * k_n * v_n;
         let block = StateBlock {
             z_n,
             v_n,
+            experts: experts_of(b),
             actions: &buf.actions[rows.start * d..rows.end * d],
             eps: &buf.eps[rows.start * d..rows.end * d],
             score: &buf.score[rows.start * d..rows.end * d],
@@ -503,8 +596,8 @@ pub fn moments_from_noise<S: ScoreModel + ?Sized>(
         sum_log_resp += lr;
         sum_g2 += g2;
         if let Some((scale, _, std)) = noised {
-            for z in 0..z_n {
-                let bz = b * z_n + z;
+            for &z in experts_of(b) {
+                let (z, bz) = (z as usize, b * z_n + z as usize);
                 fold_into_moments(
                     current.scale(b, z),
                     scale,
@@ -527,29 +620,40 @@ pub fn moments_from_noise<S: ScoreModel + ?Sized>(
 /// raw outputs, from the moments in `buf`; written into `buf.grad_raw`.
 ///
 /// `weights` is `B·Z` (row-major), the detached `w_z(s_b)`.
+///
+/// With `subset` (the one the moments were computed for), only the chosen pairs contribute,
+/// each weighted by `Z/k`: every pair is chosen with probability `k/Z`
+/// ([`crate::VddConfig::experts_per_state`]), so the gradient is an unbiased estimate of the
+/// full step's.
 pub fn raw_gradients<E: Expert>(
     expert: &E,
     current: &MoeOutput,
     weights: &[f32],
+    subset: Option<ExpertSubset<'_>>,
     buf: &mut ExpertStepBuffers,
 ) {
-    raw_gradients_of_chunk(expert, current, weights, current.n, buf)
+    raw_gradients_of_chunk(expert, current, weights, current.n, subset, buf)
 }
 
-/// [`raw_gradients`] for a chunk of the states of a batch of `batch_size` states: `current`
-/// and `weights` hold the chunk's states only, and the loss is still the batch's mean.
+/// [`raw_gradients`] for a chunk of the states of a batch of `batch_size` states: `current`,
+/// `weights` and `subset` hold the chunk's states only, and the loss is still the batch's mean.
 pub fn raw_gradients_of_chunk<E: Expert>(
     expert: &E,
     current: &MoeOutput,
     weights: &[f32],
     batch_size: usize,
+    subset: Option<ExpertSubset<'_>>,
     buf: &mut ExpertStepBuffers,
 ) {
     let (z_n, d, r) = (current.num_experts, current.action_dim, expert.raw_dim());
     let b_n = batch_size;
     let rows = current.n;
     buf.grad_raw.resize(rows * z_n * r, 0.0);
-    for bz in 0..rows * z_n {
+    if subset.is_some() {
+        // The pairs not chosen contribute nothing.
+        buf.grad_raw.fill(0.0);
+    }
+    let mut pair = |bz: usize, factor: f32| {
         let out = &mut buf.grad_raw[bz * r..(bz + 1) * r];
         expert.expert_step_grad(
             &current.raw[bz * r..(bz + 1) * r],
@@ -558,9 +662,18 @@ pub fn raw_gradients_of_chunk<E: Expert>(
             &buf.mean_g_eps[bz * d * d..(bz + 1) * d * d],
             out,
         );
-        let scale = -weights[bz] / b_n as f32;
+        let scale = -weights[bz] * factor / b_n as f32;
         for x in out.iter_mut() {
             *x *= scale;
+        }
+    };
+    match subset {
+        None => (0..rows * z_n).for_each(|bz| pair(bz, 1.0)),
+        Some(s) => {
+            let factor = z_n as f32 / s.per_state as f32;
+            for (i, &z) in s.experts.iter().enumerate() {
+                pair((i / s.per_state) * z_n + z as usize, factor);
+            }
         }
     }
 }
@@ -569,97 +682,4 @@ pub fn raw_gradients_of_chunk<E: Expert>(
 mod tests_both_sides;
 
 #[cfg(test)]
-mod tests {
-    use super::*;
-    use crate::test_support::{IsoGmm, output};
-    use approx::assert_relative_eq;
-    use vdd_moe::{DiagonalExpert, FullExpert};
-
-    /// Monte-Carlo `Ĵ_z` with fixed ε: mean of `log π(a) + log q̃(z|a)` plus the entropy.
-    fn objective<E: Expert>(
-        expert: &E,
-        raw_z: &[f32],
-        eps: &[f32],
-        teacher: &IsoGmm,
-        snapshot: &MoeOutput,
-        z: usize,
-    ) -> f64 {
-        let d = expert.action_dim();
-        let (mut mu, mut l) = (vec![0.0; d], vec![0.0; d * d]);
-        expert.decode(raw_z, &mut mu, &mut l);
-        let v_n = eps.len() / d;
-        let (mut a, mut resp, mut work) = (vec![0.0; d], vec![0.0; 2], vec![0.0; d]);
-        let mut sum = 0.0f64;
-        for v in 0..v_n {
-            gaussian::sample_into(&mu, &l, &eps[v * d..(v + 1) * d], &mut a);
-            snapshot.log_density_and_responsibilities(0, &a, &mut resp, &mut work);
-            sum += f64::from(teacher.log_density(&a, 0.0)) + f64::from(resp[z].ln());
-        }
-        sum / v_n as f64 + f64::from(gaussian::entropy(&l, d))
-    }
-
-    fn check_expert_step_gradient<E: Expert>(expert: E, raws: Vec<Vec<f32>>) {
-        let d = expert.action_dim();
-        let mut teacher =
-            IsoGmm { means: vec![vec![1.0; d], vec![-1.0; d]], std: 0.6, state_dim: 1 };
-        let current = output(&expert, &raws, [(0.3f32).ln(), (0.7f32).ln()]);
-        // The frozen snapshot q̃ differs from the live student, as after an expert update.
-        let snap_raws: Vec<Vec<f32>> =
-            raws.iter().map(|r| r.iter().map(|x| x * 0.8 + 0.05).collect()).collect();
-        let snapshot = output(&expert, &snap_raws, [(0.4f32).ln(), (0.6f32).ln()]);
-        let states = faer::Mat::<f32>::zeros(1, 1);
-        let v_n = 21;
-        let seeds = vdd_core::Seeds::new(5);
-        let mut buf = ExpertStepBuffers::default();
-        corrected_score_moments(
-            &mut teacher,
-            &current,
-            &snapshot,
-            states.as_ref(),
-            &NoiseSchedule::Fixed { level: 0.0 },
-            0.0,
-            v_n,
-            &mut seeds.stream("eps"),
-            &mut buf,
-        )
-        .unwrap();
-        for z in 0..2 {
-            let r = expert.raw_dim();
-            let mut grad = vec![0.0; r];
-            expert.expert_step_grad(
-                &raws[z],
-                current.scale(0, z),
-                &buf.mean_g[z * d..(z + 1) * d],
-                &buf.mean_g_eps[z * d * d..(z + 1) * d * d],
-                &mut grad,
-            );
-            let eps = &buf.eps[z * v_n * d..(z + 1) * v_n * d];
-            for k in 0..r {
-                let h = 1e-3f32;
-                let mut p = raws[z].clone();
-                p[k] += h;
-                let mut m = raws[z].clone();
-                m[k] -= h;
-                let fd = (objective(&expert, &p, eps, &teacher, &snapshot, z)
-                    - objective(&expert, &m, eps, &teacher, &snapshot, z))
-                    / (2.0 * f64::from(h));
-                assert_relative_eq!(f64::from(grad[k]), fd, epsilon = 2e-2, max_relative = 2e-2);
-            }
-        }
-    }
-
-    #[test]
-    fn diagonal_expert_step_gradient_matches_finite_differences() {
-        let e = DiagonalExpert::new(2, 0.8, 1e-4).unwrap();
-        check_expert_step_gradient(e, vec![vec![0.4, 0.9, -0.2, 0.3], vec![-0.7, -0.1, 0.1, -0.4]]);
-    }
-
-    #[test]
-    fn full_expert_step_gradient_matches_finite_differences() {
-        let e = FullExpert::new(2, 0.8, 1e-4).unwrap();
-        check_expert_step_gradient(
-            e,
-            vec![vec![0.4, 0.9, -0.2, 0.35, 0.3], vec![-0.7, -0.1, 0.1, -0.25, -0.4]],
-        );
-    }
-}
+mod tests;

@@ -22,6 +22,7 @@ pub use convergence::{
 pub use resumable::{Resumable, ResumableOutcome, Selected};
 
 use crate::spaces::{ActionMap, TeacherSpace, normalize_rows, same_map, with_map};
+use subset::expert_subset;
 
 /// The states to distil on, optionally the dataset's actions for the gating step, both in the
 /// raw (environment) space, and the space the teacher works in ([`TeacherSpace`]; see
@@ -198,6 +199,9 @@ pub struct Vdd<S: ScoreModel, E: Expert = ExpertFamily> {
     batch: Mat<f32>,
     snapshot: MoeOutput,
     weights: Vec<f32>,
+    /// The experts each state of the current expert step trains
+    /// ([`VddConfig::experts_per_state`]; empty when all do).
+    subset: Vec<u32>,
     gating_states: Mat<f32>,
     gating_actions: Mat<f32>,
     grad_logits: Mat<f32>,
@@ -361,6 +365,7 @@ impl<S: ScoreModel, E: Expert> Vdd<S, E> {
             batch: Mat::zeros(config.batch_size, mc.state_dim),
             snapshot: MoeOutput::default(),
             weights: vec![0.0; config.batch_size * z],
+            subset: Vec::new(),
             gating_states: Mat::zeros(config.gating_batch_size, mc.state_dim),
             gating_actions: Mat::zeros(config.gating_batch_size, d),
             grad_logits: Mat::zeros(config.gating_batch_size, z),
@@ -524,6 +529,7 @@ impl<S: ScoreModel, E: Expert> Vdd<S, E> {
             if k > 0 {
                 self.student.forward_experts(self.batch.as_ref())?;
             }
+            self.draw_subset(stream);
             let noised = self.draw_noise(progress, &mut rng).map_err(at_iteration(it))?;
             // The teacher sees the states (and, through the map, the actions) in its space.
             let states = match &self.teacher_states {
@@ -531,22 +537,19 @@ impl<S: ScoreModel, E: Expert> Vdd<S, E> {
                 None => self.batch.as_ref(),
             };
             let (snapshot, v) = (&self.snapshot, self.config.vi_samples);
-            let per_state = self.student.num_experts() * v;
+            let per_state = self.slots() * v;
             let d = self.student.config().action_dim;
             let both = noised.then(|| self.both.view(0..self.config.batch_size, per_state, d));
+            let subset = expert_subset(&self.subset, self.slots());
             let (out, buf) = (self.student.output(), &mut self.buf);
             let map = self.action_map.as_ref();
             let sums = with_map(&mut self.teacher, map, &mut self.map_scratch, |teacher| {
-                moments_from_noise(teacher, out, snapshot, states, v, both, buf)
+                moments_from_noise(teacher, out, snapshot, states, v, both, subset, buf)
             });
             let pairs = self.config.batch_size * self.student.num_experts();
             stats = sums.map_err(at_iteration(it))?.stats(&self.buf.noise_levels, pairs);
-            raw_gradients(
-                self.student.expert(),
-                self.student.output(),
-                &self.weights,
-                &mut self.buf,
-            );
+            let (expert, out) = (self.student.expert(), self.student.output());
+            raw_gradients(expert, out, &self.weights, subset, &mut self.buf);
             let nets = self.student.expert_networks_mut();
             nets.zero_grad();
             let grad_raw = std::mem::take(&mut self.buf.grad_raw);
@@ -585,8 +588,7 @@ impl<S: ScoreModel, E: Expert> Vdd<S, E> {
         progress: f32,
         rng: &mut dyn rand::RngCore,
     ) -> Result<bool, CoreError> {
-        let (b_n, z_n, v_n) =
-            (self.config.batch_size, self.student.num_experts(), self.config.vi_samples);
+        let (b_n, z_n, v_n) = (self.config.batch_size, self.slots(), self.config.vi_samples);
         let d = self.student.config().action_dim;
         let noise = &self.config.noise;
         let (eps, levels) = (&mut self.buf.eps, &mut self.buf.noise_levels);
@@ -780,6 +782,7 @@ mod checkpoint;
 mod chunks;
 mod convergence;
 mod resumable;
+mod subset;
 #[cfg(test)]
 mod tests;
 #[cfg(test)]

@@ -114,7 +114,7 @@ fn check_gradient<E: Expert>(
     let view = both.view(0..1, z_n * v_n, d);
     let mut scratch = Vec::new();
     with_map(teacher.model(), map.as_ref(), &mut scratch, |t| {
-        moments_from_noise(t, &current, &snapshot, states.as_ref(), v_n, Some(view), &mut buf)
+        moments_from_noise(t, &current, &snapshot, states.as_ref(), v_n, Some(view), None, &mut buf)
     })
     .unwrap();
     let noising = (level, both.scale[0], &both.shift[..], &both.std[..]);

@@ -15,12 +15,14 @@ use vdd_moe::{Moe, MoeOutput};
 use vdd_nn::Parameters;
 use vdd_nn::parallel::{add_grads, chunk_range, copy_values};
 
+use super::subset::expert_subset;
 use super::{Vdd, at_iteration, e_step_weights};
 use crate::both_sides::BothSides;
 use crate::config::ExpertWeighting;
 use crate::error::VddError;
 use crate::expert_step::{
-    ExpertStepBuffers, ExpertStepStats, MomentSums, moments_from_noise, raw_gradients_of_chunk,
+    ExpertStepBuffers, ExpertStepStats, ExpertSubset, MomentSums, moments_from_noise,
+    raw_gradients_of_chunk,
 };
 use crate::spaces::{ActionMap, with_map};
 
@@ -58,6 +60,10 @@ struct StepInputs<'a, E: Expert> {
     levels: &'a [f32],
     /// The noising with noise on both sides.
     both: Option<&'a BothSides>,
+    /// The experts each state of the whole batch trains (`None`: all of them).
+    subset: Option<ExpertSubset<'a>>,
+    /// Experts trained per state (`Z` without a subset).
+    slots: usize,
     action_map: Option<&'a ActionMap>,
     weighting: ExpertWeighting,
     vi_samples: usize,
@@ -120,7 +126,7 @@ impl<E: Expert> ChunkWork<E> {
         } else {
             self.student.forward_experts(states)?;
         }
-        let per_state = z_n * inp.vi_samples;
+        let per_state = inp.slots * inp.vi_samples;
         let d = self.student.config().action_dim;
         let samples = start * per_state..(start + len) * per_state;
         self.buf.eps.clear();
@@ -130,13 +136,17 @@ impl<E: Expert> ChunkWork<E> {
         let teacher_states = inp.teacher_states.subrows(start, len);
         let (out, snapshot, v) = (self.student.output(), &self.snapshot, inp.vi_samples);
         let both = inp.both.map(|b| b.view(start..start + len, per_state, d));
+        let subset = inp.subset.map(|s| ExpertSubset {
+            experts: &s.experts[start * s.per_state..(start + len) * s.per_state],
+            per_state: s.per_state,
+        });
         let buf = &mut self.buf;
         let sums = with_map(teacher, inp.action_map, &mut self.map_scratch, |teacher| {
-            moments_from_noise(teacher, out, snapshot, teacher_states, v, both, buf)
+            moments_from_noise(teacher, out, snapshot, teacher_states, v, both, subset, buf)
         });
         self.sums = sums.map_err(at_iteration(inp.iteration))?;
         let (expert, out) = (self.student.expert(), self.student.output());
-        raw_gradients_of_chunk(expert, out, &self.weights, b_n, &mut self.buf);
+        raw_gradients_of_chunk(expert, out, &self.weights, b_n, subset, &mut self.buf);
         self.student.expert_networks_mut().zero_grad();
         self.student.backward_experts(&self.buf.grad_raw)?;
         Ok(())
@@ -164,6 +174,7 @@ impl<S: ScoreModel, E: Expert> Vdd<S, E> {
         for k in 0..self.config.expert_steps_per_iter {
             let stream = (it * self.config.expert_steps_per_iter + k) as u64;
             let mut rng = self.seeds.stream_indexed("vi-noise", stream);
+            self.draw_subset(stream);
             let noised = self.draw_noise(progress, &mut rng).map_err(at_iteration(it))?;
             let inputs = StepInputs {
                 master: &self.student,
@@ -175,6 +186,8 @@ impl<S: ScoreModel, E: Expert> Vdd<S, E> {
                 eps: &self.buf.eps,
                 levels: &self.buf.noise_levels,
                 both: noised.then_some(&self.both),
+                subset: expert_subset(&self.subset, self.slots()),
+                slots: self.slots(),
                 action_map: self.action_map.as_ref(),
                 weighting: self.config.expert_weighting,
                 vi_samples: v_n,

@@ -522,3 +522,61 @@ fn a_schedule_in_another_unit_or_outside_the_teachers_range_is_refused() {
     // Without a range (the exact mixture here), any level goes.
     assert!(Vdd::new(wide, teacher, student, data).is_ok());
 }
+
+#[test]
+fn training_a_subset_of_experts_per_state_still_distils_the_mixture() {
+    // Two of the four experts per state and step: each expert sees half the states, and the
+    // four modes are still found.
+    let (mut config, teacher, student, data) = small_run(600);
+    config.experts_per_state = Some(2);
+    let mut vdd = Vdd::new(config, teacher.clone(), student, data).unwrap();
+    vdd.train(|_| {}).unwrap();
+    let mut student = vdd.into_student();
+    assert_eq!(modes_covered(&mut student, &[0.0], &teacher.means, 0.3, 0.05).unwrap(), 4);
+    let mut rng = Seeds::new(9).stream("eval");
+    let kl = reverse_kl(&mut student, &[0.0], |a| teacher.log_density(a, 0.0), 20_000, &mut rng)
+        .unwrap();
+    assert!(kl < 0.05, "reverse KL {kl}");
+}
+
+#[test]
+fn experts_per_state_of_all_experts_or_more_is_the_full_step() {
+    let train = |k: Option<usize>| {
+        let (mut config, teacher, student, data) = small_run(20);
+        config.experts_per_state = k;
+        let mut vdd = Vdd::new(config, teacher, student, data).unwrap();
+        vdd.train(|_| {}).unwrap();
+        params(vdd.student())
+    };
+    let full = train(None);
+    assert!(full == train(Some(4)) && full == train(Some(9)));
+    assert!(full != train(Some(3)));
+    let (mut config, teacher, student, data) = small_run(20);
+    config.experts_per_state = Some(0);
+    let err = Vdd::new(config, teacher, student, data).err().expect("k = 0 is refused");
+    assert!(err.to_string().contains("experts_per_state"), "{err}");
+}
+
+#[test]
+fn each_state_trains_distinct_experts_and_each_expert_as_many_states() {
+    // Eight states, four experts, three per state: 24 slots, six per expert.
+    let (mut config, teacher, student, data) = small_run(1);
+    config.experts_per_state = Some(3);
+    let mut vdd = Vdd::new(config, teacher, student, data).unwrap();
+    let mut draws = Vec::new();
+    for stream in 0..5 {
+        vdd.draw_subset(stream);
+        assert_eq!(vdd.subset.len(), 24);
+        for state in vdd.subset.chunks(3) {
+            assert!(state[0] != state[1] && state[0] != state[2] && state[1] != state[2]);
+        }
+        for z in 0..4 {
+            assert_eq!(vdd.subset.iter().filter(|&&x| x == z).count(), 6, "expert {z}");
+        }
+        draws.push(vdd.subset.clone());
+    }
+    // Each step draws its own permutation, from its own stream.
+    assert!(draws.windows(2).any(|w| w[0] != w[1]));
+    vdd.draw_subset(3);
+    assert_eq!(vdd.subset, draws[3]);
+}

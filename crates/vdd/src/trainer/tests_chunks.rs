@@ -39,6 +39,20 @@ impl ScoreModel for Forking {
     }
 }
 
+thread_local! {
+    /// The runs' [`VddConfig::experts_per_state`], per test thread.
+    static SUBSET: std::cell::Cell<Option<usize>> = const { std::cell::Cell::new(None) };
+}
+
+/// Runs `check` with every expert trained at every state, then with two of the four.
+fn with_and_without_subsets(check: impl Fn()) {
+    for k in [None, Some(2)] {
+        SUBSET.with(|s| s.set(k));
+        check();
+    }
+    SUBSET.with(|s| s.set(None));
+}
+
 fn values(p: &dyn Parameters) -> Vec<f32> {
     let mut out = Vec::new();
     p.visit_params("", &mut |_, p| out.extend_from_slice(&p.value));
@@ -47,8 +61,8 @@ fn values(p: &dyn Parameters) -> Vec<f32> {
 
 /// Trains `iterations` of the small run (two expert steps per iteration when `iterations > 1`)
 /// with `chunks` chunks on `threads` threads, the score taken at `score_at` (noised samples at
-/// levels in `[0.2, 0.6]`); returns the student's parameters, every
-/// iteration's metrics and the last expert gradient.
+/// levels in `[0.2, 0.6]`) and [`SUBSET`]'s experts per state; returns the student's
+/// parameters, every iteration's metrics and the last expert gradient.
 fn run<S: ScoreModel>(
     teacher: S,
     chunks: usize,
@@ -62,6 +76,7 @@ fn run<S: ScoreModel>(
         config.noise = vdd_core::NoiseSchedule::Uniform { min: 0.2, max: 0.6 };
     }
     config.chunks = chunks;
+    config.experts_per_state = SUBSET.with(|k| k.get());
     config.expert_steps_per_iter = if iterations > 1 { 2 } else { 1 };
     config.expert_weighting = ExpertWeighting::Gating;
     let mut vdd = Vdd::new(config, teacher, student, data).unwrap();
@@ -77,9 +92,11 @@ fn run<S: ScoreModel>(
 
 #[test]
 fn chunked_students_do_not_depend_on_the_threads() {
-    for score_at in [ScoreAt::CleanSample, ScoreAt::NoisedSample] {
-        chunked_students_do_not_depend_on_the_threads_with(score_at);
-    }
+    with_and_without_subsets(|| {
+        for score_at in [ScoreAt::CleanSample, ScoreAt::NoisedSample] {
+            chunked_students_do_not_depend_on_the_threads_with(score_at);
+        }
+    });
 }
 
 fn chunked_students_do_not_depend_on_the_threads_with(at: ScoreAt) {
@@ -97,9 +114,11 @@ fn chunked_students_do_not_depend_on_the_threads_with(at: ScoreAt) {
 
 #[test]
 fn the_chunks_gradient_is_the_batch_gradient() {
-    for score_at in [ScoreAt::CleanSample, ScoreAt::NoisedSample] {
-        the_chunks_gradient_is_the_batch_gradient_with(score_at);
-    }
+    with_and_without_subsets(|| {
+        for score_at in [ScoreAt::CleanSample, ScoreAt::NoisedSample] {
+            the_chunks_gradient_is_the_batch_gradient_with(score_at);
+        }
+    });
 }
 
 fn the_chunks_gradient_is_the_batch_gradient_with(at: ScoreAt) {
