@@ -36,7 +36,13 @@ pub struct ExpertSubset<'a> {
     pub per_state: usize,
 }
 
-impl ExpertSubset<'_> {
+impl<'a> ExpertSubset<'a> {
+    /// The part of the subset that belongs to the states `states` of its batch.
+    pub fn states(&self, states: std::ops::Range<usize>) -> ExpertSubset<'a> {
+        let k = self.per_state;
+        ExpertSubset { experts: &self.experts[states.start * k..states.end * k], per_state: k }
+    }
+
     /// Checks the lengths against `b_n` states and the indices against `z_n` experts.
     fn check(&self, b_n: usize, z_n: usize) -> Result<(), CoreError> {
         vdd_core::check_len("expert subset", self.experts.len(), b_n * self.per_state)?;
@@ -443,7 +449,7 @@ impl Slots<'_> {
     fn of(&self, b: usize) -> &[u32] {
         match self {
             Slots::All(all) => all,
-            Slots::Subset(s) => &s.experts[b * s.per_state..(b + 1) * s.per_state],
+            Slots::Subset(s) => s.states(b..b + 1).experts,
         }
     }
 }
@@ -463,7 +469,6 @@ fn moments_of_slots<S: ScoreModel + ?Sized>(
     let (b_n, z_n, d, v_n) = (current.n, current.num_experts, current.action_dim, vi_samples);
     let ds = states.ncols();
     let k_n = slots.per_state();
-    let experts_of = |b: usize| slots.of(b);
     let n = b_n * k_n * v_n;
     vdd_core::check_len("expert step noise", buf.eps.len(), n * d)?;
     vdd_core::check_len("expert step noise levels", buf.noise_levels.len(), n)?;
@@ -485,7 +490,7 @@ fn moments_of_slots<S: ScoreModel + ?Sized>(
 
     // Reparameterised samples a = μ_z(s) + L_z(s) ε (noised: k a + β + γ ⊙ η) and their states.
     for b in 0..b_n {
-        for (j, &z) in experts_of(b).iter().enumerate() {
+        for (j, &z) in slots.of(b).iter().enumerate() {
             let (mu, l) = (current.mean(b, z as usize), current.scale(b, z as usize));
             for v in 0..v_n {
                 let i = (b * k_n + j) * v_n + v;
@@ -564,7 +569,7 @@ fn moments_of_slots<S: ScoreModel + ?Sized>(
         let block = StateBlock {
             z_n,
             v_n,
-            experts: experts_of(b),
+            experts: slots.of(b),
             actions: &buf.actions[rows.start * d..rows.end * d],
             eps: &buf.eps[rows.start * d..rows.end * d],
             score: &buf.score[rows.start * d..rows.end * d],
@@ -596,7 +601,7 @@ fn moments_of_slots<S: ScoreModel + ?Sized>(
         sum_log_resp += lr;
         sum_g2 += g2;
         if let Some((scale, _, std)) = noised {
-            for &z in experts_of(b) {
+            for &z in slots.of(b) {
                 let (z, bz) = (z as usize, b * z_n + z as usize);
                 fold_into_moments(
                     current.scale(b, z),

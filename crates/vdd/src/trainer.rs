@@ -588,16 +588,16 @@ impl<S: ScoreModel, E: Expert> Vdd<S, E> {
         progress: f32,
         rng: &mut dyn rand::RngCore,
     ) -> Result<bool, CoreError> {
-        let (b_n, z_n, v_n) = (self.config.batch_size, self.slots(), self.config.vi_samples);
+        let (b_n, k_n, v_n) = (self.config.batch_size, self.slots(), self.config.vi_samples);
         let d = self.student.config().action_dim;
         let noise = &self.config.noise;
         let (eps, levels) = (&mut self.buf.eps, &mut self.buf.noise_levels);
-        draw_sample_noise(&self.teacher, noise, progress, rng, b_n * z_n * v_n, d, eps, levels);
+        draw_sample_noise(&self.teacher, noise, progress, rng, b_n * k_n * v_n, d, eps, levels);
         if self.config.score_at == ScoreAt::CleanSample {
             return Ok(false);
         }
         let map = self.action_map.as_ref();
-        self.both.prepare(&self.teacher, map, levels, z_n * v_n, d, rng)?;
+        self.both.prepare(&self.teacher, map, levels, k_n * v_n, d, rng)?;
         Ok(true)
     }
 

@@ -62,8 +62,6 @@ struct StepInputs<'a, E: Expert> {
     both: Option<&'a BothSides>,
     /// The experts each state of the whole batch trains (`None`: all of them).
     subset: Option<ExpertSubset<'a>>,
-    /// Experts trained per state (`Z` without a subset).
-    slots: usize,
     action_map: Option<&'a ActionMap>,
     weighting: ExpertWeighting,
     vi_samples: usize,
@@ -126,7 +124,8 @@ impl<E: Expert> ChunkWork<E> {
         } else {
             self.student.forward_experts(states)?;
         }
-        let per_state = inp.slots * inp.vi_samples;
+        let subset = inp.subset.map(|s| s.states(start..start + len));
+        let per_state = subset.map_or(z_n, |s| s.per_state) * inp.vi_samples;
         let d = self.student.config().action_dim;
         let samples = start * per_state..(start + len) * per_state;
         self.buf.eps.clear();
@@ -136,10 +135,6 @@ impl<E: Expert> ChunkWork<E> {
         let teacher_states = inp.teacher_states.subrows(start, len);
         let (out, snapshot, v) = (self.student.output(), &self.snapshot, inp.vi_samples);
         let both = inp.both.map(|b| b.view(start..start + len, per_state, d));
-        let subset = inp.subset.map(|s| ExpertSubset {
-            experts: &s.experts[start * s.per_state..(start + len) * s.per_state],
-            per_state: s.per_state,
-        });
         let buf = &mut self.buf;
         let sums = with_map(teacher, inp.action_map, &mut self.map_scratch, |teacher| {
             moments_from_noise(teacher, out, snapshot, teacher_states, v, both, subset, buf)
@@ -187,7 +182,6 @@ impl<S: ScoreModel, E: Expert> Vdd<S, E> {
                 levels: &self.buf.noise_levels,
                 both: noised.then_some(&self.both),
                 subset: expert_subset(&self.subset, self.slots()),
-                slots: self.slots(),
                 action_map: self.action_map.as_ref(),
                 weighting: self.config.expert_weighting,
                 vi_samples: v_n,
