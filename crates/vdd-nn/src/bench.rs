@@ -7,8 +7,8 @@
 
 use std::time::Instant;
 
-use faer::linalg::matmul::matmul;
-use faer::{Accum, Mat, Par};
+use crate::gemm::matmul;
+use faer::{Accum, Mat};
 
 use crate::{Module, NnError, Parameters, ResidualMlp, ResidualMlpConfig};
 
@@ -118,7 +118,7 @@ pub fn mlp_vs_matmul(
         net.backward(g.as_ref());
         let dt_net = t.elapsed().as_secs_f64();
         let t = Instant::now();
-        matmul(c.as_mut(), Accum::Replace, a.as_ref(), b.as_ref(), 1.0f32, Par::Seq);
+        matmul(c.as_mut(), Accum::Replace, a.as_ref(), b.as_ref(), 1.0f32);
         let dt_bare = t.elapsed().as_secs_f64();
         if rep >= 3 {
             t_net.push(dt_net);

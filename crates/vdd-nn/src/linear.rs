@@ -1,7 +1,7 @@
 //! Fully connected layer `y = x Wᵀ + b`.
 
-use faer::linalg::matmul::matmul;
-use faer::{Accum, Mat, MatRef, Par};
+use crate::gemm::matmul;
+use faer::{Accum, Mat, MatRef};
 use rand::Rng as _;
 
 use crate::error::NnError;
@@ -157,7 +157,7 @@ impl Linear {
             self.output.col_as_slice_mut(j).fill(b);
         }
         let wt = MatRef::from_column_major_slice(&self.weight.value, self.in_dim, self.out_dim);
-        matmul(self.output.as_mut(), Accum::Add, x, wt, 1.0, Par::Seq);
+        matmul(self.output.as_mut(), Accum::Add, x, wt, 1.0);
         self.output.as_ref()
     }
 }
@@ -197,7 +197,7 @@ impl Module for Linear {
             self.in_dim,
             self.out_dim,
         );
-        matmul(dwt, Accum::Add, input.transpose(), grad_out, 1.0, Par::Seq);
+        matmul(dwt, Accum::Add, input.transpose(), grad_out, 1.0);
         for (j, db) in self.bias.grad.iter_mut().enumerate() {
             let col = grad_out.col(j);
             *db += match col.try_as_col_major() {
@@ -207,7 +207,7 @@ impl Module for Linear {
         }
         ensure_shape(&mut self.grad_input, n, self.in_dim);
         let wt = MatRef::from_column_major_slice(&self.weight.value, self.in_dim, self.out_dim);
-        matmul(self.grad_input.as_mut(), Accum::Replace, grad_out, wt.transpose(), 1.0, Par::Seq);
+        matmul(self.grad_input.as_mut(), Accum::Replace, grad_out, wt.transpose(), 1.0);
         self.grad_input.as_ref()
     }
 }

@@ -9,9 +9,9 @@
 
 use std::ops::Range;
 
-use faer::linalg::matmul::matmul;
-use faer::{Accum, Mat, MatMut, MatRef, Par};
+use faer::{Accum, Mat, MatMut, MatRef};
 use vdd_core::gaussian::exp_fast;
+use vdd_nn::matmul;
 
 use super::conv::ensure;
 use super::dispatch::avx2_dispatch;
@@ -35,7 +35,7 @@ pub(crate) fn affine_into(
         out.as_mut().col_mut(j).fill(b);
     }
     if x.nrows() > 0 && x.ncols() > 0 {
-        matmul(out, Accum::Add, x, wt, 1.0, Par::Seq);
+        matmul(out, Accum::Add, x, wt, 1.0);
     }
 }
 
@@ -57,7 +57,7 @@ pub(crate) fn linear_add(lin: &Linear, h: MatRef<'_, f32>, x: &mut Mat<f32>) {
         x.col_as_slice_mut(j).iter_mut().for_each(|v| *v += b);
     }
     if h.nrows() > 0 && h.ncols() > 0 {
-        matmul(x.as_mut(), Accum::Add, h, lin.weight_t(), 1.0, Par::Seq);
+        matmul(x.as_mut(), Accum::Add, h, lin.weight_t(), 1.0);
     }
 }
 

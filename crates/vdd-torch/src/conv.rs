@@ -6,8 +6,8 @@
 //! column is contiguous, so im2col copies contiguous runs and a skip connection's channel
 //! concatenation is a column range.
 
-use faer::linalg::matmul::matmul;
-use faer::{Accum, Mat, MatRef, Par};
+use faer::{Accum, Mat, MatRef};
+use vdd_nn::matmul;
 
 use vdd_nn::{NnError, Param, Parameters, join_name};
 
@@ -161,7 +161,7 @@ impl Conv1d {
         let k_in = self.in_ch * self.kernel;
         let wt = MatRef::from_column_major_slice(&self.weight.value, k_in, self.out_ch);
         if self.kernel == 1 && self.stride == 1 && self.padding == 0 {
-            matmul(self.out.as_mut(), Accum::Add, x, wt, 1.0, Par::Seq);
+            matmul(self.out.as_mut(), Accum::Add, x, wt, 1.0);
             return Ok(&mut self.out);
         }
         // im2col and product a chunk of whole samples at a time, so the columns stay in cache;
@@ -201,7 +201,7 @@ impl Conv1d {
                 }
             }
             let out = self.out.as_mut().subrows_mut(or, orows);
-            matmul(out, Accum::Add, self.cols.as_ref().subrows(0, orows), wt, 1.0, Par::Seq);
+            matmul(out, Accum::Add, self.cols.as_ref().subrows(0, orows), wt, 1.0);
         }
         Ok(&mut self.out)
     }
@@ -333,7 +333,7 @@ impl ConvTranspose1d {
         let ok = self.out_ch * self.kernel;
         ensure(&mut self.z, x.nrows(), ok);
         let w = MatRef::from_row_major_slice(&self.weight.value, self.in_ch, ok);
-        matmul(self.z.as_mut(), Accum::Replace, x, w, 1.0, Par::Seq);
+        matmul(self.z.as_mut(), Accum::Replace, x, w, 1.0);
         ensure(&mut self.out, batch * out_len, self.out_ch);
         let (s, p) = (self.stride as isize, self.padding as isize);
         for co in 0..self.out_ch {

@@ -1,8 +1,8 @@
 //! Row-major forward kernels shared by the imported networks (the transformers' token-column
 //! kernels are in `cols`).
 
-use faer::linalg::matmul::matmul;
-use faer::{Accum, MatMut, MatRef, Par};
+use faer::{Accum, MatMut, MatRef};
+use vdd_nn::matmul;
 
 use vdd_nn::{Linear, Module as _};
 
@@ -20,7 +20,7 @@ pub(crate) fn affine_rows(lin: &Linear, x: &[f32], rows: usize, out: &mut Vec<f3
     }
     let xv = MatRef::from_row_major_slice(x, rows, k);
     let yv = MatMut::from_row_major_slice_mut(out.as_mut_slice(), rows, m);
-    matmul(yv, Accum::Add, xv, lin.weight_t(), 1.0, Par::Seq);
+    matmul(yv, Accum::Add, xv, lin.weight_t(), 1.0);
 }
 
 /// PyTorch's exact (erf) GELU, `x Φ(x)`, branch-free in `f32`: erf by Abramowitz–Stegun

@@ -2,9 +2,9 @@
 //! `model_style: true`, i.e. a `ResidualMLPNetwork` (`networks/mlps/mlps.py`) over
 //! `[state, action, (goal,) embed(ln σ / 4)]`, applied to each time step of a window alike.
 
-use faer::linalg::matmul::matmul;
-use faer::{Accum, Mat, MatMut, MatRef, Par};
+use faer::{Accum, Mat, MatMut, MatRef};
 use serde::{Deserialize, Serialize};
+use vdd_nn::matmul;
 
 use super::cols::{Act, activate, affine, affine_into, layer_norm, linear, linear_add};
 use super::conv::ensure;
@@ -295,7 +295,7 @@ impl ResMlpScore {
             for (m, w, at) in parts {
                 if let Some(m) = m.filter(|_| w > 0) {
                     let (x, wp) = (m.subcols(k * w, w), wt.subrows(at, w));
-                    matmul(block.as_mut(), Accum::Add, x, wp, 1.0, Par::Seq);
+                    matmul(block.as_mut(), Accum::Add, x, wp, 1.0);
                 }
             }
         }

@@ -6,9 +6,9 @@
 //! [`crate::Conv1d`]; the network's input and output are `(batch · horizon) × input_dim`,
 //! row `b · horizon + t` holding PyTorch's `x[b, t, :]`.
 
-use faer::linalg::matmul::matmul;
-use faer::{Accum, Mat, MatRef, Par};
+use faer::{Accum, Mat, MatRef};
 use serde::{Deserialize, Serialize};
+use vdd_nn::matmul;
 
 use super::conv::{Conv1d, ConvTranspose1d, ensure};
 use super::flush::{FlushSubnormals, flush_subnormal};
@@ -146,7 +146,7 @@ impl Dense {
             self.out.col_as_slice_mut(j).fill(b);
         }
         let wt = MatRef::from_column_major_slice(&self.weight.value, cin, cout);
-        matmul(self.out.as_mut(), Accum::Add, x, wt, 1.0, Par::Seq);
+        matmul(self.out.as_mut(), Accum::Add, x, wt, 1.0);
         self.out.as_ref()
     }
 

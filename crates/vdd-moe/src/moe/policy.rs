@@ -191,13 +191,12 @@ impl<E: Expert> Moe<E> {
                 }
                 Source::Trunk(hidden, layer) => {
                     raw.copy_from_slice(&layer.bias.value[e * r..(e + 1) * r]);
-                    faer::linalg::matmul::matmul(
+                    vdd_nn::matmul(
                         faer::MatMut::from_row_major_slice_mut(raw, 1, r),
                         faer::Accum::Add,
                         hidden.subrows(b, 1),
                         layer.weight_t().subcols(e * r, r),
                         1.0,
-                        faer::Par::Seq,
                     );
                 }
                 Source::Nets(nets) => {
