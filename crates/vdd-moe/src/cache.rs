@@ -13,8 +13,10 @@ use crate::{Moe, MoeError};
 
 /// The version of the student cache's key and files, part of every key (the key's
 /// `"version"`): raise it when the training code or the file format changes what a cached
-/// student would be (every student is then retrained once).
-pub const STUDENT_CACHE_VERSION: u32 = 1;
+/// student would be (every student is then retrained once). Version 2: acting on one
+/// observation rounds differently since the fused row kernel, so a student distilled on the
+/// states it visits is another student.
+pub const STUDENT_CACHE_VERSION: u32 = 2;
 
 /// Largest sidecar read (its training curves included; a real one has a few hundred KB).
 pub const MAX_SIDECAR_BYTES: u64 = 1 << 30;
