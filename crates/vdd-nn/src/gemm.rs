@@ -42,9 +42,9 @@ pub fn matmul(
 }
 
 /// Clears the upper halves of the AVX registers (`vzeroupper`) where the CPU has AVX; a no-op
-/// elsewhere. Call it after foreign SIMD code that leaves them set, before scalar code.
+/// elsewhere.
 #[inline]
-pub fn clear_upper_avx() {
+fn clear_upper_avx() {
     #[cfg(target_arch = "x86_64")]
     if std::arch::is_x86_feature_detected!("avx") {
         // SAFETY: the CPU supports AVX, checked just above.

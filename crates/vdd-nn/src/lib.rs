@@ -37,7 +37,7 @@ pub use embedding::{
     FourierFeatures, SinusoidalEmbedding, concat_cols, concat_cols_into, split_cols,
 };
 pub use error::NnError;
-pub use gemm::{clear_upper_avx, matmul};
+pub use gemm::matmul;
 pub use linear::Linear;
 pub use mlp::{Mlp, MlpConfig, ResidualBlock, ResidualMlp, ResidualMlpConfig};
 pub use module::{Module, forward_as};
