@@ -209,21 +209,11 @@ fn every_matrix_product_goes_through_vdd_nn_matmul() {
 /// over the methods' trained policies is `vdd_lab::policy::TrainedPolicy`).
 #[test]
 fn xtask_implements_no_teacher_expert_or_policy() {
-    let mut hits = Vec::new();
-    for f in rust_files(&root().join("xtask/src")) {
-        let text = std::fs::read_to_string(&f).expect("readable source");
-        for (i, line) in text.lines().enumerate() {
-            let l = line.trim_start();
-            if !l.starts_with("impl") {
-                continue;
-            }
-            let core_trait = ["ScoreModel for", "Expert for"].iter().any(|t| l.contains(t));
-            let policy = l.contains("Policy for");
-            if core_trait || policy {
-                hits.push(format!("{}:{}: {}", f.display(), i + 1, l));
-            }
-        }
-    }
+    let hits = code_lines_where(&[root().join("xtask/src")], None, |code| {
+        let l = code.trim_start();
+        l.starts_with("impl")
+            && ["ScoreModel for", "Expert for", "Policy for"].iter().any(|t| l.contains(t))
+    });
     assert!(hits.is_empty(), "xtask wires crates and implements none of their traits: {hits:#?}");
 }
 
