@@ -359,6 +359,35 @@ fn an_outside_method_and_task_run_through_the_driver() {
     let resolved = std::fs::read_to_string(out.join("resolved.toml")).unwrap();
     assert!(resolved.contains("[baselines.bc]"), "{resolved}");
 
+    // Every finished training is kept; `--resume` loads it instead of training again (a
+    // sentinel written into the kept seconds comes back), with the same evaluation.
+    let sidecar = out.join("trained").join("bc-s0.json");
+    let text = std::fs::read_to_string(&sidecar).unwrap_or_else(|e| panic!("{e}"));
+    let mut kept: Value = serde_json::from_str(&text).unwrap();
+    kept["train_seconds"] = json!(12345.0);
+    std::fs::write(&sidecar, kept.to_string()).unwrap();
+    let again = |resume: bool| {
+        let recipe = dir.join("line-test.toml");
+        let request = Request {
+            recipe: recipe.to_str().unwrap().to_owned(),
+            out: Some(out.clone()),
+            root: Some(dir.clone()),
+            resume,
+            ..Default::default()
+        };
+        run_with(&registry, &request).unwrap_or_else(|e| panic!("{e}"));
+        let m = std::fs::read_to_string(out.join("metrics.json")).unwrap();
+        serde_json::from_str::<Value>(&m).unwrap()["methods"]["bc"].clone()
+    };
+    let resumed = again(true);
+    assert_eq!(resumed["per_seed"][0]["train_seconds"], json!(12345.0), "{resumed}");
+    assert_ne!(resumed["per_seed"][1]["train_seconds"], json!(12345.0), "{resumed}");
+    assert_eq!(resumed["mse"], bc["mse"], "{resumed}");
+    // Without `--resume` every training runs again.
+    let fresh = again(false);
+    assert_ne!(fresh["per_seed"][0]["train_seconds"], json!(12345.0), "{fresh}");
+    assert_eq!(fresh["mse"], bc["mse"], "{fresh}");
+
     // The evaluation tells a wrong policy from the fitted one: E[(2s)²] = 4/3.
     let zero = line_mse(&mut Zero, 200, 0).unwrap();
     assert!(zero > 1.0 && zero > 20.0 * mse, "zero policy {zero}, bc {mse}");

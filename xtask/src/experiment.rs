@@ -41,8 +41,9 @@ pub struct ExperimentArgs {
     /// Retrain cached teachers and students.
     #[arg(long)]
     pub fresh: bool,
-    /// Continue a killed run in the same directory from its checkpoints (VDD distillations
-    /// checkpoint to `<run>/checkpoints/`); the results equal an uninterrupted run's.
+    /// Continue a killed run in the same directory: load its finished trainings
+    /// (`<run>/trained/`, kept by the same build) and continue the VDD distillations under way
+    /// from their checkpoints (`<run>/checkpoints/`); the results equal an uninterrupted run's.
     #[arg(long)]
     pub resume: bool,
     /// A tuning run: the tuning seeds (100–104 unless --seeds says which) and their own

@@ -26,7 +26,8 @@ pub struct RunContext {
     pub out: Option<PathBuf>,
     /// `--fresh`: retrain cached teachers and students.
     pub fresh: bool,
-    /// `--resume`: continue from the run directory's checkpoints.
+    /// `--resume`: load the run directory's finished trainings ([`crate::finished`]) and
+    /// continue the VDD trainings under way from their checkpoints.
     pub resume: bool,
     /// The teacher cache directory.
     pub cache_dir: PathBuf,

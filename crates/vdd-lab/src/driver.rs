@@ -300,6 +300,7 @@ pub fn train_all<R: TaskRecipe, P: AsRef<TrainingData> + Sync>(
         Method((usize, usize), Box<Trained>),
     }
     let ck = ctx.run_dir(seeds).join("checkpoints");
+    let finished = crate::finished::dir(&ctx.run_dir(seeds));
     let run_job = |w: &Work, store: &TeacherStore| -> Result<Done, String> {
         let (si, pi) = match *w {
             Work::Teacher(i) => (teacher_jobs[i].2, teacher_jobs[i].3),
@@ -315,6 +316,16 @@ pub fn train_all<R: TaskRecipe, P: AsRef<TrainingData> + Sync>(
             return Ok(Done::Teacher(i, Box::new(t.map_err(|e| e.to_string())?)));
         }
         let label = format!("{} s{seed}", e.label);
+        let config = toml::to_string(&e.tree).map_err(|err| format!("{label}: {err}"))?;
+        let file_hash = e.loaded.as_deref().map(|l| l.hash.as_str());
+        let key = crate::finished::TrainingKey::new(&config, &e.label, seed, file_hash);
+        if ctx.resume {
+            let kept = crate::finished::load(&finished, &e.label, seed, &key);
+            if let Some(t) = kept.map_err(|err| format!("{label}: {err}"))? {
+                crate::progress::print(format!("{label}: finished before, loaded (--resume)"));
+                return Ok(Done::Method((si, pi), Box::new(t)));
+            }
+        }
         let teacher = e.teacher_kind().map(|kind| store.get(kind, cfg, d, seed));
         let teacher = teacher.transpose().map_err(|e| e.to_string())?;
         let checkpoints = (ck.as_path(), ctx.resume);
@@ -335,6 +346,8 @@ pub fn train_all<R: TaskRecipe, P: AsRef<TrainingData> + Sync>(
             visits,
         };
         let t = e.row.method.train(&job).map_err(|e| format!("{label}: {e}"))?;
+        let keep = crate::finished::store(&finished, &e.label, seed, &key, &t);
+        keep.map_err(|err| format!("{label}: keeping the training: {err}"))?;
         Ok(Done::Method((si, pi), Box::new(t)))
     };
     let mut out = Trainings { trained: HashMap::new(), teachers: TeacherStore::default() };

@@ -42,6 +42,7 @@ pub mod context;
 pub mod driver;
 mod error;
 pub mod experiment;
+pub mod finished;
 pub mod method;
 pub mod methods;
 pub mod plots;
