@@ -72,9 +72,19 @@ impl RunContext {
     }
 
     /// Removes the run directory [`RunContext::write_resolved`] created, if any: a failed run
-    /// leaves nothing behind (another run's directory, or one that existed, stays).
+    /// leaves nothing behind (another run's directory, or one that existed, stays). A run that
+    /// finished trainings before it failed keeps its directory, so that `--resume` goes on from
+    /// them ([`crate::finished`]); the message says so.
     pub fn remove_created_run_dir(&self) {
         if let Some(dir) = self.created.lock().unwrap_or_else(|e| e.into_inner()).take() {
+            let kept = std::fs::read_dir(crate::finished::dir(&dir)).map_or(0, |d| d.count());
+            if kept > 0 {
+                crate::progress::print(format!(
+                    "{} kept: it holds finished trainings; `--resume` goes on from them",
+                    dir.display()
+                ));
+                return;
+            }
             let _ = std::fs::remove_dir_all(dir);
         }
     }
@@ -191,3 +201,44 @@ pub fn check_run_dir(dir: &Path, recipe: &str) -> crate::Result {
 pub use vdd_core::parallel::parallel_map;
 pub use vdd_recipe::run::run_name;
 pub use vdd_report::timing::{StageTimes, cpu_seconds};
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn context(dir: &Path) -> RunContext {
+        RunContext {
+            name: "toy-gmm".into(),
+            file: Table::new(),
+            overrides: Overrides::default(),
+            out: Some(dir.to_owned()),
+            fresh: false,
+            resume: false,
+            cache_dir: dir.join("cache"),
+            student_cache_dir: dir.join("students"),
+            command: String::new(),
+            started: Instant::now(),
+            registry: crate::Registry::builtin(),
+            root: dir.to_owned(),
+            created: Default::default(),
+        }
+    }
+
+    #[test]
+    fn a_failed_run_removes_its_directory_unless_it_finished_trainings() {
+        let dir = std::env::temp_dir().join(format!("vdd-lab-failed-run-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&dir);
+        let ctx = context(&dir);
+        ctx.write_resolved(&dir, "").unwrap();
+        ctx.remove_created_run_dir();
+        assert!(!dir.exists(), "nothing finished: removed");
+
+        let ctx = context(&dir);
+        ctx.write_resolved(&dir, "").unwrap();
+        std::fs::create_dir_all(crate::finished::dir(&dir)).unwrap();
+        std::fs::write(crate::finished::dir(&dir).join("em-s0.json"), "{}").unwrap();
+        ctx.remove_created_run_dir();
+        assert!(dir.join("trained").join("em-s0.json").is_file(), "a finished training: kept");
+        std::fs::remove_dir_all(&dir).unwrap();
+    }
+}
