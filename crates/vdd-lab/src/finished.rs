@@ -23,6 +23,8 @@ use vdd_diffusion::DiffusionTeacher;
 use vdd_moe::Moe;
 use vdd_report::budget::{Budget, BudgetRole};
 
+use vdd_core::Policy;
+
 use crate::method::Trained;
 use crate::policy::TrainedPolicy;
 
@@ -147,7 +149,8 @@ pub fn store(
 
 /// The training kept under `dir` for `label` on `seed` if its key is `key`; `None` when there
 /// is none, its sidecar does not parse or its key differs (it is trained again). Weights that a
-/// matching sidecar names but that do not load are an error naming the file.
+/// matching sidecar names but that do not load, or a deployment spec that does not fit the
+/// policy, are an error naming the file.
 pub fn load(
     dir: &Path,
     label: &str,
@@ -175,6 +178,11 @@ pub fn load(
             TrainedPolicy::Trajectory(Box::new(TrajectoryModel::load(&weights, seed)?))
         }
     };
+    if let Some(spec) = &side.deploy {
+        let bad = |e: vdd_data::DataError| format!("{}: key `deploy`: {e}", sidecar.display());
+        spec.validate().map_err(bad)?;
+        spec.check_policy_dims(policy.obs_dim(), policy.action_dim()).map_err(bad)?;
+    }
     let budget = side.budget.map(|(steps, batch, student, prefit)| {
         let b = if student { Budget::student(steps, batch) } else { Budget::teacher(steps, batch) };
         b.with_prefit(prefit)
@@ -229,7 +237,6 @@ mod tests {
         assert_eq!(back.budget, t.budget);
         assert_eq!(back.curves, t.curves);
         let (mut a, mut b) = (t.policy.clone(), back.policy);
-        use vdd_core::Policy;
         a.seed(9);
         b.seed(9);
         for _ in 0..4 {
@@ -255,6 +262,27 @@ mod tests {
         assert!(load(&dir, "em", 4, &key).unwrap().is_none(), "no files for seed 4");
         std::fs::write(dir.join("em-s3.json"), "{not json").unwrap();
         assert!(load(&dir, "em", 3, &key).unwrap().is_none());
+        std::fs::remove_dir_all(&dir).unwrap();
+    }
+
+    #[test]
+    fn a_kept_deployment_that_does_not_fit_the_policy_is_an_error_naming_the_key() {
+        let dir = temp("bad-deploy");
+        let key = TrainingKey::new("a = 1", "em", 3, None);
+        let mut t = trained();
+        t.deploy = Some(DeploySpec { obs_window: 2, ..DeploySpec::identity() });
+        store(&dir, "em", 3, &key, &t).unwrap();
+        // The toy mixture sees 2 numbers: a window of 2 observations of 1.
+        assert!(load(&dir, "em", 3, &key).unwrap().is_some());
+        let sidecar = dir.join("em-s3.json");
+        for window in [3, 0] {
+            let text = std::fs::read_to_string(&sidecar).unwrap();
+            let mut side: serde_json::Value = serde_json::from_str(&text).unwrap();
+            side["deploy"]["obs_window"] = serde_json::json!(window);
+            std::fs::write(&sidecar, side.to_string()).unwrap();
+            let e = load(&dir, "em", 3, &key).err().expect("an error").to_string();
+            assert!(e.contains("em-s3.json") && e.contains("obs_window"), "{e}");
+        }
         std::fs::remove_dir_all(&dir).unwrap();
     }
 
