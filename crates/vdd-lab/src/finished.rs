@@ -120,12 +120,13 @@ pub fn store(
         _ => {}
     }
     let kind = match &trained.policy {
-        TrainedPolicy::Moe(m) => m.save(&weights).map(|_| Kind::Moe)?,
-        TrainedPolicy::Teacher(t) => t.save(&weights).map(|_| Kind::Teacher)?,
-        TrainedPolicy::Consistency(m) => m.save(&weights).map(|_| Kind::Consistency)?,
-        TrainedPolicy::Trajectory(m) => m.save(&weights).map(|_| Kind::Trajectory)?,
+        TrainedPolicy::Moe(_) => Kind::Moe,
+        TrainedPolicy::Teacher(_) => Kind::Teacher,
+        TrainedPolicy::Consistency(_) => Kind::Consistency,
+        TrainedPolicy::Trajectory(_) => Kind::Trajectory,
         TrainedPolicy::Other(_) => return Ok(false),
     };
+    trained.policy.save(&weights)?;
     let finite = |x: f64| x.is_finite().then_some(x);
     let side = Sidecar {
         key: key.0.clone(),

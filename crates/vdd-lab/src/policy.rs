@@ -63,6 +63,23 @@ impl Clone for Box<dyn AnyPolicy> {
     }
 }
 
+impl TrainedPolicy {
+    /// Saves the policy to one `safetensors` file with its deployment: a mixture, a diffusion
+    /// teacher or a consistency or trajectory model (each type's own `save`, read back by its
+    /// `load`); `Ok(false)` for a policy of another type ([`TrainedPolicy::Other`]), which is
+    /// not saved.
+    pub fn save(&self, path: &std::path::Path) -> crate::Result<bool> {
+        match self {
+            TrainedPolicy::Moe(moe) => moe.save(path)?,
+            TrainedPolicy::Teacher(t) => t.save(path)?,
+            TrainedPolicy::Consistency(m) => m.save(path)?,
+            TrainedPolicy::Trajectory(m) => m.save(path)?,
+            TrainedPolicy::Other(_) => return Ok(false),
+        }
+        Ok(true)
+    }
+}
+
 macro_rules! each {
     ($self:expr, $p:ident => $e:expr) => {
         match $self {

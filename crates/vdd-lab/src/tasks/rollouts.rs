@@ -404,18 +404,12 @@ pub(crate) fn deploy(
 /// give a policy on raw observations); a policy of another type ([`TrainedPolicy::Other`]) is
 /// not saved.
 pub(crate) fn save_model(trained: &Trained, dir: &Path, label: &str, seed: u64) -> crate::Result {
-    let path = |dir: &Path| -> crate::Result<std::path::PathBuf> {
-        let models = dir.join("models");
-        std::fs::create_dir_all(&models)?;
-        Ok(models.join(format!("{label}-s{seed}.safetensors")))
-    };
-    match &trained.policy {
-        TrainedPolicy::Moe(moe) => moe.save(&path(dir)?)?,
-        TrainedPolicy::Teacher(t) => t.save(&path(dir)?)?,
-        TrainedPolicy::Consistency(m) => m.save(&path(dir)?)?,
-        TrainedPolicy::Trajectory(m) => m.save(&path(dir)?)?,
-        TrainedPolicy::Other(_) => {}
+    if matches!(trained.policy, TrainedPolicy::Other(_)) {
+        return Ok(());
     }
+    let models = dir.join("models");
+    std::fs::create_dir_all(&models)?;
+    trained.policy.save(&models.join(format!("{label}-s{seed}.safetensors")))?;
     Ok(())
 }
 
