@@ -299,8 +299,8 @@ pub fn train_all<R: TaskRecipe, P: AsRef<TrainingData> + Sync>(
         Teacher(usize, Box<TrainedTeacher>),
         Method((usize, usize), Box<Trained>),
     }
-    let ck = ctx.run_dir(seeds).join("checkpoints");
-    let finished = crate::finished::dir(&ctx.run_dir(seeds));
+    let run_dir = ctx.run_dir(seeds);
+    let (ck, finished) = (run_dir.join("checkpoints"), crate::finished::dir(&run_dir));
     let run_job = |w: &Work, store: &TeacherStore| -> Result<Done, String> {
         let (si, pi) = match *w {
             Work::Teacher(i) => (teacher_jobs[i].2, teacher_jobs[i].3),
