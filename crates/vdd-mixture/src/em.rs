@@ -257,7 +257,7 @@ impl<E: Expert> Em<E> {
         fit::gather_rows(self.fit.data.actions(), rows, &mut actions);
         let subset = Dataset::new(states, actions)?;
         let mut resp = vec![0.0; rows.len() * z_n];
-        let ll = fit::evaluate_dataset(&mut self.fit.student, &subset, None, Some(&mut resp))?;
+        let ll = self.fit.evaluate_on(&subset, &mut resp)?;
         for (b, &o) in rows.iter().enumerate() {
             self.resp[o * z_n..(o + 1) * z_n].copy_from_slice(&resp[b * z_n..(b + 1) * z_n]);
         }

@@ -32,10 +32,15 @@ use vdd_core::gaussian::{self, solve_lower_in_place, solve_upper_t_in_place};
 use vdd_core::{CoreError, Expert, Rng, Seeds, check_finite_slice, check_len, check_shape};
 use vdd_moe::step::{clip_or_fail, soft_cross_entropy};
 use vdd_moe::{Moe, MoeOutput};
+use vdd_nn::parallel::Workers;
 use vdd_nn::{Adam, AdamConfig, LrSchedule, Parameters};
 
 use crate::dataset::Dataset;
 use crate::error::MixtureError;
+
+mod eval;
+pub use eval::evaluate_dataset;
+pub(crate) use eval::{ParallelEval, for_each_pair};
 
 /// Rows per forward pass when a whole dataset is evaluated.
 pub const EVAL_CHUNK: usize = 2048;
@@ -193,71 +198,6 @@ pub(crate) fn weighted_unit_nll_gradients<E: Expert>(
         }
     }
     Ok(loss)
-}
-
-/// Evaluates the mixture on every pair of `data` (in chunks of [`EVAL_CHUNK`] rows) and returns
-/// the mean log-likelihood `(1/n) Σ_o log q(a_o|s_o)`.
-///
-/// Optionally writes the experts' log-likelihoods `log N(a_o; μ_z(s_o), Σ_z(s_o))` into
-/// `expert_log_lik` and the responsibilities `q(z|a_o, s_o)` into `responsibilities` (both
-/// `n·Z`, row-major).
-pub fn evaluate_dataset<E: Expert>(
-    student: &mut Moe<E>,
-    data: &Dataset,
-    mut expert_log_lik: Option<&mut [f32]>,
-    mut responsibilities: Option<&mut [f32]>,
-) -> Result<f64, MixtureError> {
-    let (n, z_n, d) = (data.len(), student.num_experts(), student.config().action_dim);
-    data.check_dims(student.config().state_dim, d)?;
-    if let Some(e) = expert_log_lik.as_deref() {
-        check_len("expert log-likelihood output", e.len(), n * z_n)?;
-    }
-    if let Some(r) = responsibilities.as_deref() {
-        check_len("responsibilities output", r.len(), n * z_n)?;
-    }
-    let (mut a, mut work, mut row) = (vec![0.0f32; d], vec![0.0f32; d], vec![0.0f32; z_n]);
-    let actions = data.actions();
-    for_each_pair(student, data, |o, out, b| {
-        for j in 0..d {
-            a[j] = actions[(o, j)];
-        }
-        let lg = out.log_gating_row(b);
-        for k in 0..z_n {
-            let ll = gaussian::log_density(&a, out.mean(b, k), out.scale(b, k), &mut work);
-            if let Some(e) = expert_log_lik.as_deref_mut() {
-                e[o * z_n + k] = ll;
-            }
-            row[k] = lg[k] + ll;
-        }
-        let log_q = gaussian::softmax_in_place(&mut row);
-        if let Some(r) = responsibilities.as_deref_mut() {
-            r[o * z_n..(o + 1) * z_n].copy_from_slice(&row);
-        }
-        log_q
-    })
-}
-
-/// Runs the mixture on the states of `data` in chunks of [`EVAL_CHUNK`] rows and calls
-/// `f(o, output, b)` for every pair `o` (row `b` of the chunk's output), in order; returns the
-/// mean of `f`'s values (summed in `f64`).
-pub(crate) fn for_each_pair<E: Expert>(
-    student: &mut Moe<E>,
-    data: &Dataset,
-    mut f: impl FnMut(usize, &MoeOutput, usize) -> f32,
-) -> Result<f64, MixtureError> {
-    let n = data.len();
-    let mut sum = 0.0f64;
-    let mut start = 0;
-    while start < n {
-        let len = EVAL_CHUNK.min(n - start);
-        student.forward(data.states().subrows(start, len))?;
-        let out = student.output();
-        for b in 0..len {
-            sum += f64::from(f(start + b, out, b));
-        }
-        start += len;
-    }
-    Ok(sum / n as f64)
 }
 
 /// Draws dataset row indices for minibatches: uniformly, or in proportion to weights.
@@ -596,6 +536,7 @@ pub(crate) struct MixtureFit<E: Expert> {
     row_weights: Vec<f32>,
     grad_logits: Mat<f32>,
     buf: FitBuffers,
+    eval: ParallelEval<E>,
     /// Expert steps score the experts as `N(μ_z, I)` ([`weighted_unit_nll_gradients`]).
     pub(crate) unit_variance: bool,
 }
@@ -627,19 +568,30 @@ impl<E: Expert> MixtureFit<E> {
             row_weights: Vec::new(),
             grad_logits: Mat::zeros(0, 0),
             buf: FitBuffers::default(),
+            eval: ParallelEval::new(Workers::default()),
             unit_variance: false,
             student,
             data,
         })
     }
 
-    /// [`evaluate_dataset`] of the mixture on the data.
+    /// [`evaluate_dataset`] of the mixture on the data, on the process-wide pool's threads
+    /// (the same bits as in one thread).
     pub(crate) fn evaluate(
         &mut self,
         expert_log_lik: Option<&mut [f32]>,
         responsibilities: Option<&mut [f32]>,
     ) -> Result<f64, MixtureError> {
-        evaluate_dataset(&mut self.student, &self.data, expert_log_lik, responsibilities)
+        self.eval.evaluate(&mut self.student, &self.data, expert_log_lik, responsibilities)
+    }
+
+    /// As [`MixtureFit::evaluate`] on other data (a subset of the rows).
+    pub(crate) fn evaluate_on(
+        &mut self,
+        data: &Dataset,
+        responsibilities: &mut [f32],
+    ) -> Result<f64, MixtureError> {
+        self.eval.evaluate(&mut self.student, data, None, Some(responsibilities))
     }
 
     /// The expert steps of the current iteration: `steps_per_iter` [`expert_step`]s, each on a

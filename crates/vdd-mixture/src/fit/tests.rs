@@ -3,7 +3,7 @@
 use super::*;
 use approx::assert_relative_eq;
 use vdd_core::Seeds;
-use vdd_moe::{DiagonalExpert, ExpertKind, FullExpert, GatingKind, MoeConfig};
+use vdd_moe::{DiagonalExpert, ExpertFamily, ExpertKind, FullExpert, GatingKind, MoeConfig};
 
 /// An output for `n` rows and `Z` experts decoded from given raw rows.
 fn output<E: Expert>(expert: &E, raw: &[f32], n: usize, z_n: usize) -> MoeOutput {
@@ -188,4 +188,80 @@ fn dataset_evaluation_matches_the_policy_likelihood() {
         let joint: Vec<f32> = (0..3).map(|z| lg[z] + ell[o * 3 + z]).collect();
         assert_relative_eq!(gaussian::log_sum_exp(&joint), ll[o], epsilon = 1e-4);
     }
+}
+
+/// A mixture with a learned gating and data of three whole blocks and a part.
+fn mixture_and_blocks() -> (Moe, Dataset) {
+    let mut mc = MoeConfig::toy(2, 2, 3);
+    mc.gating = GatingKind::Learned;
+    mc.experts_network.hidden_dim = 8;
+    mc.gating_network.hidden_dim = 8;
+    let moe = Moe::from_config(mc, 4).unwrap();
+    let n = 3 * EVAL_CHUNK + 5;
+    let states = Mat::from_fn(n, 2, |i, j| ((i * 7 + j) % 23) as f32 * 0.1 - 1.0);
+    let actions = Mat::from_fn(n, 2, |i, j| ((i * 3 + j) % 11) as f32 * 0.2 - 1.0);
+    (moe, Dataset::new(states, actions).unwrap())
+}
+
+/// `(mean, expert log-likelihoods, responsibilities)` of `evaluate`.
+type Evaluation = (f64, Vec<f32>, Vec<f32>);
+
+fn evaluate_with(
+    eval: &mut ParallelEval<ExpertFamily>,
+    moe: &mut Moe,
+    data: &Dataset,
+) -> Evaluation {
+    let len = data.len() * moe.num_experts();
+    let (mut ell, mut resp) = (vec![0.0; len], vec![0.0; len]);
+    let mean = eval.evaluate(moe, data, Some(&mut ell), Some(&mut resp)).unwrap();
+    (mean, ell, resp)
+}
+
+#[test]
+fn parallel_evaluation_gives_the_bits_of_one_thread() {
+    let (mut moe, data) = mixture_and_blocks();
+    let len = data.len() * 3;
+    let (mut ell, mut resp) = (vec![0.0; len], vec![0.0; len]);
+    let mean = evaluate_dataset(&mut moe, &data, Some(&mut ell), Some(&mut resp)).unwrap();
+    let one = (mean, ell, resp);
+    for threads in [2, 3, 5] {
+        let mut eval = ParallelEval::new(vdd_nn::parallel::Workers::new(threads).unwrap());
+        let got = evaluate_with(&mut eval, &mut moe, &data);
+        assert_eq!(got.0.to_bits(), one.0.to_bits(), "{threads} threads");
+        assert_eq!(got.1, one.1, "{threads} threads");
+        assert_eq!(got.2, one.2, "{threads} threads");
+        // Without outputs: the same mean.
+        let mean = eval.evaluate(&mut moe, &data, None, None).unwrap();
+        assert_eq!(mean.to_bits(), one.0.to_bits());
+    }
+}
+
+#[test]
+fn parallel_evaluation_follows_the_mixture_between_calls() {
+    let (mut moe, data) = mixture_and_blocks();
+    let mut eval = ParallelEval::new(vdd_nn::parallel::Workers::new(2).unwrap());
+    let before = evaluate_with(&mut eval, &mut moe, &data);
+    // New parameter values: the replicas take them.
+    moe.visit_params_mut("", &mut |_, p| p.value.iter_mut().for_each(|v| *v *= 1.5));
+    let after = evaluate_with(&mut eval, &mut moe, &data);
+    let mut single = ParallelEval::new(vdd_nn::parallel::Workers::inline());
+    assert_eq!(after, evaluate_with(&mut single, &mut moe, &data));
+    assert_ne!(after.0, before.0);
+    // Another configuration (a uniform gating has no gating network): new replicas.
+    let mut uniform = moe.config().clone();
+    uniform.gating = GatingKind::Uniform;
+    let mut moe = Moe::from_config(uniform, 4).unwrap();
+    assert_eq!(
+        evaluate_with(&mut eval, &mut moe, &data),
+        evaluate_with(&mut single, &mut moe, &data)
+    );
+}
+
+#[test]
+fn parallel_evaluation_checks_its_outputs() {
+    let (mut moe, data) = mixture_and_blocks();
+    let mut eval = ParallelEval::new(vdd_nn::parallel::Workers::new(2).unwrap());
+    let mut short = vec![0.0; 5];
+    assert!(eval.evaluate(&mut moe, &data, Some(&mut short), None).is_err());
+    assert!(eval.evaluate(&mut moe, &data, None, Some(&mut short)).is_err());
 }
