@@ -40,7 +40,7 @@ use crate::error::MixtureError;
 
 mod eval;
 pub use eval::evaluate_dataset;
-pub(crate) use eval::{ParallelEval, for_each_pair};
+pub(crate) use eval::{ParallelEval, Scoring};
 
 /// Rows per forward pass when a whole dataset is evaluated.
 pub const EVAL_CHUNK: usize = 2048;
@@ -582,7 +582,15 @@ impl<E: Expert> MixtureFit<E> {
         expert_log_lik: Option<&mut [f32]>,
         responsibilities: Option<&mut [f32]>,
     ) -> Result<f64, MixtureError> {
-        self.eval.evaluate(&mut self.student, &self.data, expert_log_lik, responsibilities)
+        let (ll, resp) = (expert_log_lik, responsibilities);
+        self.eval.evaluate(Scoring::Gaussian, &mut self.student, &self.data, ll, resp)
+    }
+
+    /// The authors' IMC's E-step: `ℓ_z(o) = −½‖a_o − μ_z(s_o)‖²` of every pair into `out_ll`
+    /// (`N·Z`); returns the mixture's mean log-likelihood with experts `N(μ_z, I)`.
+    pub(crate) fn evaluate_unit(&mut self, out_ll: &mut [f32]) -> Result<f64, MixtureError> {
+        let scoring = Scoring::UnitVariance;
+        self.eval.evaluate(scoring, &mut self.student, &self.data, Some(out_ll), None)
     }
 
     /// As [`MixtureFit::evaluate`] on other data (a subset of the rows).
@@ -591,7 +599,7 @@ impl<E: Expert> MixtureFit<E> {
         data: &Dataset,
         responsibilities: &mut [f32],
     ) -> Result<f64, MixtureError> {
-        self.eval.evaluate(&mut self.student, data, None, Some(responsibilities))
+        self.eval.evaluate(Scoring::Gaussian, &mut self.student, data, None, Some(responsibilities))
     }
 
     /// The expert steps of the current iteration: `steps_per_iter` [`expert_step`]s, each on a

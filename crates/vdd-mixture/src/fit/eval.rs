@@ -1,5 +1,5 @@
-//! Evaluating a mixture on every pair of a dataset: the E-step of EM and IMC and their
-//! log-likelihood metric. [`evaluate_dataset`] runs in the calling thread; [`ParallelEval`]
+//! Evaluating a mixture on every pair of a dataset: the E-step of EM and IMC (both variants)
+//! and their log-likelihood metric. [`evaluate_dataset`] runs in the calling thread; [`ParallelEval`]
 //! splits the same work over the cores with the same bits.
 //!
 //! Both run the mixture on blocks of [`EVAL_CHUNK`] rows that start at multiples of
@@ -11,7 +11,7 @@
 use std::ops::Range;
 
 use vdd_core::{Expert, check_len, gaussian};
-use vdd_moe::{Moe, MoeOutput};
+use vdd_moe::Moe;
 use vdd_nn::Parameters;
 use vdd_nn::parallel::{Workers, chunk_range, copy_values};
 
@@ -33,8 +33,19 @@ pub fn evaluate_dataset<E: Expert>(
 ) -> Result<f64, MixtureError> {
     check_outputs(student, data, expert_log_lik.as_deref(), responsibilities.as_deref())?;
     let mut log_q = vec![0.0f32; data.len()];
-    score_rows(student, data, 0..data.len(), expert_log_lik, responsibilities, &mut log_q)?;
+    let outputs = (expert_log_lik, responsibilities);
+    score_rows(Scoring::Gaussian, student, data, 0..data.len(), outputs, &mut log_q)?;
     Ok(mean_in_order(&log_q))
+}
+
+/// How the experts score a pair.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub(crate) enum Scoring {
+    /// `ℓ_z = log N(a; μ_z, Σ_z)` (EM, the paper's IMC).
+    Gaussian,
+    /// The authors' IMC: `ℓ_z = −½‖a − μ_z‖²`, and the mixture's log-likelihood with experts
+    /// `N(μ_z, I)`.
+    UnitVariance,
 }
 
 /// Checks the data's dimensions and the outputs' lengths against the mixture.
@@ -64,14 +75,16 @@ fn mean_in_order(xs: &[f32]) -> f64 {
 /// [`EVAL_CHUNK`] rows: each row's `log q(a|s)` into `log_q`, and optionally the experts'
 /// log-likelihoods and the responsibilities, all indexed from `rows.start`.
 fn score_rows<E: Expert>(
+    scoring: Scoring,
     student: &mut Moe<E>,
     data: &Dataset,
     rows: Range<usize>,
-    mut expert_log_lik: Option<&mut [f32]>,
-    mut responsibilities: Option<&mut [f32]>,
+    outputs: (Option<&mut [f32]>, Option<&mut [f32]>),
     log_q: &mut [f32],
 ) -> Result<(), MixtureError> {
+    let (mut expert_log_lik, mut responsibilities) = outputs;
     let (z_n, d) = (student.num_experts(), student.config().action_dim);
+    let constant = 0.5 * d as f32 * gaussian::LN_2PI;
     let (mut a, mut work, mut row) = (vec![0.0f32; d], vec![0.0f32; d], vec![0.0f32; z_n]);
     let actions = data.actions();
     let mut start = rows.start;
@@ -86,11 +99,23 @@ fn score_rows<E: Expert>(
             }
             let lg = out.log_gating_row(b);
             for k in 0..z_n {
-                let ll = gaussian::log_density(&a, out.mean(b, k), out.scale(b, k), &mut work);
+                let ll = match scoring {
+                    Scoring::Gaussian => {
+                        let ll =
+                            gaussian::log_density(&a, out.mean(b, k), out.scale(b, k), &mut work);
+                        row[k] = lg[k] + ll;
+                        ll
+                    }
+                    Scoring::UnitVariance => {
+                        let mean = out.mean(b, k);
+                        let sq: f32 = (0..d).map(|j| (a[j] - mean[j]).powi(2)).sum();
+                        row[k] = lg[k] - 0.5 * sq - constant;
+                        -0.5 * sq
+                    }
+                };
                 if let Some(e) = expert_log_lik.as_deref_mut() {
                     e[i * z_n + k] = ll;
                 }
-                row[k] = lg[k] + ll;
             }
             log_q[i] = gaussian::softmax_in_place(&mut row);
             if let Some(r) = responsibilities.as_deref_mut() {
@@ -128,10 +153,11 @@ impl<E: Expert> ParallelEval<E> {
         Self { workers, replicas: Vec::new(), flat: Vec::new(), log_q: Vec::new() }
     }
 
-    /// As [`evaluate_dataset`]; runs in the calling thread when there is one worker or one
-    /// block.
+    /// As [`evaluate_dataset`], with the experts' `scoring`; runs in the calling thread when
+    /// there is one worker or one block.
     pub(crate) fn evaluate(
         &mut self,
+        scoring: Scoring,
         student: &mut Moe<E>,
         data: &Dataset,
         mut expert_log_lik: Option<&mut [f32]>,
@@ -143,8 +169,8 @@ impl<E: Expert> ParallelEval<E> {
         let parts = self.workers.threads().min(blocks);
         self.log_q.resize(n, 0.0);
         if parts <= 1 {
-            let (ll, resp) = (expert_log_lik, responsibilities);
-            score_rows(student, data, 0..n, ll, resp, &mut self.log_q)?;
+            let outputs = (expert_log_lik, responsibilities);
+            score_rows(scoring, student, data, 0..n, outputs, &mut self.log_q)?;
             return Ok(mean_in_order(&self.log_q));
         }
         self.sync_replicas(student, parts);
@@ -166,8 +192,8 @@ impl<E: Expert> ParallelEval<E> {
             });
         }
         self.workers.for_each_mut(&mut shares, |_, s| {
-            let (ll, resp) = (s.expert_log_lik.as_deref_mut(), s.responsibilities.as_deref_mut());
-            s.result = score_rows(s.replica, data, s.rows.clone(), ll, resp, s.log_q);
+            let outputs = (s.expert_log_lik.as_deref_mut(), s.responsibilities.as_deref_mut());
+            s.result = score_rows(scoring, s.replica, data, s.rows.clone(), outputs, s.log_q);
         });
         for s in shares {
             s.result?;
@@ -197,27 +223,4 @@ fn take_rows<'a>(out: &mut Option<&'a mut [f32]>, len: usize) -> Option<&'a mut 
     let (head, tail) = rest.split_at_mut(len);
     *out = Some(tail);
     Some(head)
-}
-
-/// Runs the mixture on the states of `data` in chunks of [`EVAL_CHUNK`] rows and calls
-/// `f(o, output, b)` for every pair `o` (row `b` of the chunk's output), in order; returns the
-/// mean of `f`'s values (summed in `f64`).
-pub(crate) fn for_each_pair<E: Expert>(
-    student: &mut Moe<E>,
-    data: &Dataset,
-    mut f: impl FnMut(usize, &MoeOutput, usize) -> f32,
-) -> Result<f64, MixtureError> {
-    let n = data.len();
-    let mut sum = 0.0f64;
-    let mut start = 0;
-    while start < n {
-        let len = EVAL_CHUNK.min(n - start);
-        student.forward(data.states().subrows(start, len))?;
-        let out = student.output();
-        for b in 0..len {
-            sum += f64::from(f(start + b, out, b));
-        }
-        start += len;
-    }
-    Ok(sum / n as f64)
 }

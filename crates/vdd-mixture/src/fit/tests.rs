@@ -213,7 +213,8 @@ fn evaluate_with(
 ) -> Evaluation {
     let len = data.len() * moe.num_experts();
     let (mut ell, mut resp) = (vec![0.0; len], vec![0.0; len]);
-    let mean = eval.evaluate(moe, data, Some(&mut ell), Some(&mut resp)).unwrap();
+    let mean =
+        eval.evaluate(Scoring::Gaussian, moe, data, Some(&mut ell), Some(&mut resp)).unwrap();
     (mean, ell, resp)
 }
 
@@ -231,7 +232,7 @@ fn parallel_evaluation_gives_the_bits_of_one_thread() {
         assert_eq!(got.1, one.1, "{threads} threads");
         assert_eq!(got.2, one.2, "{threads} threads");
         // Without outputs: the same mean.
-        let mean = eval.evaluate(&mut moe, &data, None, None).unwrap();
+        let mean = eval.evaluate(Scoring::Gaussian, &mut moe, &data, None, None).unwrap();
         assert_eq!(mean.to_bits(), one.0.to_bits());
     }
 }
@@ -262,6 +263,38 @@ fn parallel_evaluation_checks_its_outputs() {
     let (mut moe, data) = mixture_and_blocks();
     let mut eval = ParallelEval::new(vdd_nn::parallel::Workers::new(2).unwrap());
     let mut short = vec![0.0; 5];
-    assert!(eval.evaluate(&mut moe, &data, Some(&mut short), None).is_err());
-    assert!(eval.evaluate(&mut moe, &data, None, Some(&mut short)).is_err());
+    assert!(eval.evaluate(Scoring::Gaussian, &mut moe, &data, Some(&mut short), None).is_err());
+    assert!(eval.evaluate(Scoring::Gaussian, &mut moe, &data, None, Some(&mut short)).is_err());
+}
+
+#[test]
+fn unit_variance_scoring_is_the_authors_and_the_same_in_parallel() {
+    let (mut moe, data) = mixture_and_blocks();
+    let len = data.len() * 3;
+    let mut outputs = Vec::new();
+    for workers in [vdd_nn::parallel::Workers::inline(), vdd_nn::parallel::Workers::new(2).unwrap()]
+    {
+        let mut eval = ParallelEval::new(workers);
+        let mut ell = vec![0.0; len];
+        let mean = eval.evaluate(Scoring::UnitVariance, &mut moe, &data, Some(&mut ell), None);
+        outputs.push((mean.unwrap(), ell));
+    }
+    assert_eq!(outputs[0], outputs[1]);
+    let (mean, ell) = &outputs[0];
+    // Row o, expert z: −½‖a − μ_z‖²; the mean is that of log Σ_z q(z|s) N(a; μ_z, I).
+    let o = data.len() - 1;
+    moe.forward(data.states().subrows(o, 1)).unwrap();
+    let out = moe.output();
+    let a = [data.actions()[(o, 0)], data.actions()[(o, 1)]];
+    for z in 0..3 {
+        let m = out.mean(0, z);
+        let want = -0.5 * ((a[0] - m[0]).powi(2) + (a[1] - m[1]).powi(2));
+        assert_relative_eq!(ell[o * 3 + z], want, epsilon = 1e-5);
+    }
+    let gaussian = eval_mean(&mut moe, &data);
+    assert!(mean.is_finite() && *mean != gaussian);
+}
+
+fn eval_mean(moe: &mut Moe, data: &Dataset) -> f64 {
+    evaluate_dataset(moe, data, None, None).unwrap()
 }

@@ -1,10 +1,8 @@
 //! One iteration of the authors' IMC ([`ImcVariant::Authors`]).
 
-use vdd_core::{Expert, gaussian};
-use vdd_moe::Moe;
+use vdd_core::Expert;
 
 use super::{Imc, ImcMetrics, ImcVariant, log_sum_exp};
-use crate::dataset::Dataset;
 use crate::error::MixtureError;
 use crate::fit;
 
@@ -18,8 +16,7 @@ impl<E: Expert> Imc<E> {
         let (n, z_n, eta) = (self.fit.data.len(), self.fit.student.num_experts(), self.config.eta);
 
         // 1. ℓ_z(o) = −½‖a_o − μ_z(s_o)‖² with the experts frozen.
-        let log_likelihood =
-            unit_log_likelihoods(&mut self.fit.student, &self.fit.data, &mut self.log_lik)?;
+        let log_likelihood = self.fit.evaluate_unit(&mut self.log_lik)?;
         if !log_likelihood.is_finite() || self.log_lik.iter().any(|x| !x.is_finite()) {
             return Err(MixtureError::NonFinite { iteration: it, quantity: "log-likelihood" });
         }
@@ -101,29 +98,4 @@ impl<E: Expert> Imc<E> {
             gating_lr,
         })
     }
-}
-
-/// Writes `ℓ_z(o) = −½‖a_o − μ_z(s_o)‖²` of every point and expert into `out_ll` (`N·Z`) and
-/// returns the mixture's mean log-likelihood with unit-variance experts and its gating.
-fn unit_log_likelihoods<E: Expert>(
-    student: &mut Moe<E>,
-    data: &Dataset,
-    out_ll: &mut [f32],
-) -> Result<f64, MixtureError> {
-    let (n, z_n, d) = (data.len(), student.num_experts(), student.config().action_dim);
-    data.check_dims(student.config().state_dim, d)?;
-    vdd_core::check_len("expert log-likelihood output", out_ll.len(), n * z_n)?;
-    let constant = 0.5 * d as f32 * gaussian::LN_2PI;
-    let actions = data.actions();
-    let mut row = vec![0.0f32; z_n];
-    fit::for_each_pair(student, data, |o, out, b| {
-        let lg = out.log_gating_row(b);
-        for k in 0..z_n {
-            let mean = out.mean(b, k);
-            let sq: f32 = (0..d).map(|j| (actions[(o, j)] - mean[j]).powi(2)).sum();
-            out_ll[o * z_n + k] = -0.5 * sq;
-            row[k] = lg[k] - 0.5 * sq - constant;
-        }
-        gaussian::softmax_in_place(&mut row)
-    })
 }
