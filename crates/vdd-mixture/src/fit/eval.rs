@@ -1,6 +1,6 @@
 //! Evaluating a mixture on every pair of a dataset: the E-step of EM and IMC (both variants)
-//! and their log-likelihood metric. [`evaluate_dataset`] runs in the calling thread; [`ParallelEval`]
-//! splits the same work over the cores with the same bits.
+//! and their log-likelihood metric. [`evaluate_dataset`] runs in the calling thread;
+//! [`ParallelEval`] splits the same work over the cores with the same bits.
 //!
 //! Both run the mixture on blocks of [`EVAL_CHUNK`] rows that start at multiples of
 //! [`EVAL_CHUNK`], score each row from its block's output, and sum the rows' log-likelihoods
