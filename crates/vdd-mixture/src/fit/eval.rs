@@ -201,7 +201,8 @@ impl<E: Expert> ParallelEval<E> {
         Ok(mean_in_order(&self.log_q))
     }
 
-    /// At least `parts` replicas with the mixture's configuration and parameter values.
+    /// At least `parts` replicas with the mixture's configuration; the first `parts` take its
+    /// parameter values (the rest are used only once a call needs them, and take them then).
     fn sync_replicas(&mut self, student: &Moe<E>, parts: usize) {
         let stale =
             |r: &Moe<E>| r.config() != student.config() || r.num_params() != student.num_params();
@@ -211,7 +212,7 @@ impl<E: Expert> ParallelEval<E> {
         while self.replicas.len() < parts {
             self.replicas.push(student.clone());
         }
-        for r in &mut self.replicas {
+        for r in self.replicas.iter_mut().take(parts) {
             copy_values(student, r, &mut self.flat);
         }
     }
