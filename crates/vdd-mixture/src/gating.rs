@@ -65,6 +65,27 @@ impl Default for GatingFitConfig {
     }
 }
 
+/// How far [`fit_gating_to_policy_with_progress`] has got.
+#[derive(Debug, Clone, Copy, PartialEq)]
+#[non_exhaustive]
+pub enum GatingFitProgress {
+    /// The teacher's samples are about to be drawn, `pairs` of them in one batch (a long call
+    /// with a slow teacher; nothing is reported until it returns).
+    Sampling {
+        /// State–sample pairs drawn.
+        pairs: usize,
+    },
+    /// An EM iteration of the fit is done.
+    Iteration {
+        /// 0-based index of the iteration.
+        iteration: usize,
+        /// Iterations of the fit ([`GatingFitConfig::iterations`]).
+        iterations: usize,
+        /// Mean log-likelihood of the teacher's samples at the iteration's E-step (nats).
+        log_likelihood: f64,
+    },
+}
+
 /// What [`fit_gating_to_policy`] did.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct GatingFitReport {
@@ -114,11 +135,53 @@ pub struct GatingFitReport {
 /// # Ok::<(), Box<dyn std::error::Error>>(())
 /// ```
 pub fn fit_gating_to_policy<E: Expert, P: Policy + ?Sized>(
+    student: Moe<E>,
+    network: NetworkConfig,
+    teacher: &mut P,
+    states: MatRef<'_, f32>,
+    config: &GatingFitConfig,
+) -> Result<(Moe<E>, GatingFitReport), MixtureError> {
+    fit_gating_to_policy_with_progress(student, network, teacher, states, config, |_| {})
+}
+
+/// [`fit_gating_to_policy`], telling `progress` where it is: once before the teacher's samples
+/// are drawn, then after every EM iteration. The fit is the same, bit for bit.
+///
+/// ```
+/// use faer::Mat;
+/// use vdd_core::{CoreError, Policy};
+/// use vdd_mixture::gating::{GatingFitConfig, GatingFitProgress, fit_gating_to_policy_with_progress};
+/// use vdd_moe::{Moe, MoeConfig, NetworkConfig};
+///
+/// struct One;
+/// impl Policy for One {
+///     fn obs_dim(&self) -> usize { 1 }
+///     fn action_dim(&self) -> usize { 1 }
+///     fn act_into(&mut self, _: &[f32], a: &mut [f32]) -> Result<(), CoreError> {
+///         a[0] = 1.0;
+///         Ok(())
+///     }
+/// }
+///
+/// let student = Moe::from_config(MoeConfig::toy(1, 1, 2), 0)?;
+/// let states = Mat::from_fn(16, 1, |i, _| i as f32 / 16.0);
+/// let fit = GatingFitConfig { iterations: 3, batch_size: 16, ..Default::default() };
+/// let mut seen = Vec::new();
+/// fit_gating_to_policy_with_progress(
+///     student, NetworkConfig::default(), &mut One, states.as_ref(), &fit, |p| seen.push(p),
+/// )?;
+/// assert_eq!(seen.len(), 4);
+/// assert!(matches!(seen[0], GatingFitProgress::Sampling { pairs: 64 }));
+/// assert!(matches!(seen[3], GatingFitProgress::Iteration { iteration: 2, iterations: 3, .. }));
+/// # Ok::<(), Box<dyn std::error::Error>>(())
+/// ```
+pub fn fit_gating_to_policy_with_progress<E: Expert, P: Policy + ?Sized>(
     mut student: Moe<E>,
     network: NetworkConfig,
     teacher: &mut P,
     states: MatRef<'_, f32>,
     config: &GatingFitConfig,
+    mut progress: impl FnMut(GatingFitProgress),
 ) -> Result<(Moe<E>, GatingFitReport), MixtureError> {
     let k = config.samples_per_state;
     if !(1..=MAX_SAMPLES_PER_STATE).contains(&k) {
@@ -162,6 +225,7 @@ pub fn fit_gating_to_policy<E: Expert, P: Policy + ?Sized>(
         }
     }
     let mut actions = Mat::zeros(pairs, da);
+    progress(GatingFitProgress::Sampling { pairs });
     teacher.seed(Seeds::new(config.seed).stream("gating-fit-teacher").random());
     teacher.act_batch(raw_states.as_ref(), actions.as_mut())?;
     let (sn, an) = student.normalizers();
@@ -196,7 +260,14 @@ pub fn fit_gating_to_policy<E: Expert, P: Policy + ?Sized>(
     };
     let mut em = Em::new(em, student, data)?;
     let log_likelihood_before = em.log_likelihood()?;
-    em.train(|_| {})?;
+    let iterations = config.iterations;
+    em.train(|m| {
+        progress(GatingFitProgress::Iteration {
+            iteration: m.iteration,
+            iterations,
+            log_likelihood: m.log_likelihood,
+        })
+    })?;
     let log_likelihood_after = em.log_likelihood()?;
     let report = GatingFitReport { pairs, log_likelihood_before, log_likelihood_after };
     Ok((em.into_student(), report))

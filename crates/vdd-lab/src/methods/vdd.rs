@@ -34,7 +34,7 @@ use serde_json::json;
 use vdd::{DistillData, Resumable, ResumableOutcome, VddConfig};
 use vdd_core::{Affine, ClampedDenoiser, NoiseConvention, ScoreModel};
 use vdd_diffusion::TeacherKind;
-use vdd_mixture::gating::{GatingFitConfig, fit_gating_to_policy};
+use vdd_mixture::gating::{GatingFitConfig, GatingFitProgress, fit_gating_to_policy_with_progress};
 use vdd_moe::{ActMode, GatingKind, Moe, MoeConfig, NetworkConfig};
 
 use crate::method::{Budget, Info, Job, Method, MethodRecipe, TeacherUse, Trained};
@@ -632,8 +632,25 @@ fn fit_gating(
         }
         let fit = GatingFitConfig { seed, ..fit.clone() };
         let mut teacher = t.teacher.clone();
-        let (fitted, report) =
-            fit_gating_to_policy(student, network.clone(), &mut teacher, states.as_ref(), &fit)?;
+        let bar = crate::progress::bar(fit.iterations as u64, &format!("{label}: gating fit"));
+        let (fitted, report) = fit_gating_to_policy_with_progress(
+            student,
+            network.clone(),
+            &mut teacher,
+            states.as_ref(),
+            &fit,
+            |p| match p {
+                GatingFitProgress::Sampling { pairs } => {
+                    bar.set_message(format!("drawing {pairs} teacher samples"))
+                }
+                GatingFitProgress::Iteration { log_likelihood, .. } => {
+                    bar.inc(1);
+                    bar.set_message(format!("log-lik {log_likelihood:.3}"));
+                }
+                _ => {}
+            },
+        )?;
+        bar.finish_and_clear();
         student = fitted;
         let secs = t0.elapsed().as_secs_f64();
         crate::progress::log(format!(

@@ -166,6 +166,47 @@ fn the_fit_is_deterministic_and_follows_its_seed() {
 }
 
 #[test]
+fn progress_reports_the_sampling_then_every_iteration_and_leaves_the_fit_alone() {
+    let config = GatingFitConfig { iterations: 4, ..FIT };
+    let states = Mat::zeros(8, 1);
+    let gating = |mut s: Moe| {
+        let mut g = Vec::new();
+        s.gating_network_mut().unwrap().visit_params("", &mut |_, p| g.push(p.value.clone()));
+        g
+    };
+    let mut teacher = ClusterTeacher::new([0.2, 0.3, 0.5]);
+    let (plain, plain_report) =
+        fit_gating_to_policy(uniform_student(), network(), &mut teacher, states.as_ref(), &config)
+            .unwrap();
+    let mut seen = Vec::new();
+    let mut teacher = ClusterTeacher::new([0.2, 0.3, 0.5]);
+    let (reported, report) = fit_gating_to_policy_with_progress(
+        uniform_student(),
+        network(),
+        &mut teacher,
+        states.as_ref(),
+        &config,
+        |p| seen.push(p),
+    )
+    .unwrap();
+    assert_eq!(report, plain_report);
+    assert_eq!(gating(reported), gating(plain), "progress changed the fit");
+    assert_eq!(seen.len(), 1 + 4, "{seen:?}");
+    assert_eq!(seen[0], GatingFitProgress::Sampling { pairs: 8 * config.samples_per_state });
+    for (i, p) in seen[1..].iter().enumerate() {
+        let GatingFitProgress::Iteration { iteration, iterations, log_likelihood } = *p else {
+            panic!("{p:?} after the sampling");
+        };
+        assert_eq!((iteration, iterations), (i, 4));
+        assert!(log_likelihood.is_finite());
+    }
+    let GatingFitProgress::Iteration { log_likelihood: first, .. } = seen[1] else {
+        unreachable!()
+    };
+    assert_eq!(first, report.log_likelihood_before, "the first E-step is the fit's start");
+}
+
+#[test]
 fn bad_settings_and_bad_teachers_are_errors() {
     let states = Mat::zeros(8, 1);
     let run = |config: GatingFitConfig, teacher: &mut ClusterTeacher, states: MatRef<'_, f32>| {
