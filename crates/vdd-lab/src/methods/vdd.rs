@@ -631,27 +631,25 @@ fn fit_gating(
             seed = root.stream_indexed("fit", round as u64).random();
         }
         let fit = GatingFitConfig { seed, ..fit.clone() };
-        let mut teacher = t.teacher.clone();
         let bar = crate::progress::bar(fit.iterations as u64, &format!("{label}: gating fit"));
-        let (fitted, report) = fit_gating_to_policy_with_progress(
+        let progress = |p| match p {
+            GatingFitProgress::Sampling { pairs } => bar.set_message(format!("{pairs} samples")),
+            GatingFitProgress::Iteration { log_likelihood: ll, .. } => {
+                bar.inc(1);
+                bar.set_message(format!("log-lik {ll:.3}"));
+            }
+            _ => {}
+        };
+        let report;
+        (student, report) = fit_gating_to_policy_with_progress(
             student,
             network.clone(),
-            &mut teacher,
+            &mut t.teacher.clone(),
             states.as_ref(),
             &fit,
-            |p| match p {
-                GatingFitProgress::Sampling { pairs } => {
-                    bar.set_message(format!("drawing {pairs} teacher samples"))
-                }
-                GatingFitProgress::Iteration { log_likelihood, .. } => {
-                    bar.inc(1);
-                    bar.set_message(format!("log-lik {log_likelihood:.3}"));
-                }
-                _ => {}
-            },
+            progress,
         )?;
         bar.finish_and_clear();
-        student = fitted;
         let secs = t0.elapsed().as_secs_f64();
         crate::progress::log(format!(
             "[{label}] gating fitted to {} teacher samples in {secs:.1} s: their \
