@@ -66,56 +66,24 @@ fn the_avoiding_students_get_equal_budgets_in_the_default_and_the_quick_run() {
     }
 }
 
-/// So do the students of Block-Push's (VDD-BESO, VDD-DDPM, CD, CTM, EM, IMC).
+/// So do the students of the contact tasks (Pushing's and Aligning's defaults copy
+/// Block-Push's budgets), both IMCs included.
 #[test]
-fn the_block_push_students_get_equal_budgets_in_the_default_and_the_quick_run() {
-    for (quick, expected) in [(false, 7_680_000), (true, 1_536_000)] {
-        let t = recipe("block-push", "block-push", quick);
-        for key in [
-            "vdd.beso",
-            "vdd.ddpm",
-            "baselines.cd",
-            "baselines.ctm.base",
-            "baselines.em",
-            "baselines.imc",
-        ] {
-            assert_eq!(budget(&t, key), expected, "{key} (quick: {quick})");
-        }
-    }
-}
-
-/// So do the students of Pushing's (its defaults copy Block-Push's budgets).
-#[test]
-fn the_pushing_students_get_equal_budgets_in_the_default_and_the_quick_run() {
-    for (quick, expected) in [(false, 7_680_000), (true, 1_536_000)] {
-        let t = recipe("pushing", "pushing", quick);
-        for key in [
-            "vdd.beso",
-            "vdd.ddpm",
-            "baselines.cd",
-            "baselines.ctm.base",
-            "baselines.em",
-            "baselines.imc",
-        ] {
-            assert_eq!(budget(&t, key), expected, "{key} (quick: {quick})");
-        }
-    }
-}
-
-/// So do the students of Aligning's (its defaults copy Pushing's budgets).
-#[test]
-fn the_aligning_students_get_equal_budgets_in_the_default_and_the_quick_run() {
-    for (quick, expected) in [(false, 7_680_000), (true, 1_536_000)] {
-        let t = recipe("aligning", "aligning", quick);
-        for key in [
-            "vdd.beso",
-            "vdd.ddpm",
-            "baselines.cd",
-            "baselines.ctm.base",
-            "baselines.em",
-            "baselines.imc",
-        ] {
-            assert_eq!(budget(&t, key), expected, "{key} (quick: {quick})");
+fn the_contact_tasks_students_get_equal_budgets_in_the_default_and_the_quick_run() {
+    for task in ["block-push", "pushing", "aligning"] {
+        for (quick, expected) in [(false, 7_680_000), (true, 1_536_000)] {
+            let t = recipe(task, task, quick);
+            for key in [
+                "vdd.beso",
+                "vdd.ddpm",
+                "baselines.cd",
+                "baselines.ctm.base",
+                "baselines.em",
+                "baselines.imc",
+                "baselines.imc_authors",
+            ] {
+                assert_eq!(budget(&t, key), expected, "{task}: {key} (quick: {quick})");
+            }
         }
     }
 }
