@@ -18,4 +18,8 @@ pub enum Capability {
     /// The training episodes' raw observations and actions, which a teacher imported with
     /// windows, chunks and features of its own cuts itself (`teachers::imported`).
     RawEpisodes,
+    /// Curves over training: a policy evaluated at checkpoints of its training, on episodes
+    /// held out from the final evaluation ([`crate::method::Job::curves`]), which checkpoint
+    /// selection (row `vdd-beso-selected`) chooses among.
+    TrainingCurves,
 }

@@ -156,6 +156,8 @@ pub trait CurveEval:
 {
     /// What the curves depend on, for the keys of cached students.
     fn key(&self) -> serde_json::Value;
+    /// The series each checkpoint gives (what checkpoint selection may choose by).
+    fn series(&self) -> Vec<String>;
 }
 
 /// A training's curve points ([`vdd_core::curves::CurveProbe`] of [`Job::curves`]).

@@ -177,6 +177,31 @@ impl Registry {
             && row.needs().iter().all(|n| t.offers().contains(n))
     }
 
+    /// Why `row` does not run on `task`: the task is unknown, the row's `only_on` leaves it
+    /// out, or it lacks what the row needs (named as in a row's `needs`).
+    fn why_not(&self, row: &Row, task: &str) -> String {
+        let n = &row.name;
+        let Ok(t) = self.task(task) else { return format!("method `{n}`: no task `{task}`") };
+        if !(row.only_on.is_empty() || row.only_on.iter().any(|o| o == task)) {
+            return format!(
+                "method `{n}` runs only on {}, not on `{task}`",
+                row.only_on.join(", ")
+            );
+        }
+        let mut missing: Vec<String> = Vec::new();
+        for c in row.needs().into_iter().filter(|c| !t.offers().contains(c)) {
+            let name = serde_json::to_value(c).map_or_else(|_| format!("{c:?}"), |v| v.to_string());
+            if !missing.contains(&name) {
+                missing.push(name);
+            }
+        }
+        format!(
+            "method `{n}` is not available on task `{task}`: it needs {}, which the task does not \
+             offer",
+            missing.join(", ")
+        )
+    }
+
     /// Parses and checks a recipe's row list (`methods`): known names available on `task`, no
     /// duplicates. `all` stands for every row the task supports, in table order, but those of
     /// a teacher file ([`crate::teachers::TeacherSource::loads_file`]).
@@ -193,7 +218,7 @@ impl Registry {
         for n in names {
             let r = self.row(n)?;
             if !self.supports(r, task) {
-                return Err(format!("method `{n}` is not available on task `{task}`").into());
+                return Err(self.why_not(r, task).into());
             }
             if out.iter().any(|o| o.name == r.name) {
                 return Err(format!("method `{n}` is listed twice").into());

@@ -18,7 +18,9 @@ use vdd_data::Windowed;
 use vdd_moe::MoeConfig;
 
 use vdd_tasks::avoiding::dataset::DatasetConfig;
-use vdd_tasks::avoiding::{AvoidingEval, DeployedCurves, EvalProtocol, PlotSettings};
+use vdd_tasks::avoiding::{
+    AvoidingEval, CURVE_ENTROPY, CURVE_SUCCESS, DeployedCurves, EvalProtocol, PlotSettings,
+};
 use vdd_tasks::timing::Timing;
 use vdd_tasks::{AvoidingEnv, Metrics};
 
@@ -147,6 +149,9 @@ impl CurveEval for DeployedCurves {
     fn key(&self) -> Value {
         json!({ "protocol": self.protocol, "spec": self.spec })
     }
+    fn series(&self) -> Vec<String> {
+        [CURVE_SUCCESS, CURVE_ENTROPY].map(String::from).to_vec()
+    }
 }
 
 /// What the evaluation collects for the figures.
@@ -175,7 +180,12 @@ impl Task for Avoiding {
     }
 
     fn offers(&self) -> &'static [Capability] {
-        &[Capability::Rollouts, Capability::LearnedTeachers, Capability::RawEpisodes]
+        &[
+            Capability::Rollouts,
+            Capability::LearnedTeachers,
+            Capability::RawEpisodes,
+            Capability::TrainingCurves,
+        ]
     }
 
     /// `--tuning`: the tuning seeds (unless given) and the tuning demonstrations; `--teacher
