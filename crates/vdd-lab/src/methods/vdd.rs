@@ -4,7 +4,9 @@
 //! curve series `vdd.select_by` (default: the held-out task entropy, as the official code
 //! selects) among the curves' checkpoints instead of the final iterate, from the same training
 //! (and cache key); the chosen iteration and its value are the `selected checkpoint` series of
-//! its curves.
+//! its curves. A training without selection keeps the default selection's snapshot as well
+//! (when the task takes curves and no rounds on visited states change the training), so the
+//! selecting row of the same training loads it rather than training again.
 //!
 //! Keys (below `vdd`, `<teacher>` the row's teacher with `-` as `_`): `<teacher>` (the
 //! [`VddConfig`]; its `seed` is replaced by the run seed),
