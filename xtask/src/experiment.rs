@@ -22,10 +22,9 @@ pub struct ExperimentArgs {
     /// Run seeds: N, a list 0,1,2 or a range 0..3 (default: the recipe's).
     #[arg(long, visible_alias = "seed", value_name = "SEEDS", value_parser = seed_list)]
     pub seeds: Option<SeedList>,
-    /// Rows to run (a method from a teacher), comma-separated, or `all` (ddpm, beso, ddpm-1,
-    /// beso-1, cd, ctm, em, imc, vdd-ddpm, vdd-beso, then beso-d3il, beso-d3il-1,
-    /// vdd-beso-learned, vdd-beso-d3il, imc-authors; toys: vdd-exact; the rows are
-    /// recipes/defaults/runs.toml and the recipe's own [runs.<name>]).
+    /// Rows to run (a method from a teacher), comma-separated, or `all` (every row the task
+    /// runs, listed below by task; the rows are recipes/defaults/runs.toml and the recipe's own
+    /// [runs.<name>]).
     #[arg(long, value_name = "A,B")]
     pub methods: Option<String>,
     /// Override any recipe key; the value is parsed as TOML, a bare word is a string
@@ -47,8 +46,8 @@ pub struct ExperimentArgs {
     #[arg(long)]
     pub resume: bool,
     /// A tuning run: the tuning seeds (100–104 unless --seeds says which) and their own
-    /// demonstrations; results under results/tuning/, every method appended to the tuning log
-    /// (Avoiding, Block-Push; see vdd_lab::tuning).
+    /// demonstrations; results under results/tuning/, every method appended to the task's
+    /// tuning log, docs/<task>-tuning-log.toml (tasks with rollouts; see vdd_lab::tuning).
     #[arg(long)]
     pub tuning: bool,
     /// toy-gmm: the teacher VDD distils (exact, ddpm, beso; shorthand for `--methods

@@ -86,11 +86,21 @@ enum Demos {
     BlockPush(demos::BlockPushArgs),
 }
 
-/// The command line parser, with the recipes found in `recipes/` listed under `experiment`.
+/// The command line parser, with the recipes found in `recipes/` and the rows `--methods all`
+/// runs on each task listed under `experiment`.
 fn command() -> clap::Command {
     use clap::CommandFactory;
     let recipes = recipe::available_recipes().join(", ");
-    Cli::command().mut_subcommand("experiment", |c| c.after_help(format!("Recipes: {recipes}")))
+    let registry = vdd_lab::Registry::builtin();
+    let rows: Vec<String> = (registry.tasks().iter())
+        .map(|t| {
+            let all = registry.parse_rows(&["all".to_owned()], t.name()).unwrap_or_default();
+            let names: Vec<&str> = all.iter().map(|r| r.name.as_str()).collect();
+            format!("  {}: {}", t.name(), names.join(", "))
+        })
+        .collect();
+    let help = format!("Recipes: {recipes}\n\nRows of `--methods all`:\n{}", rows.join("\n"));
+    Cli::command().mut_subcommand("experiment", |c| c.after_help(help))
 }
 
 /// Parses `args` (without the program name). Help requests come back as errors too; clap's
@@ -323,6 +333,12 @@ mod tests {
         assert!(matches!(d, Cli::Demos(Demos::Avoiding(a)) if a.n == 5 && a.seed == 2));
         let d = parse(&words("demos block-push --n 7 --figure 3")).unwrap();
         assert!(matches!(d, Cli::Demos(Demos::BlockPush(a)) if a.n == 7 && a.figure == 3));
+        // The experiment help lists what `--methods all` runs on each task, from the registry.
+        let help = command().find_subcommand_mut("experiment").unwrap().render_help().to_string();
+        let line = |task: &str| help.lines().find(|l| l.trim_start().starts_with(task)).unwrap();
+        assert!(line("pushing:").contains("imc-authors"), "{help}");
+        assert!(!line("pushing:").contains("vdd-beso-selected"), "{help}");
+        assert!(line("avoiding:").contains("vdd-beso-selected"), "{help}");
         // Help is not an error; bad input is.
         for help in ["help", "--help", "help experiment", "experiment --help"] {
             assert!(!parse(&words(help)).unwrap_err().use_stderr(), "{help}");
