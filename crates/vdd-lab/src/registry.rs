@@ -172,21 +172,18 @@ impl Registry {
     /// Whether `row` runs on `task`: the task is registered, offers everything the row needs
     /// ([`Task::offers`], [`Row::needs`]) and is not excluded by the row's `only_on`.
     pub fn supports(&self, row: &Row, task: &str) -> bool {
-        let Ok(t) = self.task(task) else { return false };
-        (row.only_on.is_empty() || row.only_on.iter().any(|o| o == task))
-            && row.needs().iter().all(|n| t.offers().contains(n))
+        self.why_not(row, task).is_none()
     }
 
-    /// Why `row` does not run on `task`: the task is unknown, the row's `only_on` leaves it
-    /// out, or it lacks what the row needs (named as in a row's `needs`).
-    fn why_not(&self, row: &Row, task: &str) -> String {
+    /// Why `row` does not run on `task`, or `None` when it does: the task is unknown, the
+    /// row's `only_on` leaves it out, or it lacks what the row needs (named as in a row's
+    /// `needs`).
+    fn why_not(&self, row: &Row, task: &str) -> Option<String> {
         let n = &row.name;
-        let Ok(t) = self.task(task) else { return format!("method `{n}`: no task `{task}`") };
+        let Ok(t) = self.task(task) else { return Some(format!("method `{n}`: no task `{task}`")) };
         if !(row.only_on.is_empty() || row.only_on.iter().any(|o| o == task)) {
-            return format!(
-                "method `{n}` runs only on {}, not on `{task}`",
-                row.only_on.join(", ")
-            );
+            let only = row.only_on.join(", ");
+            return Some(format!("method `{n}` runs only on {only}, not on `{task}`"));
         }
         let mut missing: Vec<String> = Vec::new();
         for c in row.needs().into_iter().filter(|c| !t.offers().contains(c)) {
@@ -195,11 +192,13 @@ impl Registry {
                 missing.push(name);
             }
         }
-        format!(
-            "method `{n}` is not available on task `{task}`: it needs {}, which the task does not \
-             offer",
-            missing.join(", ")
-        )
+        (!missing.is_empty()).then(|| {
+            format!(
+                "method `{n}` is not available on task `{task}`: it needs {}, which the task \
+                 does not offer",
+                missing.join(", ")
+            )
+        })
     }
 
     /// Parses and checks a recipe's row list (`methods`): known names available on `task`, no
@@ -217,8 +216,8 @@ impl Registry {
         let mut out: Vec<&Row> = Vec::with_capacity(names.len());
         for n in names {
             let r = self.row(n)?;
-            if !self.supports(r, task) {
-                return Err(self.why_not(r, task).into());
+            if let Some(why) = self.why_not(r, task) {
+                return Err(why.into());
             }
             if out.iter().any(|o| o.name == r.name) {
                 return Err(format!("method `{n}` is listed twice").into());
