@@ -46,7 +46,7 @@ enabled = false
 "#;
 
 fn run(root: &Path) -> vdd_lab::Result {
-    common::run(root, "tests/checkpoint_selection.rs")
+    common::run(root, "tests/checkpoint_selection.rs", false)
 }
 
 fn root(tag: &str, recipe: &str) -> PathBuf {

@@ -42,7 +42,7 @@ const VISITS: &str =
     "\n[vdd]\nbeso_expert_visits = { episodes = 2, rounds = 2, iterations = 10 }\n";
 
 fn run(root: &Path) -> vdd_lab::Result {
-    common::run(root, "tests/expert_visits.rs")
+    common::run(root, "tests/expert_visits.rs", false)
 }
 
 fn root(tag: &str, recipe: &str) -> PathBuf {

@@ -4,8 +4,9 @@
 //! A cached student is `<dir>/<method>-<hash>.safetensors` with a `.json` sidecar (key,
 //! training seconds, learning curves). [`STUDENT_CACHE_VERSION`] belongs in every key.
 
-use std::collections::BTreeMap;
+use std::collections::{BTreeMap, BTreeSet};
 use std::path::{Path, PathBuf};
+use std::sync::{Condvar, Mutex, MutexGuard};
 
 use serde::{Deserialize, Serialize};
 
@@ -53,7 +54,8 @@ pub enum StudentCacheError {
 pub struct StudentCache<'a> {
     /// The cache directory.
     pub dir: &'a Path,
-    /// Retrain and overwrite: [`StudentCache::load`] always misses.
+    /// Retrain and overwrite: [`StudentCache::load`] misses every student that this process
+    /// did not store itself, so each is trained once per run.
     pub fresh: bool,
 }
 
@@ -75,7 +77,62 @@ struct Sidecar {
     curves: Curves,
 }
 
+/// The students being trained in this process, by weights path, and the signal that one ended.
+static IN_FLIGHT: (Mutex<BTreeSet<PathBuf>>, Condvar) =
+    (Mutex::new(BTreeSet::new()), Condvar::new());
+
+/// The students this process stored, by weights path: what a `fresh` cache still loads.
+static STORED_HERE: Mutex<BTreeSet<PathBuf>> = Mutex::new(BTreeSet::new());
+
+fn stored_here() -> MutexGuard<'static, BTreeSet<PathBuf>> {
+    STORED_HERE.lock().unwrap_or_else(|poisoned| poisoned.into_inner())
+}
+
+fn in_flight() -> MutexGuard<'static, BTreeSet<PathBuf>> {
+    // The set stays consistent even if a holder panicked: it only inserts and removes.
+    IN_FLIGHT.0.lock().unwrap_or_else(|poisoned| poisoned.into_inner())
+}
+
+/// A claim on one student of the cache, held while it is looked up, trained and stored; see
+/// [`StudentCache::claim`]. Dropping it lets the next claimant of the same student go on.
+#[derive(Debug)]
+#[must_use = "the claim ends when it is dropped"]
+pub struct Claim {
+    weights: PathBuf,
+}
+
+impl Drop for Claim {
+    fn drop(&mut self) {
+        in_flight().remove(&self.weights);
+        IN_FLIGHT.1.notify_all();
+    }
+}
+
 impl StudentCache<'_> {
+    /// Claims `method`'s student with key `hash` for this thread, waiting while another
+    /// thread of the process holds it. Hold the claim across [`StudentCache::load`], the
+    /// training and [`StudentCache::store`]: two jobs of one run that would train the same
+    /// student then train it once, and the second loads what the first stored. Claims are
+    /// per process; a thread must not claim a second student while it holds one.
+    ///
+    /// ```
+    /// use std::path::Path;
+    /// use vdd_moe::cache::StudentCache;
+    /// let cache = StudentCache { dir: Path::new("c"), fresh: false };
+    /// let claim = cache.claim("vdd-beso", "ab");
+    /// drop(claim);
+    /// let _again = cache.claim("vdd-beso", "ab"); // free again once dropped
+    /// ```
+    pub fn claim(&self, method: &str, hash: &str) -> Claim {
+        let weights = self.paths(method, hash).0;
+        let mut held = in_flight();
+        while held.contains(&weights) {
+            held = IN_FLIGHT.1.wait(held).unwrap_or_else(|poisoned| poisoned.into_inner());
+        }
+        held.insert(weights.clone());
+        Claim { weights }
+    }
+
     /// The weights and sidecar files of `method`'s student with key `hash`.
     ///
     /// ```
@@ -89,8 +146,8 @@ impl StudentCache<'_> {
         (self.dir.join(format!("{stem}.safetensors")), self.dir.join(format!("{stem}.json")))
     }
 
-    /// The student of `method` with key `hash`, if cached (and not `fresh`). An unreadable
-    /// sidecar (say, a curve with a non-finite value) is a miss.
+    /// The student of `method` with key `hash`, if cached (under `fresh`, only if this process
+    /// stored it). An unreadable sidecar (say, a curve with a non-finite value) is a miss.
     ///
     /// ```
     /// use vdd_moe::cache::StudentCache;
@@ -104,7 +161,8 @@ impl StudentCache<'_> {
         hash: &str,
     ) -> Result<Option<CachedStudent>, StudentCacheError> {
         let (weights, sidecar) = self.paths(method, hash);
-        if self.fresh || !weights.is_file() || !sidecar.is_file() {
+        let stale = self.fresh && !stored_here().contains(&weights);
+        if stale || !weights.is_file() || !sidecar.is_file() {
             return Ok(None);
         }
         let text = vdd_core::files::read_bounded_string(&sidecar, MAX_SIDECAR_BYTES)
@@ -151,6 +209,7 @@ impl StudentCache<'_> {
         let json = serde_json::to_string(&side)
             .map_err(|source| StudentCacheError::Json { path: sidecar.clone(), source })?;
         vdd_nn::io::write_atomic(&sidecar, json.as_bytes()).map_err(MoeError::from)?;
+        stored_here().insert(weights.clone());
         Ok(weights)
     }
 }

@@ -432,6 +432,8 @@ impl Vdd {
                 None => c.load(&name, hash)?,
             })
         };
+        // Another job of this run training the same student: wait for it, then load.
+        let claim = cache.as_ref().map(|(c, hash)| c.claim(&name, hash));
         let hit = cache.as_ref().map(|(c, hash)| lookup(c, hash)).transpose()?.flatten();
         let (trained, noise_level, curve_seconds) = match hit {
             Some(c) => {
@@ -506,6 +508,7 @@ impl Vdd {
                 (c, Some(noise), curve_seconds)
             }
         };
+        drop(claim);
         let CachedStudent { mut student, mut train_seconds, curves } = trained;
         student.set_normalizers(Some(sn), Some(an))?;
         if let (Some(fit), Some(trained_teacher)) = (&s.gating_fit, teacher) {

@@ -16,13 +16,15 @@ pub fn root(tag: &str, recipe: &str) -> PathBuf {
     dir
 }
 
-/// Runs recipe `tiny` of `root` into `root/results/tiny`, `command` recorded as its command.
-pub fn run(root: &Path, command: &str) -> vdd_lab::Result {
+/// Runs recipe `tiny` of `root` into `root/results/tiny`, `command` recorded as its command,
+/// with `--fresh` if `fresh`.
+pub fn run(root: &Path, command: &str, fresh: bool) -> vdd_lab::Result {
     let request = Request {
         recipe: "tiny".into(),
         out: Some(root.join("results/tiny")),
         command: command.into(),
         root: Some(root.to_owned()),
+        fresh,
         ..Default::default()
     };
     run_with(&Registry::builtin(), &request)

@@ -25,7 +25,37 @@ fn a_stored_student_loads_identically_under_its_key_only() {
 
     assert!(cache.load("vdd-beso", "abd").unwrap().is_none(), "another key");
     assert!(cache.load("vdd-ddpm", "abc").unwrap().is_none(), "another method");
-    let fresh = StudentCache { dir: &dir, fresh: true };
+    // `--fresh` retrains what an earlier process stored (here: files copied in by hand), and
+    // reuses what this process stored.
+    let earlier = dir.join("earlier");
+    let fresh = StudentCache { dir: &earlier, fresh: true };
+    std::fs::create_dir_all(&earlier).unwrap();
+    let (from, to) = (cache.paths("vdd-beso", "abc"), fresh.paths("vdd-beso", "abc"));
+    std::fs::copy(&from.0, &to.0).unwrap();
+    std::fs::copy(&from.1, &to.1).unwrap();
     assert!(fresh.load("vdd-beso", "abc").unwrap().is_none(), "--fresh retrains");
+    assert!(StudentCache { fresh: false, ..fresh }.load("vdd-beso", "abc").unwrap().is_some());
+    fresh.store("vdd-beso", "abc", &stored).unwrap();
+    assert!(fresh.load("vdd-beso", "abc").unwrap().is_some(), "stored in this run");
     std::fs::remove_dir_all(&dir).unwrap();
+}
+
+#[test]
+fn a_claimed_student_waits_for_its_claimant_and_no_other() {
+    use std::sync::atomic::{AtomicBool, Ordering};
+    let cache = StudentCache { dir: Path::new("claims"), fresh: false };
+    let first = cache.claim("vdd-beso", "k1");
+    let other = cache.claim("vdd-beso", "k2"); // another student: no wait
+    drop(other);
+    let released = AtomicBool::new(false);
+    std::thread::scope(|s| {
+        let waiter = s.spawn(|| {
+            let _second = cache.claim("vdd-beso", "k1");
+            released.load(Ordering::SeqCst)
+        });
+        std::thread::sleep(std::time::Duration::from_millis(50));
+        released.store(true, Ordering::SeqCst);
+        drop(first);
+        assert!(waiter.join().unwrap(), "the second claim went on before the first ended");
+    });
 }
