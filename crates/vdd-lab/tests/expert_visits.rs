@@ -6,37 +6,14 @@ use std::path::{Path, PathBuf};
 
 mod common;
 
-const TINY: &str = r#"
-name = "tiny"
-task = "avoiding"
-description = "Avoiding on a tiny budget"
-seeds = [0]
-methods = ["vdd-beso"]
-
-[data]
-demonstrations = 4
-validation_fraction = 0.0
-
-[teachers.beso.train]
-steps = 30
-batch_size = 32
-log_every = 10
-
-[vdd.beso]
-iterations = 30
-batch_size = 8
-
-[eval]
-rollouts = 4
-lockstep_batch = 2
-timing_calls = 20
-timing_warmup = 2
-timing_min_round_ms = 0.1
-curve_points = 0
-
-[plots]
-enabled = false
-"#;
+/// `vdd-beso` on the tiny Avoiding budget, without curves and without a `[vdd]` table (each
+/// test adds its own).
+fn tiny() -> String {
+    common::TINY_AVOIDING
+        .replace(r#"methods = ["vdd-beso-selected"]"#, r#"methods = ["vdd-beso"]"#)
+        .replace("[vdd]\nbeso_expert_visits = { episodes = 2, rounds = 2, iterations = 10 }\n", "")
+        .replace("curve_points = 3\ncurve_rollouts = 4\n", "curve_points = 0\n")
+}
 
 const VISITS: &str =
     "\n[vdd]\nbeso_expert_visits = { episodes = 2, rounds = 2, iterations = 10 }\n";
@@ -62,9 +39,9 @@ fn student_and_steps(root: &Path) -> (Vec<u8>, u64) {
 #[test]
 fn rounds_on_visited_states_change_the_student_and_count_in_its_budget() {
     // Avoiding's defaults continue the distillation on visited states; `false` switches it off.
-    let plain = root("plain", &format!("{TINY}\n[vdd]\nbeso_expert_visits = false\n"));
+    let plain = root("plain", &format!("{}\n[vdd]\nbeso_expert_visits = false\n", tiny()));
     run(&plain).unwrap_or_else(|e| panic!("{e}"));
-    let visits = root("visits", &format!("{TINY}{VISITS}"));
+    let visits = root("visits", &format!("{}{VISITS}", tiny()));
     run(&visits).unwrap_or_else(|e| panic!("{e}"));
     let (a, steps_a) = student_and_steps(&plain);
     let (b, steps_b) = student_and_steps(&visits);
@@ -72,7 +49,7 @@ fn rounds_on_visited_states_change_the_student_and_count_in_its_budget() {
     assert_eq!(steps_b, 30 + 2 * 10, "the budget counts both rounds");
     assert_ne!(a, b, "the rounds on visited states changed nothing");
     // The same settings give the same student (the visits' episodes are seeded).
-    let again = root("again", &format!("{TINY}{VISITS}"));
+    let again = root("again", &format!("{}{VISITS}", tiny()));
     run(&again).unwrap_or_else(|e| panic!("{e}"));
     assert_eq!(student_and_steps(&again).0, b);
     for r in [plain, visits, again] {
@@ -83,7 +60,7 @@ fn rounds_on_visited_states_change_the_student_and_count_in_its_budget() {
 #[test]
 fn bad_expert_visits_are_refused_with_the_key() {
     let bad = VISITS.replace("rounds = 2", "rounds = 0");
-    let root = root("bad", &format!("{TINY}{bad}"));
+    let root = root("bad", &format!("{}{bad}", tiny()));
     let e = run(&root).unwrap_err().to_string();
     assert!(e.contains("vdd.beso_expert_visits") && e.contains("rounds"), "{e}");
     std::fs::remove_dir_all(&root).unwrap();

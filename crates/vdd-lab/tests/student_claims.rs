@@ -7,42 +7,18 @@ use std::sync::{Arc, Mutex};
 
 mod common;
 
-const TINY: &str = r#"
-name = "tiny"
-task = "avoiding"
-description = "Avoiding on a tiny budget, two rows of one training"
-seeds = [0]
-methods = ["vdd-beso", "vdd-beso-selected"]
-jobs = 2
-
-[data]
-demonstrations = 4
-validation_fraction = 0.0
-
-[teachers.beso.train]
-steps = 30
-batch_size = 32
-log_every = 10
-
-[vdd]
-beso_expert_visits = false
-
-[vdd.beso]
-iterations = 200
-batch_size = 8
-
-[eval]
-rollouts = 4
-lockstep_batch = 2
-timing_calls = 20
-timing_warmup = 2
-timing_min_round_ms = 0.1
-curve_points = 3
-curve_rollouts = 4
-
-[plots]
-enabled = false
-"#;
+/// Both rows, two jobs at a time, no rounds on visited states (the selecting row would make
+/// them iterations on the demonstrations, another training), enough iterations that the
+/// second row starts while the first trains.
+fn recipe() -> String {
+    common::TINY_AVOIDING
+        .replace(
+            r#"methods = ["vdd-beso-selected"]"#,
+            "methods = [\"vdd-beso\", \"vdd-beso-selected\"]\njobs = 2",
+        )
+        .replace("{ episodes = 2, rounds = 2, iterations = 10 }", "false")
+        .replace("iterations = 30", "iterations = 200")
+}
 
 #[derive(Default)]
 struct Lines(Mutex<Vec<String>>);
@@ -59,7 +35,7 @@ fn two_rows_of_one_training_train_it_once() {
     vdd_lab::progress::set_sink(lines.clone());
     for fresh in [false, true] {
         lines.0.lock().unwrap().clear();
-        let root = common::root(&format!("claims-{fresh}"), TINY);
+        let root = common::root(&format!("claims-{fresh}"), &recipe());
         common::run(&root, "tests/student_claims.rs", fresh).unwrap_or_else(|e| panic!("{e}"));
         let lines = lines.0.lock().unwrap().clone();
         let count = |what: &str| lines.iter().filter(|l| l.contains(what)).count();

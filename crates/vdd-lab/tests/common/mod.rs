@@ -29,3 +29,42 @@ pub fn run(root: &Path, command: &str, fresh: bool) -> vdd_lab::Result {
     };
     run_with(&Registry::builtin(), &request)
 }
+
+/// Avoiding with `vdd-beso-selected` on a tiny budget: four demonstrations, a 30-step teacher,
+/// 30 VDD iterations and two rounds of 10 on visited states, three curve points.
+#[allow(dead_code)] // not every test binary that shares this module uses it
+pub const TINY_AVOIDING: &str = r#"
+name = "tiny"
+task = "avoiding"
+description = "Avoiding on a tiny budget"
+seeds = [0]
+methods = ["vdd-beso-selected"]
+
+[data]
+demonstrations = 4
+validation_fraction = 0.0
+
+[teachers.beso.train]
+steps = 30
+batch_size = 32
+log_every = 10
+
+[vdd]
+beso_expert_visits = { episodes = 2, rounds = 2, iterations = 10 }
+
+[vdd.beso]
+iterations = 30
+batch_size = 8
+
+[eval]
+rollouts = 4
+lockstep_batch = 2
+timing_calls = 20
+timing_warmup = 2
+timing_min_round_ms = 0.1
+curve_points = 3
+curve_rollouts = 4
+
+[plots]
+enabled = false
+"#;
