@@ -43,12 +43,26 @@ pub fn run(request: &Request) -> crate::Result {
     run_with(&Registry::builtin(), request)
 }
 
+/// The `[quick]` table of the task's own recipe (`recipes/<task>.toml`), for a recipe of the task
+/// that has none: `--quick` on a tuning or table recipe runs the task's smoke settings instead of
+/// its full budget. The error says why there is none.
+fn task_quick(root: &std::path::Path, task: &str) -> Result<toml::Value, String> {
+    let path = root.join("recipes").join(format!("{task}.toml"));
+    if !path.is_file() {
+        return Err(format!("the task has no recipe {} to take one from", path.display()));
+    }
+    match recipe::read_recipe(&path).map_err(|e| e.to_string())?.remove("quick") {
+        Some(quick) => Ok(quick),
+        None => Err(format!("neither has {}", path.display())),
+    }
+}
+
 /// [`run`] with the methods and tasks of `registry` (a program's own added to the workspace's).
 pub fn run_with(registry: &Registry, request: &Request) -> crate::Result {
     let started = Instant::now();
     let root = request.root.clone().unwrap_or_else(recipe::repo_root);
     let path = recipe::run::find_recipe(&root.join("recipes"), &request.recipe)?;
-    let file = recipe::read_recipe(&path)?;
+    let mut file = recipe::read_recipe(&path)?;
     let name = file
         .get("name")
         .and_then(|v| v.as_str())
@@ -61,6 +75,11 @@ pub fn run_with(registry: &Registry, request: &Request) -> crate::Result {
         .and_then(|v| v.as_str())
         .ok_or_else(|| format!("{} has no `task` key ({})", path.display(), names()))?;
     let task = registry.task(task).map_err(|e| format!("{e} in {}", path.display()))?;
+    if request.overrides.quick && !file.contains_key("quick") {
+        let quick = task_quick(&root, task.name())
+            .map_err(|e| format!("--quick: {} has no [quick] table, and {e}", path.display()))?;
+        file.insert("quick".into(), quick);
+    }
     let mut overrides = request.overrides.clone();
     task.apply_shorthands(&request.shorthands, &mut overrides)?;
     // Before anything is written: `--out` is new, empty or a previous run of this recipe.

@@ -12,7 +12,7 @@ mod common;
 use common::TINY_AVOIDING as TINY;
 
 fn run(root: &Path) -> vdd_lab::Result {
-    common::run(root, "tests/checkpoint_selection.rs", false)
+    common::run(root, "tests/checkpoint_selection.rs", |_| {})
 }
 
 fn root(tag: &str, recipe: &str) -> PathBuf {

@@ -77,7 +77,7 @@ fn a_tiny_run<E: ContextEnv>(p1: bool) {
     let task = E::NAME;
     let root = common::root(&format!("{task}-run"), &tiny(task));
     let out = root.join("results/tiny");
-    common::run(&root, "tests/d3il_runs.rs", false).unwrap();
+    common::run(&root, "tests/d3il_runs.rs", |_| {}).unwrap();
     let metrics: serde_json::Value =
         serde_json::from_slice(&std::fs::read(out.join("metrics.json")).unwrap()).unwrap();
     assert_eq!(metrics["task"], task);

@@ -6,20 +6,11 @@ use std::path::{Path, PathBuf};
 
 mod common;
 
-/// `vdd-beso` on the tiny Avoiding budget, without curves and without a `[vdd]` table (each
-/// test adds its own).
-fn tiny() -> String {
-    common::TINY_AVOIDING
-        .replace(r#"methods = ["vdd-beso-selected"]"#, r#"methods = ["vdd-beso"]"#)
-        .replace("[vdd]\nbeso_expert_visits = { episodes = 2, rounds = 2, iterations = 10 }\n", "")
-        .replace("curve_points = 3\ncurve_rollouts = 4\n", "curve_points = 0\n")
-}
-
 const VISITS: &str =
     "\n[vdd]\nbeso_expert_visits = { episodes = 2, rounds = 2, iterations = 10 }\n";
 
 fn run(root: &Path) -> vdd_lab::Result {
-    common::run(root, "tests/expert_visits.rs", false)
+    common::run(root, "tests/expert_visits.rs", |_| {})
 }
 
 fn root(tag: &str, recipe: &str) -> PathBuf {
@@ -39,9 +30,10 @@ fn student_and_steps(root: &Path) -> (Vec<u8>, u64) {
 #[test]
 fn rounds_on_visited_states_change_the_student_and_count_in_its_budget() {
     // Avoiding's defaults continue the distillation on visited states; `false` switches it off.
-    let plain = root("plain", &format!("{}\n[vdd]\nbeso_expert_visits = false\n", tiny()));
+    let plain =
+        root("plain", &format!("{}\n[vdd]\nbeso_expert_visits = false\n", common::tiny_vdd_beso()));
     run(&plain).unwrap_or_else(|e| panic!("{e}"));
-    let visits = root("visits", &format!("{}{VISITS}", tiny()));
+    let visits = root("visits", &format!("{}{VISITS}", common::tiny_vdd_beso()));
     run(&visits).unwrap_or_else(|e| panic!("{e}"));
     let (a, steps_a) = student_and_steps(&plain);
     let (b, steps_b) = student_and_steps(&visits);
@@ -49,7 +41,7 @@ fn rounds_on_visited_states_change_the_student_and_count_in_its_budget() {
     assert_eq!(steps_b, 30 + 2 * 10, "the budget counts both rounds");
     assert_ne!(a, b, "the rounds on visited states changed nothing");
     // The same settings give the same student (the visits' episodes are seeded).
-    let again = root("again", &format!("{}{VISITS}", tiny()));
+    let again = root("again", &format!("{}{VISITS}", common::tiny_vdd_beso()));
     run(&again).unwrap_or_else(|e| panic!("{e}"));
     assert_eq!(student_and_steps(&again).0, b);
     for r in [plain, visits, again] {
@@ -60,7 +52,7 @@ fn rounds_on_visited_states_change_the_student_and_count_in_its_budget() {
 #[test]
 fn bad_expert_visits_are_refused_with_the_key() {
     let bad = VISITS.replace("rounds = 2", "rounds = 0");
-    let root = root("bad", &format!("{}{bad}", tiny()));
+    let root = root("bad", &format!("{}{bad}", common::tiny_vdd_beso()));
     let e = run(&root).unwrap_err().to_string();
     assert!(e.contains("vdd.beso_expert_visits") && e.contains("rounds"), "{e}");
     std::fs::remove_dir_all(&root).unwrap();

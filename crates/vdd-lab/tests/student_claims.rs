@@ -36,7 +36,8 @@ fn two_rows_of_one_training_train_it_once() {
     for fresh in [false, true] {
         lines.0.lock().unwrap().clear();
         let root = common::root(&format!("claims-{fresh}"), &recipe());
-        common::run(&root, "tests/student_claims.rs", fresh).unwrap_or_else(|e| panic!("{e}"));
+        common::run(&root, "tests/student_claims.rs", |r| r.fresh = fresh)
+            .unwrap_or_else(|e| panic!("{e}"));
         let lines = lines.0.lock().unwrap().clone();
         let count = |what: &str| lines.iter().filter(|l| l.contains(what)).count();
         assert_eq!(count("cache/students/"), 1, "fresh = {fresh}: {lines:#?}");

@@ -17,16 +17,16 @@ pub fn root(tag: &str, recipe: &str) -> PathBuf {
 }
 
 /// Runs recipe `tiny` of `root` into `root/results/tiny`, `command` recorded as its command,
-/// with `--fresh` if `fresh`.
-pub fn run(root: &Path, command: &str, fresh: bool) -> vdd_lab::Result {
-    let request = Request {
+/// with the request changed by `tweak` (`--fresh`, `--quick`, ...).
+pub fn run(root: &Path, command: &str, tweak: impl FnOnce(&mut Request)) -> vdd_lab::Result {
+    let mut request = Request {
         recipe: "tiny".into(),
         out: Some(root.join("results/tiny")),
         command: command.into(),
         root: Some(root.to_owned()),
-        fresh,
         ..Default::default()
     };
+    tweak(&mut request);
     run_with(&Registry::builtin(), &request)
 }
 
@@ -68,3 +68,13 @@ curve_rollouts = 4
 [plots]
 enabled = false
 "#;
+
+/// `vdd-beso` on the tiny Avoiding budget, without curves and without a `[vdd]` table (each
+/// test adds its own).
+#[allow(dead_code)] // not every test binary that shares this module uses it
+pub fn tiny_vdd_beso() -> String {
+    TINY_AVOIDING
+        .replace(r#"methods = ["vdd-beso-selected"]"#, r#"methods = ["vdd-beso"]"#)
+        .replace("[vdd]\nbeso_expert_visits = { episodes = 2, rounds = 2, iterations = 10 }\n", "")
+        .replace("curve_points = 3\ncurve_rollouts = 4\n", "curve_points = 0\n")
+}
