@@ -252,10 +252,7 @@ impl<E: Expert> Em<E> {
     /// the rows' places of the responsibilities, and their mean log-likelihood.
     fn e_step_on(&mut self, rows: &[usize]) -> Result<f64, MixtureError> {
         let z_n = self.fit.student.num_experts();
-        let (mut states, mut actions) = (faer::Mat::zeros(0, 0), faer::Mat::zeros(0, 0));
-        fit::gather_rows(self.fit.data.states(), rows, &mut states);
-        fit::gather_rows(self.fit.data.actions(), rows, &mut actions);
-        let subset = Dataset::new(states, actions)?;
+        let subset = self.fit.rows_of(rows)?;
         let mut resp = vec![0.0; rows.len() * z_n];
         let ll = self.fit.evaluate_on(&subset, &mut resp)?;
         for (b, &o) in rows.iter().enumerate() {
@@ -290,9 +287,7 @@ impl<E: Expert> Trainer for Em<E> {
         };
         let (log_likelihood, responsibility_entropy, sampler) = match self.config.e_step_rows {
             Some(k) if k < n => {
-                let mut rng = self.fit.seeds().stream_indexed("e-step-rows", it as u64);
-                let mut rows = rand::seq::index::sample(&mut rng, n, k).into_vec();
-                rows.sort_unstable();
+                let rows = self.fit.draw_rows("e-step-rows", k);
                 let ll = self.e_step_on(&rows)?;
                 let h = rows.iter().map(|&o| entropy(&self.resp[o * z_n..(o + 1) * z_n]));
                 (ll, h.sum::<f64>() / k as f64, Some(RowSampler::subset(rows)?))

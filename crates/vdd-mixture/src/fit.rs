@@ -542,11 +542,6 @@ pub(crate) struct MixtureFit<E: Expert> {
 }
 
 impl<E: Expert> MixtureFit<E> {
-    /// The run's seed streams.
-    pub(crate) fn seeds(&self) -> &Seeds {
-        &self.seeds
-    }
-
     /// Checks that `data` fit the mixture's dimensions and sets up the optimisers of
     /// `settings` and the random streams of `seed`.
     pub(crate) fn new(
@@ -591,6 +586,32 @@ impl<E: Expert> MixtureFit<E> {
     pub(crate) fn evaluate_unit(&mut self, out_ll: &mut [f32]) -> Result<f64, MixtureError> {
         let scoring = Scoring::UnitVariance;
         self.eval.evaluate(scoring, &mut self.student, &self.data, Some(out_ll), None)
+    }
+
+    /// `k` distinct rows of the data, drawn from stream `stream` of the current iteration,
+    /// in increasing order (a subsampled E-step's or curriculum update's rows).
+    pub(crate) fn draw_rows(&self, stream: &str, k: usize) -> Vec<usize> {
+        let mut rng = self.seeds.stream_indexed(stream, self.iteration as u64);
+        let mut rows = rand::seq::index::sample(&mut rng, self.data.len(), k).into_vec();
+        rows.sort_unstable();
+        rows
+    }
+
+    /// The pairs `rows` of the data, as a dataset of their own.
+    pub(crate) fn rows_of(&self, rows: &[usize]) -> Result<Dataset, MixtureError> {
+        let (mut states, mut actions) = (Mat::zeros(0, 0), Mat::zeros(0, 0));
+        gather_rows(self.data.states(), rows, &mut states);
+        gather_rows(self.data.actions(), rows, &mut actions);
+        Ok(Dataset::new(states, actions)?)
+    }
+
+    /// As [`MixtureFit::evaluate_unit`] on other data (a subset of the rows).
+    pub(crate) fn evaluate_unit_on(
+        &mut self,
+        data: &Dataset,
+        out_ll: &mut [f32],
+    ) -> Result<f64, MixtureError> {
+        self.eval.evaluate(Scoring::UnitVariance, &mut self.student, data, Some(out_ll), None)
     }
 
     /// As [`MixtureFit::evaluate`] on other data (a subset of the rows).

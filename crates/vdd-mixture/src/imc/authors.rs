@@ -1,69 +1,121 @@
-//! One iteration of the authors' IMC ([`ImcVariant::Authors`]).
+//! One iteration of the authors' IMC ([`ImcVariant::Authors`]), over every point or, with
+//! [`ImcConfig::curriculum_rows`], over the iteration's drawn points.
 
 use vdd_core::Expert;
 
-use super::{Imc, ImcMetrics, ImcVariant, log_sum_exp};
+use super::{Curricula, Imc, ImcMetrics, ImcVariant, log_sum_exp};
 use crate::error::MixtureError;
-use crate::fit;
+use crate::fit::{self, RowSampler};
+
+#[cfg(doc)]
+use super::ImcConfig;
+
+/// Advances one point's log curriculum `row` (`Z` entries) by `steps` of the authors' updates
+/// with the experts' log-likelihoods `ll` held fixed: `log c(o, z) ← steps·ℓ_z(o)/η + log
+/// p(z|o)`, `p(z|o)` the row normalised. One step is the authors' update; `k` steps give the
+/// posterior of `k` single steps with the same `ℓ`, which is how a point that
+/// [`ImcConfig::curriculum_rows`] skipped catches up when it is drawn again.
+///
+/// ```
+/// use vdd_mixture::imc::advance_curriculum;
+/// let (ll, eta) = ([-1.0f32, -3.0], 2.0);
+/// let mut once = [0.0f64, 0.0];
+/// advance_curriculum(&mut once, &ll, 3.0, eta);
+/// let mut thrice = [0.0f64, 0.0];
+/// for _ in 0..3 {
+///     advance_curriculum(&mut thrice, &ll, 1.0, eta);
+/// }
+/// // The same posterior p(z|o): the rows differ by a constant only.
+/// assert!(((once[0] - once[1]) - (thrice[0] - thrice[1])).abs() < 1e-12);
+/// assert!(((once[0] - once[1]) - 3.0).abs() < 1e-12); // 3 · (−1 − (−3)) / 2
+/// ```
+pub fn advance_curriculum(row: &mut [f64], ll: &[f32], steps: f64, eta: f64) {
+    let lse = log_sum_exp(row);
+    for (c, ll) in row.iter_mut().zip(ll) {
+        *c = steps * f64::from(*ll) / eta + (*c - lse);
+    }
+}
+
+/// Shifts a log curriculum row so that its best expert has weight 1 (no point is dropped) and
+/// writes its posterior `p(z|o)` into `posterior`.
+fn settle(row: &mut [f64], posterior: &mut [f32]) {
+    let max = row.iter().copied().fold(f64::NEG_INFINITY, f64::max);
+    row.iter_mut().for_each(|c| *c -= max);
+    let lse = log_sum_exp(row);
+    for (p, c) in posterior.iter_mut().zip(row.iter()) {
+        *p = (*c - lse).exp() as f32;
+    }
+}
+
+/// The per-point log curricula `per_point` (`N·Z`) of the points `rows` (all when `None`),
+/// normalised jointly.
+fn joint_of(per_point: &[f64], rows: Option<&[usize]>, z_n: usize) -> Curricula {
+    let log_joint: Vec<f64> = match rows {
+        None => per_point.to_vec(),
+        Some(rows) => {
+            rows.iter().flat_map(|&o| &per_point[o * z_n..(o + 1) * z_n]).copied().collect()
+        }
+    };
+    let total = log_sum_exp(&log_joint);
+    let n = log_joint.len() / z_n;
+    Curricula { n, num_experts: z_n, log_joint: log_joint.into_iter().map(|c| c - total).collect() }
+}
 
 impl<E: Expert> Imc<E> {
     /// The authors' iteration: unit-variance likelihoods, curricula normalised per data point,
     /// expert steps on uniform minibatches weighted by the curricula; after the last
-    /// iteration, the gating.
+    /// iteration, the gating. With [`ImcConfig::curriculum_rows`], every iteration but the
+    /// last updates and trains on its drawn points only.
     pub(super) fn step_authors(&mut self) -> Result<ImcMetrics, MixtureError> {
         debug_assert_eq!(self.config.variant, ImcVariant::Authors);
+        let last = self.fit.iteration + 1 == self.config.iterations;
+        match self.config.curriculum_rows {
+            Some(k) if k < self.fit.data.len() && !last => self.step_authors_on(k),
+            _ => self.step_authors_all(),
+        }
+    }
+
+    /// The authors' iteration over every point.
+    fn step_authors_all(&mut self) -> Result<ImcMetrics, MixtureError> {
         let it = self.fit.iteration;
         let (n, z_n, eta) = (self.fit.data.len(), self.fit.student.num_experts(), self.config.eta);
 
         // 1. ℓ_z(o) = −½‖a_o − μ_z(s_o)‖² with the experts frozen.
         let log_likelihood = self.fit.evaluate_unit(&mut self.log_lik)?;
-        if !log_likelihood.is_finite() || self.log_lik.iter().any(|x| !x.is_finite()) {
-            return Err(MixtureError::NonFinite { iteration: it, quantity: "log-likelihood" });
+        check_finite(log_likelihood, &self.log_lik, it)?;
+        if self.config.curriculum_rows.is_some() {
+            // Earlier iterations updated some points only, and not the joint curricula.
+            self.curricula = joint_of(&self.per_point, None, z_n);
         }
         let objective = self.curricula.objective(&self.log_lik, eta)?;
 
-        // 2. log c(o, z) ← ℓ_z(o)/η + log p(z|o), p(z|o) the current curricula's posterior;
-        //    the bound is η log Σ_{o,z} c(o, z); then every point's best expert gets weight 1.
+        // 2. log c(o, z) ← ℓ_z(o)/η + log p(z|o), p(z|o) the current curricula's posterior
+        //    (once per iteration the point missed); the bound is η log Σ_{o,z} c(o, z); then
+        //    every point's best expert gets weight 1.
         for o in 0..n {
-            let row = &mut self.per_point[o * z_n..(o + 1) * z_n];
-            let lse = log_sum_exp(row);
-            for (c, ll) in row.iter_mut().zip(&self.log_lik[o * z_n..(o + 1) * z_n]) {
-                *c = f64::from(*ll) / eta + (*c - lse);
-            }
+            let steps = (it + 1 - self.advanced_to[o]) as f64;
+            let (row, ll) = (o * z_n..(o + 1) * z_n, &self.log_lik[o * z_n..(o + 1) * z_n]);
+            advance_curriculum(&mut self.per_point[row], ll, steps, eta);
+            self.advanced_to[o] = it + 1;
         }
         let lower_bound = eta * log_sum_exp(&self.per_point);
         for o in 0..n {
-            let row = &mut self.per_point[o * z_n..(o + 1) * z_n];
-            let max = row.iter().copied().fold(f64::NEG_INFINITY, f64::max);
-            row.iter_mut().for_each(|c| *c -= max);
-            let lse = log_sum_exp(row);
-            for (p, c) in self.posterior[o * z_n..(o + 1) * z_n].iter_mut().zip(row.iter()) {
-                *p = (*c - lse).exp() as f32;
-            }
+            let row = o * z_n..(o + 1) * z_n;
+            settle(&mut self.per_point[row.clone()], &mut self.posterior[row]);
         }
         // The same curricula normalised jointly, for the metrics and `curricula()`.
-        let total = log_sum_exp(&self.per_point);
-        for (j, c) in self.curricula.log_joint.iter_mut().zip(&self.per_point) {
-            *j = c - total;
-        }
-        let curriculum_log_likelihood = self.curricula.weighted_log_likelihood(&self.log_lik);
-        let effective_data_fraction = self.curricula.data_entropy().exp() / n as f64;
-        let active_experts =
-            self.curricula.expert_weights().iter().filter(|&&w| w >= 0.1 / z_n as f64).count();
+        self.curricula = joint_of(&self.per_point, None, z_n);
+        let (curriculum_log_likelihood, effective_data_fraction, active_experts) =
+            self.curricula.summary(&self.log_lik);
 
         // 3. Experts: uniform minibatches, weights c(o, z) / B.
-        let settings = fit::loop_settings!(&self.config);
-        let per_point = &self.per_point;
-        let (expert_loss, expert_lr) = self.fit.expert_steps(&settings, None, |row, w| {
-            for (z, w) in w.iter_mut().enumerate() {
-                *w = per_point[row.o * z_n + z].exp() as f32 / row.len as f32;
-            }
-        })?;
+        let (expert_loss, expert_lr) = self.expert_steps(None)?;
 
         // 4. After the last iteration: the gating, fitted to p(z|o) uniformly over the data with
         //    all of the run's gating steps (the batches of iteration i's steps, in turn).
         let (mut gating_loss, mut gating_lr) = (None, 0.0);
         if it + 1 == self.config.iterations {
+            let settings = fit::loop_settings!(&self.config);
             let posterior = &self.posterior;
             let mut result = Ok(());
             for i in 0..self.config.iterations {
@@ -98,4 +150,67 @@ impl<E: Expert> Imc<E> {
             gating_lr,
         })
     }
+
+    /// The authors' iteration over `k` points drawn afresh ([`ImcConfig::curriculum_rows`]):
+    /// their curricula catch up, the experts step on them, and the metrics describe them.
+    fn step_authors_on(&mut self, k: usize) -> Result<ImcMetrics, MixtureError> {
+        let it = self.fit.iteration;
+        let (z_n, eta) = (self.fit.student.num_experts(), self.config.eta);
+        let rows = self.fit.draw_rows("curriculum-rows", k);
+        let subset = self.fit.rows_of(&rows)?;
+        let mut ll = vec![0.0f32; k * z_n];
+        let log_likelihood = self.fit.evaluate_unit_on(&subset, &mut ll)?;
+        check_finite(log_likelihood, &ll, it)?;
+        let objective = joint_of(&self.per_point, Some(&rows), z_n).objective(&ll, eta)?;
+
+        for (b, &o) in rows.iter().enumerate() {
+            let steps = (it + 1 - self.advanced_to[o]) as f64;
+            let row = o * z_n..(o + 1) * z_n;
+            advance_curriculum(&mut self.per_point[row], &ll[b * z_n..(b + 1) * z_n], steps, eta);
+            self.advanced_to[o] = it + 1;
+        }
+        let lower_bound = eta * log_sum_exp(&joint_of(&self.per_point, Some(&rows), z_n).log_joint);
+        for &o in &rows {
+            let row = o * z_n..(o + 1) * z_n;
+            settle(&mut self.per_point[row.clone()], &mut self.posterior[row]);
+        }
+        let (curriculum_log_likelihood, effective_data_fraction, active_experts) =
+            joint_of(&self.per_point, Some(&rows), z_n).summary(&ll);
+
+        let (expert_loss, expert_lr) = self.expert_steps(Some(&RowSampler::subset(rows)?))?;
+        self.fit.iteration += 1;
+        Ok(ImcMetrics {
+            iteration: it,
+            objective,
+            lower_bound,
+            curriculum_log_likelihood,
+            effective_data_fraction,
+            active_experts,
+            log_likelihood,
+            expert_loss,
+            gating_loss: None,
+            expert_lr,
+            gating_lr: 0.0,
+        })
+    }
+
+    /// The iteration's expert steps on minibatches from `sampler` (uniform when `None`), each
+    /// row weighted by its curricula `c(o, z) / B`.
+    fn expert_steps(&mut self, sampler: Option<&RowSampler>) -> Result<(f64, f32), MixtureError> {
+        let settings = fit::loop_settings!(&self.config);
+        let (per_point, z_n) = (&self.per_point, self.fit.student.num_experts());
+        self.fit.expert_steps(&settings, sampler, |row, w| {
+            for (z, w) in w.iter_mut().enumerate() {
+                *w = per_point[row.o * z_n + z].exp() as f32 / row.len as f32;
+            }
+        })
+    }
+}
+
+/// An error unless the mean log-likelihood and every expert's are finite.
+fn check_finite(log_likelihood: f64, ll: &[f32], iteration: usize) -> Result<(), MixtureError> {
+    if !log_likelihood.is_finite() || ll.iter().any(|x| !x.is_finite()) {
+        return Err(MixtureError::NonFinite { iteration, quantity: "log-likelihood" });
+    }
+    Ok(())
 }

@@ -217,10 +217,17 @@ fn bad_inputs_are_rejected() {
 /// clusters' shares.
 #[test]
 fn the_authors_variant_covers_every_cluster_and_fits_the_gating_last() {
-    let sizes = [40, 60, 80];
-    let (data, _) = clusters(sizes, 0.3, 2);
-    let n = data.len();
-    let config = ImcConfig {
+    authors_variant_covers_every_cluster(None);
+}
+
+/// As the full authors' variant, with 40 of the 180 points' curricula updated per iteration.
+#[test]
+fn subsampled_curricula_cover_every_cluster_and_fit_the_gating_last() {
+    authors_variant_covers_every_cluster(Some(40));
+}
+
+fn authors_config(curriculum_rows: Option<usize>) -> ImcConfig {
+    ImcConfig {
         variant: ImcVariant::Authors,
         eta: 1.0,
         iterations: 40,
@@ -230,8 +237,16 @@ fn the_authors_variant_covers_every_cluster_and_fits_the_gating_last() {
         gating_batch_size: Some(128),
         expert_optimizer: AdamConfig { lr: 1e-2, ..AdamConfig::default() },
         gating_optimizer: AdamConfig { lr: 1e-2, ..AdamConfig::default() },
+        curriculum_rows,
         ..ImcConfig::toy()
-    };
+    }
+}
+
+fn authors_variant_covers_every_cluster(curriculum_rows: Option<usize>) {
+    let sizes = [40, 60, 80];
+    let (data, _) = clusters(sizes, 0.3, 2);
+    let n = data.len();
+    let config = authors_config(curriculum_rows);
     let mut imc = Imc::new(config, small_moe(ExpertKind::Diagonal, 3, 0), data).unwrap();
     let mut gating = Vec::new();
     let mut coverage = 0.0;
@@ -263,5 +278,48 @@ fn the_authors_variant_covers_every_cluster_and_fits_the_gating_last() {
         let w = out.log_gating_row(0)[z].exp();
         let expect = sizes[k] as f32 / n as f32;
         assert!((w - expect).abs() < 0.05, "gating weight of expert {z}: {w} vs {expect}");
+    }
+}
+
+/// Updating every point's curriculum is the full run, bit for bit; updating some is another
+/// run, the same for the same seed.
+#[test]
+fn curriculum_rows_of_the_whole_dataset_are_the_full_run() {
+    let (data, _) = clusters([40, 60, 80], 0.3, 2);
+    let n = data.len();
+    let run = |rows: Option<usize>| {
+        let config = ImcConfig { iterations: 6, ..authors_config(rows) };
+        let mut imc =
+            Imc::new(config, small_moe(ExpertKind::Diagonal, 3, 0), data.clone()).unwrap();
+        let mut metrics = Vec::new();
+        imc.train(|m| metrics.push(*m)).unwrap();
+        let mut params = Vec::new();
+        imc.student().visit_params("", &mut |_, p| params.push(p.value.clone()));
+        (metrics, params, imc.posterior.clone())
+    };
+    let full = run(None);
+    assert_eq!(run(Some(n)), full);
+    assert_eq!(run(Some(n + 7)), full);
+    let some = run(Some(50));
+    assert_eq!(run(Some(50)), some);
+    assert_ne!(some.1, full.1);
+    // The drawn iterations fit no gating; the last updates every point and fits it.
+    assert!(some.0[..5].iter().all(|m| m.gating_loss.is_none()));
+    assert!(some.0[5].gating_loss.is_some());
+    assert!(some.2.iter().all(|p| p.is_finite()));
+}
+
+#[test]
+fn curriculum_rows_need_the_authors_variant_and_minibatches() {
+    let (data, _) = clusters([10, 10, 10], 0.3, 0);
+    let student = small_moe(ExpertKind::Diagonal, 3, 0);
+    let bad = [
+        (ImcConfig { curriculum_rows: Some(0), ..authors_config(None) }, "positive"),
+        (ImcConfig { curriculum_rows: Some(8), ..ImcConfig::toy() }, "authors' variant"),
+        (ImcConfig { batch_size: None, ..authors_config(Some(8)) }, "batch_size"),
+    ];
+    for (config, says) in bad {
+        let err = Imc::new(config, student.clone(), data.clone()).err().expect("refused");
+        assert!(err.to_string().contains(says), "{err}");
     }
 }
