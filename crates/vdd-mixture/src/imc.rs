@@ -402,6 +402,42 @@ pub struct ImcMetrics {
     pub gating_lr: f32,
 }
 
+/// What an iteration's curriculum update measured: the fields of [`ImcMetrics`] before the
+/// gradient steps.
+struct Measured {
+    objective: f64,
+    lower_bound: f64,
+    /// [`Curricula::summary`] of the updated curricula.
+    summary: (f64, f64, usize),
+    log_likelihood: f64,
+}
+
+impl Measured {
+    /// The iteration's metrics, with the last expert and gating steps' losses and learning
+    /// rates.
+    fn into_metrics(
+        self,
+        iteration: usize,
+        (expert_loss, expert_lr): (f64, f32),
+        (gating_loss, gating_lr): (Option<f64>, f32),
+    ) -> ImcMetrics {
+        let (curriculum_log_likelihood, effective_data_fraction, active_experts) = self.summary;
+        ImcMetrics {
+            iteration,
+            objective: self.objective,
+            lower_bound: self.lower_bound,
+            curriculum_log_likelihood,
+            effective_data_fraction,
+            active_experts,
+            log_likelihood: self.log_likelihood,
+            expert_loss,
+            gating_loss,
+            expert_lr,
+            gating_lr,
+        }
+    }
+}
+
 /// Information Maximizing Curriculum for a mixture of experts of family `E` on a [`Dataset`].
 /// The mixture must have a learned gating.
 ///
@@ -580,8 +616,7 @@ impl<E: Expert> Trainer for Imc<E> {
         }
         self.marginal.clone_from(&self.curricula.data_marginal());
         let curriculum_sampler = RowSampler::weighted(&self.marginal)?;
-        let (curriculum_log_likelihood, effective_data_fraction, active_experts) =
-            self.curricula.summary(&self.log_lik);
+        let summary = self.curricula.summary(&self.log_lik);
 
         let settings = fit::loop_settings!(&self.config);
         let (posterior, marginal) = (&self.posterior, &self.marginal);
@@ -604,19 +639,8 @@ impl<E: Expert> Trainer for Imc<E> {
         })?;
 
         self.fit.iteration += 1;
-        Ok(ImcMetrics {
-            iteration: it,
-            objective,
-            lower_bound,
-            curriculum_log_likelihood,
-            effective_data_fraction,
-            active_experts,
-            log_likelihood,
-            expert_loss,
-            gating_loss,
-            expert_lr,
-            gating_lr,
-        })
+        let measured = Measured { objective, lower_bound, summary, log_likelihood };
+        Ok(measured.into_metrics(it, (expert_loss, expert_lr), (gating_loss, gating_lr)))
     }
 
     fn iteration(&self) -> usize {

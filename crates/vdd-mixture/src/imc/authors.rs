@@ -3,7 +3,7 @@
 
 use vdd_core::Expert;
 
-use super::{Curricula, Imc, ImcMetrics, ImcVariant, log_sum_exp};
+use super::{Curricula, Imc, ImcMetrics, ImcVariant, Measured, log_sum_exp};
 use crate::error::MixtureError;
 use crate::fit::{self, RowSampler};
 
@@ -68,19 +68,32 @@ impl<E: Expert> Imc<E> {
     /// last updates and trains on its drawn points only.
     pub(super) fn step_authors(&mut self) -> Result<ImcMetrics, MixtureError> {
         debug_assert_eq!(self.config.variant, ImcVariant::Authors);
-        let last = self.fit.iteration + 1 == self.config.iterations;
-        match self.config.curriculum_rows {
-            Some(k) if k < self.fit.data.len() && !last => self.step_authors_on(k),
-            _ => self.step_authors_all(),
-        }
+        let it = self.fit.iteration;
+        let last = it + 1 == self.config.iterations;
+        // 1–2. The curricula of every point, or of the iteration's drawn points.
+        let (measured, rows) = match self.config.curriculum_rows {
+            Some(k) if k < self.fit.data.len() && !last => {
+                let rows = self.fit.draw_rows("curriculum-rows", k);
+                (self.update_curricula_on(&rows)?, Some(rows))
+            }
+            _ => (self.update_curricula()?, None),
+        };
+        // 3. Experts: minibatches (uniform, or from the drawn points), weights c(o, z) / B.
+        let sampler = rows.map(RowSampler::subset).transpose()?;
+        let expert = self.expert_steps(sampler.as_ref())?;
+        // 4. After the last iteration: the gating.
+        let gating = if last { self.fit_gating_last()? } else { (None, 0.0) };
+        self.fit.iteration += 1;
+        Ok(measured.into_metrics(it, expert, gating))
     }
 
-    /// The authors' iteration over every point.
-    fn step_authors_all(&mut self) -> Result<ImcMetrics, MixtureError> {
+    /// Every point's curricula: `ℓ_z(o) = −½‖a_o − μ_z(s_o)‖²` with the experts frozen, then
+    /// `log c(o, z) ← ℓ_z(o)/η + log p(z|o)`, `p(z|o)` the current curricula's posterior (once
+    /// per iteration the point missed); the bound is `η log Σ_{o,z} c(o, z)`; then every
+    /// point's best expert gets weight 1.
+    fn update_curricula(&mut self) -> Result<Measured, MixtureError> {
         let it = self.fit.iteration;
         let (n, z_n, eta) = (self.fit.data.len(), self.fit.student.num_experts(), self.config.eta);
-
-        // 1. ℓ_z(o) = −½‖a_o − μ_z(s_o)‖² with the experts frozen.
         let log_likelihood = self.fit.evaluate_unit(&mut self.log_lik)?;
         check_finite(log_likelihood, &self.log_lik, it)?;
         if self.config.curriculum_rows.is_some() {
@@ -88,10 +101,6 @@ impl<E: Expert> Imc<E> {
             self.curricula = joint_of(&self.per_point, None, z_n);
         }
         let objective = self.curricula.objective(&self.log_lik, eta)?;
-
-        // 2. log c(o, z) ← ℓ_z(o)/η + log p(z|o), p(z|o) the current curricula's posterior
-        //    (once per iteration the point missed); the bound is η log Σ_{o,z} c(o, z); then
-        //    every point's best expert gets weight 1.
         for o in 0..n {
             let steps = (it + 1 - self.advanced_to[o]) as f64;
             let (row, ll) = (o * z_n..(o + 1) * z_n, &self.log_lik[o * z_n..(o + 1) * z_n]);
@@ -105,93 +114,33 @@ impl<E: Expert> Imc<E> {
         }
         // The same curricula normalised jointly, for the metrics and `curricula()`.
         self.curricula = joint_of(&self.per_point, None, z_n);
-        let (curriculum_log_likelihood, effective_data_fraction, active_experts) =
-            self.curricula.summary(&self.log_lik);
-
-        // 3. Experts: uniform minibatches, weights c(o, z) / B.
-        let (expert_loss, expert_lr) = self.expert_steps(None)?;
-
-        // 4. After the last iteration: the gating, fitted to p(z|o) uniformly over the data with
-        //    all of the run's gating steps (the batches of iteration i's steps, in turn).
-        let (mut gating_loss, mut gating_lr) = (None, 0.0);
-        if it + 1 == self.config.iterations {
-            let settings = fit::loop_settings!(&self.config);
-            let posterior = &self.posterior;
-            let mut result = Ok(());
-            for i in 0..self.config.iterations {
-                self.fit.iteration = i;
-                match self.fit.gating_steps(&settings, None, |row, t| {
-                    t.copy_from_slice(&posterior[row.o * z_n..(row.o + 1) * z_n]);
-                    1.0 / row.len as f32
-                }) {
-                    Ok((l, lr)) => (gating_loss, gating_lr) = (l, lr),
-                    Err(e) => {
-                        result = Err(e);
-                        break;
-                    }
-                }
-            }
-            self.fit.iteration = it;
-            result?;
-        }
-
-        self.fit.iteration += 1;
-        Ok(ImcMetrics {
-            iteration: it,
-            objective,
-            lower_bound,
-            curriculum_log_likelihood,
-            effective_data_fraction,
-            active_experts,
-            log_likelihood,
-            expert_loss,
-            gating_loss,
-            expert_lr,
-            gating_lr,
-        })
+        let summary = self.curricula.summary(&self.log_lik);
+        Ok(Measured { objective, lower_bound, summary, log_likelihood })
     }
 
-    /// The authors' iteration over `k` points drawn afresh ([`ImcConfig::curriculum_rows`]):
-    /// their curricula catch up, the experts step on them, and the metrics describe them.
-    fn step_authors_on(&mut self, k: usize) -> Result<ImcMetrics, MixtureError> {
+    /// As [`Imc::update_curricula`] for the points `rows` only
+    /// ([`ImcConfig::curriculum_rows`]); the metrics describe them.
+    fn update_curricula_on(&mut self, rows: &[usize]) -> Result<Measured, MixtureError> {
         let it = self.fit.iteration;
         let (z_n, eta) = (self.fit.student.num_experts(), self.config.eta);
-        let rows = self.fit.draw_rows("curriculum-rows", k);
-        let subset = self.fit.rows_of(&rows)?;
-        let mut ll = vec![0.0f32; k * z_n];
+        let subset = self.fit.rows_of(rows)?;
+        let mut ll = vec![0.0f32; rows.len() * z_n];
         let log_likelihood = self.fit.evaluate_unit_on(&subset, &mut ll)?;
         check_finite(log_likelihood, &ll, it)?;
-        let objective = joint_of(&self.per_point, Some(&rows), z_n).objective(&ll, eta)?;
-
+        let objective = joint_of(&self.per_point, Some(rows), z_n).objective(&ll, eta)?;
         for (b, &o) in rows.iter().enumerate() {
             let steps = (it + 1 - self.advanced_to[o]) as f64;
             let row = o * z_n..(o + 1) * z_n;
             advance_curriculum(&mut self.per_point[row], &ll[b * z_n..(b + 1) * z_n], steps, eta);
             self.advanced_to[o] = it + 1;
         }
-        let lower_bound = eta * log_sum_exp(&joint_of(&self.per_point, Some(&rows), z_n).log_joint);
-        for &o in &rows {
+        let lower_bound = eta * log_sum_exp(&joint_of(&self.per_point, Some(rows), z_n).log_joint);
+        for &o in rows {
             let row = o * z_n..(o + 1) * z_n;
             settle(&mut self.per_point[row.clone()], &mut self.posterior[row]);
         }
-        let (curriculum_log_likelihood, effective_data_fraction, active_experts) =
-            joint_of(&self.per_point, Some(&rows), z_n).summary(&ll);
-
-        let (expert_loss, expert_lr) = self.expert_steps(Some(&RowSampler::subset(rows)?))?;
-        self.fit.iteration += 1;
-        Ok(ImcMetrics {
-            iteration: it,
-            objective,
-            lower_bound,
-            curriculum_log_likelihood,
-            effective_data_fraction,
-            active_experts,
-            log_likelihood,
-            expert_loss,
-            gating_loss: None,
-            expert_lr,
-            gating_lr: 0.0,
-        })
+        let summary = joint_of(&self.per_point, Some(rows), z_n).summary(&ll);
+        Ok(Measured { objective, lower_bound, summary, log_likelihood })
     }
 
     /// The iteration's expert steps on minibatches from `sampler` (uniform when `None`), each
@@ -204,6 +153,31 @@ impl<E: Expert> Imc<E> {
                 *w = per_point[row.o * z_n + z].exp() as f32 / row.len as f32;
             }
         })
+    }
+
+    /// The gating, fitted to `p(z|o)` uniformly over the data with all of the run's gating
+    /// steps (the batches of iteration `i`'s steps, in turn). Returns the last step's loss and
+    /// learning rate.
+    fn fit_gating_last(&mut self) -> Result<(Option<f64>, f32), MixtureError> {
+        let (it, z_n) = (self.fit.iteration, self.fit.student.num_experts());
+        let settings = fit::loop_settings!(&self.config);
+        let posterior = &self.posterior;
+        let (mut last, mut result) = ((None, 0.0), Ok(()));
+        for i in 0..self.config.iterations {
+            self.fit.iteration = i;
+            match self.fit.gating_steps(&settings, None, |row, t| {
+                t.copy_from_slice(&posterior[row.o * z_n..(row.o + 1) * z_n]);
+                1.0 / row.len as f32
+            }) {
+                Ok(step) => last = step,
+                Err(e) => {
+                    result = Err(e);
+                    break;
+                }
+            }
+        }
+        self.fit.iteration = it;
+        result.map(|()| last)
     }
 }
 
