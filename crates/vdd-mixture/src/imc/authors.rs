@@ -47,15 +47,20 @@ fn settle(row: &mut [f64], posterior: &mut [f32]) {
     }
 }
 
-/// The per-point log curricula `per_point` (`N·Z`) of the points `rows` (all when `None`),
-/// normalised jointly.
-fn joint_of(per_point: &[f64], rows: Option<&[usize]>, z_n: usize) -> Curricula {
-    let log_joint: Vec<f64> = match rows {
+/// The per-point log curricula `per_point` (`N·Z`) of the points `rows` (all when `None`).
+fn rows_of(per_point: &[f64], rows: Option<&[usize]>, z_n: usize) -> Vec<f64> {
+    match rows {
         None => per_point.to_vec(),
         Some(rows) => {
             rows.iter().flat_map(|&o| &per_point[o * z_n..(o + 1) * z_n]).copied().collect()
         }
-    };
+    }
+}
+
+/// The per-point log curricula `per_point` (`N·Z`) of the points `rows` (all when `None`),
+/// normalised jointly.
+fn joint_of(per_point: &[f64], rows: Option<&[usize]>, z_n: usize) -> Curricula {
+    let log_joint = rows_of(per_point, rows, z_n);
     let total = log_sum_exp(&log_joint);
     let n = log_joint.len() / z_n;
     Curricula { n, num_experts: z_n, log_joint: log_joint.into_iter().map(|c| c - total).collect() }
@@ -134,7 +139,7 @@ impl<E: Expert> Imc<E> {
             advance_curriculum(&mut self.per_point[row], &ll[b * z_n..(b + 1) * z_n], steps, eta);
             self.advanced_to[o] = it + 1;
         }
-        let lower_bound = eta * log_sum_exp(&joint_of(&self.per_point, Some(rows), z_n).log_joint);
+        let lower_bound = eta * log_sum_exp(&rows_of(&self.per_point, Some(rows), z_n));
         for &o in rows {
             let row = o * z_n..(o + 1) * z_n;
             settle(&mut self.per_point[row.clone()], &mut self.posterior[row]);
