@@ -305,6 +305,7 @@ fn curriculum_rows_of_the_whole_dataset_are_the_full_run() {
     assert_ne!(some.1, full.1);
     // The drawn iterations fit no gating; the last updates every point and fits it.
     assert!(some.0[..5].iter().all(|m| m.gating_loss.is_none()));
+    assert!(some.0[5].gating_loss.is_some());
     // Their bound is η log Σ c(o, z) over the drawn points' curricula before normalisation
     // (a jointly normalised curricula would give exactly 0).
     assert!(some.0[..5].iter().all(|m| m.lower_bound.is_finite()));
