@@ -74,24 +74,25 @@ pub fn avoiding_trajectories(
     trajectories(stem, &avoiding_scene(), &panels, png)
 }
 
-/// The Block-Push scene for the targets of `targets` (centres), the workspace window and the
+/// The Block-Push scene for the targets of `targets` (centres; target 0 olive, target 1 cyan,
+/// apart from the four modes' colours and the failures'), the workspace window and the
 /// effector's start.
 pub fn block_push_scene(targets: [[f32; 2]; 2]) -> Scene {
     use vdd_tasks::block_push::{EFFECTOR_START, TARGET_HALF, WORKSPACE};
     Scene {
         x_range: (WORKSPACE[0][0], WORKSPACE[1][0]),
-        y_range: (-0.5, 0.35),
+        y_range: (WORKSPACE[0][1], WORKSPACE[1][1]),
         finish_y: None,
         obstacles: vec![],
         zones: (0..2)
             .map(|t| Zone {
                 centre: (targets[t][0], targets[t][1]),
                 half: TARGET_HALF,
-                colour: 4 + t,
+                colour: 8 + t,
             })
             .collect(),
         start: Some((EFFECTOR_START[0], EFFECTOR_START[1])),
-        legend: (WORKSPACE[0][0] + 0.01, 0.33),
+        legend: (WORKSPACE[0][0] + 0.01, WORKSPACE[1][1] - 0.02),
     }
 }
 
@@ -165,6 +166,29 @@ pub fn block_push_demonstrations(
         files.extend(trajectories(&stem, &block_push_scene(targets), &[panel], png)?);
     }
     Ok(files)
+}
+
+/// One panel of the Block-Push trajectory figure: the effector's paths (observation columns
+/// 8–9, then the final observation) of `paths` (`T x 16` observations), each coloured by its
+/// episode's mode index (`b0→t0, b0→t1, b1→t0, b1→t1`) or, for a failure, by colour 4.
+pub fn block_push_panel(
+    label: &str,
+    paths: &[PushingPath<'_>],
+    success_rate: f64,
+    task_entropy: f64,
+) -> vdd_report::plots::TrajectoryPanel {
+    mode_panel(label, paths, 8, vdd_tasks::block_push::N_MODES, (success_rate, task_entropy))
+}
+
+/// Writes the Block-Push trajectory figure `stem.svg` / `stem.png` (one panel per entry) over
+/// the scene of `targets` ([`block_push_scene`]).
+pub fn block_push_trajectories(
+    stem: &Path,
+    targets: [[f32; 2]; 2],
+    panels: &[vdd_report::plots::TrajectoryPanel],
+    png: bool,
+) -> vdd_report::Result<Vec<String>> {
+    trajectories(stem, &block_push_scene(targets), panels, png)
 }
 
 /// The Pushing scene: the two fixed target zones (red, green), the effector's start, the
@@ -323,6 +347,30 @@ mod tests {
         std::fs::create_dir_all(&dir).unwrap();
         let files = pushing_trajectories(&dir.join("traj"), &[panel], false).unwrap();
         assert_eq!(files.len(), 1);
+        std::fs::remove_dir_all(&dir).unwrap();
+    }
+
+    #[test]
+    fn the_block_push_rollout_figure_colours_the_effector_by_mode() {
+        use vdd_tasks::block_push::oracle::{OracleConfig, generate_demonstrations};
+        let demos = generate_demonstrations(2, 3, &OracleConfig::default()).unwrap();
+        let o = &demos.observations[0];
+        let last: Vec<f32> = (0..o.ncols()).map(|c| o[(0, c)]).collect();
+        let paths = [(o, Some(last.as_slice()), Some(demos.modes[0].index())), (o, None, None)];
+        let panel = block_push_panel("vdd", &paths, 0.5, 0.25);
+        let (ids, n) = panel.experts.clone().unwrap();
+        assert_eq!((n, ids[0][0], ids[1][0]), (5, demos.modes[0].index(), 4));
+        // The effector's path (columns 8-9) and the final observation appended.
+        assert_eq!(panel.paths[0].len(), o.nrows() + 1);
+        assert_eq!(panel.paths[1][0], (o[(0, 8)], o[(0, 9)]));
+        assert_eq!(panel.success, vec![true, false]);
+        let dir = std::env::temp_dir().join(format!("vdd-lab-bp-roll-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let targets = [[o[(0, 12)], o[(0, 13)]], [o[(0, 14)], o[(0, 15)]]];
+        let files = block_push_trajectories(&dir.join("traj"), targets, &[panel], false).unwrap();
+        assert_eq!(files.len(), 1);
+        let svg = std::fs::read_to_string(dir.join("traj.svg")).unwrap();
+        assert!(svg.contains("vdd: success 0.50, entropy 0.25"));
         std::fs::remove_dir_all(&dir).unwrap();
     }
 

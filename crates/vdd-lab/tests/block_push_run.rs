@@ -56,7 +56,9 @@ timing_warmup = 2
 timing_min_round_ms = 0.1
 
 [plots]
-enabled = false
+enabled = true
+png = false
+trajectories = 2
 "#;
 
 fn run(root: &Path, out: &Path, tuning: bool) -> vdd_lab::Result {
@@ -92,6 +94,11 @@ fn a_tiny_block_push_run_writes_its_metrics_and_a_tuning_run_its_log() {
     }
     let table = std::fs::read_to_string(out.join("table.md")).unwrap();
     assert!(table.contains("| vdd-beso | 1 |") && table.contains("p1"), "{table}");
+    // The trajectory figure: the demonstrations' panel and one per method.
+    let svg = std::fs::read_to_string(out.join("trajectories.svg")).unwrap();
+    for panel in ["demonstrations (target 0 left)", "beso: success", "vdd-beso: success"] {
+        assert!(svg.contains(panel), "{panel} missing from trajectories.svg");
+    }
     // Every saved policy (student, teacher, consistency model) acts on raw observations and
     // gives the run's figures bit for bit (what `rollout_saved --task block-push` prints).
     let protocol = vdd_tasks::block_push::EvalProtocol { rollouts: 4, lockstep_batch: 2 };

@@ -2,7 +2,9 @@
 //! ([`vdd_tasks::block_push::dataset`]) → teachers (cached) → every method → rollouts
 //! ([`vdd_tasks::block_push::EvalProtocol`]: success p2 as `success_rate`, p1, task entropy over
 //! the four modes) and µs per action → `metrics.json`, `table.md`, `curves.json`, mode
-//! histograms and learning curves.
+//! histograms, learning curves and a trajectory figure coloured by mode (the demonstrations'
+//! and each method's first-seed rollouts, those with target 0 on the left, so that one scene
+//! holds them).
 //!
 //! The stages are Avoiding's ([`super::rollouts`]): the demonstrations come from `data.seed`
 //! (one dataset for every run seed), the run seed drives the teachers, the students and the
@@ -17,8 +19,10 @@ use serde_json::Value;
 use toml::Table;
 use vdd_data::Windowed;
 use vdd_moe::MoeConfig;
+use vdd_report::plots::TrajectoryPanel;
 use vdd_tasks::block_push::EvalProtocol;
 use vdd_tasks::block_push::dataset::DatasetConfig;
+use vdd_tasks::demo_data::Demonstrator as _;
 use vdd_tasks::timing::Timing;
 
 use super::rollouts::{self, Prepared, RolloutRecipe, Visits};
@@ -116,10 +120,27 @@ impl BlockPushEval {
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct BlockPushPlots {
-    /// Write the mode histograms and learning curves.
+    /// Write the mode histograms, learning curves and the trajectory figure.
     pub enabled: bool,
     /// Also write PNGs (SVG always).
     pub png: bool,
+    /// Paths a panel of the trajectory figure: as many demonstrations, and first-seed rollouts
+    /// of each method spread over the evaluation, all with target 0 on the left (0: no figure).
+    pub trajectories: usize,
+}
+
+/// What the first seed's evaluations keep for the figures: learning curves and trajectory
+/// panels, per method.
+#[derive(Default)]
+struct FirstSeed {
+    curves: Vec<(String, Curves)>,
+    panels: Vec<TrajectoryPanel>,
+}
+
+/// Whether the observation whose column `c` is `o(c)` has target 0 left of target 1: the
+/// layout the trajectory figure draws (the targets' sides are a coin flip per episode).
+fn target_0_left(o: impl Fn(usize) -> f32) -> bool {
+    o(12) < o(14)
 }
 
 impl TaskRecipe for BlockPushRecipe {
@@ -226,8 +247,8 @@ impl Task for BlockPush {
 }
 
 /// Rolls out one trained method on raw observations through the recipe's window and chunk,
-/// saves a mixture with its deployment spec, keeps its learning curves (`curves`, first seed);
-/// returns its row and the deployed policy for timing.
+/// saves a mixture with its deployment spec, keeps its learning curves and the paths of its
+/// rollouts (`first`, first seed); returns its row and the deployed policy for timing.
 fn evaluate(
     e: &Entry<'_, BlockPushRecipe>,
     mut trained: Trained,
@@ -235,13 +256,14 @@ fn evaluate(
     threads: usize,
     dir: &std::path::Path,
     stages: &mut StageTimes,
-    curves: Option<&mut Vec<(String, Curves)>>,
+    first: Option<&mut FirstSeed>,
 ) -> crate::Result<(Row, Windowed<TrainedPolicy>)> {
     let (label, cfg) = (&e.label, e.cfg);
     let (spec, n) = (cfg.data.deploy_spec(), cfg.eval.rollouts);
+    let record = first.is_some() && cfg.plots.enabled && cfg.plots.trajectories > 0;
     let (wrapped, ev, eval_seconds) =
         rollouts::roll_out(&mut trained, spec, label, seed, n, dir, stages, |w| {
-            Ok(cfg.eval.protocol().evaluate(w, seed, threads, false)?)
+            Ok(cfg.eval.protocol().evaluate(w, seed, threads, record)?)
         })?;
     let tag = format!("{label} s{seed}");
     let m = &ev.metrics;
@@ -256,8 +278,22 @@ fn evaluate(
         eval_seconds
     ));
     let row = rollouts::trained_row(m.row_fields(), &trained, seed);
-    if let Some(curves) = curves {
-        curves.push((label.clone(), trained.curves));
+    if let Some(first) = first {
+        if record {
+            let left =
+                |t: &vdd_tasks::episodes::Trajectory| target_0_left(|c| t.final_observation[c]);
+            let mode = |r: &vdd_tasks::block_push::rollout::Rollout| {
+                r.success().then_some(r.info.mode).flatten().map(|m| m.index())
+            };
+            let paths = rollouts::drawn_paths(&ev.rollouts, cfg.plots.trajectories, left, mode);
+            first.panels.push(plots::block_push_panel(
+                label,
+                &paths,
+                m.success_rate,
+                m.task_entropy,
+            ));
+        }
+        first.curves.push((label.clone(), trained.curves));
     }
     Ok((row, wrapped))
 }
@@ -269,11 +305,12 @@ fn write_outputs(
     dir: &std::path::Path,
     base: &BlockPushRecipe,
     out: rollouts::Outcome,
-    curves: Vec<(String, Curves)>,
+    first: FirstSeed,
     stages: &mut StageTimes,
 ) -> crate::Result<Vec<tuning::LogEntry>> {
     let metrics = rollouts::metrics(ctx, base, &out);
-    let json: serde_json::Map<String, Value> = curves
+    let json: serde_json::Map<String, Value> = first
+        .curves
         .iter()
         .map(|(l, c)| Ok((l.clone(), serde_json::to_value(c)?)))
         .collect::<crate::Result<_>>()?;
@@ -290,12 +327,47 @@ fn write_outputs(
     if base.plots.enabled {
         let t0 = Instant::now();
         let png = base.plots.png;
-        figures.extend(plots::learning_curves(&dir.join("curves"), &curves, png)?);
+        figures.extend(plots::learning_curves(&dir.join("curves"), &first.curves, png)?);
         let shares = report::mode_shares(&out.rows);
         figures.extend(plots::mode_histograms(&dir.join("modes"), &shares, png)?);
+        if base.plots.trajectories > 0 {
+            let (demos, targets) = demonstrations_panel(base, base.plots.trajectories)?;
+            let mut panels = vec![demos];
+            panels.extend(first.panels);
+            let stem = dir.join("trajectories");
+            figures.extend(plots::block_push_trajectories(&stem, targets, &panels, png)?);
+        }
         stages.add("plots", t0.elapsed().as_secs_f64());
     }
     rollouts::finish(ctx, dir, &metrics, &table, out, figures, Vec::new(), stages)
+}
+
+/// The demonstrations' panel and the targets of its scene: the first `n` demonstrations of the
+/// recipe's data settings with target 0 on the left (of the first `4n` drawn), coloured by
+/// mode, titled with the demonstrator's success rate and the entropy of their modes; the
+/// targets are the first drawn episode's.
+fn demonstrations_panel(
+    base: &BlockPushRecipe,
+    n: usize,
+) -> crate::Result<(TrajectoryPanel, [[f32; 2]; 2])> {
+    let d = &base.data;
+    let demos = d.oracle.demonstrations(4 * n, d.seed)?;
+    let paths: Vec<_> = demos
+        .observations
+        .iter()
+        .zip(&demos.modes)
+        .filter(|(o, _)| o.nrows() > 0 && target_0_left(|c| o[(0, c)]))
+        .take(n)
+        .map(|(o, m)| (o, None, Some(m.index())))
+        .collect();
+    let targets = paths.first().map_or([[0.28, 0.2], [0.52, 0.2]], |(o, _, _)| {
+        [[o[(0, 12)], o[(0, 13)]], [o[(0, 14)], o[(0, 15)]]]
+    });
+    let mut counts = [0usize; vdd_tasks::block_push::N_MODES];
+    paths.iter().filter_map(|p| p.2).for_each(|m| counts[m] += 1);
+    let entropy = f64::from(vdd_tasks::normalized_entropy(&counts));
+    let label = "demonstrations (target 0 left)";
+    Ok((plots::block_push_panel(label, &paths, demos.success_rate(), entropy), targets))
 }
 
 #[cfg(test)]
@@ -327,6 +399,22 @@ mod tests {
                 assert!(!plan.is_empty());
             }
         }
+    }
+
+    #[test]
+    fn the_demonstrations_panel_draws_one_target_layout() {
+        let mut base = BlockPushRecipe::defaults().unwrap();
+        base.data.seed = 5;
+        let (panel, targets) = demonstrations_panel(&base, 3).unwrap();
+        assert!((1..=3).contains(&panel.paths.len()), "{}", panel.paths.len());
+        assert!(targets[0][0] < targets[1][0], "{targets:?}");
+        assert!(panel.success.iter().all(|&s| s));
+        // Every path starts at the effector's start.
+        let start = vdd_tasks::block_push::EFFECTOR_START;
+        for p in &panel.paths {
+            assert!((p[0].0 - start[0]).abs() < 1e-3 && (p[0].1 - start[1]).abs() < 1e-3);
+        }
+        assert!(target_0_left(|c| c as f32) && !target_0_left(|c| -(c as f32)));
     }
 
     #[test]

@@ -326,21 +326,11 @@ fn evaluate<T: D3ilTask>(
     let row = rollouts::trained_row(m.row_fields(), &trained, seed);
     if let Some(first) = first {
         if record {
-            // Spread the drawn rollouts over the contexts: every `k`-th episode.
-            let n = cfg.plots.trajectories;
-            let step = (ev.rollouts.len() / n.max(1)).max(1);
-            let paths: Vec<_> = ev
-                .rollouts
-                .iter()
-                .step_by(step)
-                .take(n)
-                .filter_map(|r| {
-                    let t = r.trajectory.as_ref()?;
-                    let mode = r.success().then(|| r.info.reached_mode()).flatten();
-                    let mode = mode.map(|m| m.index());
-                    Some((&t.observations, Some(t.final_observation.as_slice()), mode))
-                })
-                .collect();
+            // Spread the drawn rollouts over the contexts.
+            let mode = |r: &vdd_tasks::episodes::Rollout<T::Env>| {
+                r.success().then(|| r.info.reached_mode()).flatten().map(|m| m.index())
+            };
+            let paths = rollouts::drawn_paths(&ev.rollouts, cfg.plots.trajectories, |_| true, mode);
             first.panels.push((T::PANEL)(label, &paths, m.success_rate, m.task_entropy));
         }
         first.curves.push((label.clone(), trained.curves));

@@ -253,6 +253,28 @@ pub(crate) fn run_plan<R: RolloutRecipe, K: Default>(
     Ok(())
 }
 
+/// The paths a trajectory panel draws of an evaluation: up to `n` of the recorded rollouts
+/// that `keep` accepts, spread over them (every `k`-th), each as its observations, its final
+/// observation and `mode` of it (`None`: a failure, drawn in the failure colour).
+pub(crate) fn drawn_paths<'a, E: Env>(
+    rollouts: &'a [vdd_tasks::episodes::Rollout<E>],
+    n: usize,
+    keep: impl Fn(&vdd_tasks::episodes::Trajectory) -> bool,
+    mode: impl Fn(&vdd_tasks::episodes::Rollout<E>) -> Option<usize>,
+) -> Vec<crate::plots::PushingPath<'a>> {
+    let recorded: Vec<_> = rollouts
+        .iter()
+        .filter_map(|r| r.trajectory.as_ref().filter(|t| keep(t)).map(|t| (r, t)))
+        .collect();
+    let step = (recorded.len() / n.max(1)).max(1);
+    recorded
+        .into_iter()
+        .step_by(step)
+        .take(n)
+        .map(|(r, t)| (&t.observations, Some(t.final_observation.as_slice()), mode(r)))
+        .collect()
+}
+
 /// Deploys `trained` through `spec` ([`deploy`]), runs `rollouts` on the deployed policy (`n`
 /// rollouts, for the spinner `label s<seed>`) as the stage `rollouts`, and saves a mixture
 /// ([`save_model`]); returns the deployed policy, what `rollouts` returned and its seconds.
