@@ -94,6 +94,9 @@ fn a_tiny_block_push_run_writes_its_metrics_and_a_tuning_run_its_log() {
     }
     let table = std::fs::read_to_string(out.join("table.md")).unwrap();
     assert!(table.contains("| vdd-beso | 1 |") && table.contains("p1"), "{table}");
+    let modes = std::fs::read_to_string(out.join("modes.svg")).unwrap();
+    assert!(modes.contains("demonstrations"), "the demonstrations' histogram is missing");
+    assert_eq!(metrics["data"]["dataset_mode_counts"].as_array().map(Vec::len), Some(4));
     // The trajectory figure: the demonstrations' panel and one per method.
     let svg = std::fs::read_to_string(out.join("trajectories.svg")).unwrap();
     for panel in ["demonstrations (target 0 left)", "beso: success", "vdd-beso: success"] {

@@ -328,7 +328,9 @@ fn write_outputs(
         let t0 = Instant::now();
         let png = base.plots.png;
         figures.extend(plots::learning_curves(&dir.join("curves"), &first.curves, png)?);
-        let shares = report::mode_shares(&out.rows);
+        let mut shares: Vec<_> =
+            rollouts::demonstration_shares(&out.data_summary).into_iter().collect();
+        shares.extend(report::mode_shares(&out.rows));
         figures.extend(plots::mode_histograms(&dir.join("modes"), &shares, png)?);
         if base.plots.trajectories > 0 {
             let (demos, targets) = demonstrations_panel(base, base.plots.trajectories)?;

@@ -218,11 +218,8 @@ impl<T: D3ilTask> RolloutRecipe for D3ilRecipe<T> {
     fn prepare(&self) -> crate::Result<Prepared> {
         let t0 = Instant::now();
         let d = self.data.build()?;
-        let counts = d.mode_counts.clone();
         let modes = <T::Env as ContextEnv>::N_MODES;
-        let mut p = Prepared::new(d, self.data.demonstrations, modes, t0);
-        p.summary["dataset_mode_counts"] = serde_json::json!(counts);
-        Ok(p)
+        Ok(Prepared::new(d, self.data.demonstrations, modes, t0))
     }
 }
 
@@ -391,17 +388,8 @@ fn write_outputs<T: D3ilTask>(
         let t0 = Instant::now();
         let png = base.plots.png;
         figures.extend(plots::learning_curves(&dir.join("curves"), &first.curves, png)?);
-        let mut shares = Vec::new();
-        if let Some(counts) = out.data_summary["dataset_mode_counts"].as_array() {
-            let counts: Vec<f64> = counts.iter().map(|c| c.as_f64().unwrap_or(0.0)).collect();
-            let total: f64 = counts.iter().sum();
-            if total > 0.0 {
-                shares.push((
-                    "demonstrations".to_owned(),
-                    counts.iter().map(|c| c / total).collect(),
-                ));
-            }
-        }
+        let mut shares: Vec<_> =
+            rollouts::demonstration_shares(&out.data_summary).into_iter().collect();
         shares.extend(report::mode_shares(&out.rows));
         figures.extend(plots::mode_histograms(&dir.join("modes"), &shares, png)?);
         if base.plots.trajectories > 0 {

@@ -253,6 +253,18 @@ pub(crate) fn run_plan<R: RolloutRecipe, K: Default>(
     Ok(())
 }
 
+/// The demonstrations' bar of the mode histogram: their modes' shares from a run's data summary
+/// (`dataset_mode_counts`, [`Dataset::summary`]), if it has any.
+pub(crate) fn demonstration_shares(summary: &Value) -> Option<(String, Vec<f64>)> {
+    let counts: Vec<f64> = summary["dataset_mode_counts"]
+        .as_array()?
+        .iter()
+        .map(|c| c.as_f64().unwrap_or(0.0))
+        .collect();
+    let total: f64 = counts.iter().sum();
+    (total > 0.0).then(|| ("demonstrations".to_owned(), counts.iter().map(|c| c / total).collect()))
+}
+
 /// The paths a trajectory panel draws of an evaluation: up to `n` of the recorded rollouts
 /// that `keep` accepts, spread over them (every `k`-th), each as its observations, its final
 /// observation and `mode` of it (`None`: a failure, drawn in the failure colour).

@@ -212,6 +212,7 @@ impl Dataset {
             "state_dim": self.training.states.ncols(),
             "action_dim": self.training.actions.ncols(),
             "dataset_modes": self.mode_counts.iter().filter(|&&c| c > 0).count(),
+            "dataset_mode_counts": self.mode_counts,
             "dataset_entropy": crate::normalized_entropy(&self.mode_counts),
         })
     }
